@@ -1,0 +1,127 @@
+"""Pinhole cameras of a DynaCap rig: projection, rescaling and per-pixel rays.
+
+Conventions (dynacap-formats.md 1.9): world is y-up, millimetres; ``world_to_cam`` is the
+row-major 4x4 extrinsic of ``cameras.calibration`` (x_cam = R X + t); the camera looks along +z,
+image x to the right, y down. Intrinsics put integer coordinates on pixel *corners*: pixel
+(col, row) is sampled at the continuous point (col + 0.5, row + 0.5), as the original rasterizer
+does. ``pixel_centers`` and ``Camera.rays`` use that convention; everything in deliffas that
+casts rays goes through them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from deliffas.checks import check_shape
+
+__all__ = ["Camera", "pixel_centers"]
+
+
+def pixel_centers(width: int, height: int) -> np.ndarray:
+    """Continuous image coordinates of every pixel centre.
+
+    Returns:
+        (H, W, 2) float64, ``[..., 0]`` = col + 0.5, ``[..., 1]`` = row + 0.5.
+    """
+    cols, rows = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+    return np.stack([cols, rows], axis=-1)
+
+
+@dataclass(frozen=True)
+class Camera:
+    """One calibrated pinhole camera (no lens distortion is modelled, as in DELIFFAS).
+
+    Attributes:
+        name: the calibration's ``name`` token.
+        K: (3, 3) float64 intrinsics in pixels for an image of ``width`` x ``height``.
+        world_to_cam: (4, 4) float64 rigid transform, world mm -> camera mm.
+        width: image width in pixels.
+        height: image height in pixels.
+        sensor: sensor size (w, h) in mm as the file states it, or None.
+        radial: the single radial coefficient of the file (unused by the projection).
+    """
+
+    name: str
+    K: np.ndarray
+    world_to_cam: np.ndarray
+    width: int
+    height: int
+    sensor: tuple[float, float] | None = None
+    radial: float = 0.0
+    extra: dict = field(default_factory=dict, compare=False)
+
+    def __post_init__(self) -> None:
+        check_shape(f"camera {self.name} K", self.K, "3 3")
+        check_shape(f"camera {self.name} world_to_cam", self.world_to_cam, "4 4")
+        if self.width <= 0 or self.height <= 0:
+            raise ValueError(f"camera {self.name}: image size must be positive, got {self.width}x{self.height}")
+
+    @property
+    def R(self) -> np.ndarray:
+        """(3, 3) world -> camera rotation."""
+        return self.world_to_cam[:3, :3]
+
+    @property
+    def t(self) -> np.ndarray:
+        """(3,) world -> camera translation, mm."""
+        return self.world_to_cam[:3, 3]
+
+    @property
+    def center(self) -> np.ndarray:
+        """(3,) camera centre in world mm (= -R^T t)."""
+        return -self.R.T @ self.t
+
+    @property
+    def cam_to_world(self) -> np.ndarray:
+        """(4, 4) inverse of ``world_to_cam``."""
+        out = np.eye(4)
+        out[:3, :3] = self.R.T
+        out[:3, 3] = self.center
+        return out
+
+    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Project world points to continuous image coordinates.
+
+        Args:
+            points: (N, 3) world mm.
+
+        Returns:
+            pixels (N, 2) float64 (col, row) in the corner convention, depth (N,) camera z in mm.
+        """
+        check_shape("points", points, "N 3")
+        cam = points @ self.R.T + self.t  # (N, 3)
+        z = cam[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uvw = cam @ self.K.T
+            pix = uvw[:, :2] / uvw[:, 2:3]
+        return pix, z
+
+    def rescaled(self, width: int, height: int) -> "Camera":
+        """The same camera for an image of ``width`` x ``height`` (fx, cx scale with width; fy, cy with height)."""
+        sx, sy = width / self.width, height / self.height
+        K = self.K.copy()
+        K[0, :] *= sx
+        K[1, :] *= sy
+        return replace(self, K=K, width=int(width), height=int(height))
+
+    def rays(self, pixels: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """World-space rays through pixel centres.
+
+        Args:
+            pixels: (N, 2) continuous (col, row) image coordinates; default: every pixel centre
+                in row-major order (N = H * W).
+
+        Returns:
+            origins (N, 3) float64 world mm (all the camera centre), directions (N, 3) unit.
+        """
+        if pixels is None:
+            pixels = pixel_centers(self.width, self.height).reshape(-1, 2)
+        check_shape("pixels", pixels, "N 2")
+        homog = np.concatenate([pixels, np.ones((len(pixels), 1))], axis=1)  # (N, 3)
+        d_cam = homog @ np.linalg.inv(self.K).T
+        d_world = d_cam @ self.R  # R^T d for each row
+        d_world /= np.linalg.norm(d_world, axis=1, keepdims=True)
+        origins = np.broadcast_to(self.center, d_world.shape).copy()
+        return origins, d_world

@@ -1,0 +1,1 @@
+"""Training, evaluation, rendering and per-stage timing."""

@@ -1,0 +1,1 @@
+"""Deformable templates, skinning, shells, UV atlases, normal maps and ray casting."""

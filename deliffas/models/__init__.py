@@ -1,0 +1,1 @@
+"""Networks, losses, metrics and the model zoo of DELIFFAS and its variants."""
