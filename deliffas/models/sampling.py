@@ -1,0 +1,97 @@
+"""Bilinear lookup of atlas-space maps at uv coordinates: the project's one uv sampler.
+
+Convention (docs/conventions.md): texel (row i, col j) of an S x S atlas image has its centre at
+``u = (j + 0.5) / S``, ``v = 1 - (i + 0.5) / S`` (row 0 is the top, v = 1). The lookup is
+``torch.nn.functional.grid_sample(..., mode="bilinear", align_corners=False,
+padding_mode="border")`` with grid ``x = 2u - 1``, ``y = 2(1 - v) - 1``, which is exactly consistent
+with those texel centres. Queries outside the outermost texel centres take the border value.
+
+Note the original DELIFFAS code sampled at (row, col) = ((1 - v) S, u S) with integer coordinates
+at texel centres (a half-texel shift against its rasterised texels, formats doc pitfall 12); we
+use the centred convention above everywhere instead.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import torch
+import torch.nn.functional as F
+
+from deliffas.checks import check_shape
+
+__all__ = ["sample_uv", "uv_to_grid"]
+
+logger = logging.getLogger(__name__)
+
+
+def uv_to_grid(uv: torch.Tensor) -> torch.Tensor:
+    """Map uv in [0, 1]^2 (OBJ convention, v up) to grid_sample coordinates in [-1, 1]^2.
+
+    Args:
+        uv: (..., 2) float.
+
+    Returns:
+        (..., 2): ``x = 2u - 1``, ``y = 2(1 - v) - 1 = 1 - 2v``.
+    """
+    return torch.stack([2.0 * uv[..., 0] - 1.0, 1.0 - 2.0 * uv[..., 1]], dim=-1)
+
+
+def _sample_one(feature_map: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    """Sample one (1, C, S, S) map at (M, 2) uv -> (M, C) (a transposed view)."""
+    grid = uv_to_grid(uv.to(feature_map.dtype)).view(1, 1, -1, 2)  # (1, 1, M, 2)
+    out = F.grid_sample(feature_map, grid, mode="bilinear", padding_mode="border", align_corners=False)
+    return out.view(feature_map.shape[1], -1).transpose(0, 1)  # (M, C)
+
+
+def sample_uv(feature_maps: torch.Tensor, batch_index: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    """Bilinearly sample per-item atlas maps at per-ray uv coordinates.
+
+    One ``grid_sample`` call per batch item present (a (1, 1, M, 2) grid each), so the cost is
+    linear in N with no per-ray Python work; N of about 1.2 M rays (a 940 x 1285 frame) is fine.
+    Rays are grouped by ``batch_index`` with a stable sort unless already sorted.
+
+    Args:
+        feature_maps: (B, C, S_h, S_w) float, atlas-space maps (row 0 = v 1).
+        batch_index: (N,) long, which map each ray reads, in [0, B).
+        uv: (N, 2) float, atlas coordinates in [0, 1]^2 (OBJ convention, v up).
+
+    Returns:
+        (N, C) dtype and device of ``feature_maps``; differentiable w.r.t. ``feature_maps`` and
+        ``uv``. The result may be a non-contiguous (transposed) view.
+
+    Raises:
+        ValueError: on shape mismatch, non-integer ``batch_index`` or an index outside [0, B).
+    """
+    sizes = check_shape("feature_maps", feature_maps, "B C _ _")
+    sizes = check_shape("uv", uv, "N 2", sizes)
+    check_shape("batch_index", batch_index, "N", sizes)
+    if batch_index.dtype not in (torch.int64, torch.int32, torch.int16, torch.uint8, torch.int8):
+        raise ValueError(f"batch_index: expected an integer tensor, got dtype {batch_index.dtype}")
+    num_batch, channels = sizes["B"], sizes["C"]
+    num_rays = sizes["N"]
+    if num_rays == 0:
+        return feature_maps.new_zeros(0, channels)
+    if num_batch == 1:
+        if bool((batch_index != 0).any()):
+            raise ValueError("batch_index: values must be 0 when feature_maps has B = 1")
+        return _sample_one(feature_maps, uv)
+
+    batch_index = batch_index.long()
+    lo, hi = int(batch_index.min()), int(batch_index.max())
+    if lo < 0 or hi >= num_batch:
+        raise ValueError(f"batch_index: values must lie in [0, {num_batch}), got range [{lo}, {hi}]")
+    is_sorted = bool((batch_index[1:] >= batch_index[:-1]).all())
+    order = None if is_sorted else torch.argsort(batch_index, stable=True)
+    uv_sorted = uv if order is None else uv[order]
+    counts = torch.bincount(batch_index, minlength=num_batch).tolist()
+    pieces = []
+    for b, uv_b in enumerate(torch.split(uv_sorted, counts)):
+        if counts[b]:
+            pieces.append(_sample_one(feature_maps[b : b + 1], uv_b))
+    sampled = torch.cat(pieces, dim=0)  # (N, C) in sorted order
+    if order is None:
+        return sampled
+    inverse = torch.empty_like(order)
+    inverse[order] = torch.arange(num_rays, device=order.device)
+    return sampled.index_select(0, inverse)
