@@ -1,0 +1,754 @@
+"""Readers and writers of the Skeletool/DynaCap files (dynacap-formats.md section 1) as typed records.
+
+Every reader is strict: a file that does not match its format raises ``DynaCapFormatError`` naming
+the file, the line and what was expected. Every writer produces files its reader reads back
+identically (within the printed precision); ``crlf=True`` writes the CRLF line ends that the original
+C++ tools need on Linux.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from deliffas.data.cameras import Camera
+from deliffas.data.obj_io import ObjData, read_obj, write_obj
+from deliffas.data.text_lines import DynaCapFormatError, TextLines, read_text, write_text_atomic
+
+__all__ = [
+    "DynaCapFormatError",
+    "Joint", "Marker", "Dof", "Skeleton", "read_skeleton", "write_skeleton",
+    "Motion", "read_motion", "write_motion",
+    "Skin", "read_skin", "write_skin",
+    "Character", "CharacterFiles", "read_character", "write_character", "read_character_files",
+    "read_segmentation", "write_segmentation",
+    "MeshSequence", "read_meshes", "write_meshes",
+    "read_calibration", "write_calibration",
+    "ObjData", "read_obj", "write_obj", "read_graph",
+]
+
+PathLike = str | os.PathLike
+JointType = Literal["revolute", "prismatic"]
+
+SKELETON_HEADER = "Skeletool Skeleton Definition V1.0"
+MOTION_HEADERS = ("Skeletool Motion File V1.0", "Skeletool Motion File V0.1")
+SKIN_HEADER = "Skeletool character skinning file V1.0"
+CHARACTER_HEADERS = ("skeletool character file v1.0", "skeletool character file v0.3", "skeletool character file v0.1")
+CALIBRATION_HEADER = "Skeletool Camera Calibration File V1.0"
+MESHES_VERSIONS = ("v2.1", "v2.0")
+
+
+# --------------------------------------------------------------------------------------------- skeleton
+@dataclass(frozen=True)
+class Joint:
+    """One skeleton joint (a line of the ``joints:`` section).
+
+    Attributes:
+        offset: (3,) translation from the parent frame, mm, in the parent frame (before ``scale``).
+        axis: (3,) rotation axis (revolute, unit) or translation direction (prismatic, as in the file).
+    """
+
+    name: str
+    type: JointType
+    parent: str
+    offset: np.ndarray
+    axis: np.ndarray
+    scale: float = 1.0
+
+
+@dataclass(frozen=True)
+class Marker:
+    """A skeleton marker; kept for round trips, unused by deliffas."""
+
+    name: str
+    parent: str
+    type: str
+    values: tuple[float, ...]
+
+
+@dataclass(frozen=True)
+class Dof:
+    """A degree of freedom: joint parameters += weight * DOF value for each (joint, weight)."""
+
+    name: str
+    limits: tuple[float, float] | None
+    joints: tuple[tuple[str, float], ...]
+
+
+@dataclass(frozen=True)
+class Skeleton:
+    """A Skeletool V1.0 skeleton: joints (file order), markers, scaling groups and DOFs (motion column order)."""
+
+    joints: tuple[Joint, ...]
+    markers: tuple[Marker, ...] = ()
+    scaling_joints: tuple[tuple[str, tuple[str, ...]], ...] = ()
+    dofs: tuple[Dof, ...] = ()
+    trailer: tuple[str, ...] = ("textureEntries: 0",)
+
+    @property
+    def num_joints(self) -> int:
+        return len(self.joints)
+
+    @property
+    def num_dofs(self) -> int:
+        return len(self.dofs)
+
+    @property
+    def joint_names(self) -> list[str]:
+        return [j.name for j in self.joints]
+
+    def joint_index(self, name: str, match: Literal["exact", "prefix"] = "exact") -> int:
+        """Index of a joint by name.
+
+        ``exact`` matches the whole name; ``prefix`` returns the first joint whose name starts with
+        ``name``, as the original C++ ``getJointByName`` does (formats doc 1.3). Raises KeyError.
+        """
+        for i, j in enumerate(self.joints):
+            if j.name == name or (match == "prefix" and j.name.startswith(name)):
+                return i
+        raise KeyError(name)
+
+    def bone_joint_index(self, bone: str) -> int:
+        """Joint that carries a skin bone: the *last* joint whose name starts with the bone name.
+
+        This is the C++ rule (``getLastJointByName``) the original tools and DynaCap data used;
+        it differs from the PyTorch port for the forearm and foot bones (formats doc 1.5).
+        """
+        for i in range(self.num_joints - 1, -1, -1):
+            if self.joints[i].name.startswith(bone):
+                return i
+        raise KeyError(bone)
+
+    def parent_indices(self) -> np.ndarray:
+        """(J,) int64 parent index of every joint, -1 for the root."""
+        index = {j.name: i for i, j in enumerate(self.joints)}
+        return np.array([index.get(j.parent, -1) for j in self.joints], dtype=np.int64)
+
+    def dof_weights(self, match: Literal["exact", "prefix"] = "prefix") -> np.ndarray:
+        """(D, J) float64 matrix W with joint parameters p = x @ W for DOF values x (D,).
+
+        ``prefix`` (default) resolves DOF joint references like the original tools; the two rules
+        differ only for the finger flex1 DOFs of the DDC skeleton (formats doc 1.3).
+        """
+        W = np.zeros((self.num_dofs, self.num_joints))
+        for d, dof in enumerate(self.dofs):
+            for name, weight in dof.joints:
+                W[d, self.joint_index(name, match)] += weight
+        return W
+
+
+def read_skeleton(path: PathLike) -> Skeleton:
+    """Read a ``Skeletool Skeleton Definition V1.0`` file (formats doc 1.3)."""
+    t = TextLines(path, what="skeleton file")
+    t.header((SKELETON_HEADER,))
+    n = _count_line(t, "joints:")
+    joints = []
+    names: set[str] = set()
+    for _ in range(n):
+        toks = t.tokens("a joint line 'name type parent ox oy oz ax ay az scale'", 10)
+        name, jtype, parent = toks[:3]
+        if jtype not in ("revolute", "prismatic"):
+            raise t.error(f"expected joint type 'revolute' or 'prismatic', got '{jtype}'")
+        if name in names:
+            raise t.error(f"duplicate joint name '{name}'")
+        names.add(name)
+        vals = t.floats(toks[3:], f"joint '{name}'")
+        axis = np.array(vals[3:6])
+        if jtype == "revolute":
+            norm = np.linalg.norm(axis)
+            if norm < 1e-12:
+                raise t.error(f"revolute joint '{name}' has a zero rotation axis")
+            axis = axis / norm
+        joints.append(Joint(name, jtype, parent, np.array(vals[:3]), axis, vals[6]))
+    roots = [j.name for j in joints if j.parent not in names]
+    if len(roots) != 1:
+        raise DynaCapFormatError(t.path, 0, f"expected exactly one root joint (a parent name that matches no joint), got {len(roots)}: {roots[:5]}")
+    _check_acyclic(t.path, joints)
+    m = _count_line(t, "markers:")
+    markers = []
+    for _ in range(m):
+        toks = t.tokens("a marker line 'name parent type x y z ...'", (6, 7, 10, 11))
+        markers.append(Marker(toks[0], toks[1], toks[2], tuple(t.floats(toks[3:], f"marker '{toks[0]}'"))))
+    s = _count_line(t, "scaling joints:")
+    scaling = []
+    for _ in range(s):
+        toks = t.tokens("a scaling group line 'name n'", 2)
+        k = t.to_int(toks[1], "scaling group size")
+        members = tuple(t.tokens("a scaling joint name", 1)[0] for _ in range(k))
+        scaling.append((toks[0], members))
+    d = _count_line(t, "dofs:")
+    dofs = []
+    for _ in range(d):
+        toks = t.tokens("a DOF line 'name n'", 2)
+        dname, k = toks[0], t.to_int(toks[1], "DOF joint count")
+        if k < 0 or k > t.remaining:
+            raise t.error(f"DOF '{dname}' joint count {k} is negative or exceeds the lines left")
+        lim = t.tokens("'limits lo hi' or 'nolimits'", (1, 3))
+        if lim[0] == "nolimits" and len(lim) == 1:
+            limits = None
+        elif lim[0] == "limits" and len(lim) == 3:
+            lo, hi = t.floats(lim[1:], f"DOF '{dname}' limits")
+            limits = (lo, hi)
+        else:
+            raise t.error(f"expected 'limits lo hi' or 'nolimits' for DOF '{dname}', got '{' '.join(lim)[:60]}'")
+        refs = []
+        for _ in range(k):
+            jt = t.tokens(f"'joint weight' for DOF '{dname}'", 2)
+            if not any(nm == jt[0] or nm.startswith(jt[0]) for nm in names):
+                raise t.error(f"DOF '{dname}' refers to unknown joint '{jt[0]}'")
+            refs.append((jt[0], t.to_float(jt[1], f"DOF '{dname}' weight")))
+        dofs.append(Dof(dname, limits, tuple(refs)))
+    trailer = []
+    while not t.at_end():
+        trailer.append(t.next("trailer"))
+    return Skeleton(tuple(joints), tuple(markers), tuple(scaling), tuple(dofs), tuple(trailer))
+
+
+def _count_line(t: TextLines, keyword: str) -> int:
+    toks = t.tokens(f"'{keyword} N'")
+    word = " ".join(toks[:-1])
+    if word != keyword or len(toks) < 2:
+        raise t.error(f"expected '{keyword} N', got '{' '.join(toks)[:60]}'")
+    n = t.to_int(toks[-1], f"'{keyword}' count")
+    if n < 0 or n > t.remaining:
+        raise t.error(f"'{keyword}' count {n} is negative or exceeds the {t.remaining} lines left (truncated file?)")
+    return n
+
+
+def _check_acyclic(path: Path, joints: list[Joint]) -> None:
+    parent = {j.name: j.parent for j in joints}
+    for j in joints:
+        seen, cur = set(), j.name
+        while cur in parent:
+            if cur in seen:
+                raise DynaCapFormatError(path, 0, f"joint hierarchy has a cycle through '{cur}'")
+            seen.add(cur)
+            cur = parent[cur]
+
+
+def write_skeleton(path: PathLike, skel: Skeleton, crlf: bool = False) -> None:
+    """Write a skeleton in the V1.0 layout (column-aligned like the original files)."""
+    out = [SKELETON_HEADER, f"joints: {skel.num_joints}"]
+    for j in skel.joints:
+        nums = " ".join(f"{v:>10.10g}" for v in (*j.offset, *j.axis))
+        out.append(f"  {j.name:<20} {j.type:<9} {j.parent:<25} {nums} {j.scale!r:>10}")
+    out.append(f"markers: {len(skel.markers)}")
+    for m in skel.markers:
+        out.append(f"  {m.name:<20} {m.parent:<20} {m.type:<6} " + " ".join(f"{v:>10.10g}" for v in m.values))
+    out.append(f"scaling joints: {len(skel.scaling_joints)}")
+    for name, members in skel.scaling_joints:
+        out.append(f"  {name} {len(members)}")
+        out.extend(f"      {m}" for m in members)
+    out.append(f"dofs: {skel.num_dofs}")
+    for d in skel.dofs:
+        out.append(f"  {d.name:<20} {len(d.joints)}")
+        out.append("      nolimits" if d.limits is None else f"      limits {d.limits[0]!r} {d.limits[1]!r}")
+        out.extend(f"      {name:<26} {w!r}" for name, w in d.joints)
+    out.extend(skel.trailer)
+    write_text_atomic(path, "\n".join(out) + "\n", crlf)
+
+
+# --------------------------------------------------------------------------------------------- motion
+@dataclass(frozen=True)
+class Motion:
+    """A Skeletool motion: per line a frame index and D DOF values (DOF units).
+
+    Attributes:
+        frames: (N,) int64 frame index of each row (absolute, as written).
+        dofs: (N, D) float64 DOF values in the skeleton's DOF order.
+    """
+
+    frames: np.ndarray
+    dofs: np.ndarray
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.dofs.shape[0])
+
+    def row_of(self, frame: int) -> int:
+        """Row index holding ``frame``; KeyError when the motion lacks it."""
+        rows = np.nonzero(self.frames == frame)[0]
+        if len(rows) == 0:
+            raise KeyError(f"frame {frame} not in motion (frames {int(self.frames.min())}..{int(self.frames.max())})")
+        return int(rows[0])
+
+
+def read_motion(path: PathLike, num_dofs: int | None = None) -> Motion:
+    """Read a ``.motion`` file; ``num_dofs`` (the skeleton's) is checked on every line when given.
+
+    V0.1 files are converted to V1.0 semantics (DOFs with index > 2 change sign, as the C++ reader).
+    """
+    text = read_text(path, "motion file")
+    first = text.lstrip().split("\n", 1)[0].strip()
+    if first.startswith("HIERARCHY"):
+        raise DynaCapFormatError(path, 1, "BVH motion files are not supported; convert to Skeletool motion V1.0")
+    t = TextLines(path, text)
+    header = t.header(MOTION_HEADERS)
+    frames, rows = [], []
+    width = num_dofs
+    while not t.at_end():
+        toks = t.next("a motion line 'frame dof...'").split()
+        if width is None:
+            width = len(toks) - 1
+            if width < 1:
+                raise t.error("expected a frame index followed by DOF values, got a single token")
+        if len(toks) != width + 1:
+            raise t.error(f"expected frame index + {width} DOF values, got {len(toks) - 1} values")
+        frames.append(t.to_int(toks[0], "frame index"))
+        try:
+            vals = np.array(toks[1:], dtype=np.float64)
+        except ValueError:
+            vals = np.array(t.floats(toks[1:], "DOF value"))
+        if not np.isfinite(vals).all():
+            raise t.error(f"expected finite DOF values, got NaN/inf in column {int(np.argmin(np.isfinite(vals)))}")
+        rows.append(vals)
+    if not rows:
+        raise DynaCapFormatError(path, 2, "expected at least one motion line, got none")
+    dofs = np.stack(rows)
+    if header.endswith("V0.1"):
+        dofs[:, 3:] *= -1
+    return Motion(np.asarray(frames, dtype=np.int64), dofs)
+
+
+def write_motion(path: PathLike, motion: Motion, crlf: bool = False, precision: int = 10) -> None:
+    """Write a V1.0 motion. ``precision`` significant digits (the C++ writer uses 6; we keep more)."""
+    lines = [MOTION_HEADERS[0]]
+    fmt = f"%{precision + 5}.{precision}g"
+    for f, row in zip(motion.frames.tolist(), motion.dofs):
+        lines.append(f"{f:>4} " + " ".join(fmt % v for v in row))
+    write_text_atomic(path, "\n".join(lines) + "\n", crlf)
+
+
+# --------------------------------------------------------------------------------------------- skin
+@dataclass(frozen=True)
+class Skin:
+    """Skinning weights: per vertex up to K (bone index, weight) influences, by decreasing weight.
+
+    Attributes:
+        bones: the B bone names of the file (a bone resolves to a joint by name, formats doc 1.5).
+        indices: (V, K) int64 bone indices, -1 for padding.
+        weights: (V, K) float64 weights, 0 for padding.
+    """
+
+    bones: tuple[str, ...]
+    indices: np.ndarray
+    weights: np.ndarray
+
+    @property
+    def num_verts(self) -> int:
+        return int(self.indices.shape[0])
+
+    def dense(self) -> np.ndarray:
+        """(V, B) float64 dense weight matrix."""
+        W = np.zeros((self.num_verts, len(self.bones)))
+        rows = np.repeat(np.arange(self.num_verts), self.indices.shape[1])
+        idx, w = self.indices.ravel(), self.weights.ravel()
+        keep = idx >= 0
+        np.add.at(W, (rows[keep], idx[keep]), w[keep])
+        return W
+
+
+def _unglue_weight(token: str, vertex_token: str) -> str | None:
+    """The weight token with the glued vertex index removed, or None when it does not end with it."""
+    if token.endswith(vertex_token) and len(token) > len(vertex_token):
+        return token[: -len(vertex_token)]
+    return None
+
+
+def read_skin(path: PathLike, num_verts: int | None = None) -> Skin:
+    """Read a ``.skin`` file, decoding the glued weight/vertex-index tokens of the DDC samples.
+
+    In the sample files every weight but the last on a line is followed without a space by the
+    vertex index (formats doc 1.5). The file is decoded as glued when every multi-influence line
+    shows that pattern, otherwise as well-separated tokens (what our writer and the C++ writer emit).
+    """
+    t = TextLines(path, what="skin file")
+    t.header((SKIN_HEADER,))
+    if t.next("'bones:'") != "bones:":
+        raise t.error("expected 'bones:'")
+    bones = tuple(t.next("the bone names").split())
+    if t.next("'vertex weights:'") != "vertex weights:":
+        raise t.error("expected 'vertex weights:'")
+    lines: list[tuple[int, list[str]]] = []
+    while not t.at_end():
+        toks = t.next("a vertex weight line").split()
+        lines.append((t.line_no, toks))
+    if not lines:
+        raise DynaCapFormatError(path, 0, "expected vertex weight lines, got none")
+    glued_votes = [
+        all(_unglue_weight(tok, toks[0]) is not None for tok in toks[2:-2:2])
+        for _, toks in lines
+        if len(toks) >= 5 and len(toks) % 2 == 1
+    ]
+    glued = bool(glued_votes) and sum(glued_votes) > 0.9 * len(glued_votes)
+    K = max((len(toks) - 1) // 2 for _, toks in lines)
+    V = len(lines)
+    indices = np.full((V, K), -1, dtype=np.int64)
+    weights = np.zeros((V, K))
+    for row, (line_no, toks) in enumerate(lines):
+        err = lambda msg: DynaCapFormatError(path, line_no, msg)  # noqa: E731
+        if len(toks) < 3 or len(toks) % 2 == 0:
+            raise err(f"expected vertex index followed by (bone index, weight) pairs, got {len(toks)} tokens")
+        try:
+            vid = int(toks[0])
+        except ValueError:
+            raise err(f"expected an integer vertex index, got '{toks[0][:30]}'") from None
+        if vid != row:
+            raise err(f"expected vertex index {row} (lines in vertex order), got {vid}")
+        pairs = toks[1:]
+        for k in range(len(pairs) // 2):
+            b_tok, w_tok = pairs[2 * k], pairs[2 * k + 1]
+            if glued and k < len(pairs) // 2 - 1:
+                stripped = _unglue_weight(w_tok, toks[0])
+                if stripped is None:
+                    raise err(f"expected weight {k} to end with the glued vertex index {toks[0]}, got '{w_tok[:30]}'")
+                w_tok = stripped
+            try:
+                b = int(b_tok)
+                w = float(w_tok)
+            except ValueError:
+                raise err(f"expected (bone index, weight) pair, got '{b_tok[:20]} {w_tok[:20]}'") from None
+            if not 0 <= b < len(bones):
+                raise err(f"bone index {b} out of range 0..{len(bones) - 1}")
+            if not np.isfinite(w):
+                raise err("expected a finite weight, got NaN/inf")
+            indices[row, k], weights[row, k] = b, w
+    if num_verts is not None and V != num_verts:
+        raise DynaCapFormatError(path, lines[-1][0], f"expected {num_verts} vertex lines (mesh vertices), got {V}")
+    return Skin(bones, indices, weights)
+
+
+def write_skin(path: PathLike, skin: Skin, crlf: bool = False) -> None:
+    """Write a ``.skin`` file with well-separated tokens (never the glued form)."""
+    out = [SKIN_HEADER, "bones:", "   " + " ".join(skin.bones), "vertex weights:"]
+    for v in range(skin.num_verts):
+        keep = skin.indices[v] >= 0
+        pairs = " ".join(f"{b} {w!r}" for b, w in zip(skin.indices[v][keep].tolist(), skin.weights[v][keep].tolist()))
+        out.append(f"{v} {pairs}")
+    write_text_atomic(path, "\n".join(out) + "\n", crlf)
+
+
+# --------------------------------------------------------------------------------------------- segmentation
+def read_segmentation(path: PathLike, num_verts: int | None = None) -> np.ndarray:
+    """(V,) int64 per-vertex labels, one integer per line in vertex order (formats doc 1.8)."""
+    t = TextLines(path, what="segmentation file")
+    labels = []
+    while not t.at_end():
+        toks = t.tokens("one integer label", 1)
+        labels.append(t.to_int(toks[0], "label"))
+    if num_verts is not None and len(labels) != num_verts:
+        raise DynaCapFormatError(path, t.line_no, f"expected {num_verts} labels (one per vertex), got {len(labels)}")
+    return np.asarray(labels, dtype=np.int64)
+
+
+def write_segmentation(path: PathLike, labels: np.ndarray, crlf: bool = False) -> None:
+    write_text_atomic(path, "\n".join(str(int(x)) for x in labels) + "\n", crlf)
+
+
+# --------------------------------------------------------------------------------------------- meshes
+@dataclass(frozen=True)
+class MeshSequence:
+    """A ``.meshes`` sequence: per frame the template's vertices (template order, mm).
+
+    Attributes:
+        frames: (N,) int64 frame indices.
+        verts: (N, V, 3) float32.
+    """
+
+    frames: np.ndarray
+    verts: np.ndarray
+    version: str = "v2.1"
+
+
+def read_meshes(path: PathLike, num_verts: int | None = None) -> MeshSequence:
+    """Read a v2.1 (frame index per line) or v2.0 (implicit frames from 0) ``.meshes`` file."""
+    t = TextLines(path, what="mesh sequence")
+    head = t.next("a 'Skeletool Meshes file <version>' header").split()
+    if len(head) < 2 or head[-1] not in MESHES_VERSIONS or head[0] != "Skeletool":
+        raise t.error(f"expected header 'Skeletool Meshes file v2.1' (or v2.0), got '{' '.join(head)[:60]}'")
+    version = head[-1]
+    frames, rows = [], []
+    while not t.at_end():
+        toks = t.next("a frame line").split()
+        if version == "v2.1":
+            frames.append(t.to_int(toks[0], "frame index"))
+            toks = toks[1:]
+        else:
+            frames.append(len(rows))
+        if len(toks) % 3 or (num_verts is not None and len(toks) != 3 * num_verts) or (rows and len(toks) != rows[0].size):
+            want = 3 * num_verts if num_verts is not None else (rows[0].size if rows else "a multiple of 3")
+            raise t.error(f"expected {want} coordinates, got {len(toks)}")
+        try:
+            vals = np.array(toks, dtype=np.float32)
+        except ValueError:
+            vals = np.array(t.floats(toks, "coordinate"), dtype=np.float32)
+        if not np.isfinite(vals).all():
+            raise t.error("expected finite coordinates, got NaN/inf")
+        rows.append(vals)
+    if not rows:
+        raise DynaCapFormatError(path, 0, "expected at least one frame, got none")
+    verts = np.stack(rows).reshape(len(rows), -1, 3)
+    return MeshSequence(np.asarray(frames, dtype=np.int64), verts, version)
+
+
+def write_meshes(path: PathLike, seq: MeshSequence, crlf: bool = False, decimals: int = 1) -> None:
+    """Write a v2.1 sequence; DDC writes one decimal (``%.1f``), the default here too."""
+    out = ["Skeletool Meshes file v2.1 "]
+    fmt = f"%.{decimals}f"
+    for f, v in zip(seq.frames.tolist(), seq.verts):
+        out.append(f"{f} " + " ".join(fmt % x for x in v.ravel().tolist()))
+    write_text_atomic(path, "\n".join(out) + "\n", crlf)
+
+
+# --------------------------------------------------------------------------------------------- calibration
+def read_calibration(path: PathLike) -> list[Camera]:
+    """Read ``cameras.calibration`` into Cameras (formats doc 1.9).
+
+    Animated cameras become one Camera per ``frame`` block, named ``<name>@<frame>`` (as DELIFFAS
+    reads free-viewpoint paths: one camera per extrinsic).
+    """
+    t = TextLines(path, what="calibration file")
+    t.header((CALIBRATION_HEADER,))
+    cams: list[Camera] = []
+    cur: dict | None = None
+
+    def flush():
+        if cur is None:
+            return
+        for key in ("size", "intrinsic", "extrinsic"):
+            if key not in cur:
+                raise DynaCapFormatError(path, cur["line"], f"camera '{cur['name']}' lacks its '{key}' line")
+        suffix = f"@{cur['frame']}" if cur.get("frame") is not None else ""
+        K4, E = cur["intrinsic"], cur["extrinsic"]
+        if abs(E[3, 3] - 1) > 1e-6 or np.abs(E[3, :3]).max() > 1e-6:
+            raise DynaCapFormatError(path, cur["line"], f"camera '{cur['name']}': extrinsic last row must be 0 0 0 1")
+        cams.append(Camera(cur["name"] + suffix, K4[:3, :3].copy(), E.copy(), cur["size"][0], cur["size"][1],
+                           cur.get("sensor"), cur.get("radial", 0.0)))
+
+    while not t.at_end():
+        toks = t.next("a calibration line").split()
+        key, vals = toks[0], toks[1:]
+        if key == "name":
+            if cur is not None and not cur.get("emitted"):
+                flush()
+            if len(vals) != 1:
+                raise t.error(f"expected 'name <id>', got {len(vals)} values")
+            cur = {"name": vals[0], "line": t.line_no}
+            continue
+        if cur is None:
+            raise t.error(f"expected 'name <id>' before '{key}'")
+        if key == "sensor":
+            if len(vals) != 2:
+                raise t.error(f"expected 'sensor w h', got {len(vals)} values")
+            cur["sensor"] = tuple(t.floats(vals, "sensor size"))
+        elif key == "size":
+            if len(vals) != 2:
+                raise t.error(f"expected 'size W H', got {len(vals)} values")
+            w, h = (t.to_int(v, "image size") for v in vals)
+            if w <= 0 or h <= 0:
+                raise t.error(f"expected a positive image size, got {w}x{h}")
+            cur["size"] = (w, h)
+        elif key == "animated":
+            cur["animated"] = vals == ["1"]
+        elif key == "frame":
+            if cur.get("frame") is not None and "extrinsic" in cur:
+                flush()
+            cur["frame"] = t.to_int(vals[0], "frame") if vals else 0
+        elif key in ("intrinsic", "extrinsic"):
+            if len(vals) != 16:
+                raise t.error(f"expected 16 numbers after '{key}' (row-major 4x4), got {len(vals)}")
+            M = np.array(t.floats(vals, key)).reshape(4, 4)
+            cur[key] = M
+            if key == "extrinsic" and cur.get("animated") and "intrinsic" in cur and "size" in cur:
+                flush()
+                cur["emitted"] = True
+        elif key == "radial":
+            if vals:
+                cur["radial"] = t.to_float(vals[0], "radial coefficient")
+        elif key in ("polynomial", "polynomialC2W", "polynomialW2C", "imageCircleRadius", "affine"):
+            cur.setdefault("extra", {})[key] = vals  # fisheye model: kept out of the pinhole projection
+        else:
+            raise t.error(f"expected a calibration key (name, sensor, size, animated, intrinsic, extrinsic, radial), got '{key[:30]}'")
+    if cur is not None and not cur.get("emitted"):
+        flush()
+    if not cams:
+        raise DynaCapFormatError(path, 0, "expected at least one camera, got none")
+    return cams
+
+
+def write_calibration(path: PathLike, cameras: list[Camera], crlf: bool = False) -> None:
+    """Write static cameras in the C++ ``saveCameras`` layout (full precision)."""
+    out = [CALIBRATION_HEADER]
+    for c in cameras:
+        K4 = np.eye(4)
+        K4[:3, :3] = c.K
+        sensor = c.sensor if c.sensor is not None else (10.0, 10.0 * c.height / c.width)
+        out += [
+            f"name          {c.name}",
+            f"  sensor      {sensor[0]!r} {sensor[1]!r}",
+            f"  size        {c.width} {c.height}",
+            "  animated    0",
+            "  intrinsic   " + " ".join(repr(float(v)) for v in K4.ravel()),
+            "  extrinsic   " + " ".join(repr(float(v)) for v in c.world_to_cam.ravel()),
+            f"  radial      {c.radial!r}",
+        ]
+    write_text_atomic(path, "\n".join(out) + "\n", crlf)
+
+
+# --------------------------------------------------------------------------------------------- character
+@dataclass(frozen=True)
+class CharacterFiles:
+    """The paths a ``.character`` file names (absolute, resolved against its directory)."""
+
+    skeleton: Path
+    mesh: Path
+    skin: Path
+    pose: Path | None
+    dof_file: Path | None = None
+
+
+@dataclass(frozen=True)
+class Character:
+    """A DynaCap character: skeleton, template mesh (in the rest pose), skin, rest pose and extras.
+
+    Attributes:
+        rest_dofs: (D,) float64 DOF values of the rest pose (frame 0 of the ``pose`` motion;
+            zeros when the character names none).
+        segmentation: (V,) int64 labels from ``segmentation.txt`` next to the mesh, or None.
+        hand_segmentation: (V,) int64 from ``hand_segmentation.txt``, or None.
+        graph: the embedded graph ``<mesh stem>_graph.obj`` next to the mesh, or None.
+        texture: path of the texture image (``map_Kd`` of the mesh's material), or None.
+    """
+
+    path: Path
+    files: CharacterFiles
+    skeleton: Skeleton
+    mesh: ObjData
+    skin: Skin
+    rest_dofs: np.ndarray
+    segmentation: np.ndarray | None = None
+    hand_segmentation: np.ndarray | None = None
+    graph: ObjData | None = None
+    texture: Path | None = None
+    extra: dict = field(default_factory=dict, compare=False)
+
+    @property
+    def directory(self) -> Path:
+        return self.path.parent
+
+
+def read_character_files(path: PathLike) -> CharacterFiles:
+    """Parse only the ``.character`` file (paths relative to its directory)."""
+    p = Path(path)
+    t = TextLines(p, what="character file")
+    header = t.header(CHARACTER_HEADERS)
+    entries: dict[str, list[Path]] = {}
+    while not t.at_end():
+        key = t.next("a keyword (skeleton, mesh, skin, pose)")
+        if key not in ("skeleton", "mesh", "skin", "pose"):
+            raise t.error(f"expected a keyword skeleton, mesh, skin or pose, got '{key[:40]}'")
+        n_paths = 2 if key == "skeleton" and not header.endswith("v1.0") else 1
+        entries[key] = [p.parent / t.next(f"the path after '{key}'") for _ in range(n_paths)]
+    for key in ("skeleton", "mesh", "skin"):
+        if key not in entries:
+            raise DynaCapFormatError(p, 0, f"expected a '{key}' entry, found none")
+    for key, paths in entries.items():
+        for q in paths:
+            if not q.is_file():
+                raise DynaCapFormatError(p, 0, f"'{key}' file {q} referenced by the character does not exist")
+    sk = entries["skeleton"]
+    return CharacterFiles(sk[0], entries["mesh"][0], entries["skin"][0],
+                          entries["pose"][0] if "pose" in entries else None, sk[1] if len(sk) > 1 else None)
+
+
+def _texture_path(mesh_path: Path, obj: ObjData) -> Path | None:
+    if not obj.mtllib:
+        return None
+    mtl = mesh_path.parent / obj.mtllib
+    if not mtl.is_file():
+        return None
+    for line in read_text(mtl, "material file").splitlines():
+        toks = line.split()
+        if toks and toks[0] == "map_Kd" and len(toks) > 1:
+            tex = mtl.parent / toks[-1]
+            return tex if tex.is_file() else None
+    return None
+
+
+def read_character(path: PathLike) -> Character:
+    """Read a ``.character`` and everything it references, checking the files agree with each other."""
+    files = read_character_files(path)
+    skel = read_skeleton(files.skeleton)
+    mesh = read_obj(files.mesh)
+    skin = read_skin(files.skin, num_verts=mesh.num_verts)
+    for name in skin.bones:
+        if not any(j.name.startswith(name) for j in skel.joints):
+            raise DynaCapFormatError(files.skin, 3, f"bone '{name}' matches no joint of {files.skeleton.name}")
+    if files.pose is not None:
+        pose = read_motion(files.pose, num_dofs=skel.num_dofs)
+        rest = pose.dofs[pose.row_of(0)] if 0 in pose.frames else pose.dofs[0]
+    else:
+        rest = np.zeros(skel.num_dofs)
+    mesh_dir = files.mesh.parent
+    seg = mesh_dir / "segmentation.txt"
+    hseg = mesh_dir / "hand_segmentation.txt"
+    graph = mesh_dir / f"{files.mesh.stem}_graph.obj"
+    return Character(
+        path=Path(path),
+        files=files,
+        skeleton=skel,
+        mesh=mesh,
+        skin=skin,
+        rest_dofs=np.asarray(rest, dtype=np.float64),
+        segmentation=read_segmentation(seg, mesh.num_verts) if seg.is_file() else None,
+        hand_segmentation=read_segmentation(hseg, mesh.num_verts) if hseg.is_file() else None,
+        graph=read_graph(graph) if graph.is_file() else None,
+        texture=_texture_path(files.mesh, mesh),
+    )
+
+
+def read_graph(path: PathLike) -> ObjData:
+    """Read an embedded graph ``*_graph.obj`` (its vertices are the graph nodes, formats doc 1.7)."""
+    return read_obj(path)
+
+
+def write_character(directory: PathLike, character: Character, name: str = "character", crlf: bool = False,
+                    texture_png: bytes | None = None) -> Path:
+    """Write ``character`` as a complete DynaCap character folder and return the ``.character`` path.
+
+    Writes ``<name>.character``, ``.skeleton``, ``.obj`` (+ ``.obj.mtl`` and the texture when known),
+    ``.skin``, ``.motion`` (the rest pose, frame 0), ``segmentation.txt``, ``hand_segmentation.txt``
+    and ``<name>_graph.obj`` when present. ``texture_png`` overrides the texture bytes.
+    """
+    d = Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    tex_bytes = texture_png
+    if tex_bytes is None and character.texture is not None and Path(character.texture).is_file():
+        tex_bytes = Path(character.texture).read_bytes()
+    write_skeleton(d / f"{name}.skeleton", character.skeleton, crlf)
+    mesh = character.mesh
+    if tex_bytes is not None:
+        (d / f"{name}.png").write_bytes(tex_bytes)
+        write_text_atomic(d / f"{name}.obj.mtl", f"newmtl material_0\nKa 0.2 0.2 0.2\nKd 1 1 1\nillum 1\nmap_Kd {name}.png\n", crlf)
+        mesh = ObjData(mesh.verts, mesh.faces, mesh.uvs, mesh.face_uvs, mesh.colors, mesh.normals,
+                       mesh.face_normals_idx, f"./{name}.obj.mtl", "material_0")
+    else:
+        mesh = ObjData(mesh.verts, mesh.faces, mesh.uvs, mesh.face_uvs, mesh.colors, mesh.normals,
+                       mesh.face_normals_idx, None, None)
+    write_obj(d / f"{name}.obj", mesh, crlf)
+    write_skin(d / f"{name}.skin", character.skin, crlf)
+    write_motion(d / f"{name}.motion", Motion(np.zeros(1, dtype=np.int64), character.rest_dofs[None]), crlf)
+    if character.segmentation is not None:
+        write_segmentation(d / "segmentation.txt", character.segmentation, crlf)
+    if character.hand_segmentation is not None:
+        write_segmentation(d / "hand_segmentation.txt", character.hand_segmentation, crlf)
+    if character.graph is not None:
+        write_obj(d / f"{name}_graph.obj", character.graph, crlf)
+    text = (f"skeletool character file v1.0\nskeleton\n  {name}.skeleton\nmesh\n  {name}.obj\n"
+            f"skin\n  {name}.skin\npose\n  {name}.motion\n")
+    write_text_atomic(d / f"{name}.character", text, crlf)
+    return d / f"{name}.character"
