@@ -49,7 +49,8 @@ class Joint:
 
     Attributes:
         offset: (3,) translation from the parent frame, mm, in the parent frame (before ``scale``).
-        axis: (3,) rotation axis (revolute, unit) or translation direction (prismatic, as in the file).
+        axis: (3,) rotation axis (revolute; normalised by forward kinematics) or translation direction
+            (prismatic; used as written, like the C++ reader). Kept as in the file for exact round trips.
     """
 
     name: str
@@ -158,11 +159,8 @@ def read_skeleton(path: PathLike) -> Skeleton:
         names.add(name)
         vals = t.floats(toks[3:], f"joint '{name}'")
         axis = np.array(vals[3:6])
-        if jtype == "revolute":
-            norm = np.linalg.norm(axis)
-            if norm < 1e-12:
-                raise t.error(f"revolute joint '{name}' has a zero rotation axis")
-            axis = axis / norm
+        if jtype == "revolute" and np.linalg.norm(axis) < 1e-12:
+            raise t.error(f"revolute joint '{name}' has a zero rotation axis")
         joints.append(Joint(name, jtype, parent, np.array(vals[:3]), axis, vals[6]))
     roots = [j.name for j in joints if j.parent not in names]
     if len(roots) != 1:
@@ -234,11 +232,11 @@ def write_skeleton(path: PathLike, skel: Skeleton, crlf: bool = False) -> None:
     """Write a skeleton in the V1.0 layout (column-aligned like the original files)."""
     out = [SKELETON_HEADER, f"joints: {skel.num_joints}"]
     for j in skel.joints:
-        nums = " ".join(f"{v:>10.10g}" for v in (*j.offset, *j.axis))
+        nums = " ".join(f"{float(v)!r:>10}" for v in (*j.offset, *j.axis))
         out.append(f"  {j.name:<20} {j.type:<9} {j.parent:<25} {nums} {j.scale!r:>10}")
     out.append(f"markers: {len(skel.markers)}")
     for m in skel.markers:
-        out.append(f"  {m.name:<20} {m.parent:<20} {m.type:<6} " + " ".join(f"{v:>10.10g}" for v in m.values))
+        out.append(f"  {m.name:<20} {m.parent:<20} {m.type:<6} " + " ".join(f"{float(v)!r:>10}" for v in m.values))
     out.append(f"scaling joints: {len(skel.scaling_joints)}")
     for name, members in skel.scaling_joints:
         out.append(f"  {name} {len(members)}")

@@ -116,7 +116,9 @@ class SkeletonFK(nn.Module):
         self.num_dofs = skeleton.num_dofs
         self.register_buffer("parents", torch.as_tensor(parents))
         self.register_buffer("offsets", torch.tensor(np.stack([j.offset * j.scale for j in skeleton.joints]), dtype=dtype))
-        self.register_buffer("axes", torch.tensor(np.stack([j.axis for j in skeleton.joints]), dtype=dtype))
+        # Revolute axes are normalised on load by the C++ reader; prismatic directions are used as written.
+        axes = np.stack([j.axis / np.linalg.norm(j.axis) if j.type == "revolute" else j.axis for j in skeleton.joints])
+        self.register_buffer("axes", torch.tensor(axes, dtype=dtype))
         self.register_buffer("revolute", torch.tensor([j.type == "revolute" for j in skeleton.joints]))
         self.register_buffer("dof_weights", torch.tensor(skeleton.dof_weights(dof_match), dtype=dtype))
         self._levels = [torch.as_tensor(lv) for lv in kinematic_levels(parents)]

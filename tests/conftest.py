@@ -1,0 +1,40 @@
+"""Shared test fixtures: the real DynaCap sample (skipped with a reason when absent) and devices."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+SAMPLE_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "dynacap-sample"
+
+
+def pytest_addoption(parser):
+    parser.addoption("--device", default="cpu", help="torch device for device-parametrised tests (default cpu)")
+
+
+@pytest.fixture
+def device(request):
+    return request.config.getoption("--device")
+
+
+@pytest.fixture(scope="session")
+def sample_dir() -> Path:
+    """The real DDC sample character (../shared/dynacap-sample next to the repo)."""
+    if not (SAMPLE_DIR / "ddc.character").is_file():
+        pytest.skip(f"DynaCap sample data not found at {SAMPLE_DIR} (../shared is absent)")
+    return SAMPLE_DIR
+
+
+@pytest.fixture(scope="session")
+def sample_character(sample_dir):
+    from deliffas.data.dynacap import read_character
+
+    return read_character(sample_dir / "ddc.character")
+
+
+@pytest.fixture(scope="session")
+def sample_motion(sample_dir, sample_character):
+    from deliffas.data.dynacap import read_motion
+
+    return read_motion(sample_dir / "skeletoolToGTPose" / "poseAngles.motion", sample_character.skeleton.num_dofs)
