@@ -1,0 +1,1 @@
+"""Benchmarks of deliffas: every figure is a ratio measured in the same run (``make bench``)."""
