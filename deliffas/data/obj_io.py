@@ -119,6 +119,8 @@ def read_obj(path: str | os.PathLike) -> ObjData:
                     idx = [int(x) if x else 0 for x in parts] + [0] * (3 - len(parts))
                 except ValueError:
                     raise DynaCapFormatError(p, line_no, f"expected integer indices in face corner, got '{c[:30]}'") from None
+                if any(abs(i) >= 2**31 for i in idx):
+                    raise DynaCapFormatError(p, line_no, f"face index out of range in corner '{c[:30]}'")
                 corners.append(idx)
             # OBJ indices are 1-based; negative ones count back from the current end.
             def resolve(i: int, n: int) -> int:

@@ -136,9 +136,12 @@ class TextLines:
 
     def to_int(self, token: str, what: str) -> int:
         try:
-            return int(token)
+            value = int(token)
         except ValueError:
             raise self.error(f"expected an integer {what}, got '{token[:40]}'") from None
+        if not -(2**31) <= value < 2**31:
+            raise self.error(f"expected a 32-bit integer {what}, got '{token[:40]}'")
+        return value
 
     def to_float(self, token: str, what: str) -> float:
         try:
