@@ -1,0 +1,145 @@
+"""Normal maps through the texel gather: loop oracle, sphere geometry, naive path, temporal window."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from deliffas.geometry.atlas import UVAtlas, uv_texel_table
+from deliffas.geometry.mesh_ops import vertex_normals
+from deliffas.geometry.normal_maps import (
+    NormalMapGather,
+    normal_maps,
+    rasterize_normal_map_naive,
+    temporal_window,
+)
+
+
+def _load_reference():
+    spec = importlib.util.spec_from_file_location("deliffas_geometry_reference", Path(__file__).with_name("reference.py"))
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+ref = _load_reference()
+
+
+def _small_mesh(seed=0):
+    v, f, uvs, fu = ref.grid_plane(2, 400.0)  # 8 faces
+    rng = np.random.default_rng(seed)
+    v = v + rng.normal(0, 40, v.shape)
+    uvs = 0.1 + 0.8 * uvs + rng.uniform(-0.03, 0.03, uvs.shape)
+    return v, f, UVAtlas(uvs, fu)
+
+
+@pytest.mark.parametrize("gutter", [0, 2])
+def test_gather_matches_loop_oracle(gutter, device):
+    v, f, atlas = _small_mesh()
+    table = uv_texel_table(atlas, 16, gutter=gutter)
+    rng = np.random.default_rng(1)
+    vn = rng.normal(size=(2, len(v), 3))
+    vn /= np.linalg.norm(vn, axis=-1, keepdims=True)
+    got = normal_maps(torch.tensor(vn, device=device), f, table)
+    assert got.shape == (2, 3, 16, 16) and got.dtype == torch.float64 and got.device.type == torch.device(device).type
+    for b in range(2):
+        expected = ref.normal_map_loop(vn[b], f, table.face, table.bary.astype(np.float64))
+        np.testing.assert_allclose(got[b].cpu().numpy(), expected, atol=1e-6)
+    valid = torch.as_tensor(table.valid)
+    assert torch.all(got[:, :, ~valid] == 0)
+    np.testing.assert_allclose(got.norm(dim=1)[:, valid].cpu().numpy(), 1.0, atol=1e-6)
+
+
+def test_sphere_normal_map_is_radial():
+    v, f = ref.icosphere(3, 500.0)
+    atlas = UVAtlas.from_mesh(v, f, resolution=64)
+    table = uv_texel_table(atlas, 64, gutter=2)
+    vn = vertex_normals(torch.tensor(v, dtype=torch.float32)[None], f)
+    nm = NormalMapGather.from_table(table, f).apply(vn)[0].numpy()  # (3, S, S)
+    pts = np.einsum("nk,nkc->nc", table.bary[table.valid], v[f[table.face[table.valid]]])
+    radial = pts / np.linalg.norm(pts, axis=1, keepdims=True)
+    cos = (nm[:, table.valid].T * radial).sum(1)
+    cov = table.covered[table.valid]
+    assert np.degrees(np.arccos(np.clip(cos[cov], -1, 1))).max() < 3.0
+    assert np.degrees(np.arccos(np.clip(cos[~cov], -1, 1))).max() < 8.0  # extrapolated gutter
+
+
+def test_float16_output_and_numpy_input():
+    v, f, atlas = _small_mesh()
+    table = uv_texel_table(atlas, 8)
+    vn = vertex_normals(v, f)
+    gather = NormalMapGather.from_table(table, f)
+    out16 = gather.apply(vn[None].astype(np.float32), dtype=torch.float16)
+    out32 = gather.apply(vn[None].astype(np.float32))
+    assert out16.dtype == torch.float16 and out32.dtype == torch.float32
+    np.testing.assert_allclose(out16.float().numpy(), out32.numpy(), atol=1e-3)
+    # unbatched (V, 3) input gives (3, S, S)
+    assert gather.apply(vn).shape == (3, 8, 8)
+
+
+def test_naive_per_frame_rasterisation_equals_gather():
+    v, f, atlas = _small_mesh()
+    vn = np.stack([vertex_normals(v, f), -vertex_normals(v, f)])
+    table = uv_texel_table(atlas, 16)
+    fast = normal_maps(vn, f, table)
+    slow = rasterize_normal_map_naive(vn, f, atlas, 16)
+    torch.testing.assert_close(fast, slow)
+
+
+def test_zero_interpolated_normal_is_zero():
+    v, f, atlas = _small_mesh()
+    table = uv_texel_table(atlas, 16, gutter=0)
+    vn = np.zeros((len(v), 3))
+    out = normal_maps(vn, f, table)
+    assert torch.all(out == 0) and torch.all(torch.isfinite(out))
+
+
+def test_gather_rejects_mismatched_faces():
+    _, f, atlas = _small_mesh()
+    table = uv_texel_table(atlas, 8)
+    with pytest.raises(ValueError, match="face"):
+        NormalMapGather.from_table(table, f[:3])
+
+
+def _frames(num=5, S=4):
+    return np.stack([np.full((3, S, S), k, np.float32) for k in range(num)])
+
+
+def test_temporal_window_stacks_and_clamps():
+    maps = _frames()
+    out = temporal_window(maps, np.array([0, 3, 1]), 2)
+    assert out.shape == (3, 9, 4, 4)
+    # channel block k holds frame max(f - k, 0)
+    assert [out[0, 3 * k, 0, 0] for k in range(3)] == [0, 0, 0]
+    assert [out[1, 3 * k, 0, 0] for k in range(3)] == [3, 2, 1]
+    assert [out[2, 3 * k, 0, 0] for k in range(3)] == [1, 0, 0]
+    t = temporal_window(torch.from_numpy(maps), torch.tensor([0, 3, 1]), 2)
+    np.testing.assert_array_equal(t.numpy(), out)
+    assert temporal_window(maps, np.array([4]), 0).shape == (1, 3, 4, 4)
+
+
+def test_temporal_window_checks():
+    maps = _frames()
+    with pytest.raises(ValueError, match="frame_indices"):
+        temporal_window(maps, np.array([5]), 2)
+    with pytest.raises(ValueError, match="maps_per_frame"):
+        temporal_window(maps[:, :2], np.array([1]), 2)
+    with pytest.raises(ValueError, match="window"):
+        temporal_window(maps, np.array([1]), -1)
+
+
+def test_template_normal_maps(sample_dir):
+    v, f, uvs, fu = ref.read_obj_minimal(sample_dir / "ddc.obj")
+    table = uv_texel_table(UVAtlas.from_mesh(v, f, uvs, fu), 256)
+    gather = NormalMapGather.from_table(table, f)
+    vn = vertex_normals(torch.tensor(v, dtype=torch.float32)[None], f)
+    nm = gather.apply(vn, dtype=torch.float16)
+    assert nm.shape == (1, 3, 256, 256)
+    lengths = nm.float().norm(dim=1)[0]
+    valid = torch.as_tensor(table.valid)
+    assert torch.all(lengths[~valid] == 0)
+    assert (lengths[valid] - 1).abs().max() < 2e-3
