@@ -1,0 +1,198 @@
+"""Screen-space uv rendering: barycentric convention, analytic uvs, pixel centres, depth peeling."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from deliffas.geometry.atlas import UVAtlas
+from deliffas.geometry.raycast import UVRaycaster, all_hits, build_scene, first_hits, uv_inner_or_exit
+from deliffas.geometry.shell import offset_shell
+
+
+def _load_reference():
+    spec = importlib.util.spec_from_file_location("deliffas_geometry_reference", Path(__file__).with_name("reference.py"))
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+ref = _load_reference()
+
+R_IN, D = 500.0, 30.0
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    v, f = ref.icosphere(3, R_IN)
+    atlas = UVAtlas.from_mesh(v, f, resolution=128)
+    outer = offset_shell(v, f, D)
+    return v, f, outer, atlas
+
+
+def test_open3d_barycentrics_are_1_minus_b1_b2_b1_b2(sphere):
+    v, f, _, _ = sphere
+    rng = np.random.default_rng(0)
+    origins = rng.normal(size=(200, 3)) * 2000
+    targets = rng.uniform(-250, 250, size=(200, 3))  # well inside the sphere: every ray hits
+    dirs = targets - origins
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    t, face, bary = first_hits(build_scene(v, f), origins, dirs)
+    assert (face >= 0).all()
+    hit_pts = origins + t[:, None] * dirs
+    bary_pts = np.einsum("nk,nkc->nc", bary, v[f[face]])
+    np.testing.assert_allclose(bary_pts, hit_pts, atol=2e-2)
+    assert bary.min() >= -1e-5 and np.allclose(bary.sum(1), 1, atol=1e-5)
+    # a permuted convention would put the point elsewhere
+    wrong = np.einsum("nk,nkc->nc", bary[:, [1, 2, 0]], v[f[face]])
+    assert np.abs(wrong - hit_pts).max() > 1.0
+
+
+def test_uv_at_hits_is_the_analytic_uv_of_a_plane():
+    size = 400.0
+    v, f, uvs, fu = ref.grid_plane(4, size)
+    outer = offset_shell(v, f, D)
+    np.testing.assert_allclose(outer[:, 2], D)
+    cam = ref.look_at([0, 0, 1000], [0, 0, 0], 40, 30, focal=60.0)
+    hits = UVRaycaster(v, f, outer, UVAtlas(uvs, fu)).cast(cam)
+    assert hits.uv_inner.shape == (30, 40, 2) and hits.inner_depth.shape == (30, 40)
+    # independent pixel-centre rays: pixel (c, r) through (c + 0.5, r + 0.5)
+    rows, cols = np.mgrid[0:30, 0:40]
+    d_cam = np.stack([(cols + 0.5 - 20) / 60.0, (rows + 0.5 - 15) / 60.0, np.ones((30, 40))], -1)
+    d_world = d_cam @ cam.R  # R^T d
+    d_world /= np.linalg.norm(d_world, axis=-1, keepdims=True)
+    for z, uv, depth, hit in [(0.0, hits.uv_inner, hits.inner_depth, hits.inner_hit), (D, hits.uv_outer, hits.outer_depth, hits.outer_hit)]:
+        t = (z - 1000.0) / d_world[..., 2]
+        p = cam.center + t[..., None] * d_world
+        inside = (np.abs(p[..., :2]) < size / 2 - 1e-3).all(-1)
+        np.testing.assert_array_equal(hit, inside)
+        np.testing.assert_allclose(uv[hit], p[hit][:, :2] / size + 0.5, atol=2e-6)
+        np.testing.assert_allclose(depth[hit], t[hit], rtol=1e-6)
+        assert np.isnan(uv[~hit]).all() and np.isinf(depth[~hit]).all()
+    assert not hits.outer_exit_hit.any()  # an open plane has no second outer hit
+    assert hits.inner_hit.sum() > 100
+
+
+def test_depth_peeling_orders_inner_between_outer_hits(sphere):
+    v, f, outer, atlas = sphere
+    cam = ref.look_at([0, 0, 3000], [0, 0, 0], 96, 96, focal=110.0)
+    hits = UVRaycaster(v, f, outer, atlas).cast(cam)
+    hi = hits.inner_hit
+    assert hi.sum() > 1000
+    assert np.all(hits.outer_hit[hi]) and np.all(hits.outer_exit_hit[hi])
+    assert np.all(hits.outer_depth[hi] <= hits.inner_depth[hi])
+    assert np.all(hits.inner_depth[hi] <= hits.outer_exit_depth[hi])
+    # shell thickness along a central ray is about d
+    c = (48, 48)
+    assert abs(hits.inner_depth[c] - hits.outer_depth[c] - D) < 1.0
+    # rays that cross only the shell ring still exit it
+    ring = hits.outer_hit & ~hi
+    assert ring.sum() > 20
+    assert np.all(hits.outer_exit_hit[ring])
+    assert np.all(hits.outer_exit_depth[ring] > hits.outer_depth[ring])
+    uv, from_outer = uv_inner_or_exit(hits)
+    np.testing.assert_array_equal(from_outer, ring)
+    np.testing.assert_array_equal(uv[ring], hits.uv_outer_exit[ring])
+    np.testing.assert_array_equal(uv[hi], hits.uv_inner[hi])
+    assert np.isnan(uv[~hits.outer_hit]).all()
+
+
+def test_ray_missing_inner_takes_outer_exit(sphere):
+    v, f, outer, atlas = sphere
+    rc = UVRaycaster(v, f, outer, atlas)
+    origins = np.array([[515.0, 0.0, 3000.0], [560.0, 0.0, 3000.0], [0.0, 0.0, 3000.0]])
+    dirs = np.tile([0.0, 0.0, -1.0], (3, 1))
+    h = rc.cast_rays(origins, dirs)
+    assert h.inner_hit.tolist() == [False, False, True]
+    assert h.outer_hit.tolist() == [True, False, True]
+    assert h.outer_exit_hit.tolist() == [True, False, True]
+    # the exit is the far side of the shell: z of the exit point is about -sqrt(530^2 - 515^2)
+    z_exit = 3000.0 - h.outer_exit_depth[0]
+    assert abs(z_exit + np.sqrt((R_IN + D) ** 2 - 515.0**2)) < 15.0
+    uv, from_outer = uv_inner_or_exit(h)
+    assert from_outer.tolist() == [True, False, False]
+    np.testing.assert_array_equal(uv[0], h.uv_outer_exit[0])
+
+
+def test_recast_and_list_peeling_agree(sphere):
+    v, f, outer, atlas = sphere
+    cam = ref.look_at([0, 900, 2800], [0, 0, 0], 64, 64, focal=80.0)
+    a = UVRaycaster(v, f, outer, atlas, peel="recast").cast(cam)
+    b = UVRaycaster(v, f, outer, atlas, peel="list").cast(cam)
+    np.testing.assert_array_equal(a.outer_face, b.outer_face)
+    np.testing.assert_array_equal(a.outer_exit_hit, b.outer_exit_hit)
+    np.testing.assert_array_equal(a.outer_exit_face, b.outer_exit_face)
+    m = a.outer_exit_hit
+    np.testing.assert_allclose(a.outer_exit_depth[m], b.outer_exit_depth[m], atol=5e-3)
+    np.testing.assert_allclose(a.uv_outer_exit[m], b.uv_outer_exit[m], atol=1e-5)
+
+
+def test_all_hits_lists_both_sides(sphere):
+    v, f, outer, atlas = sphere
+    ray_ids, t, face, _ = all_hits(build_scene(v, f), np.array([[1.23, 4.56, 3000]]), np.array([[0.0, 0, -1]]))
+    assert ray_ids.tolist() == [0, 0] and t[0] < t[1]
+    np.testing.assert_allclose(t, [2500.0, 3500.0], atol=10.0)
+    # through a vertex (the icosphere has one on the z axis) open3d lists one hit per face there;
+    # both peeling methods still return the far side as the exit
+    ray_ids, t, _, _ = all_hits(build_scene(v, f), np.array([[0.0, 0, 3000]]), np.array([[0.0, 0, -1]]))
+    assert len(t) > 2
+    for peel in ("recast", "list"):
+        h = UVRaycaster(v, f, outer, atlas, peel=peel).cast_rays(np.array([[0.0, 0, 3000]]), np.array([[0.0, 0, -1]]))
+        np.testing.assert_allclose([h.outer_depth[0], h.outer_exit_depth[0]], [3000 - R_IN - D, 3000 + R_IN + D], atol=1e-2)
+
+
+def test_mask_subset_and_batch_match_full_image(sphere):
+    v, f, outer, atlas = sphere
+    rc = UVRaycaster(v, f, outer, atlas)
+    cams = [ref.look_at([3000 * np.sin(a), 0, 3000 * np.cos(a)], [0, 0, 0], 48, 40, focal=60.0) for a in (0.0, 1.0)]
+    full = rc.cast(cams[0])
+    mask = full.outer_hit.copy()
+    mask[::3] = False
+    sub = rc.cast(cams[0], mask=mask)
+    rows, cols = np.nonzero(mask)
+    np.testing.assert_array_equal(sub.pixels, np.stack([cols, rows], 1))
+    np.testing.assert_array_equal(sub.inner_face, full.inner_face[mask])
+    np.testing.assert_allclose(sub.uv_outer_exit, full.uv_outer_exit[mask])
+    batch = rc.cast_batch(cams)
+    assert batch.uv_inner.shape == (2, 40, 48, 2)
+    for k, cam in enumerate(cams):
+        single = rc.cast(cam)
+        np.testing.assert_array_equal(batch.inner_face[k], single.inner_face)
+        np.testing.assert_allclose(batch.uv_outer[k], single.uv_outer, equal_nan=True)
+    with pytest.raises(ValueError, match="size"):
+        rc.cast_batch([cams[0], ref.look_at([0, 0, 3000], [0, 0, 0], 10, 10, focal=20.0)])
+    with pytest.raises(ValueError, match="mask"):
+        rc.cast(cams[0], mask=np.ones((3, 3), bool))
+
+
+def test_raycaster_checks(sphere):
+    v, f, outer, atlas = sphere
+    with pytest.raises(ValueError, match="outer_verts"):
+        UVRaycaster(v, f, outer[:-1], atlas)
+    with pytest.raises(ValueError, match="peel"):
+        UVRaycaster(v, f, outer, atlas, peel="zbuffer")
+    with pytest.raises(ValueError, match="atlas"):
+        UVRaycaster(v, f[:-1], outer, atlas)
+
+
+def test_template_raycast_from_3m(sample_dir):
+    v, f, uvs, fu = ref.read_obj_minimal(sample_dir / "ddc.obj")
+    outer = offset_shell(v, f, D)
+    centre = (v.min(0) + v.max(0)) / 2
+    cam = ref.look_at(centre + [0, 0, 3000], centre, 256, 256, focal=400.0)
+    hits = UVRaycaster(v, f, outer, UVAtlas.from_mesh(v, f, uvs, fu)).cast(cam)
+    hi = hits.inner_hit
+    assert 2000 < hi.sum() < 0.5 * 256 * 256
+    assert np.all(hits.outer_hit[hi])
+    assert np.mean(hits.outer_depth[hi] <= hits.inner_depth[hi]) == 1.0
+    # the 30 mm shell of the template folds on itself in creases (shell_report counts ~1700
+    # faces), so some second outer hits come before the inner hit; DELIFFAS only uses the
+    # second hit where the inner surface is missed
+    assert np.mean(hits.inner_depth[hi] <= hits.outer_exit_depth[hi]) > 0.9
+    uv, from_outer = uv_inner_or_exit(hits)
+    assert from_outer.sum() > 0
+    ok = ~np.isnan(uv[..., 0])
+    assert (uv[ok] >= -1e-6).all() and (uv[ok] <= 1 + 1e-6).all()
