@@ -41,7 +41,7 @@ def _sample_one(feature_map: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     """Sample one (1, C, S, S) map at (M, 2) uv -> (M, C) (a transposed view)."""
     grid = uv_to_grid(uv.to(feature_map.dtype)).view(1, 1, -1, 2)  # (1, 1, M, 2)
     out = F.grid_sample(feature_map, grid, mode="bilinear", padding_mode="border", align_corners=False)
-    return out.view(feature_map.shape[1], -1).transpose(0, 1)  # (M, C)
+    return out[0, :, 0, :].transpose(0, 1)  # (1, C, 1, M) -> (M, C)
 
 
 def sample_uv(feature_maps: torch.Tensor, batch_index: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
@@ -50,6 +50,12 @@ def sample_uv(feature_maps: torch.Tensor, batch_index: torch.Tensor, uv: torch.T
     One ``grid_sample`` call per batch item present (a (1, 1, M, 2) grid each), so the cost is
     linear in N with no per-ray Python work; N of about 1.2 M rays (a 940 x 1285 frame) is fine.
     Rays are grouped by ``batch_index`` with a stable sort unless already sorted.
+
+    Performance: for spatially incoherent queries on large maps, pass maps in channels_last
+    memory format (``feature_maps.contiguous(memory_format=torch.channels_last)``): each texel's
+    C values are then adjacent, and on CPU 1.2 M random lookups into a 1024^2 x 32 map take
+    ~0.5 s instead of ~2.9 s (2 cores). :meth:`DeliffasModel.encode` stores its maps that way.
+    The result is then a contiguous (N, C) tensor.
 
     Args:
         feature_maps: (B, C, S_h, S_w) float, atlas-space maps (row 0 = v 1).

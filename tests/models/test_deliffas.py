@@ -1,0 +1,225 @@
+"""Tests of deliffas.models.deliffas: variants, depth-peeling mask, chunking, overfitting."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import pytest
+import torch
+
+from deliffas.models.deliffas import VARIANTS, DeliffasModel, FrameFeatures, ModelConfig
+from deliffas.models.light_field import LightFieldMLPConfig
+from deliffas.models.losses import l1_foreground
+from deliffas.models.unet import UNetConfig
+
+S = 16
+
+
+def tiny_config(variant: str, **kwargs) -> ModelConfig:
+    base = dict(
+        variant=variant,
+        atlas_res=S,
+        feature_channels=4,
+        pe_freqs=3,
+        viewdir_pe_freqs=2,
+        unet=UNetConfig(in_channels=9, out_channels=4, base_channels=4, max_channels=8),
+        mlp=LightFieldMLPConfig(depth=3, width=16, feature_layer=1),
+    )
+    base.update(kwargs)
+    return ModelConfig(**base)
+
+
+def make_rays(n: int, batch: int, gen: torch.Generator):
+    return dict(
+        batch_index=torch.randint(0, batch, (n,), generator=gen),
+        uv_inner=torch.rand(n, 2, generator=gen),
+        uv_outer=torch.rand(n, 2, generator=gen),
+        viewdir=torch.nn.functional.normalize(torch.randn(n, 3, generator=gen), dim=-1),
+    )
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_variant_shapes_and_gradients(variant, device):
+    gen = torch.Generator().manual_seed(0)
+    torch.manual_seed(0)
+    model = DeliffasModel(tiny_config(variant)).to(device)
+    normals = torch.randn(2, 9, S, S, generator=gen).to(device)
+    features = model.encode(normals, normals.flip(-1))
+    rays = {k: v.to(device) for k, v in make_rays(40, 2, gen).items()}
+    rgb = model.shade(features, **rays)
+    assert rgb.shape == (40, 3) and rgb.min() > 0 and rgb.max() < 1
+    rgb.sum().backward()
+    used = [model.unet_inner] + [m for m in (model.unet_inner_2, model.unet_outer) if m is not None]
+    for net in used:
+        assert net.final.weight.grad is not None and net.final.weight.grad.abs().sum() > 0
+    assert model.mlp.hidden[0].weight.grad.abs().sum() > 0
+    expected_unets = {"single_surface": 1, "single_surface_viewdir": 1, "single_surface_two_unet": 2, "two_surface": 2}
+    assert len(used) == expected_unets[variant]
+    expected_channels = 8 if variant == "single_surface_two_unet" else 4
+    assert features.inner.shape == (2, expected_channels, S, S)
+    assert (features.outer is not None) == (variant == "two_surface")
+
+
+def test_mlp_inputs_per_variant():
+    pe = 2 + 2 * 2 * 3
+    dims = {v: (DeliffasModel(tiny_config(v)).mlp.in_dim, DeliffasModel(tiny_config(v)).mlp.feature_dim) for v in VARIANTS}
+    assert dims["single_surface"] == (pe, 4)
+    assert dims["single_surface_viewdir"] == (pe + 3 + 3 * 2 * 2, 4)
+    assert dims["single_surface_two_unet"] == (pe, 8)
+    assert dims["two_surface"] == (2 * pe, 8)
+
+
+def test_two_unet_has_two_surface_capacity():
+    two_unet = DeliffasModel(tiny_config("single_surface_two_unet"))
+    two_surface = DeliffasModel(tiny_config("two_surface"))
+    pe = 2 + 2 * 2 * 3
+    # only the first MLP layer differs: one uv encoding instead of two
+    assert two_surface.num_parameters() - two_unet.num_parameters() == pe * 16
+
+
+def test_viewdir_matters_only_for_viewdir_variant():
+    gen = torch.Generator().manual_seed(1)
+    rays = make_rays(30, 1, gen)
+    normals = torch.randn(1, 9, S, S, generator=gen)
+    for variant, should_change in [("single_surface_viewdir", True), ("single_surface", False)]:
+        model = DeliffasModel(tiny_config(variant)).eval()
+        f = model.encode(normals)
+        a = model.shade(f, **rays)
+        b = model.shade(f, **{**rays, "viewdir": -rays["viewdir"]})
+        assert (not torch.allclose(a, b)) == should_change
+
+
+def test_inner_from_outer_reads_outer_map():
+    gen = torch.Generator().manual_seed(2)
+    model = DeliffasModel(tiny_config("two_surface")).eval()
+    normals = torch.randn(2, 9, S, S, generator=gen)
+    f = model.encode(normals, torch.randn(2, 9, S, S, generator=gen))
+    rays = make_rays(64, 2, gen)
+    mask = torch.rand(64, generator=gen) < 0.4
+    mixed = model.shade(f, **rays, inner_from_outer=mask)
+    plain = model.shade(f, **rays)
+    swapped = model.shade(FrameFeatures(inner=f.outer, outer=f.outer), **rays)
+    torch.testing.assert_close(mixed[~mask], plain[~mask])
+    torch.testing.assert_close(mixed[mask], swapped[mask])
+    assert not torch.allclose(mixed[mask], plain[mask])
+    all_outer = model.shade(f, **rays, inner_from_outer=torch.ones(64, dtype=torch.bool))
+    torch.testing.assert_close(all_outer, swapped)
+
+
+def test_inner_from_outer_rejected_without_outer_map():
+    model = DeliffasModel(tiny_config("single_surface"))
+    f = model.encode(torch.randn(1, 9, S, S))
+    rays = make_rays(5, 1, torch.Generator().manual_seed(0))
+    mask = torch.zeros(5, dtype=torch.bool)
+    model.shade(f, **rays, inner_from_outer=mask)  # all False is fine
+    mask[2] = True
+    with pytest.raises(ValueError, match="no outer feature map"):
+        model.shade(f, **rays, inner_from_outer=mask)
+    with pytest.raises(ValueError, match="bool"):
+        model.shade(f, **rays, inner_from_outer=mask.float())
+
+
+def test_required_inputs():
+    model = DeliffasModel(tiny_config("two_surface"))
+    normals = torch.randn(1, 9, S, S)
+    with pytest.raises(ValueError, match="normal_outer"):
+        model.encode(normals)
+    with pytest.raises(ValueError, match="normal_inner"):
+        model.encode(torch.randn(1, 6, S, S), normals)
+    f = model.encode(normals, normals)
+    with pytest.raises(ValueError, match="uv_outer"):
+        model.shade(f, torch.zeros(3, dtype=torch.long), torch.rand(3, 2))
+    viewdir_model = DeliffasModel(tiny_config("single_surface_viewdir"))
+    with pytest.raises(ValueError, match="viewdir"):
+        viewdir_model.shade(viewdir_model.encode(normals), torch.zeros(3, dtype=torch.long), torch.rand(3, 2))
+
+
+def test_chunked_equals_full():
+    gen = torch.Generator().manual_seed(3)
+    model = DeliffasModel(tiny_config("two_surface")).eval()
+    f = model.encode(torch.randn(2, 9, S, S, generator=gen), torch.randn(2, 9, S, S, generator=gen))
+    rays = make_rays(103, 2, gen)
+    mask = torch.rand(103, generator=gen) < 0.3
+    full = model.shade(f, **rays, inner_from_outer=mask)
+    with torch.no_grad():
+        chunked = model.shade_chunked(f, **rays, inner_from_outer=mask, chunk_size=10)
+    assert chunked.shape == (103, 3)
+    torch.testing.assert_close(chunked, full)
+    with pytest.raises(ValueError, match="chunk_size"):
+        model.shade_chunked(f, **rays, chunk_size=0)
+
+
+def test_forward_is_encode_then_shade():
+    gen = torch.Generator().manual_seed(4)
+    model = DeliffasModel(tiny_config("two_surface")).eval()
+    ni, no = torch.randn(1, 9, S, S, generator=gen), torch.randn(1, 9, S, S, generator=gen)
+    rays = make_rays(12, 1, gen)
+    torch.testing.assert_close(model(ni, no, **rays), model.shade(model.encode(ni, no), **rays))
+
+
+def test_float64_inputs_flow_through():
+    model = DeliffasModel(tiny_config("two_surface")).double()
+    gen = torch.Generator().manual_seed(5)
+    normals = torch.randn(1, 9, S, S, generator=gen, dtype=torch.float64)
+    rays = {k: (v.double() if v.is_floating_point() else v) for k, v in make_rays(7, 1, gen).items()}
+    assert model(normals, normals, **rays).dtype == torch.float64
+
+
+def test_config_defaults_and_validation():
+    cfg = ModelConfig()
+    assert cfg.variant == "two_surface" and cfg.atlas_res == 1024 and cfg.temporal_window == 2
+    assert cfg.unet is not None and cfg.unet.in_channels == 9 and cfg.unet.out_channels == 32
+    assert cfg.mlp.depth == 8 and cfg.mlp.width == 256 and cfg.pe_freqs == 10
+    assert ModelConfig(temporal_window=0).unet.in_channels == 3
+    with pytest.raises(ValueError, match="require 3"):
+        ModelConfig(temporal_window=0, unet=UNetConfig(in_channels=9))
+    with pytest.raises(ValueError, match="variant"):
+        ModelConfig(variant="three_surface")  # type: ignore[arg-type]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.atlas_res = 8  # type: ignore[misc]
+
+
+def test_accounting():
+    model = DeliffasModel(tiny_config("two_surface"))
+    assert model.num_parameters() == sum(p.numel() for p in model.parameters())
+    model.unet_outer.requires_grad_(False)
+    frozen = sum(p.numel() for p in model.unet_outer.parameters())
+    assert model.num_parameters(trainable_only=True) == model.num_parameters() - frozen
+    wide = DeliffasModel(tiny_config("two_surface", mlp=LightFieldMLPConfig(depth=3, width=32, feature_layer=1)))
+    assert wide.flops_per_ray() > model.flops_per_ray() > model.mlp.flops_per_ray()
+
+
+def test_tiny_two_surface_overfits_one_frame():
+    torch.manual_seed(0)
+    gen = torch.Generator().manual_seed(0)
+    cfg = tiny_config(
+        "two_surface",
+        atlas_res=32,
+        feature_channels=8,
+        pe_freqs=4,
+        unet=UNetConfig(in_channels=9, out_channels=8, base_channels=8, max_channels=16),
+        mlp=LightFieldMLPConfig(depth=3, width=64, feature_layer=1),
+    )
+    model = DeliffasModel(cfg)
+    normal_inner = torch.nn.functional.normalize(torch.randn(1, 9, 32, 32, generator=gen), dim=1)
+    normal_outer = torch.nn.functional.normalize(torch.randn(1, 9, 32, 32, generator=gen), dim=1)
+    n = 1024
+    uv_inner = torch.rand(n, 2, generator=gen)
+    uv_outer = (uv_inner + 0.05 * torch.randn(n, 2, generator=gen)).clamp(0, 1)
+    inner_from_outer = torch.rand(n, generator=gen) < 0.2
+    u, v = uv_inner[:, 0:1], uv_inner[:, 1:2]
+    phase = torch.tensor([0.0, 1.0, 2.0])
+    target = 0.5 + 0.35 * torch.sin(2 * math.pi * u + phase) * torch.cos(2 * math.pi * v)  # (N, 3)
+    batch_index = torch.zeros(n, dtype=torch.long)
+    opt = torch.optim.Adam(model.parameters(), lr=3e-3)
+    losses = []
+    for _ in range(60):
+        features = model.encode(normal_inner, normal_outer)
+        rgb = model.shade(features, batch_index, uv_inner, uv_outer, inner_from_outer=inner_from_outer)
+        loss = l1_foreground(rgb, target)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(float(loss.detach()))
+    assert losses[-1] < losses[0] / 5, (losses[0], losses[-1])

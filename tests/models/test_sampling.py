@@ -1,0 +1,109 @@
+"""Tests of deliffas.models.sampling.sample_uv (texel-centre convention, batching, gradients)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from deliffas.models.sampling import sample_uv
+
+
+def uv_centre_map(size: int, dtype=torch.float32) -> torch.Tensor:
+    """(1, 2, S, S) map whose texel (i, j) holds its own uv centre ((j+.5)/S, 1-(i+.5)/S)."""
+    idx = (torch.arange(size, dtype=torch.float64) + 0.5) / size
+    u = idx.view(1, size).expand(size, size)
+    v = (1.0 - idx).view(size, 1).expand(size, size)
+    return torch.stack([u, v])[None].to(dtype)
+
+
+def reference_bilinear(maps: np.ndarray, batch_index: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Loop oracle: texel centres at ((j+.5)/S, 1-(i+.5)/S), clamped to the border centres."""
+    _, channels, height, width = maps.shape
+    out = np.zeros((len(uv), channels))
+    for n, ((u, v), b) in enumerate(zip(uv, batch_index)):
+        x = min(max(u * width - 0.5, 0.0), width - 1.0)
+        y = min(max((1.0 - v) * height - 0.5, 0.0), height - 1.0)
+        x0, y0 = int(np.floor(x)), int(np.floor(y))
+        x1, y1 = min(x0 + 1, width - 1), min(y0 + 1, height - 1)
+        fx, fy = x - x0, y - y0
+        out[n] = (
+            maps[b, :, y0, x0] * (1 - fx) * (1 - fy)
+            + maps[b, :, y0, x1] * fx * (1 - fy)
+            + maps[b, :, y1, x0] * (1 - fx) * fy
+            + maps[b, :, y1, x1] * fx * fy
+        )
+    return out
+
+
+def test_returns_query_uv_on_uv_centre_map(device):
+    size = 16
+    maps = uv_centre_map(size).to(device)
+    gen = torch.Generator().manual_seed(0)
+    lo, hi = 0.5 / size, 1.0 - 0.5 / size
+    uv = (lo + (hi - lo) * torch.rand(500, 2, generator=gen)).to(device)
+    out = sample_uv(maps, torch.zeros(500, dtype=torch.long, device=device), uv)
+    assert out.shape == (500, 2)
+    torch.testing.assert_close(out, uv, rtol=0, atol=1e-5)
+
+
+def test_texel_centres_are_exact():
+    size = 8
+    maps = torch.arange(size * size, dtype=torch.float32).view(1, 1, size, size)
+    i, j = torch.meshgrid(torch.arange(size), torch.arange(size), indexing="ij")
+    uv = torch.stack([(j.flatten() + 0.5) / size, 1 - (i.flatten() + 0.5) / size], dim=-1)
+    out = sample_uv(maps, torch.zeros(size * size, dtype=torch.long), uv)
+    torch.testing.assert_close(out[:, 0], maps.flatten(), rtol=0, atol=1e-4)
+
+
+def test_border_padding():
+    size = 4
+    maps = uv_centre_map(size)
+    uv = torch.tensor([[-0.3, 0.5], [1.2, 1.7], [0.0, 0.0]])
+    out = sample_uv(maps, torch.zeros(3, dtype=torch.long), uv)
+    lo, hi = 0.5 / size, 1 - 0.5 / size
+    expected = torch.tensor([[lo, 0.5], [hi, hi], [lo, lo]])
+    torch.testing.assert_close(out, expected, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("sorted_index", [True, False])
+def test_batched_matches_loop_oracle(sorted_index):
+    gen = torch.Generator().manual_seed(1)
+    maps = torch.randn(3, 5, 6, 6, generator=gen, dtype=torch.float64)
+    batch_index = torch.randint(0, 3, (200,), generator=gen)
+    batch_index[:3] = torch.tensor([2, 0, 1])
+    if sorted_index:
+        batch_index = batch_index.sort().values
+    uv = torch.rand(200, 2, generator=gen, dtype=torch.float64) * 1.2 - 0.1
+    out = sample_uv(maps, batch_index, uv)
+    ref = reference_bilinear(maps.numpy(), batch_index.numpy(), uv.numpy())
+    np.testing.assert_allclose(out.numpy(), ref, rtol=0, atol=1e-10)
+
+
+def test_batch_without_some_items():
+    maps = torch.stack([torch.full((2, 4, 4), float(b)) for b in range(4)])
+    batch_index = torch.tensor([3, 3, 1, 3])
+    out = sample_uv(maps, batch_index, torch.rand(4, 2))
+    torch.testing.assert_close(out[:, 0], batch_index.float())
+
+
+def test_gradients_reach_maps_and_uv():
+    maps = torch.randn(2, 3, 8, 8, requires_grad=True)
+    uv = torch.rand(50, 2, requires_grad=True)
+    batch_index = torch.randint(0, 2, (50,))
+    sample_uv(maps, batch_index, uv).square().sum().backward()
+    assert maps.grad is not None and maps.grad.abs().sum() > 0
+    assert uv.grad is not None and torch.isfinite(uv.grad).all() and uv.grad.abs().sum() > 0
+
+
+def test_empty_and_errors():
+    maps = torch.randn(2, 3, 8, 8)
+    assert sample_uv(maps, torch.zeros(0, dtype=torch.long), torch.zeros(0, 2)).shape == (0, 3)
+    with pytest.raises(ValueError, match="batch_index"):
+        sample_uv(maps, torch.tensor([0, 2]), torch.rand(2, 2))
+    with pytest.raises(ValueError, match="integer"):
+        sample_uv(maps, torch.tensor([0.0, 1.0]), torch.rand(2, 2))
+    with pytest.raises(ValueError, match="uv"):
+        sample_uv(maps, torch.tensor([0, 1]), torch.rand(2, 3))
+    with pytest.raises(ValueError, match="batch_index"):
+        sample_uv(maps[:1], torch.tensor([0, 1]), torch.rand(2, 2))
