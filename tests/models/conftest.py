@@ -18,6 +18,12 @@ TORCHVISION_VGG16_CONVS = {
 }  # fmt: skip
 
 
+@pytest.fixture(scope="session")
+def torchvision_vgg16_convs() -> dict[int, tuple[int, int]]:
+    """torchvision vgg16 ``features`` conv index -> (out, in) channels, written independently."""
+    return dict(TORCHVISION_VGG16_CONVS)
+
+
 @pytest.fixture
 def device() -> torch.device:
     """Test device: ``$DELIFFAS_TEST_DEVICE`` (default cpu)."""
