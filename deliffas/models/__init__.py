@@ -1,1 +1,39 @@
 """Networks, losses, metrics and the model zoo of DELIFFAS and its variants."""
+
+from deliffas.models.deliffas import VARIANTS, DeliffasModel, FrameFeatures, ModelConfig
+from deliffas.models.encoding import PositionalEncoding, positional_encoding
+from deliffas.models.light_field import LightFieldMLP, LightFieldMLPConfig
+from deliffas.models.losses import PerceptualLoss, l1_foreground
+from deliffas.models.metrics import Evaluator, perceptual_metrics_status, psnr, ssim
+from deliffas.models.sampling import sample_uv
+from deliffas.models.unet import UNet, UNetConfig
+from deliffas.models.vgg import BackboneRecord, PerceptualWeightsUnavailable, load_vgg16_weights
+from deliffas.models.zoo import CheckpointError, get_config, list_models, load_checkpoint, save_checkpoint
+
+__all__ = [
+    "VARIANTS",
+    "BackboneRecord",
+    "CheckpointError",
+    "DeliffasModel",
+    "Evaluator",
+    "FrameFeatures",
+    "LightFieldMLP",
+    "LightFieldMLPConfig",
+    "ModelConfig",
+    "PerceptualLoss",
+    "PerceptualWeightsUnavailable",
+    "PositionalEncoding",
+    "UNet",
+    "UNetConfig",
+    "get_config",
+    "l1_foreground",
+    "list_models",
+    "load_checkpoint",
+    "load_vgg16_weights",
+    "perceptual_metrics_status",
+    "positional_encoding",
+    "psnr",
+    "sample_uv",
+    "save_checkpoint",
+    "ssim",
+]

@@ -117,7 +117,9 @@ class VGG16Features(nn.Module):
                 prev = v
         self.features = nn.Sequential(*layers)
 
-    def forward(self, x: torch.Tensor, layers: tuple[str, ...] = ("relu1_2", "relu2_2", "relu3_3", "relu4_3")) -> dict[str, torch.Tensor]:
+    def forward(
+        self, x: torch.Tensor, layers: tuple[str, ...] = ("relu1_2", "relu2_2", "relu3_3", "relu4_3")
+    ) -> dict[str, torch.Tensor]:
         """Activations at the requested ReLU layers; stops after the deepest one.
 
         Args:
@@ -184,7 +186,9 @@ def _load_features(model: VGG16Features, state: Mapping[str, torch.Tensor], sour
     missing = sorted(set(expected) - set(features))
     unexpected = sorted(set(features) - set(expected))
     if missing or unexpected:
-        raise ValueError(f"{source}: not a torchvision VGG-16 state dict (missing {missing[:4]}, unexpected {unexpected[:4]})")
+        raise ValueError(
+            f"{source}: not a torchvision VGG-16 state dict (missing {missing[:4]}, unexpected {unexpected[:4]})"
+        )
     for key, shape in expected.items():
         if tuple(features[key].shape) != shape:
             raise ValueError(f"{source}: {key}: expected shape {shape}, got {tuple(features[key].shape)}")

@@ -296,7 +296,8 @@ def _read_meta(path: Path) -> dict[str, Any]:
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise CheckpointError(f"{path}: corrupted or truncated JSON ({exc})") from exc
     if not isinstance(meta, dict) or meta.get("format") != CHECKPOINT_FORMAT:
-        raise CheckpointError(f"{path}: expected format {CHECKPOINT_FORMAT!r}, got {meta.get('format') if isinstance(meta, dict) else meta!r}")
+        found = meta.get("format") if isinstance(meta, dict) else type(meta).__name__
+        raise CheckpointError(f"{path}: expected format {CHECKPOINT_FORMAT!r}, got {found!r}")
     if meta.get("version") != CHECKPOINT_VERSION:
         raise CheckpointError(f"{path}: expected version {CHECKPOINT_VERSION}, got {meta.get('version')!r}")
     for key in ("config", "weights_sha256", "weights_bytes"):
