@@ -1,6 +1,7 @@
 """Image-quality metrics under the official DELIFFAS evaluation protocol (formats doc 3.10).
 
-Protocol (D ``Projects/EvaluationScripts/Lpips.py``), per image:
+Protocol (D ``Projects/EvaluationScripts/Lpips.py``), per image (it reads saved 8-bit PNGs;
+:class:`Evaluator` rounds both images to 8 bits first unless ``quantize_8bit=False``):
 
 1. the prediction is resized to the ground-truth size (bilinear, as ``cv2.resize`` default);
 2. the mask is thresholded at 0.5 and eroded with a 5 x 5 square (pixels outside the image do
@@ -376,6 +377,7 @@ class Evaluator:
         substitute_seed: seed of the random VGG-16 of ``lpips_random_vgg16``.
         crop_hw: protocol crop (H, W).
         device: where the perceptual networks run.
+        quantize_8bit: round both images to 8 bits first (the protocol scores saved PNGs).
     """
 
     def __init__(
@@ -386,8 +388,10 @@ class Evaluator:
         substitute_seed: int = 0,
         crop_hw: tuple[int, int] = CROP_HW,
         device: str | torch.device = "cpu",
+        quantize_8bit: bool = True,
     ) -> None:
         self.crop_hw = crop_hw
+        self.quantize_8bit = quantize_8bit
         self.device = torch.device(device)
         self.status = perceptual_metrics_status(vgg16_path, lpips_path, inception_path)
         self.lpips_net: LPIPS | None = None
@@ -406,6 +410,9 @@ class Evaluator:
     @torch.no_grad()
     def add(self, pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> ImageMetrics:
         """Score one image: pred (3, H', W'), gt (3, H, W) in [0, 1], mask (H, W) in [0, 1]."""
+        if self.quantize_8bit:
+            pred = torch.round(pred.clamp(0, 1) * 255) / 255
+            gt = torch.round(gt.clamp(0, 1) * 255) / 255
         p, g = prepare_pair(pred, gt, mask, self.crop_hw)
         pb, gb = p[None].float().to(self.device), g[None].float().to(self.device)
         lp = None if self.lpips_net is None else float(self.lpips_net(pb, gb)[0])

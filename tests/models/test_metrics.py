@@ -150,6 +150,14 @@ def test_evaluator_reports_substitute_beside_unavailable_lpips(no_weights):
     assert summary["lpips_random_vgg16_backbone"]["name"] == "vgg16-random"
 
 
+def test_evaluator_quantizes_to_8_bit(no_weights):
+    gt = torch.full((3, 24, 24), 0.5)
+    pred = gt + 0.001  # below half an 8-bit step: identical once saved as PNG
+    mask = torch.ones(24, 24)
+    assert Evaluator(substitute_seed=1).add(pred, gt, mask).psnr == math.inf
+    assert Evaluator(substitute_seed=1, quantize_8bit=False).add(pred, gt, mask).psnr == pytest.approx(60.0, abs=0.01)
+
+
 @pytest.fixture
 def lpips_file(tmp_path):
     gen = torch.Generator().manual_seed(4)
