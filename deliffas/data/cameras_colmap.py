@@ -1,0 +1,130 @@
+"""COLMAP import/export of DynaCap cameras (PINHOLE models, poses, an empty point cloud).
+
+Pixel conventions, worked out:
+
+- DynaCap/deliffas (docs/conventions.md): pixel (col, row) is sampled at the continuous image point
+  (col + 0.5, row + 0.5) with K, i.e. integer coordinates lie on pixel *corners* and the image spans
+  [0, W] x [0, H].
+- COLMAP: "the upper left image corner has coordinate (0, 0) and the center of the upper left most
+  pixel has coordinate (0.5, 0.5)" (COLMAP documentation, Database Format / Keypoints); its camera
+  models project x_img = f x/z + c in that continuous system, and ``Camera.create`` puts the
+  default principal point at (W/2, H/2), the image centre in that system.
+- Hence the two agree: fx, fy, cx, cy are copied **unchanged**. The half-pixel shift exists only
+  against OpenCV, whose pixel centres sit on integer coordinates: c_opencv = c_dynacap - 0.5.
+
+Extrinsics: COLMAP's ``cam_from_world`` is the same world -> camera map as ``Camera.world_to_cam``
+(x_cam = R X + t, camera looking along +z, x right, y down); translations keep the calibration's
+millimetres (COLMAP is scale-free). Camera and image ids are 1-based calibration indices; image
+names are the calibration names.
+
+pycolmap is imported here only, at call time (docs/conventions.md).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from deliffas.data.cameras import Camera
+
+__all__ = [
+    "cameras_to_colmap",
+    "cameras_from_colmap",
+    "calibration_to_colmap",
+    "calibration_from_colmap",
+    "opencv_principal_point",
+]
+
+
+def _pycolmap():
+    try:
+        import pycolmap
+    except ImportError as exc:  # pragma: no cover - hard dependency
+        raise ImportError("deliffas cameras --to-colmap/--from-colmap needs the 'pycolmap' package") from exc
+    return pycolmap
+
+
+def opencv_principal_point(camera: Camera) -> tuple[float, float]:
+    """(cx, cy) in OpenCV's convention (pixel centres on integers): DynaCap/COLMAP values minus 0.5."""
+    return float(camera.K[0, 2] - 0.5), float(camera.K[1, 2] - 0.5)
+
+
+def cameras_to_colmap(cameras: Sequence[Camera], out_dir: str | os.PathLike, text: bool = False) -> None:
+    """Write ``cameras`` as a COLMAP sparse model (PINHOLE cameras, one image per camera, no points).
+
+    Raises:
+        ValueError: a camera with skew or a K whose last row is not (0, 0, 1) (PINHOLE cannot hold it).
+    """
+    pycolmap = _pycolmap()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rec = pycolmap.Reconstruction()
+    for i, cam in enumerate(cameras):  # a few hundred cameras at most
+        K = np.asarray(cam.K, np.float64)
+        if abs(K[0, 1]) > 1e-12 or np.abs(K[2] - [0, 0, 1]).max() > 1e-12 or abs(K[1, 0]) > 1e-12:
+            raise ValueError(f"camera {cam.name}: K has skew or a non-(0, 0, 1) last row; PINHOLE cannot represent it")
+        ccam = pycolmap.Camera(camera_id=i + 1, model="PINHOLE", width=int(cam.width), height=int(cam.height),
+                               params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
+        rec.add_camera_with_trivial_rig(ccam)
+        pose = pycolmap.Rigid3d(pycolmap.Rotation3d(np.asarray(cam.R, np.float64)), np.asarray(cam.t, np.float64))
+        img = pycolmap.Image(image_id=i + 1, name=str(cam.name), camera_id=i + 1)
+        rec.add_image_with_trivial_frame(img, pose)
+    if text:
+        rec.write_text(str(out))
+    else:
+        rec.write_binary(str(out))
+
+
+def cameras_from_colmap(model_dir: str | os.PathLike) -> list[Camera]:
+    """Read the images of a COLMAP model as Cameras (ordered by image id).
+
+    Only pinhole-type models without distortion are accepted (PINHOLE, SIMPLE_PINHOLE).
+    """
+    pycolmap = _pycolmap()
+    d = Path(model_dir)
+    if not d.is_dir():
+        raise FileNotFoundError(f"{d}: COLMAP model folder not found")
+    rec = pycolmap.Reconstruction(str(d))
+    out = []
+    for image_id in sorted(rec.images):
+        img = rec.images[image_id]
+        cc = rec.cameras[img.camera_id]
+        model = str(cc.model.name if hasattr(cc.model, "name") else cc.model)
+        p = np.asarray(cc.params, np.float64)
+        if model.endswith("PINHOLE") and model.startswith("SIMPLE"):
+            fx = fy = p[0]
+            cx, cy = p[1], p[2]
+        elif model == "PINHOLE":
+            fx, fy, cx, cy = p
+        else:
+            raise ValueError(f"{d}: image {img.name} uses camera model {model}; only PINHOLE/SIMPLE_PINHOLE are supported")
+        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        pose = img.cam_from_world() if callable(img.cam_from_world) else img.cam_from_world
+        E = np.eye(4)
+        E[:3, :3] = pose.rotation.matrix()
+        E[:3, 3] = pose.translation
+        out.append(Camera(str(img.name), K, E, int(cc.width), int(cc.height)))
+    if not out:
+        raise ValueError(f"{d}: the COLMAP model has no images")
+    return out
+
+
+def calibration_to_colmap(calibration: str | os.PathLike, out_dir: str | os.PathLike, text: bool = False) -> int:
+    """``cameras.calibration`` -> COLMAP model in ``out_dir``; returns the number of cameras."""
+    from deliffas.data.dynacap import read_calibration
+
+    cams = read_calibration(calibration)
+    cameras_to_colmap(cams, out_dir, text)
+    return len(cams)
+
+
+def calibration_from_colmap(model_dir: str | os.PathLike, calibration: str | os.PathLike) -> int:
+    """COLMAP model -> ``cameras.calibration``; returns the number of cameras."""
+    from deliffas.data.dynacap import write_calibration
+
+    cams = cameras_from_colmap(model_dir)
+    write_calibration(calibration, cams)
+    return len(cams)
