@@ -25,13 +25,15 @@ def icosphere(subdivisions: int = 2, radius: float = 500.0) -> tuple[np.ndarray,
     return np.asarray(m.vertices, np.float64), np.asarray(m.faces, np.int64)
 
 
-def capsule(radius: float, height: float, center=(0.0, 0.0, 0.0), count=(16, 16)) -> tuple[np.ndarray, np.ndarray]:
-    """A y-aligned capsule (trimesh's is z-aligned) centred at ``center``."""
+def capsule(radius: float, height: float, center=(0.0, 0.0, 0.0), count=(16, 16), max_edge: float = 45.0):
+    """A y-aligned capsule (trimesh's is z-aligned) centred at ``center``, its long cylinder
+    faces subdivided to edges <= ``max_edge`` (trimesh's capsule has one ring per cap end)."""
     import trimesh
 
     m = trimesh.creation.capsule(height=height, radius=radius, count=list(count))
-    v = np.asarray(m.vertices, np.float64)[:, [1, 2, 0]] + np.asarray(center)  # z -> y
-    return v, np.asarray(m.faces, np.int64)
+    v, f = trimesh.remesh.subdivide_to_size(m.vertices, m.faces, max_edge=max_edge)
+    v = np.asarray(v, np.float64)[:, [1, 2, 0]] + np.asarray(center)  # cyclic: z -> y, keeps winding
+    return v, np.asarray(f, np.int64)
 
 
 def concat_meshes(*meshes) -> tuple[np.ndarray, np.ndarray]:
