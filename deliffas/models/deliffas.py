@@ -205,7 +205,7 @@ class DeliffasModel(nn.Module):
         return FrameFeatures(inner=inner.contiguous(memory_format=torch.channels_last), outer=outer)
 
     # ------------------------------------------------------------------ stage 2: per ray
-    def shade(
+    def gather_inputs(
         self,
         features: FrameFeatures,
         batch_index: torch.Tensor,
@@ -214,7 +214,9 @@ class DeliffasModel(nn.Module):
         viewdir: torch.Tensor | None = None,
         inner_from_outer: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        """Colour of N rays.
+        """The light-field MLP's inputs for N rays: positional encodings and sampled features.
+
+        Stage 'sample' of the paper's runtime breakdown; :meth:`shade` = ``mlp(*gather_inputs(...))``.
 
         Args:
             features: the frames' feature maps from :meth:`encode`.
@@ -228,7 +230,7 @@ class DeliffasModel(nn.Module):
                 ``two_surface`` may have True entries.
 
         Returns:
-            (N, 3) RGB in (0, 1).
+            encoded (N, E) positional encodings and feats (N, C') sampled features.
         """
         cfg = self.config
         sizes = check_shape("uv_inner", uv_inner, "N 2")
@@ -248,7 +250,7 @@ class DeliffasModel(nn.Module):
             f_inner = self._sample_inner(features, batch_index, uv_inner, inner_from_outer)  # (N, C)
             encoded = torch.cat([self.pe_uv(uv_outer), self.pe_uv(uv_inner)], dim=-1)
             feats = torch.cat([f_outer, f_inner], dim=-1)  # (N, 2C)
-            return self.mlp(encoded, feats)
+            return encoded, feats
 
         if inner_from_outer is not None and bool(inner_from_outer.any()):
             raise ValueError(
@@ -261,7 +263,19 @@ class DeliffasModel(nn.Module):
                 raise ValueError("shade: viewdir is required for variant 'single_surface_viewdir'")
             check_shape("viewdir", viewdir, "N 3", sizes)
             encoded = torch.cat([encoded, self.pe_viewdir(viewdir.to(uv_inner.dtype))], dim=-1)
-        return self.mlp(encoded, feats)
+        return encoded, feats
+
+    def shade(
+        self,
+        features: FrameFeatures,
+        batch_index: torch.Tensor,
+        uv_inner: torch.Tensor,
+        uv_outer: torch.Tensor | None = None,
+        viewdir: torch.Tensor | None = None,
+        inner_from_outer: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """Colour of N rays: (N, 3) RGB in (0, 1). Arguments as :meth:`gather_inputs`."""
+        return self.mlp(*self.gather_inputs(features, batch_index, uv_inner, uv_outer, viewdir, inner_from_outer))
 
     @staticmethod
     def _sample_inner(
