@@ -1,0 +1,116 @@
+"""Per-camera ray sets of one frame: which pixels the light field shades and with which uvs.
+
+A pixel is shaded when its ray meets the outer surface (the offset shell encloses the inner
+surface, so this is the template silhouette dilated by the offset — DELIFFAS uses a 4-px dilated
+silhouette of the same role). Its inner sample is the inner hit, or the outer exit hit where the
+ray misses the inner surface (depth peeling, ``uv_inner_or_exit``). Every other pixel is background.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from deliffas.data.cameras import Camera
+from deliffas.geometry.atlas import UVAtlas
+from deliffas.geometry.raycast import UVRaycaster, uv_inner_or_exit
+
+__all__ = ["CameraRays", "camera_rays", "frame_rays", "RayBatch", "stack_rays"]
+
+
+@dataclass(frozen=True)
+class CameraRays:
+    """The shaded rays of one camera image.
+
+    Attributes:
+        pixels: (N,) int64 flat pixel index row * W + col of each shaded ray.
+        uv_inner: (N, 2) float32, inner hit uv or outer exit uv.
+        inner_from_outer: (N,) bool, True where ``uv_inner`` is the outer exit hit.
+        uv_outer: (N, 2) float32, first outer hit uv.
+        viewdir: (N, 3) float32 unit ray directions, world frame.
+        height, width: image size.
+    """
+
+    pixels: np.ndarray
+    uv_inner: np.ndarray
+    inner_from_outer: np.ndarray
+    uv_outer: np.ndarray
+    viewdir: np.ndarray
+    height: int
+    width: int
+
+    @property
+    def num_rays(self) -> int:
+        return int(self.pixels.shape[0])
+
+
+def camera_rays(raycaster: UVRaycaster, camera: Camera) -> CameraRays:
+    """Cast every pixel of ``camera`` and keep the rays the light field shades."""
+    origins, dirs = camera.rays()
+    hits = raycaster.cast_rays(origins, dirs)
+    uv_in, from_outer = uv_inner_or_exit(hits)
+    keep = hits.outer_hit & np.isfinite(uv_in).all(-1) & np.isfinite(hits.uv_outer).all(-1)
+    idx = np.flatnonzero(keep)
+    return CameraRays(
+        pixels=idx.astype(np.int64),
+        uv_inner=uv_in[idx].astype(np.float32),
+        inner_from_outer=from_outer[idx],
+        uv_outer=hits.uv_outer[idx].astype(np.float32),
+        viewdir=dirs[idx].astype(np.float32),
+        height=camera.height,
+        width=camera.width,
+    )
+
+
+def frame_rays(inner_verts: np.ndarray, outer_verts: np.ndarray, faces: np.ndarray, atlas: UVAtlas,
+               cameras: Sequence[Camera]) -> list[CameraRays]:
+    """Ray sets of several cameras of one frame (the ray-casting scenes are built once)."""
+    raycaster = UVRaycaster(np.asarray(inner_verts, np.float32), faces, np.asarray(outer_verts, np.float32), atlas)
+    return [camera_rays(raycaster, cam) for cam in cameras]
+
+
+@dataclass(frozen=True)
+class RayBatch:
+    """The rays of several cameras (and frames) flattened for one ``DeliffasModel.shade`` call.
+
+    Attributes:
+        batch_index: (N,) long, the frame (row of the FrameFeatures batch) of each ray.
+        image_index: (N,) long, the image (frame, camera) of each ray, into the stacked images.
+        pixels: (N,) long flat pixel index in its image.
+        uv_inner, uv_outer: (N, 2) float.
+        inner_from_outer: (N,) bool.
+        viewdir: (N, 3) float.
+    """
+
+    batch_index: torch.Tensor
+    image_index: torch.Tensor
+    pixels: torch.Tensor
+    uv_inner: torch.Tensor
+    uv_outer: torch.Tensor
+    inner_from_outer: torch.Tensor
+    viewdir: torch.Tensor
+
+    def to(self, device: torch.device | str) -> "RayBatch":
+        return RayBatch(*(getattr(self, f).to(device) for f in self.__dataclass_fields__))
+
+    @property
+    def num_rays(self) -> int:
+        return int(self.pixels.shape[0])
+
+
+def stack_rays(rays: Sequence[CameraRays], frame_of_image: Sequence[int]) -> RayBatch:
+    """Flatten per-image ray sets; ``frame_of_image[i]`` is the feature batch row of image i."""
+    counts = [r.num_rays for r in rays]
+    cat = lambda name: torch.from_numpy(np.concatenate([getattr(r, name) for r in rays]))  # noqa: E731
+    return RayBatch(
+        batch_index=torch.repeat_interleave(torch.as_tensor(list(frame_of_image), dtype=torch.long), torch.as_tensor(counts)),
+        image_index=torch.repeat_interleave(torch.arange(len(rays)), torch.as_tensor(counts)),
+        pixels=cat("pixels"),
+        uv_inner=cat("uv_inner"),
+        uv_outer=cat("uv_outer"),
+        inner_from_outer=cat("inner_from_outer"),
+        viewdir=cat("viewdir"),
+    )
