@@ -127,14 +127,18 @@ def get_config(name: str, preset: str = "small") -> ModelConfig:
 
 
 def _preset(variant: str, preset: str) -> ModelConfig:
+    # All presets use norm="affine": the original's Keras BatchNorm ran on its (never updated) moving
+    # statistics, i.e. a learned affine map, and one frame per step makes batch statistics differ
+    # between training and rendering (formats doc 3.5).
     if preset == "paper":
-        return ModelConfig(variant=variant, atlas_res=1024)  # type: ignore[arg-type]
+        return ModelConfig(variant=variant, atlas_res=1024,  # type: ignore[arg-type]
+                           unet=UNetConfig(in_channels=9, out_channels=32, norm="affine"))
     if preset == "small":
         return ModelConfig(
             variant=variant,  # type: ignore[arg-type]
             atlas_res=128,
             feature_channels=16,
-            unet=UNetConfig(in_channels=9, out_channels=16, base_channels=8, max_channels=64),
+            unet=UNetConfig(in_channels=9, out_channels=16, base_channels=8, max_channels=64, norm="affine"),
             mlp=LightFieldMLPConfig(depth=4, width=64, feature_layer=2),
         )
     if preset == "tiny":
@@ -144,7 +148,7 @@ def _preset(variant: str, preset: str) -> ModelConfig:
             feature_channels=8,
             pe_freqs=4,
             viewdir_pe_freqs=2,
-            unet=UNetConfig(in_channels=9, out_channels=8, base_channels=4, max_channels=16),
+            unet=UNetConfig(in_channels=9, out_channels=8, base_channels=4, max_channels=16, norm="affine"),
             mlp=LightFieldMLPConfig(depth=2, width=32, feature_layer=0),
         )
     raise ValueError(f"unknown preset {preset!r}")
