@@ -173,6 +173,63 @@ def _add_data_commands(sub) -> None:
     p.set_defaults(func=_cmd_cameras)
 
 
+# --------------------------------------------------------------------------------------------- geometry commands
+def _cmd_character_procedural(args: argparse.Namespace) -> int:
+    from deliffas.data.dynacap import read_character
+    from deliffas.geometry.procedural import make_procedural_character
+
+    path = make_procedural_character(args.out_dir, seed=args.seed, target_faces=args.faces, name=args.name,
+                                     texture_size=args.texture_size)
+    c = read_character(path)
+    print(f"wrote {path}: {c.mesh.num_verts} vertices, {c.mesh.num_faces} faces, {c.skeleton.num_dofs} DOFs, "
+          f"{c.graph.num_verts if c.graph is not None else 0} graph nodes, height {c.mesh.verts[:, 1].max():.0f} mm")
+    return 0
+
+
+def _cmd_template(args: argparse.Namespace) -> int:
+    from deliffas.geometry.template_build import build_templates
+
+    report = build_templates(args.character, args.out, smooth_iters=args.smooth, coarse_faces=args.coarse,
+                             offset_mm=args.offset, safe=args.safe, atlas_res=args.atlas_res)
+    for name, v in report["variants"].items():
+        sh = v["shell"]
+        print(f"{name:>8}: {v['num_verts']} vertices, {v['num_faces']} faces, watertight {v['watertight']}, "
+              f"shell self-intersecting faces {sh['num_self_intersecting_faces']}"
+              + (f", {sh['num_clamped']} offsets clamped" if args.safe else ""))
+    print(f"wrote {args.out}/{{{','.join(report['variants'])}}}/ and {args.out}/report.json")
+    return 0
+
+
+def _add_geometry_commands(sub) -> None:
+    p = sub.add_parser("character", help="build characters (subcommand: procedural)",
+                       description="Build DynaCap characters.")
+    csub = p.add_subparsers(dest="character_command", required=True, metavar="KIND")
+    q = csub.add_parser("procedural", help="write the license-free procedural character",
+                        description="Build the procedural human (watertight template, Skeletool skeleton with "
+                                    "DDC DOF names, skin, UVs, texture, segmentation with a skirt, embedded "
+                                    "graph) and write it as a DynaCap character into OUT_DIR.")
+    q.add_argument("out_dir", type=Path, help="folder to write (created)")
+    q.add_argument("--seed", type=int, default=0, help="proportions, colours and patterns (default 0)")
+    q.add_argument("--faces", type=int, default=8000, help="template face budget (default 8000)")
+    q.add_argument("--name", default="procedural", help="file stem (default procedural)")
+    q.add_argument("--texture-size", type=int, default=1024, help="texture atlas side in texels (default 1024)")
+    q.set_defaults(func=_cmd_character_procedural)
+
+    p = sub.add_parser("template", help="write template variants (original/smooth/coarse) with outer shells",
+                       description="Write OUT/<variant>/ (a complete DynaCap character + outer.obj, the offset "
+                                   "shell with the same vertex order and UVs) for original and, when asked, "
+                                   "smooth and coarse, plus OUT/report.json.")
+    p.add_argument("character", type=Path, help=".character file")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--smooth", type=int, metavar="ITERS", help="also a Taubin-smoothed variant (ITERS lambda/mu pairs)")
+    p.add_argument("--coarse", type=int, metavar="FACES", help="also a decimated variant with about FACES faces")
+    p.add_argument("--offset", type=float, default=30.0, metavar="MM", help="outer-shell offset d in mm (default 30)")
+    p.add_argument("--safe", action="store_true", help="limit d per vertex where the shell would cross another part")
+    p.add_argument("--atlas-res", type=int, default=512, metavar="R",
+                   help="xatlas packing resolution of new atlases and texel grid of the report (default 512)")
+    p.set_defaults(func=_cmd_template)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="deliffas", description=__doc__.splitlines()[0] if __doc__ else None)
     parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
@@ -189,6 +246,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, help="output mesh, .ply or .obj (.obj keeps the UVs)")
     p.set_defaults(func=_cmd_pose)
     _add_data_commands(sub)
+    _add_geometry_commands(sub)
     return parser
 
 
