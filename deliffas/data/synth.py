@@ -207,14 +207,14 @@ def garment_deformation(posed: np.ndarray, faces: np.ndarray, rest_verts: np.nda
     Per vertex i and frame f (w_i the garment weight, h_i in [0, 1] from the waist to the hem in the
     rest pose):
 
-        d_if = w_i * clip(min + 14 h_i + pose_f + vel_if, min, max)  [mm]
+        d_if = w_i * smooth(clip(min + 14 h_i + pose_f + vel_if, min, max))  [mm]
         pose_f = 15 * clip(spread_f / 80, -0.5, 1)                   (leg spread vs. rest, mm)
         vel_if = 20 * clip(|u_if| / 1000, 0, 1) * (0.4 + 0.6 * trailing_if)
 
     where u is the template's vertex velocity (mm/s) low-passed over time (``lag``) and over the
     surface, and trailing = max(0, -dir . u/|u|) (cloth lags behind the motion). The direction is the
-    vertex normal blended with the horizontal radial direction from the region's centre (a flare),
-    and d is smoothed over the surface.
+    vertex normal blended with the horizontal radial direction from the region's centre (a flare);
+    smooth() averages over 3 rings of the surface before the (smooth) weight is applied.
 
     Args:
         posed: (N, V, 3) skinned template vertices of consecutive frames, mm.
@@ -258,8 +258,8 @@ def garment_deformation(posed: np.ndarray, faces: np.ndarray, rest_verts: np.nda
     speed = np.linalg.norm(lagged, axis=-1)  # (N, V)
     trailing = np.clip(-np.einsum("nvc,nvc->nv", direction, lagged) / np.maximum(speed, 1e-9), 0.0, 1.0)
     vel_term = 20.0 * np.clip(speed / 1000.0, 0.0, 1.0) * (0.4 + 0.6 * trailing)
-    mag = np.clip(min_mm + 14.0 * hem[None] + pose_term[:, None] + vel_term, min_mm, max_mm) * w[None]
-    mag = _smooth(mag.T, smoother, 3).T  # (N, V)
+    mag = np.clip(min_mm + 14.0 * hem[None] + pose_term[:, None] + vel_term, min_mm, max_mm)
+    mag = _smooth(mag.T, smoother, 3).T * w[None]  # (N, V); exactly 0 where w = 0
     offsets = mag[..., None] * direction
     phase = 2 * np.pi * spread_mm / 120.0
     bands = 0.5 + 0.5 * np.cos(2 * np.pi * 4.0 * hem[None] + phase[:, None])
@@ -389,7 +389,8 @@ def _make_motion(character: Character, path: str | None, num_frames: int, seed: 
     except ImportError:
         procedural_motion = None
     if procedural_motion is not None:
-        m = procedural_motion(character.skeleton, num_frames, seed)
+        m = procedural_motion(character.skeleton, num_frames, seed, style="mixed", rest_dofs=character.rest_dofs,
+                              fps=fps)
         return Motion(np.arange(m.num_frames, dtype=np.int64), np.asarray(m.dofs, np.float64))
     return _fallback_motion(character, num_frames, seed, fps)
 
