@@ -565,6 +565,14 @@ def _shift_root(skel: Skeleton, dy: float) -> Skeleton:
     return dataclasses.replace(skel, joints=tuple(joints))
 
 
+def _seed_params(seed: int) -> tuple[float, float, dict[str, np.ndarray]]:
+    """Height (mm), girth factor and colour palette drawn from ``seed``."""
+    rng = np.random.default_rng(seed)
+    H = HEIGHT_MM * (1 + rng.uniform(-0.02, 0.02))
+    girth = 1 + rng.uniform(-0.05, 0.05)
+    return H, girth, _palette(rng)
+
+
 def procedural_character(seed: int = 0, target_faces: int = 8000, name: str = "procedural",
                          texture_size: int = 1024) -> Character:
     """Build the procedural character in memory.
@@ -586,10 +594,7 @@ def procedural_character(seed: int = 0, target_faces: int = 8000, name: str = "p
 
     if not 500 <= target_faces <= 200_000:
         raise ValueError(f"target_faces: expected 500..200000, got {target_faces}")
-    rng = np.random.default_rng(seed)
-    H = HEIGHT_MM * (1 + rng.uniform(-0.02, 0.02))
-    girth = 1 + rng.uniform(-0.05, 0.05)
-    palette = _palette(rng)
+    H, girth, palette = _seed_params(seed)
     skel, rest = procedural_skeleton(H)
     P, R = _rest_frames(skel, rest)
     prims = _body_primitives(P, R, H, girth)
