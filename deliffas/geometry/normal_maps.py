@@ -10,8 +10,9 @@ per-texel (vertex index, weight) triples; each frame is then one gather and a we
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
-from typing import Union
+from typing import Literal, Union
 
 import numpy as np
 import torch
@@ -37,46 +38,72 @@ NORMAL_EPS = 1e-8
 class NormalMapGather:
     """Per-texel vertex indices and barycentric weights of one atlas at side S.
 
+    The same weights are held twice: as flat (S*S, 3) index / weight arrays (the definition,
+    used by ``method="gather"``) and as a sparse CSR matrix (S*S, V) with three entries per valid
+    texel, so that a frame's map is one sparse-dense product (``method="sparse"``, the default:
+    about 2-4x faster than the dense gather on CPU at S = 1024).
+
     Attributes:
         size: S.
         vert_index: (S*S, 3) int64, vertices of the texel's face (0 where the texel is not valid).
         weights: (S*S, 3) float32, barycentrics (0 where the texel is not valid, so the
             interpolated normal is 0 there).
+        matrix: (S*S, V) float32 sparse CSR, row t = the weights of texel t on its three vertices.
     """
 
     size: int
     vert_index: torch.Tensor
     weights: torch.Tensor
+    matrix: torch.Tensor
 
     @classmethod
-    def from_table(cls, table: TexelTable, faces: ArrayLike) -> "NormalMapGather":
+    def from_table(cls, table: TexelTable, faces: ArrayLike, num_verts: int | None = None) -> "NormalMapGather":
         """Flatten a texel table against the mesh's faces.
 
         Args:
             table: TexelTable of side S (``face``/``bary`` of every texel).
             faces: (F, 3) int, the same faces the atlas was built for.
+            num_verts: V (default: max vertex index in ``faces`` + 1).
         """
         check_shape("faces", faces, "F 3")
         faces_np = faces.cpu().numpy() if isinstance(faces, torch.Tensor) else np.asarray(faces)
+        faces_np = faces_np.astype(np.int64)
         face = table.face.reshape(-1)
         if face.max(initial=-1) >= len(faces_np):
             raise ValueError(f"texel table refers to face {face.max()} but faces has {len(faces_np)} rows")
+        num_verts = int(num_verts if num_verts is not None else faces_np.max(initial=-1) + 1)
         valid = table.valid.reshape(-1) & (face >= 0)
         vert_index = np.where(valid[:, None], faces_np[np.maximum(face, 0)], 0).astype(np.int64)
         weights = np.where(valid[:, None], table.bary.reshape(-1, 3), 0.0).astype(np.float32)
-        return cls(table.size, torch.from_numpy(vert_index), torch.from_numpy(weights))
+        rows = np.repeat(np.flatnonzero(valid), 3)
+        cols = vert_index[valid].reshape(-1)
+        vals = weights[valid].reshape(-1)
+        S2 = table.size * table.size
+        # duplicate (row, col) pairs cannot occur: a face has three distinct vertices
+        crow = np.zeros(S2 + 1, np.int64)
+        np.add.at(crow, rows + 1, 1)
+        with warnings.catch_warnings():  # "sparse CSR support is in beta" (CPU and CUDA matmul are fine)
+            warnings.simplefilter("ignore", UserWarning)
+            matrix = torch.sparse_csr_tensor(
+                torch.from_numpy(np.cumsum(crow)), torch.from_numpy(cols), torch.from_numpy(vals), size=(S2, num_verts)
+            )
+        return cls(table.size, torch.from_numpy(vert_index), torch.from_numpy(weights), matrix)
 
     def to(self, device: Union[str, torch.device]) -> "NormalMapGather":
-        """The same gather with its index and weight tensors on ``device``."""
-        return NormalMapGather(self.size, self.vert_index.to(device), self.weights.to(device))
+        """The same gather with its tensors on ``device``."""
+        return NormalMapGather(self.size, self.vert_index.to(device), self.weights.to(device), self.matrix.to(device))
 
-    def apply(self, vertex_normals: ArrayLike, dtype: torch.dtype | None = None) -> torch.Tensor:
+    def apply(
+        self, vertex_normals: ArrayLike, dtype: torch.dtype | None = None, method: Literal["sparse", "gather"] = "sparse"
+    ) -> torch.Tensor:
         """Normal maps of one or more frames.
 
         Args:
             vertex_normals: (..., V, 3) float, unit world-space vertex normals (torch or numpy).
             dtype: output dtype (e.g. ``torch.float16`` for storage); default: input dtype.
                 Interpolation runs in the input dtype (float32 at least).
+            method: "sparse" (one sparse-dense product) or "gather" (index + weighted sum);
+                same result.
 
         Returns:
             (..., 3, S, S) tensor on the input's device: barycentric interpolation of the three
@@ -88,15 +115,27 @@ class NormalMapGather:
         if not vn.dtype.is_floating_point or vn.dtype in (torch.float16, torch.bfloat16):
             vn = vn.float()
         lead = vn.shape[:-2]
+        num_verts = vn.shape[-2]
         S = self.size
-        vi = self.vert_index.to(vn.device)
-        w = self.weights.to(device=vn.device, dtype=vn.dtype)
-        vt = vn.reshape(-1, vn.shape[-2], 3).transpose(1, 2)  # (B, 3, V)
-        gathered = vt[:, :, vi.reshape(-1)].reshape(vt.shape[0], 3, S * S, 3)  # (B, 3, S*S, 3 corners)
-        n = (gathered * w).sum(dim=-1)  # (B, 3, S*S)
-        length = n.norm(dim=1, keepdim=True)
-        n = torch.where(length > NORMAL_EPS, n / length.clamp_min(NORMAL_EPS), torch.zeros_like(n))
-        return n.reshape(*lead, 3, S, S).to(out_dtype)
+        vb = vn.reshape(-1, num_verts, 3)  # (B, V, 3)
+        B = vb.shape[0]
+        if method == "sparse":
+            if num_verts != self.matrix.shape[1]:
+                raise ValueError(f"vertex_normals: expected V = {self.matrix.shape[1]}, got shape {tuple(vn.shape)}")
+            m = self.matrix.to(device=vn.device, dtype=vn.dtype)
+            x = vb.permute(1, 0, 2).reshape(num_verts, B * 3)  # (V, B*3)
+            n = (m @ x).view(S * S, B, 3).permute(1, 0, 2)  # (B, S*S, 3) strided view
+        elif method == "gather":
+            vi = self.vert_index.to(vn.device)
+            w = self.weights.to(device=vn.device, dtype=vn.dtype)[:, :, None]  # (S*S, 3, 1)
+            n = vb[:, vi[:, 0]] * w[:, 0] + vb[:, vi[:, 1]] * w[:, 1] + vb[:, vi[:, 2]] * w[:, 2]  # (B, S*S, 3)
+        else:
+            raise ValueError(f"method: expected 'sparse' or 'gather', got {method!r}")
+        sq = (n * n).sum(-1, keepdim=True)
+        inv = torch.where(sq > NORMAL_EPS**2, sq.rsqrt(), torch.zeros_like(sq))
+        out = torch.empty((B, 3, S * S), dtype=out_dtype, device=vn.device)
+        out.copy_((n * inv).transpose(1, 2))  # one strided copy to channel-first (+ cast)
+        return out.reshape(*lead, 3, S, S)
 
 
 def normal_maps(vertex_normals: ArrayLike, faces: ArrayLike, table: TexelTable, dtype: torch.dtype | None = None) -> torch.Tensor:
@@ -105,7 +144,9 @@ def normal_maps(vertex_normals: ArrayLike, faces: ArrayLike, table: TexelTable, 
     One-shot convenience over ``NormalMapGather.from_table(table, faces).apply(...)``; build the
     gather once and reuse it when converting many frames.
     """
-    return NormalMapGather.from_table(table, faces).apply(vertex_normals, dtype=dtype)
+    check_shape("vertex_normals", vertex_normals, "* V 3")
+    gather = NormalMapGather.from_table(table, faces, num_verts=vertex_normals.shape[-2])
+    return gather.apply(vertex_normals, dtype=dtype)
 
 
 def temporal_window(maps_per_frame: ArrayLike, frame_indices: ArrayLike, window: int) -> ArrayLike:
@@ -163,5 +204,5 @@ def rasterize_normal_map_naive(
     frames = []
     for b in range(vn.shape[0]):  # per frame, by design of this baseline
         table = uv_texel_table(atlas, size, gutter)
-        frames.append(NormalMapGather.from_table(table, faces).apply(vn[b]))
+        frames.append(NormalMapGather.from_table(table, faces, num_verts=vn.shape[1]).apply(vn[b]))
     return torch.stack(frames)

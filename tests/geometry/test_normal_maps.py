@@ -68,6 +68,22 @@ def test_sphere_normal_map_is_radial():
     assert np.degrees(np.arccos(np.clip(cos[~cov], -1, 1))).max() < 8.0  # extrapolated gutter
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_sparse_and_gather_methods_agree(dtype, device):
+    v, f, atlas = _small_mesh(3)
+    table = uv_texel_table(atlas, 16)
+    gather = NormalMapGather.from_table(table, f).to(device)
+    vn = torch.randn(3, len(v), 3, dtype=dtype, device=device)
+    a = gather.apply(vn, method="sparse")
+    b = gather.apply(vn, method="gather")
+    assert a.dtype == dtype and a.shape == (3, 3, 16, 16)
+    torch.testing.assert_close(a, b)
+    with pytest.raises(ValueError, match="method"):
+        gather.apply(vn, method="scatter")
+    with pytest.raises(ValueError, match="vertex_normals"):
+        gather.apply(vn[:, :-1])
+
+
 def test_float16_output_and_numpy_input():
     v, f, atlas = _small_mesh()
     table = uv_texel_table(atlas, 8)
