@@ -2,8 +2,9 @@
 
 DELIFFAS builds the outer surface by moving every vertex d = 30 mm along its unit vertex normal
 (dynacap-formats.md 3.3); faces and per-corner uvs stay those of the inner mesh. Where body parts
-are closer than 2 d (armpits, between the legs) such a shell crosses itself; ``safe_offsets``
-limits d per vertex there, and ``shell_report`` measures what is left.
+are closer than 2 d (armpits, between the legs), and in creases narrower than d, such a shell
+crosses itself; ``safe_offsets`` limits d per vertex there, and ``shell_report`` measures what is
+left.
 
 Ray casting goes through ``deliffas.geometry.raycast`` (open3d, imported at call time).
 """
@@ -89,7 +90,7 @@ class ShellReport:
             first outer hit is not behind the inner hit (should be 1.0); None without cameras.
         num_rays_inner: rays hitting the inner surface (over all cameras); None without cameras.
         offset_nominal_mm: the nominal d (max of the offsets when not given); None without offsets.
-        num_clamped: vertices whose offset is below nominal; min_offset_mm / mean_offset_mm.
+        num_clamped: vertices whose offset is below nominal; offset_min_mm / offset_mean_mm.
     """
 
     num_verts: int
@@ -105,8 +106,8 @@ class ShellReport:
     num_rays_inner: int | None = None
     offset_nominal_mm: float | None = None
     num_clamped: int | None = None
-    min_offset_mm: float | None = None
-    mean_offset_mm: float | None = None
+    offset_min_mm: float | None = None
+    offset_mean_mm: float | None = None
     notes: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict:
@@ -197,7 +198,7 @@ def self_intersecting_faces(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
     Returns:
         (K,) int64 sorted face ids.
     """
-    from deliffas.geometry.raycast import _all_hits, _rays, build_scene
+    from deliffas.geometry.raycast import all_hits, build_scene
 
     check_shape("verts", verts, "V 3")
     check_shape("faces", faces, "F 3")
@@ -206,7 +207,7 @@ def self_intersecting_faces(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
     edges, _, edge_of_corner = mesh_edges(faces)
     scene = build_scene(verts, faces)
     a, b = edges[:, 0], edges[:, 1]
-    ray_ids, t, face, _ = _all_hits(scene, _rays(verts[a], verts[b] - verts[a]))  # t in segment units
+    ray_ids, t, face, _ = all_hits(scene, verts[a], verts[b] - verts[a])  # t in segment units
     fv = faces[face]  # (M, 3)
     adjacent = (fv == a[ray_ids, None]).any(1) | (fv == b[ray_ids, None]).any(1)
     cand = np.flatnonzero((t > -1e-3) & (t < 1.0 + 1e-3) & ~adjacent)
@@ -282,7 +283,7 @@ def _neighbourhood_keys(faces: np.ndarray, num_verts: int, rings: int) -> np.nda
 def _distance_to_other_parts(verts: np.ndarray, faces: np.ndarray, normals: np.ndarray, rings: int) -> np.ndarray:
     """Distance (V,) along each vertex normal to the first inner-surface hit outside the vertex's
     own neighbourhood (inf where there is none)."""
-    from deliffas.geometry.raycast import _cast, _rays, build_scene
+    from deliffas.geometry.raycast import build_scene, first_hits
 
     num_verts = len(verts)
     keys = _neighbourhood_keys(faces, num_verts, rings)
@@ -295,7 +296,7 @@ def _distance_to_other_parts(verts: np.ndarray, faces: np.ndarray, normals: np.n
         if len(active) == 0:
             break
         origins = verts[active] + travelled[:, None] * normals[active]
-        t, face, _ = _cast(scene, _rays(origins, normals[active]))
+        t, face, _ = first_hits(scene, origins, normals[active])
         hit = face >= 0
         key = active * len(faces) + np.maximum(face, 0)
         pos = np.minimum(np.searchsorted(keys, key), len(keys) - 1)
@@ -486,14 +487,14 @@ def shell_report(
         self_intersecting_face_ids=[int(i) for i in outer_bad],
     )
     if cameras:
-        from deliffas.geometry.raycast import _cast, _rays, build_scene
+        from deliffas.geometry.raycast import build_scene, first_hits
 
         inner_scene, outer_scene = build_scene(inner, faces), build_scene(outer, faces)
         n_inner = n_ok = 0
         for cam in cameras:  # per camera: all its pixels at once
-            rays = _rays(*cam.rays())
-            ti, fi, _ = _cast(inner_scene, rays)
-            to, _, _ = _cast(outer_scene, rays)
+            origins, dirs = cam.rays()
+            ti, fi, _ = first_hits(inner_scene, origins, dirs)
+            to, _, _ = first_hits(outer_scene, origins, dirs)
             hit = fi >= 0
             n_inner += int(hit.sum())
             n_ok += int((to[hit] <= ti[hit] + depth_tol_mm).sum())
@@ -507,6 +508,6 @@ def shell_report(
         nominal = float(offset_mm) if offset_mm is not None else float(off.max(initial=0.0))
         report.offset_nominal_mm = nominal
         report.num_clamped = int((off < nominal - 1e-6).sum())
-        report.min_offset_mm = float(off.min()) if len(off) else None
-        report.mean_offset_mm = float(off.mean()) if len(off) else None
+        report.offset_min_mm = float(off.min()) if len(off) else None
+        report.offset_mean_mm = float(off.mean()) if len(off) else None
     return report

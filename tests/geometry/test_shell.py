@@ -105,7 +105,7 @@ def test_report_flags_crossing_shell_and_clears_safe_one(two_capsules):
     d = shell_offsets(v, f, cfg)
     safe = shell_report(v, f, offset_shell(v, f, d), offsets=d, offset_mm=cfg.offset_mm)
     assert safe.num_self_intersecting_faces == 0
-    assert safe.num_clamped > 0 and safe.min_offset_mm <= 0.45 * GAP + 1e-6 and safe.mean_offset_mm < D
+    assert safe.num_clamped > 0 and safe.offset_min_mm <= 0.45 * GAP + 1e-6 and safe.offset_mean_mm < D
     assert safe.watertight and safe.num_inner_self_intersecting_faces == 0
     json.dumps(safe.to_dict())
     np.testing.assert_allclose(shell_offsets(v, f, ShellConfig()), D)
