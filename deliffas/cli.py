@@ -247,6 +247,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_pose)
     _add_data_commands(sub)
     _add_geometry_commands(sub)
+    from deliffas.engine.commands import add_engine_commands
+
+    add_engine_commands(sub)
     return parser
 
 

@@ -60,6 +60,8 @@ class TrainConfig:
     """lr = lr · 0.1^(step / lr_decay_steps), as the official code."""
     cameras_per_frame: int = 4
     """K training cameras per iteration; the U-Nets run once for all K."""
+    protocol: Literal["paper", "all"] = "paper"
+    """Frames used: ``paper`` = every 10th frame (DELIFFAS), ``all`` = every converted frame."""
     perceptual: PerceptualChoice = "none"
     """Stage-2 perceptual backbone: ``vgg16-imagenet`` (weights must exist), ``vgg16-random``
     (the explicit offline option, seeded), or ``none`` (L1 only)."""
@@ -248,7 +250,8 @@ def train(cfg: TrainConfig, resume: bool = False) -> TrainResult:
                                                 mode=cfg.perceptual_mode).to(device)
         backbone = perceptual.record.to_dict() if perceptual.record else {"name": cfg.perceptual}
     if rank == 0:
-        record = {"train": dataclasses.asdict(cfg), "model": config_to_dict(model_cfg), "data": data_info,
+        data_record = {k: v for k, v in data_info.items() if isinstance(v, (int, float, str, list)) and k != "cameras"}
+        record = {"train": dataclasses.asdict(cfg), "model": config_to_dict(model_cfg), "data": data_record,
                   "perceptual_backbone": backbone, "world_size": world, "device": str(device),
                   "num_parameters": model.num_parameters()}
         (run / "train_config.json").write_text(json.dumps(record, indent=2, default=str) + "\n")

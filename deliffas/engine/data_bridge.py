@@ -1,0 +1,114 @@
+"""From converted shards to the engine's ``FrameSample`` stream (training) and sequence (evaluation).
+
+The DataLoader workers read the shards and ray-cast each item's cameras (``_ItemToSample``), so
+geometry work overlaps with the model's forward/backward in the main process.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+from typing import Iterator
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Sampler
+
+from deliffas.data.dataset import FrameItem, RandomCameraSampler, ShardDataset
+from deliffas.data.shards import ShardSet
+from deliffas.engine.rays import frame_rays
+from deliffas.engine.samples import FrameSample
+from deliffas.geometry.atlas import UVAtlas
+
+__all__ = ["training_stream", "evaluation_samples", "shard_info"]
+
+logger = logging.getLogger(__name__)
+
+
+def shard_info(shards_dir: str, temporal_window: int | None = None) -> dict:
+    """What the engine needs to know about a shard set (atlas, faces, window, cameras)."""
+    meta = ShardSet(shards_dir).meta
+    stored = int(meta.attrs.get("window", 0))
+    T = stored if temporal_window is None else min(int(temporal_window), stored)
+    return {
+        "shards": str(shards_dir),
+        "atlas_res": meta.atlas_res,
+        "temporal_window": T,
+        "faces": np.asarray(meta.faces, dtype=np.int64),
+        "atlas": UVAtlas(np.asarray(meta.uvs), np.asarray(meta.face_uvs)),
+        "cameras": meta.cameras(),
+        "train_cameras": [int(c) for c in meta.train_cameras],
+        "test_cameras": [int(c) for c in meta.test_cameras],
+        "num_verts": int(meta.rest_verts.shape[0]),
+        "character": meta.attrs.get("character"),
+    }
+
+
+class _ItemToSample:
+    """collate_fn (batch size 1): FrameItem -> FrameSample, ray-casting the item's cameras."""
+
+    def __init__(self, faces: np.ndarray, atlas: UVAtlas, cameras: list, with_rays: bool):
+        self.faces, self.atlas, self.cameras, self.with_rays = faces, atlas, cameras, with_rays
+
+    def __call__(self, items: list[FrameItem]) -> FrameSample:
+        (item,) = items
+        ids = [int(c) for c in item.camera_ids]
+        cams = [self.cameras[c] for c in ids]
+        inner = item.inner_verts.numpy()
+        outer = item.outer_verts.numpy()
+        rays = frame_rays(inner, outer, self.faces, self.atlas, cams) if self.with_rays else []
+        return FrameSample(frame=int(item.frame), images=item.images.numpy(), masks=item.masks.numpy(),
+                           cameras=cams, camera_ids=np.asarray(ids), normal_inner=item.normal_maps_inner.numpy(),
+                           normal_outer=item.normal_maps_outer.numpy(), inner_verts=inner, outer_verts=outer, rays=rays)
+
+
+class _EndlessCameraSampler(Sampler):
+    """``RandomCameraSampler`` epochs one after another, each with its own seed (rank- and resume-aware)."""
+
+    def __init__(self, dataset: ShardDataset, k: int, seed: int):
+        self.dataset, self.k, self.seed = dataset, k, seed
+
+    def __iter__(self):
+        for epoch in itertools.count():
+            g = torch.Generator().manual_seed(self.seed * 1_000_003 + epoch)
+            yield from RandomCameraSampler(self.dataset, self.k, g)
+
+
+def training_stream(cfg, rank: int = 0, world: int = 1, start_iteration: int = 0) -> tuple[Iterator[FrameSample], dict]:
+    """Endless training samples (one frame, ``cfg.cameras_per_frame`` random training cameras).
+
+    Args:
+        cfg: a ``TrainConfig``.
+        rank, world: distributed rank and size (each rank draws its own frames).
+        start_iteration: iteration resumed from (changes the draw so a resumed run sees new samples).
+    """
+    from deliffas.models.zoo import get_config
+
+    T = get_config(cfg.model, cfg.preset).temporal_window
+    info = shard_info(cfg.shards, T)
+    ds = ShardDataset(cfg.shards, split="train", cameras_per_item=cfg.cameras_per_frame,
+                      temporal_window=info["temporal_window"], protocol=getattr(cfg, "protocol", "paper"))
+    if len(ds.frames) == 0:
+        raise ValueError(f"{cfg.shards}: no training frames under protocol {getattr(cfg, 'protocol', 'paper')!r}")
+    k = min(cfg.cameras_per_frame, len(ds.cameras))
+    sampler = _EndlessCameraSampler(ds, k, seed=cfg.seed + 7919 * rank + 104729 * start_iteration)
+    collate = _ItemToSample(info["faces"], info["atlas"], info["cameras"], with_rays=True)
+    loader = DataLoader(ds, batch_size=1, sampler=sampler, collate_fn=collate, num_workers=cfg.num_workers,
+                        persistent_workers=cfg.num_workers > 0, prefetch_factor=2 if cfg.num_workers > 0 else None)
+    info.update(train_frames=len(ds.frames), train_cameras=ds.cameras, protocol=ds.protocol)
+    return iter(loader), info
+
+
+def evaluation_samples(shards: str, split: str, max_frames: int | None = None, with_rays: bool = False,
+                       protocol: str = "paper", temporal_window: int | None = None) -> tuple[Iterator[FrameSample], dict]:
+    """Every camera of ``split`` for each of its frames (at most ``max_frames``, evenly spaced)."""
+    info = shard_info(shards, temporal_window)
+    ds = ShardDataset(shards, split=split, cameras_per_item=None, temporal_window=info["temporal_window"],
+                      protocol=protocol)
+    frames = ds.frames
+    if max_frames is not None and len(frames) > max_frames:
+        pick = np.linspace(0, len(frames) - 1, max_frames).round().astype(int)
+        ds = ShardDataset(shards, split=split, frames=[frames[i] for i in pick], cameras_per_item=None,
+                          temporal_window=info["temporal_window"], protocol=protocol)
+    collate = _ItemToSample(info["faces"], info["atlas"], info["cameras"], with_rays=with_rays)
+    return (collate([ds[i]]) for i in range(len(ds))), info

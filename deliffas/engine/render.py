@@ -1,0 +1,164 @@
+"""Free-viewpoint rendering of a trained avatar driven by a motion (``deliffas render``)."""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from deliffas.data.cameras import Camera
+from deliffas.engine.evaluate import load_run
+from deliffas.engine.rays import camera_rays, stack_rays
+
+__all__ = ["RenderConfig", "render_video", "orbit_cameras", "render_images"]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    """A free-viewpoint render."""
+
+    run: str
+    """Run directory of ``deliffas train``."""
+    out: str
+    """Video file (.mp4 or .avi); a folder of PNGs when it has no suffix."""
+    orbit: bool = True
+    """Camera orbits the avatar once over the video; False = the capture's first test camera."""
+    motion: str | None = None
+    """Driving .motion (default: the capture's novel-pose motion, else its training motion)."""
+    frames: int | None = None
+    """Number of motion frames (default: all, at most 300)."""
+    size: tuple[int, int] | None = None
+    """(W, H) of the video (default: the capture's image size)."""
+    device: str = "cpu"
+    fps: float = 25.0
+    chunk_size: int = 262144
+
+
+def orbit_cameras(reference: Camera, centers: np.ndarray, radius: float, height: float,
+                  size: tuple[int, int] | None = None) -> list[Camera]:
+    """One camera per frame on a circle around ``centers`` (N, 3), looking at it (y-up world, mm).
+
+    The intrinsics are the reference camera's, rescaled to ``size``.
+    """
+    ref = reference.rescaled(*size) if size else reference
+    cams = []
+    n = len(centers)
+    for i, c in enumerate(centers):
+        a = 2 * math.pi * i / max(n, 1)
+        eye = np.array([c[0] + radius * math.sin(a), height, c[2] + radius * math.cos(a)])
+        z = c - eye
+        z /= np.linalg.norm(z)
+        down = np.array([0.0, -1.0, 0.0])  # image y points down, world y up
+        x = np.cross(down, z)  # right-handed camera frame: x = y × z
+        x /= np.linalg.norm(x)
+        y = np.cross(z, x)
+        R = np.stack([x, y, z])
+        E = np.eye(4)
+        E[:3, :3] = R
+        E[:3, 3] = -R @ eye
+        cams.append(Camera(f"orbit{i:04d}", ref.K.copy(), E, ref.width, ref.height))
+    return cams
+
+
+@torch.no_grad()
+def render_images(model, normal_windows, geometry, faces, atlas, cameras: list[Camera], device: torch.device,
+                  chunk_size: int = 262144, background: float = 0.0):
+    """Yield one (H, W, 3) uint8 image per frame: frame i seen by ``cameras[i]``."""
+    from deliffas.geometry.raycast import UVRaycaster
+
+    cfg = model.config
+    for i, cam in enumerate(cameras):
+        ni, no = (w.float()[None].to(device) for w in normal_windows(i))
+        features = model.encode(ni, no if cfg.uses_outer_surface else None)
+        raycaster = UVRaycaster(geometry.inner[i], faces, geometry.outer[i], atlas)
+        batch = stack_rays([camera_rays(raycaster, cam)], [0]).to(device)
+        two = cfg.uses_outer_surface
+        rgb = model.shade_chunked(features, batch.batch_index, batch.uv_inner, batch.uv_outer if two else None,
+                                  batch.viewdir if cfg.uses_viewdir else None, batch.inner_from_outer if two else None,
+                                  chunk_size=chunk_size)
+        canvas = torch.full((cam.height * cam.width, 3), background, device=device)
+        canvas[batch.pixels] = rgb
+        yield (canvas.reshape(cam.height, cam.width, 3).clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
+
+
+def _default_motion(subject: Path) -> Path:
+    for seq in ("testing", "training"):
+        for p in sorted((subject / seq).glob("*.motion")):
+            return p
+    raise FileNotFoundError(f"no motion under {subject}/testing or {subject}/training; pass --motion")
+
+
+def render_video(cfg: RenderConfig) -> Path:
+    """Render the run's avatar along a motion; returns the written path (written atomically)."""
+    import cv2
+    from tqdm import tqdm
+
+    from deliffas.data.dynacap import read_character, read_motion
+    from deliffas.data.shards import ShardSet
+    from deliffas.geometry.atlas import TexelTable, UVAtlas
+    from deliffas.geometry.frame_geometry import FrameGeometryBuilder
+    from deliffas.geometry.template import DDCTemplate
+
+    device = torch.device(cfg.device)
+    model, record = load_run(cfg.run, device)
+    shards = record.get("train", {}).get("shards")
+    if not shards:
+        raise ValueError(f"{cfg.run}: train_config.json names no shards")
+    meta = ShardSet(shards).meta
+    character_path = Path(meta.attrs["character_path"])
+    if not character_path.is_file():
+        raise FileNotFoundError(f"{character_path}: the character the shards were made with is gone")
+    character = read_character(character_path)
+    motion_path = Path(cfg.motion) if cfg.motion else _default_motion(Path(meta.attrs["subject"]))
+    motion = read_motion(motion_path, character.skeleton.num_dofs)
+    n = min(motion.num_frames, cfg.frames or 300)
+    template = DDCTemplate(character, meta.attrs.get("skinning", "dqs"), dtype=torch.float64)
+    inner = template.pose(torch.as_tensor(motion.dofs[:n], dtype=torch.float64)).numpy()
+    table = TexelTable(meta.texel_face.astype(np.int64), meta.texel_bary, meta.texel_valid, meta.texel_valid)
+    builder = FrameGeometryBuilder(meta.faces, meta.outer_offsets, table)
+    geometry = builder.build(inner)
+    T = model.config.temporal_window
+    cams_all = meta.cameras()
+    if cfg.orbit:
+        centers = geometry.inner.mean(1)
+        ref_centers = np.stack([c.center for c in cams_all])
+        subject_c = centers.mean(0)
+        radius = float(np.median(np.linalg.norm((ref_centers - subject_c)[:, [0, 2]], axis=1)))
+        height = float(np.median(ref_centers[:, 1]))
+        cameras = orbit_cameras(cams_all[0], centers, radius, height, cfg.size)
+    else:
+        base = cams_all[int(meta.test_cameras[0]) if len(meta.test_cameras) else 0]
+        base = base.rescaled(*cfg.size) if cfg.size else base
+        cameras = [base] * n
+    atlas = UVAtlas(meta.uvs, meta.face_uvs)
+    out = Path(cfg.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    images = render_images(model, lambda i: geometry.window(i, T), geometry, meta.faces, atlas, cameras, device,
+                           cfg.chunk_size)
+    bar = tqdm(images, total=n, desc="render", unit="frame", dynamic_ncols=True)
+    if not out.suffix:
+        out.mkdir(parents=True, exist_ok=True)
+        for i, img in enumerate(bar):
+            cv2.imwrite(str(out / f"{i:06d}.png"), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+        return out
+    fourcc = {".mp4": "mp4v", ".avi": "MJPG"}.get(out.suffix.lower())
+    if fourcc is None:
+        raise ValueError(f"video must end in .mp4 or .avi (or be a folder), got {out.name}")
+    tmp = out.with_name(f".{out.stem}.tmp-{os.getpid()}{out.suffix}")
+    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*fourcc), cfg.fps, (cameras[0].width, cameras[0].height))
+    if not writer.isOpened():
+        raise RuntimeError(f"OpenCV cannot write {out.suffix} videos here (codec {fourcc})")
+    try:
+        for img in bar:
+            writer.write(cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+    finally:
+        writer.release()
+    os.replace(tmp, out)
+    return out
