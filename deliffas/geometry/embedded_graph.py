@@ -394,7 +394,8 @@ class EmbeddedDeformation(nn.Module):
         d = vertex_deltas.to(self.rest_verts) if vertex_deltas is not None else None
         return embedded_canonical(self.rest_verts, self.node_positions, self.vertex_nodes, self.vertex_weights, R, t, d)
 
-    def pose(self, canonical: torch.Tensor, node_rotations: torch.Tensor, node_translations: torch.Tensor) -> torch.Tensor:
+    def pose(self, canonical: torch.Tensor, node_rotations: torch.Tensor,
+             node_translations: torch.Tensor) -> torch.Tensor:
         """v'_i = Σ_k w_ik [R_k v̂_i + t_k] for skinned node transforms R (B, K, 3, 3), t (B, K, 3).
 
         ``canonical`` (B or 1, V, 3). Returns (B, V, 3).

@@ -219,7 +219,8 @@ def _body_primitives(P: dict[str, np.ndarray], R: dict[str, np.ndarray], H: floa
         _Prim("pelvis", "ell", P["Root_rx"] + (0, 5 * s, 5 * s), rot=np.eye(3), radii=np.array([150, 118, 102]) * g),
         _Prim("belly", "ell", P["Lumbar_rx"] + (0, 35 * s, 0), rot=np.eye(3), radii=np.array([132, 120, 94]) * g),
         _Prim("chest", "ell", P["Thorax_rx"] + (0, 85 * s, 0), rot=np.eye(3), radii=np.array([160, 160, 104]) * g),
-        _Prim("chest", "cone", P["LeftArm_rx"] + (30 * s, -22 * s, 0), P["RightArm_rx"] + (-30 * s, -22 * s, 0), 58 * g, 58 * g),
+        _Prim("chest", "cone", P["LeftArm_rx"] + (30 * s, -22 * s, 0), P["RightArm_rx"] + (-30 * s, -22 * s, 0),
+              58 * g, 58 * g),
         _Prim("neck", "cone", P["Neck_rx"] - 30 * s * up, P["Head_rx"] + 30 * s * up, 50 * g, 46 * g),
         _Prim("head", "ell", P["Head_rx"] + (0, 80 * s, -8 * s), rot=np.eye(3), radii=np.array([76, 100, 92]) * s),
         _Prim("head", "ell", P["Head_rx"] + (0, 62 * s, -92 * s), rot=np.eye(3), radii=np.array([13, 24, 17]) * s),
@@ -241,10 +242,12 @@ def _body_primitives(P: dict[str, np.ndarray], R: dict[str, np.ndarray], H: floa
             _Prim(f"{S}_shoulder", "ell", sh + (0, -8 * s, 0), rot=np.eye(3), radii=np.array([58, 55, 55]) * g),
             _Prim(f"{S}_upperarm", "cone", sh, el, 54 * g, 43 * g),
             _Prim(f"{S}_forearm", "cone", el, wr, 41 * g, 30 * g),
-            _Prim(f"{S}_hand", "ell", wr + 0.45 * (tip - wr), rot=hand_rot, radii=np.array([0.58 * np.linalg.norm(tip - wr), 48 * s, 24 * s])),
+            _Prim(f"{S}_hand", "ell", wr + 0.45 * (tip - wr), rot=hand_rot,
+                  radii=np.array([0.58 * np.linalg.norm(tip - wr), 48 * s, 24 * s])),
             _Prim(f"{S}_thigh", "cone", hip + (0, 20 * s, 0), kn, 86 * g, 54 * g),
             _Prim(f"{S}_shin", "cone", kn, an, 51 * g, 36 * g),
-            _Prim(f"{S}_shin", "ell", kn + 0.3 * (an - kn) + (0, 0, 22 * s), rot=np.eye(3), radii=np.array([46, 110, 46]) * g),
+            _Prim(f"{S}_shin", "ell", kn + 0.3 * (an - kn) + (0, 0, 22 * s), rot=np.eye(3),
+                  radii=np.array([46, 110, 46]) * g),
             _Prim(f"{S}_foot", "ell", an + (0, -42 * s, -58 * s), rot=foot_rot, radii=np.array([46, 42, 128]) * s),
         ]
     return prims
@@ -437,7 +440,8 @@ def _labels(verts: np.ndarray, prims: list[_Prim], P: dict[str, np.ndarray], H: 
 
 
 # --------------------------------------------------------------------------------------------- texture
-_SKIN_TONES = np.array([[0.96, 0.80, 0.69], [0.89, 0.69, 0.56], [0.78, 0.57, 0.44], [0.60, 0.42, 0.30], [0.42, 0.29, 0.20]])
+_SKIN_TONES = np.array([[0.96, 0.80, 0.69], [0.89, 0.69, 0.56], [0.78, 0.57, 0.44], [0.60, 0.42, 0.30],
+                        [0.42, 0.29, 0.20]])
 _HAIR = np.array([[0.09, 0.07, 0.06], [0.25, 0.16, 0.09], [0.55, 0.40, 0.22], [0.45, 0.20, 0.10]])
 _CLOTH = np.array([[0.80, 0.15, 0.15], [0.15, 0.35, 0.75], [0.15, 0.55, 0.30], [0.95, 0.75, 0.15],
                    [0.55, 0.25, 0.65], [0.95, 0.95, 0.92], [0.10, 0.12, 0.18], [0.95, 0.50, 0.20]])
@@ -476,9 +480,11 @@ def _paint(points: np.ndarray, labels: np.ndarray, P: dict[str, np.ndarray], H: 
     weave = 0.9 + 0.1 * (np.sin(x * 1.3) * np.sin(y * 1.3) > 0)[:, None]
     shirt = np.where(stripes, palette["shirt2"], palette["shirt"]) * weave * (0.92 + 0.08 * fine[:, None])
     # skirt: a plaid of two colours
-    plaid = ((np.abs(np.sin(np.pi * x / (45 * s))) < 0.25) | (np.abs(np.sin(np.pi * (y + z) / (45 * s))) < 0.25))[:, None]
+    plaid = ((np.abs(np.sin(np.pi * x / (45 * s))) < 0.25)
+             | (np.abs(np.sin(np.pi * (y + z) / (45 * s))) < 0.25))[:, None]
     check = (((np.floor(x / (90 * s)) + np.floor(y / (90 * s))) % 2) == 0)[:, None]
-    skirt = np.where(plaid, palette["skirt2"], palette["skirt"] * np.where(check, 1.0, 0.82)) * (0.93 + 0.07 * fine[:, None])
+    skirt = np.where(plaid, palette["skirt2"], palette["skirt"] * np.where(check, 1.0, 0.82))
+    skirt = skirt * (0.93 + 0.07 * fine[:, None])
     shoe = np.where((y < 14 * s)[:, None], np.array([0.92, 0.92, 0.9]), palette["shoe"] * (0.85 + 0.3 * fine[:, None]))
     rgb = np.where((labels == LABELS["hair"])[:, None], hair, rgb)
     rgb = np.where((labels == LABELS["upper_clothes"])[:, None], shirt, rgb)
@@ -602,7 +608,8 @@ def procedural_character(seed: int = 0, target_faces: int = 8000, name: str = "p
     verts, faces = marching_tetrahedra(values, origin, GRID_MM)
     log.info("procedural: marching tetrahedra %d faces, decimating to %d", len(faces), target_faces)
     verts, faces = decimate_mesh(verts, faces, target_faces)
-    area = 0.5 * np.linalg.norm(np.cross(verts[faces[:, 1]] - verts[faces[:, 0]], verts[faces[:, 2]] - verts[faces[:, 0]]), axis=1).sum()
+    tri = verts[faces]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum()
     edge = float(np.sqrt(4 * area / (np.sqrt(3) * target_faces)))  # equilateral faces of that size tile the area
     verts, faces = remesh_isotropic(verts, faces, edge, REMESH_ITERATIONS)
     # feet on y = 0: move the mesh and the root together

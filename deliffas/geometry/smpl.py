@@ -161,7 +161,8 @@ def load_smpl_model(path: str | os.PathLike) -> SMPLModelData:
     V = v.shape[0] if v.ndim == 2 else -1
     expect = {"v_template": (V, 3), "J_regressor": (NUM_JOINTS, V), "weights": (V, NUM_JOINTS),
               "kintree_table": (2, NUM_JOINTS)}
-    arrays = {k: _dense(raw[k]) for k in ("v_template", "shapedirs", "posedirs", "J_regressor", "weights", "kintree_table")}
+    keys = ("v_template", "shapedirs", "posedirs", "J_regressor", "weights", "kintree_table")
+    arrays = {k: _dense(raw[k]) for k in keys}
     for k, shape in expect.items():
         if arrays[k].shape != shape:
             raise SMPLModelError(f"{p}: '{k}' expected shape {shape}, got {arrays[k].shape}")
@@ -202,7 +203,8 @@ def blend_shapes(betas: torch.Tensor, shapedirs: torch.Tensor) -> torch.Tensor:
     return torch.einsum("bl,mkl->bmk", betas, shapedirs)
 
 
-def batch_rigid_transform(rot_mats: torch.Tensor, joints: torch.Tensor, parents: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def batch_rigid_transform(rot_mats: torch.Tensor, joints: torch.Tensor,
+                          parents: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Global joint transforms of a kinematic tree (parents precede children).
 
     Args:

@@ -179,7 +179,8 @@ class EmbeddedGraphTemplate(DDCTemplate):
     def num_nodes(self) -> int:
         return self.deformer.num_nodes
 
-    def node_transforms(self, dofs: torch.Tensor, skinning: Skinning | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def node_transforms(self, dofs: torch.Tensor,
+                        skinning: Skinning | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Skinned node transforms (B, K, 3, 3) and (B, K, 3) mm for DOFs (B, D)."""
         from deliffas.geometry.embedded_graph import blend_bone_transforms
 

@@ -57,7 +57,7 @@ def _ensure_uvs(character: Character, atlas_res: int) -> tuple[Character, str]:
 
     log.warning("%s: the template has no per-corner UVs; generating an xatlas atlas", character.path)
     atlas = UVAtlas.from_mesh(character.mesh.verts, character.mesh.faces, resolution=atlas_res, padding=4)
-    mesh = dataclasses.replace(character.mesh, uvs=np.asarray(atlas.uvs).copy(), face_uvs=np.asarray(atlas.face_uvs).copy())
+    mesh = dataclasses.replace(character.mesh, uvs=np.array(atlas.uvs), face_uvs=np.array(atlas.face_uvs))
     return dataclasses.replace(character, mesh=mesh, texture=None), "xatlas"
 
 

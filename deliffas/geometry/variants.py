@@ -332,6 +332,16 @@ def _sample_bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return top * (1 - fy) + bottom * fy
 
 
+def _encode_png(rgb: np.ndarray) -> bytes:
+    """PNG bytes of an (H, W, 3) uint8 RGB image."""
+    import cv2
+
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(rgb[..., ::-1]))
+    if not ok:  # pragma: no cover - cv2 failure
+        raise RuntimeError("cv2.imencode failed to encode the texture")
+    return buf.tobytes()
+
+
 def _rebake_texture(src: Character, texture: np.ndarray, verts: np.ndarray, faces: np.ndarray, atlas,
                     size: int) -> np.ndarray:
     """(S, S, 3) uint8 RGB for the new atlas: texel -> 3D point -> closest original point -> its
@@ -393,8 +403,6 @@ def coarse_variant(character: Character, target_faces: int, atlas_res: int = 102
         if not mesh.has_uvs:
             log.warning("coarse_variant: %s has a texture but no uvs; the texture is not re-baked", character.path)
         else:
-            from deliffas.geometry.procedural import _encode_png
-
             size = int(texture_size or texture.shape[0])
             extra["texture_png"] = _encode_png(_rebake_texture(character, texture, verts, faces, atlas, size))
     graph = character.graph
