@@ -43,6 +43,7 @@ MIN_NODE_RADIUS = 3
 """Node radii (in hops) are clamped from below at this value (C++ ``EmbeddedGraph.cpp``)."""
 _NEAREST_CANDIDATES = 32  # template vertices examined per node before a full search
 _BFS_CHUNK = 256  # nodes whose hop distances are held at once ((chunk, V) floats)
+_HOP_LIMIT = 16  # BFS depth per node; deeper searches only where a graph neighbour lies farther
 
 _RIGIDITY = {0: 10.0, 5: 10.0, 6: 10.0, 7: 10.0, 10: 10.0, 12: 10.0, 9: 15.0, 8: 50.0, 11: 50.0,
              **{k: 200.0 for k in (1, 2, 3, 4, 13, 14, 15, 16, 17, 18, 19)}}
@@ -178,7 +179,7 @@ def bind_embedded_graph(verts: np.ndarray, faces: np.ndarray, graph: ObjData | n
     """
     check_shape("verts", verts, "V 3")
     check_shape("faces", faces, "F 3")
-    from scipy.sparse.csgraph import shortest_path
+    from scipy.sparse.csgraph import dijkstra
 
     verts = np.asarray(verts, np.float64)
     faces = np.asarray(faces, np.int64)
@@ -208,9 +209,16 @@ def bind_embedded_graph(verts: np.ndarray, faces: np.ndarray, graph: ObjData | n
     best_node = np.zeros(V, np.int64)
     for start in range(0, K, _BFS_CHUNK):  # chunks of nodes; each chunk one batched BFS
         ks = np.arange(start, min(start + _BFS_CHUNK, K))
-        D = shortest_path(adj, method="D", unweighted=True, indices=node_verts[ks])  # (c, V) hops
+        # depth-limited BFS; exact for nodes whose graph neighbours lie within the limit, since then
+        # r_k <= limit / 2 (the limit is at least MIN_NODE_RADIUS for nodes without neighbours)
+        D = dijkstra(adj, unweighted=True, indices=node_verts[ks], limit=max(_HOP_LIMIT, MIN_NODE_RADIUS))  # (c, V)
         nb = nbr[ks]
         nb_hops = np.where(nb >= 0, D[np.arange(len(ks))[:, None], node_verts[np.maximum(nb, 0)]], -np.inf)
+        beyond = np.nonzero(np.isposinf(nb_hops).any(axis=1))[0]
+        if len(beyond):  # a graph neighbour farther than the limit: redo those rows without it
+            D[beyond] = dijkstra(adj, unweighted=True, indices=node_verts[ks[beyond]])
+            nb_hops[beyond] = np.where(nb[beyond] >= 0, D[beyond[:, None], node_verts[np.maximum(nb[beyond], 0)]],
+                                       -np.inf)
         far = nb_hops.max(axis=1)
         far = np.where(np.isfinite(far), far, 0)
         r = np.maximum(MIN_NODE_RADIUS, (far // 2).astype(np.int64))
@@ -225,6 +233,10 @@ def bind_embedded_graph(verts: np.ndarray, faces: np.ndarray, graph: ObjData | n
         better = chunk_hops < best_hops
         best_hops[better] = chunk_hops[better]
         best_node[better] = ks[chunk_best[better]]
+    far_verts = np.flatnonzero(np.isinf(best_hops))
+    if len(far_verts):  # farther than the hop limit from every node: search from those vertices instead
+        Dv = dijkstra(adj, unweighted=True, indices=far_verts)[:, node_verts]  # (n, K)
+        best_node[far_verts] = np.argmin(Dv, axis=1)
     kk = np.concatenate(rows_k)
     ii = np.concatenate(rows_i)
     ww = np.concatenate(rows_w)

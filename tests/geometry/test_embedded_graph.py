@@ -93,6 +93,22 @@ def test_unattached_vertices_take_hop_nearest_node(small_mesh):
     np.testing.assert_allclose(W, ref, atol=1e-12)
 
 
+def test_depth_limited_bfs_falls_back_exactly(small_mesh, monkeypatch):
+    """With a tiny BFS depth limit every fallback path runs; the binding must not change."""
+    import deliffas.geometry.embedded_graph as eg_module
+
+    verts, faces, gv, gf = small_mesh
+    ref = bind_embedded_graph(verts, faces, ObjData(gv, gf))
+    lone_ref = bind_embedded_graph(verts, faces, verts[faces[0]], graph_faces=np.array([[0, 1, 2]]))
+    monkeypatch.setattr(eg_module, "_HOP_LIMIT", 1)
+    limited = bind_embedded_graph(verts, faces, ObjData(gv, gf))
+    lone = bind_embedded_graph(verts, faces, verts[faces[0]], graph_faces=np.array([[0, 1, 2]]))
+    for a, b in ((ref, limited), (lone_ref, lone)):
+        np.testing.assert_array_equal(a.node_radius, b.node_radius)
+        np.testing.assert_array_equal(a.vertex_nodes, b.vertex_nodes)
+        np.testing.assert_allclose(a.vertex_weights, b.vertex_weights)
+
+
 def test_rigidity_labels():
     np.testing.assert_array_equal(rigidity_of_labels(np.array([0, 5, 12, 9, 8, 11, 13, 18])),
                                   [10, 10, 10, 15, 50, 50, 200, 200])
