@@ -18,6 +18,7 @@ import torch
 
 MODULES = [
     "benchmarks.bench_posing",
+    "benchmarks.bench_uv",
 ]
 
 

@@ -16,6 +16,7 @@ open3d is imported at call time, only here (shell.py reaches it through these fu
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, fields
 from typing import Literal, Sequence
 
@@ -40,6 +41,14 @@ PEEL_EPS_REL = 1e-5
 outer surface's bounding box (about 0.02 mm for a 2 m person): well above float32 round-off of
 the hit point (~3e-4 mm at 3 m) and far below the 0.1 mm depth quantum of the original renderer,
 which also merges hits closer than its quantum."""
+
+BOX_PAD_REL = 1e-3
+"""Ray culling: a ray is cast only when it meets the bounding box of both surfaces grown by
+BOX_PAD_REL x the outer surface's diagonal on every side (about 2 mm for a 2 m person), far
+more than the float32 round-off of the box test, so a ray that can hit a triangle is never
+culled."""
+
+_BOX_CHUNK = 16384  # rays per chunk of the box test (its temporaries stay in cache)
 
 PeelMethod = Literal["recast", "list"]
 
@@ -92,10 +101,11 @@ def _cast(scene, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     face = ans["primitive_ids"].numpy().astype(np.int64)
     face[miss] = -1
     b12 = ans["primitive_uvs"].numpy()
+    zero = np.float32(0.0)
     bary = np.empty((len(t), 3), np.float32)
-    bary[:, 1:] = b12
-    bary[:, 0] = 1.0 - b12[:, 0] - b12[:, 1]
-    bary[miss] = 0.0
+    bary[:, 1] = np.where(miss, zero, b12[:, 0])  # column-wise: 1-D masks are fast, 2-D row masks are not
+    bary[:, 2] = np.where(miss, zero, b12[:, 1])
+    bary[:, 0] = np.where(miss, zero, 1.0 - b12[:, 0] - b12[:, 1])
     return t, face, bary
 
 
@@ -209,13 +219,69 @@ def uv_inner_or_exit(hits: RaycastHits) -> tuple[np.ndarray, np.ndarray]:
     return uv, inner_from_outer
 
 
+def _box_candidates(origins: np.ndarray, directions: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Indices (M,) int64 of the rays whose half-line t >= 0 meets the box [lo, hi].
+
+    Slab test in the inputs' precision, in cache-sized chunks (no (N, .) temporaries). A NaN
+    (0 x inf for a zero direction component with the origin on a slab plane, or a NaN ray) makes
+    the final comparison False, so such rays are kept: the test only ever keeps too many rays,
+    never too few.
+
+    Args:
+        origins, directions: (N, 3) float.
+        lo, hi: (3,) float box corners.
+    """
+    n = len(origins)
+    keep = np.empty(n, bool)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        for start in range(0, n, _BOX_CHUNK):
+            o = origins[start : start + _BOX_CHUNK]
+            d = directions[start : start + _BOX_CHUNK]
+            for k in range(3):  # per axis: numpy reductions over a length-3 axis are slow
+                inv = 1.0 / d[:, k]  # (n,), +-inf for a zero component
+                a = (lo[k] - o[:, k]) * inv
+                b = (hi[k] - o[:, k]) * inv
+                if k == 0:
+                    t_near, t_far = np.minimum(a, b), np.maximum(a, b)
+                else:  # NaN-propagating
+                    np.maximum(t_near, np.minimum(a, b), out=t_near)
+                    np.minimum(t_far, np.maximum(a, b), out=t_far)
+            keep[start : start + _BOX_CHUNK] = ~((t_far < t_near) | (t_far < 0))
+    return np.flatnonzero(keep)
+
+
+def _put_rows(out: np.ndarray, idx: np.ndarray, values: np.ndarray) -> None:
+    """``out[idx] = values`` for C-contiguous (n, ...) ``out``; rows of 2-D arrays are moved as one
+    opaque item each (numpy's multi-dimensional fancy assignment is several times slower)."""
+    if out.ndim == 1:
+        out[idx] = values
+        return
+    row = np.dtype((np.void, out.itemsize * math.prod(out.shape[1:])))
+    out.view(row).reshape(len(out))[idx] = np.ascontiguousarray(values, out.dtype).view(row).reshape(len(values))
+
+
+def _scatter(n: int, idx: np.ndarray, values: np.ndarray, fill) -> np.ndarray:
+    """(n, ...) array of ``fill`` with ``values`` (M, ...) written at rows ``idx`` (M,)."""
+    if len(idx) == n:
+        return values
+    shape = (n, *values.shape[1:])
+    # zeros come from calloc: pages holding no written row are never touched
+    out = np.zeros(shape, values.dtype) if fill == 0 else np.full(shape, fill, values.dtype)
+    _put_rows(out, idx, values)
+    return out
+
+
 def _interp_uv(corner_uvs: np.ndarray, face: np.ndarray, bary: np.ndarray) -> np.ndarray:
     """uv (N, 2) float32 = sum_k bary_k * corner_uvs[face, k]; NaN where face < 0."""
-    uv = np.full((len(face), 2), np.nan, np.float32)
-    hit = np.flatnonzero(face >= 0)
-    c = corner_uvs[face[hit]]  # (n, 3, 2)
-    b = bary[hit]
-    uv[hit] = b[:, 0:1] * c[:, 0] + b[:, 1:2] * c[:, 1] + b[:, 2:3] * c[:, 2]
+    miss = face < 0
+    uv = np.empty((len(face), 2), np.float32)
+    if len(corner_uvs) == 0 or miss.all():
+        uv.fill(np.nan)
+        return uv
+    c = np.take(corner_uvs.reshape(-1, 6), np.where(miss, 0, face), axis=0)  # (N, 6): u0 v0 u1 v1 u2 v2
+    for j in range(2):
+        uv[:, j] = bary[:, 0] * c[:, j] + bary[:, 1] * c[:, 2 + j] + bary[:, 2] * c[:, 4 + j]
+        uv[:, j][miss] = np.nan
     return uv
 
 
@@ -249,40 +315,53 @@ class UVRaycaster:
         if peel not in ("recast", "list"):
             raise ValueError(f"peel: expected 'recast' or 'list', got {peel!r}")
         self.peel = peel
-        self.corner_uvs = atlas.corner_uvs.astype(np.float32)  # (F, 3, 2)
+        self.corner_uvs = atlas.uvs.astype(np.float32)[atlas.face_uvs]  # (F, 3, 2) float32
         self.inner_scene = build_scene(inner_verts, faces)
         self.outer_scene = build_scene(outer_verts, faces)
         ov = np.asarray(outer_verts, dtype=np.float64)
         diag = float(np.linalg.norm(ov.max(0) - ov.min(0))) if len(ov) else 1.0
         self.peel_eps = PEEL_EPS_REL * max(diag, 1e-6)
+        both = np.concatenate([np.asarray(inner_verts, np.float64), ov])
+        pad = BOX_PAD_REL * max(diag, 1e-6)
+        # (3,) float64 corners of the padded box around both surfaces; empty meshes: an empty box
+        self.box_lo = both.min(0) - pad if len(both) else np.full(3, np.inf)
+        self.box_hi = both.max(0) + pad if len(both) else np.full(3, -np.inf)
 
     def cast_rays(self, origins: np.ndarray, directions: np.ndarray) -> RaycastHits:
-        """Hits of arbitrary rays: origins (N, 3) mm and unit directions (N, 3); flat (N,) hits."""
+        """Hits of arbitrary rays: origins (N, 3) mm and unit directions (N, 3); flat (N,) hits.
+
+        Only the rays that meet the (padded) bounding box of both surfaces are handed to open3d;
+        the others miss both surfaces by construction (see ``_box_candidates``).
+        """
         check_shape("origins", origins, "N 3")
         check_shape("directions", directions, "N 3", {"N": len(origins)})
-        rays = _rays(origins, directions)  # (N, 6) float32
-        ti, fi, bi = _cast(self.inner_scene, rays)
+        origins, directions = np.asarray(origins), np.asarray(directions)
+        n = len(origins)
+        cand = _box_candidates(origins, directions, self.box_lo, self.box_hi)  # (M,) int64 ray indices
+        sub = _rays(np.take(origins, cand, axis=0), np.take(directions, cand, axis=0))  # (M, 6) float32
+        ti, fi, bi = _cast(self.inner_scene, sub)
         if self.peel == "recast":
-            to, fo, bo = _cast(self.outer_scene, rays)
+            to, fo, bo = _cast(self.outer_scene, sub)
             te = np.full_like(to, np.inf)
             fe = np.full_like(fo, -1)
             be = np.zeros_like(bo)
             hit = np.flatnonzero(fo >= 0)
             step = to[hit] + np.float32(self.peel_eps)  # (n,)
-            again = rays[hit]
+            again = np.take(sub, hit, axis=0)  # (n, 6)
             again[:, :3] += step[:, None] * again[:, 3:]
             t2, f2, b2 = _cast(self.outer_scene, again)
-            te[hit], fe[hit], be[hit] = t2 + step, f2, b2
+            te[hit], fe[hit] = t2 + step, f2
+            _put_rows(be, hit, b2)
         else:
-            to, fo, bo, te, fe, be = self._peel_list(rays)
-        return RaycastHits(
-            inner_hit=fi >= 0, inner_face=fi, inner_bary=bi,
-            uv_inner=_interp_uv(self.corner_uvs, fi, bi), inner_depth=ti,
-            outer_hit=fo >= 0, outer_face=fo, outer_bary=bo,
-            uv_outer=_interp_uv(self.corner_uvs, fo, bo), outer_depth=to,
-            outer_exit_hit=fe >= 0, outer_exit_face=fe, outer_exit_bary=be,
-            uv_outer_exit=_interp_uv(self.corner_uvs, fe, be), outer_exit_depth=te,
-        )  # fmt: skip
+            to, fo, bo, te, fe, be = self._peel_list(sub)
+        out = {}
+        for name, (t, f, b) in (("inner", (ti, fi, bi)), ("outer", (to, fo, bo)), ("outer_exit", (te, fe, be))):
+            out[f"{name}_hit"] = _scatter(n, cand, f >= 0, False)
+            out[f"{name}_face"] = _scatter(n, cand, f, -1)
+            out[f"{name}_bary"] = _scatter(n, cand, b, 0.0)
+            out[f"uv_{name}"] = _scatter(n, cand, _interp_uv(self.corner_uvs, f, b), np.nan)
+            out[f"{name}_depth"] = _scatter(n, cand, t, np.inf)
+        return RaycastHits(**out)
 
     def _peel_list(self, rays: np.ndarray):
         n = len(rays)

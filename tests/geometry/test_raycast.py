@@ -196,3 +196,25 @@ def test_template_raycast_from_3m(sample_dir):
     assert from_outer.sum() > 0
     ok = ~np.isnan(uv[..., 0])
     assert (uv[ok] >= -1e-6).all() and (uv[ok] <= 1 + 1e-6).all()
+
+
+def test_box_culling_keeps_every_hit(sphere):
+    """cast_rays hands open3d only the rays meeting the surfaces' box; every other ray must miss."""
+    v, f, outer, atlas = sphere
+    rc = UVRaycaster(v, f, outer, atlas)
+    rng = np.random.default_rng(1)
+    origins = rng.uniform(-1500, 1500, size=(4000, 3))
+    origins[:500] = rng.uniform(-200, 200, size=(500, 3))  # inside both surfaces
+    dirs = rng.normal(size=(4000, 3))
+    dirs[np.arange(500, 1000), rng.integers(0, 3, 500)] = 0.0  # zero components: 0 x inf in the slab test
+    origins[500:600, 0] = rc.box_lo[0]  # origin on a slab plane with a zero component: 0 x inf = NaN
+    dirs[500:600, 0] = 0.0
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    h = rc.cast_rays(origins, dirs)
+    inner_scene, outer_scene = build_scene(v, f), build_scene(outer, f)
+    t_in, f_in, _ = first_hits(inner_scene, origins, dirs)
+    t_out, f_out, _ = first_hits(outer_scene, origins, dirs)
+    np.testing.assert_array_equal(h.inner_face, f_in)
+    np.testing.assert_array_equal(h.outer_face, f_out)
+    np.testing.assert_array_equal(h.inner_depth, t_in)
+    assert 0 < h.outer_hit.sum() < len(origins)  # both culled and cast rays occur

@@ -1,0 +1,29 @@
+"""Interleaved best-of timing for same-run ratios on a shared, noisy machine."""
+
+from __future__ import annotations
+
+import time
+from typing import Callable
+
+
+def best_times(fns: dict[str, Callable[[], object]], repeat: int = 5, min_time: float = 0.0) -> dict[str, float]:
+    """Best wall time (s) of each function, calling them in turn (a, b, a, b, ...) after one warm-up each.
+
+    Interleaving exposes every candidate to the same load of the machine, so the ratio of two
+    best times is not skewed by a burst of other work during one of them. Runs ``repeat``
+    rounds, and more while the total time of the rounds so far is below ``min_time`` seconds
+    (at most 4 x ``repeat`` rounds).
+    """
+    for fn in fns.values():
+        fn()
+    best = {name: float("inf") for name in fns}
+    spent, rounds = 0.0, 0
+    while rounds < repeat or (spent < min_time and rounds < 4 * repeat):
+        for name, fn in fns.items():
+            t0 = time.perf_counter()
+            fn()
+            dt = time.perf_counter() - t0
+            best[name] = min(best[name], dt)
+            spent += dt
+        rounds += 1
+    return best
