@@ -63,7 +63,8 @@ class NormalMapGather:
         Args:
             table: TexelTable of side S (``face``/``bary`` of every texel).
             faces: (F, 3) int, the same faces the atlas was built for.
-            num_verts: V (default: max vertex index in ``faces`` + 1).
+            num_verts: V (default: max vertex index in ``faces`` + 1; normals of further, unused
+                vertices are ignored by ``apply``).
         """
         check_shape("faces", faces, "F 3")
         faces_np = faces.cpu().numpy() if isinstance(faces, torch.Tensor) else np.asarray(faces)
@@ -120,10 +121,11 @@ class NormalMapGather:
         vb = vn.reshape(-1, num_verts, 3)  # (B, V, 3)
         B = vb.shape[0]
         if method == "sparse":
-            if num_verts != self.matrix.shape[1]:
-                raise ValueError(f"vertex_normals: expected V = {self.matrix.shape[1]}, got shape {tuple(vn.shape)}")
+            cols = self.matrix.shape[1]  # vertices referenced by the faces (trailing unused ones are dropped)
+            if num_verts < cols:
+                raise ValueError(f"vertex_normals: expected at least V = {cols} vertices, got shape {tuple(vn.shape)}")
             m = self.matrix.to(device=vn.device, dtype=vn.dtype)
-            x = vb.permute(1, 0, 2).reshape(num_verts, B * 3)  # (V, B*3)
+            x = vb[:, :cols].permute(1, 0, 2).reshape(cols, B * 3)  # (V, B*3)
             n = (m @ x).view(S * S, B, 3).permute(1, 0, 2)  # (B, S*S, 3) strided view
         elif method == "gather":
             vi = self.vert_index.to(vn.device)

@@ -82,6 +82,8 @@ def test_sparse_and_gather_methods_agree(dtype, device):
         gather.apply(vn, method="scatter")
     with pytest.raises(ValueError, match="vertex_normals"):
         gather.apply(vn[:, :-1])
+    extra = torch.cat([vn, torch.randn(3, 2, 3, dtype=dtype, device=device)], dim=1)  # unused trailing vertices
+    torch.testing.assert_close(gather.apply(extra), a)
 
 
 def test_float16_output_and_numpy_input():
