@@ -178,8 +178,12 @@ def _cmd_character_procedural(args: argparse.Namespace) -> int:
     from deliffas.data.dynacap import read_character
     from deliffas.geometry.procedural import make_procedural_character
 
-    path = make_procedural_character(args.out_dir, seed=args.seed, target_faces=args.faces, name=args.name,
-                                     texture_size=args.texture_size)
+    try:
+        path = make_procedural_character(args.out_dir, seed=args.seed, target_faces=args.faces, name=args.name,
+                                         texture_size=args.texture_size)
+    except ValueError as err:
+        print(f"deliffas character procedural: error: {err}", file=sys.stderr)
+        return 2
     c = read_character(path)
     print(f"wrote {path}: {c.mesh.num_verts} vertices, {c.mesh.num_faces} faces, {c.skeleton.num_dofs} DOFs, "
           f"{c.graph.num_verts if c.graph is not None else 0} graph nodes, height {c.mesh.verts[:, 1].max():.0f} mm")
@@ -189,8 +193,12 @@ def _cmd_character_procedural(args: argparse.Namespace) -> int:
 def _cmd_template(args: argparse.Namespace) -> int:
     from deliffas.geometry.template_build import build_templates
 
-    report = build_templates(args.character, args.out, smooth_iters=args.smooth, coarse_faces=args.coarse,
-                             offset_mm=args.offset, safe=args.safe, atlas_res=args.atlas_res)
+    try:
+        report = build_templates(args.character, args.out, smooth_iters=args.smooth, coarse_faces=args.coarse,
+                                 offset_mm=args.offset, safe=args.safe, atlas_res=args.atlas_res)
+    except ValueError as err:  # bad arguments or files (DynaCapFormatError is a ValueError)
+        print(f"deliffas template: error: {err}", file=sys.stderr)
+        return 2
     for name, v in report["variants"].items():
         sh = v["shell"]
         print(f"{name:>8}: {v['num_verts']} vertices, {v['num_faces']} faces, watertight {v['watertight']}, "
