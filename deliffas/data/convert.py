@@ -20,7 +20,7 @@ import logging
 import os
 import shutil
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import asdict, dataclass, field
 from multiprocessing import get_context
 from pathlib import Path
@@ -44,7 +44,7 @@ from deliffas.data.shards import (
     write_meta,
 )
 
-__all__ = ["ConvertConfig", "ConvertResult", "convert", "parse_frame_range", "SEQUENCES"]
+__all__ = ["ConvertConfig", "ConvertResult", "convert", "parse_frame_range", "process_map", "SEQUENCES"]
 
 log = logging.getLogger(__name__)
 
@@ -132,6 +132,34 @@ def _select(frames: np.ndarray, sl: slice) -> np.ndarray:
     step = sl.step or 1
     keep = (frames >= a) & (frames < b) & ((frames - a) % step == 0)
     return frames[keep]
+
+
+# --------------------------------------------------------------------------------------------- processes
+def process_map(fn, tasks: Sequence[tuple], jobs: int, initializer=None, initargs: tuple = (), poll_s: float = 2.0):
+    """Run ``fn(*task)`` for every task in ``jobs`` spawned processes; yield results as they complete.
+
+    Spawn (not fork) keeps torch/open3d/h5py state out of the workers. A worker that dies (e.g. a
+    signal) raises RuntimeError naming its pid and exit code instead of hanging; on any error the
+    remaining workers (started here) are terminated by handle.
+    """
+    pool = ProcessPoolExecutor(jobs, mp_context=get_context("spawn"), initializer=initializer, initargs=initargs)
+    try:
+        pending = {pool.submit(fn, *t) for t in tasks}
+        while pending:
+            done, pending = wait(pending, timeout=poll_s, return_when=FIRST_COMPLETED)
+            for fut in done:
+                yield fut.result()
+            dead = [p for p in list(getattr(pool, "_processes", {}).values()) if p.exitcode not in (None, 0)]
+            if dead and pending:
+                raise RuntimeError(f"worker process {dead[0].pid} died (exit code {dead[0].exitcode}); "
+                                   f"{len(pending)} tasks unfinished")
+    except BaseException:
+        for proc in list(getattr(pool, "_processes", {}).values()):
+            if proc.is_alive():
+                proc.terminate()
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown(wait=True)
 
 
 # --------------------------------------------------------------------------------------------- planning
@@ -548,10 +576,8 @@ def convert(subject_dir: str | os.PathLike, out_dir: str | os.PathLike, config: 
             for t in pending:
                 record(_convert_shard(ctx, t))
         else:
-            with ProcessPoolExecutor(min(config.jobs, len(pending)), mp_context=get_context("spawn")) as pool:
-                futures = [pool.submit(_convert_shard, ctx, t) for t in pending]
-                for fut in as_completed(futures):
-                    record(fut.result())
+            for entry in process_map(_convert_shard, [(ctx, t) for t in pending], min(config.jobs, len(pending))):
+                record(entry)
     finally:
         bar.close()
     write_manifest(out, manifest(True))

@@ -19,9 +19,7 @@ import json
 import logging
 import os
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
-from multiprocessing import get_context
 from pathlib import Path
 from typing import Literal, Sequence
 
@@ -526,10 +524,10 @@ def synthesize_capture(out_dir: str | os.PathLike, config: SynthConfig = SynthCo
             _render_chunk(*task)
         _WORKER.clear()
     else:
-        with ProcessPoolExecutor(config.jobs, mp_context=get_context("spawn"), initializer=_init_worker,
-                                 initargs=(static,)) as pool:
-            for fut in [pool.submit(_render_chunk, *task) for task in tasks]:
-                fut.result()
+        from deliffas.data.convert import process_map
+
+        for _ in process_map(_render_chunk, tasks, min(config.jobs, len(tasks)), _init_worker, (static,)):
+            pass
     seconds["render"] = time.perf_counter() - t2  # ambient occlusion + ray casting + PNG writing
 
     if config.videos:

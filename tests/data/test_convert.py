@@ -231,3 +231,15 @@ def test_bad_inputs(subject, tmp_path):
     assert parse_frame_range("10:20:5") == slice(10, 20, 5) and parse_frame_range("::10") == slice(None, None, 10)
     with pytest.raises(ValueError, match="STEP"):
         parse_frame_range("0:10:0")
+
+
+def test_process_map_does_not_hang_on_a_dead_worker():
+    from concurrent.futures.process import BrokenProcessPool
+
+    from deliffas.data.convert import process_map
+
+    assert sorted(process_map(abs, [(-2,), (3,), (-1,)], 2, poll_s=0.2)) == [1, 2, 3]
+    t0 = time.monotonic()
+    with pytest.raises((RuntimeError, BrokenProcessPool)):
+        list(process_map(os._exit, [(3,), (4,), (5,)], 2, poll_s=0.2))
+    assert time.monotonic() - t0 < 30
