@@ -10,7 +10,7 @@ import torch
 
 from deliffas.data.dynacap import read_character, read_motion, write_motion
 from deliffas.geometry.procedural import (LABELS, PROCEDURAL_DOF_NAMES, make_procedural_character,
-                                          marching_tetrahedra, procedural_character, procedural_skeleton)
+                                          marching_tetrahedra, procedural_skeleton)
 from deliffas.geometry.template import DDCTemplate
 
 BUILD = dict(seed=0, target_faces=6000, texture_size=256)
@@ -187,14 +187,22 @@ def test_embedded_graph_template_close_to_skinning(character):
     assert d[1].median() < 3.0
 
 
-def test_deterministic_for_a_seed(character, char_path):
-    again = procedural_character(**BUILD)
+def test_deterministic_for_a_seed_and_cli(character, char_path, tmp_path):
+    """``deliffas character procedural`` with the same seed writes the same character again."""
+    from deliffas.cli import main
+
+    assert main(["character", "procedural", str(tmp_path), "--seed", str(BUILD["seed"]),
+                 "--faces", str(BUILD["target_faces"]), "--texture-size", str(BUILD["texture_size"])]) == 0
+    again = read_character(tmp_path / "procedural.character")
+    for name in ("procedural.obj", "procedural.skin", "procedural.skeleton", "segmentation.txt",
+                 "procedural_graph.obj"):
+        assert (tmp_path / name).read_bytes() == (char_path.parent / name).read_bytes(), name
     np.testing.assert_array_equal(again.mesh.faces, character.mesh.faces)
     np.testing.assert_allclose(again.mesh.verts, character.mesh.verts, atol=1e-6)  # OBJ keeps 6 decimals
     np.testing.assert_allclose(again.mesh.uvs, character.mesh.uvs, atol=1e-6)
     np.testing.assert_array_equal(again.segmentation, character.segmentation)
     np.testing.assert_allclose(again.skin.dense(), character.skin.dense(), atol=1e-12)
-    assert again.extra["texture_png"] == (char_path.parent / "procedural.png").read_bytes()
+    assert (tmp_path / "procedural.png").read_bytes() == (char_path.parent / "procedural.png").read_bytes()
     from deliffas.geometry.procedural import _seed_params
 
     (h0, g0, p0), (h1, g1, p1) = _seed_params(0), _seed_params(1)
@@ -207,7 +215,8 @@ def test_pose_cli_on_procedural(character, char_path, tmp_path):
     from deliffas.geometry.motion_gen import procedural_motion
 
     motion = tmp_path / "walk.motion"
-    write_motion(motion, procedural_motion(character.skeleton, 10, style="walk_in_place", rest_dofs=character.rest_dofs))
+    walk = procedural_motion(character.skeleton, 10, style="walk_in_place", rest_dofs=character.rest_dofs)
+    write_motion(motion, walk)
     out = tmp_path / "posed.obj"
     assert main(["pose", str(char_path), str(motion), "--frame", "5", "--out", str(out)]) == 0
     posed = read_obj(out)

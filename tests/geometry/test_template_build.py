@@ -1,4 +1,4 @@
-"""``deliffas character procedural`` + ``deliffas template``: variants, outer shells and report on disk."""
+"""``deliffas template``: variants, outer shells and report on disk (on the procedural character)."""
 
 from __future__ import annotations
 
@@ -12,21 +12,27 @@ from deliffas.data.dynacap import read_character
 from deliffas.data.obj_io import read_obj
 
 
+BUILD = dict(seed=0, target_faces=6000, texture_size=256)
+
+
+def shared_procedural(tmp_path_factory):
+    """Same session-wide build as tests/geometry/test_procedural.py (which also tests its CLI)."""
+    from deliffas.geometry.procedural import make_procedural_character
+
+    d = tmp_path_factory.getbasetemp() / "procedural_s0_f6000_t256"
+    path = d / "procedural.character"
+    if not path.is_file():
+        make_procedural_character(d, **BUILD)
+    return path
+
+
 @pytest.fixture(scope="module")
 def built(tmp_path_factory):
-    root = tmp_path_factory.mktemp("template_build")
-    char_dir = root / "character"
-    assert main(["character", "procedural", str(char_dir), "--seed", "5", "--faces", "5000",
-                 "--texture-size", "128"]) == 0
-    out = root / "templates"
-    assert main(["template", str(char_dir / "procedural.character"), "--out", str(out), "--smooth", "4",
+    char_path = shared_procedural(tmp_path_factory)
+    out = tmp_path_factory.mktemp("template_build") / "templates"
+    assert main(["template", str(char_path), "--out", str(out), "--smooth", "4",
                  "--coarse", "2500", "--atlas-res", "128"]) == 0
-    return char_dir / "procedural.character", out
-
-
-def test_procedural_cli_character(built):
-    c = read_character(built[0])
-    assert 4500 <= c.mesh.num_faces <= 5500 and c.graph is not None and (c.segmentation == 12).any()
+    return char_path, out
 
 
 def test_variant_folders_and_outer_shells(built):
