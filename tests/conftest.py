@@ -13,6 +13,21 @@ def pytest_addoption(parser):
     parser.addoption("--device", default="cpu", help="torch device for device-parametrised tests (default cpu)")
 
 
+@pytest.fixture(autouse=True)
+def _single_thread():
+    """Run each test on one intra-op torch thread (restored afterwards).
+
+    The tensors in tests are tiny; on a shared 2-core machine OpenMP threads only contend (a U-Net
+    training step measured 0.07 s on one thread against 2.3 s on two while other processes ran).
+    """
+    import torch
+
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
 @pytest.fixture
 def device(request):
     return request.config.getoption("--device")

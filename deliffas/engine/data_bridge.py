@@ -62,6 +62,11 @@ class _ItemToSample:
                            normal_outer=item.normal_maps_outer.numpy(), inner_verts=inner, outer_verts=outer, rays=rays)
 
 
+def _one_thread_worker(_worker_id: int) -> None:
+    """DataLoader workers ray-cast and read shards: one torch thread each, no oversubscription."""
+    torch.set_num_threads(1)
+
+
 class _EndlessCameraSampler(Sampler):
     """``RandomCameraSampler`` epochs one after another, each with its own seed (rank- and resume-aware)."""
 
@@ -94,7 +99,8 @@ def training_stream(cfg, rank: int = 0, world: int = 1, start_iteration: int = 0
     sampler = _EndlessCameraSampler(ds, k, seed=cfg.seed + 7919 * rank + 104729 * start_iteration)
     collate = _ItemToSample(info["faces"], info["atlas"], info["cameras"], with_rays=True)
     loader = DataLoader(ds, batch_size=1, sampler=sampler, collate_fn=collate, num_workers=cfg.num_workers,
-                        persistent_workers=cfg.num_workers > 0, prefetch_factor=2 if cfg.num_workers > 0 else None)
+                        persistent_workers=cfg.num_workers > 0, prefetch_factor=2 if cfg.num_workers > 0 else None,
+                        worker_init_fn=_one_thread_worker if cfg.num_workers > 0 else None)
     info.update(train_frames=len(ds.frames), train_cameras=ds.cameras, protocol=ds.protocol)
     return iter(loader), info
 

@@ -94,6 +94,7 @@ class TrainResult:
     iters_per_second: float
     stage_ms: dict[str, float]
     backbone: dict | None
+    model: DeliffasModel | None = None
 
 
 def resolve_model_config(cfg: TrainConfig, atlas_res: int, temporal_window: int) -> ModelConfig:
@@ -227,6 +228,11 @@ def train(cfg: TrainConfig, resume: bool = False) -> TrainResult:
     run = Path(cfg.out)
     run.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
+    if device.type == "cpu":
+        # Leave the cores the DataLoader workers (and the other ranks) use: oversubscribed OpenMP
+        # threads spin and made a step 30x slower on a 2-core machine.
+        per_rank = max(1, (os.cpu_count() or 1) // world - cfg.num_workers)
+        torch.set_num_threads(per_rank)
     start = 0
     state: dict[str, Any] = {}
     if resume and (run / STATE_FILE).is_file():
@@ -313,7 +319,7 @@ def train(cfg: TrainConfig, resume: bool = False) -> TrainResult:
     done = max(it + 1 - start, 1)
     seconds = time.perf_counter() - t0
     result = TrainResult(run, it + 1, seconds, last["loss"], done / seconds,
-                         {"data_ms": 1000 * data_s / done, "step_ms": 1000 * step_s / done}, backbone)
+                         {"data_ms": 1000 * data_s / done, "step_ms": 1000 * step_s / done}, backbone, model)
     if world > 1:
         dist.barrier()
     return result

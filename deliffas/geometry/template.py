@@ -85,7 +85,7 @@ class DDCTemplate(nn.Module):
         self.register_buffer("faces", torch.as_tensor(mesh.faces, dtype=torch.long))
         self.register_buffer("uvs", torch.tensor(mesh.uvs, dtype=dtype))
         face_uvs = mesh.face_uvs if mesh.face_uvs is not None else np.full_like(mesh.faces, -1)
-        self.register_buffer("face_uvs", torch.as_tensor(face_uvs, dtype=torch.long))
+        self.register_buffer("face_uvs", torch.tensor(np.asarray(face_uvs), dtype=torch.long))
         self.register_buffer("bone_joints", torch.as_tensor(joint_ids, dtype=torch.long))
         S = torch.eye(4, dtype=dtype).repeat(len(joint_ids), 1, 1)
         S[:, :3, :3] *= torch.tensor(scales, dtype=dtype)[:, None, None]

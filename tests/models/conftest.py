@@ -73,16 +73,3 @@ def random_backbone():
     from deliffas.models.vgg import load_vgg16_weights
 
     return load_vgg16_weights("vgg16-random", seed=0)
-
-
-@pytest.fixture(autouse=True)
-def _single_thread():
-    """Run each model test on one intra-op thread (restored afterwards).
-
-    The tensors here are tiny; on a shared 2-core machine OpenMP threads only contend (a U-Net
-    training step measured 0.06 s on one thread vs 0.8 s on two under load).
-    """
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)

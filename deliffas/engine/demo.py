@@ -1,0 +1,159 @@
+"""The main job (``make demo``): synthetic capture → shards → train two models → evaluate → report.
+
+Runs on the embedded procedural character (no external data). The capture's ground truth holds a
+loose garment the skinned template lacks, so the two-surface model (DELIFFAS) and the
+single-surface ablation can be told apart on held-out cameras at the same training budget.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["DemoConfig", "run_demo"]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class DemoConfig:
+    """Sizes of the demo run (defaults fit ~10 minutes on 2 CPU cores)."""
+
+    out: str = "demo_out"
+    quick: bool = False
+    """A much smaller run for tests (seconds, not minutes); numbers are then meaningless."""
+    models: tuple[str, ...] = ("two_surface", "single_surface")
+    frames: int = 30
+    test_frames: int = 10
+    cameras: int = 10
+    size: int = 128
+    atlas_res: int = 128
+    iters: int = 500
+    cameras_per_frame: int = 3
+    seed: int = 0
+    jobs: int = 2
+
+
+def _stage(name: str) -> None:
+    print(f"\n== {name} ==", flush=True)
+
+
+def run_demo(cfg: DemoConfig = DemoConfig()) -> Path:
+    """Run the whole path and return the path of ``report.md``."""
+    from deliffas.data.convert import ConvertConfig, convert
+    from deliffas.data.synth import SynthConfig, synthesize_capture
+    from deliffas.engine.evaluate import EvalConfig, evaluate
+    from deliffas.engine.render import RenderConfig, render_video
+    from deliffas.engine.report import results_table, speed_accuracy_chart
+    from deliffas.engine.train import TrainConfig, train
+
+    if cfg.quick:
+        cfg = DemoConfig(out=cfg.out, quick=True, models=cfg.models, frames=6, test_frames=2, cameras=4, size=48,
+                         atlas_res=32, iters=6, cameras_per_frame=2, seed=cfg.seed, jobs=1)
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.time()
+    timings = {}
+    subject, shards = out / "subject", out / "shards"
+    _stage("1/5 synthetic capture (procedural character, loose garment, specular, occlusion)")
+    t = time.time()
+    if not (subject / "synth.json").is_file():
+        synthesize_capture(subject, SynthConfig(num_frames=cfg.frames, num_test_frames=cfg.test_frames,
+                                                num_cameras=cfg.cameras, width=cfg.size, height=cfg.size,
+                                                test_cameras=max(1, cfg.cameras // 5), seed=cfg.seed, jobs=cfg.jobs))
+    timings["synth_s"] = time.time() - t
+    _stage("2/5 conversion into HDF5 shards")
+    t = time.time()
+    convert(subject, shards, ConvertConfig(atlas_res=cfg.atlas_res, jobs=cfg.jobs, resume=True))
+    timings["convert_s"] = time.time() - t
+    rows = []
+    preset = "tiny" if cfg.quick else "small"
+    for name in cfg.models:
+        _stage(f"3/5 training {name} ({preset} preset, {cfg.iters} iterations, L1)")
+        run = out / "runs" / name
+        t = time.time()
+        result = train(TrainConfig(shards=str(shards), out=str(run), model=name, preset=preset, iters=cfg.iters,
+                                   cameras_per_frame=cfg.cameras_per_frame, protocol="all", seed=cfg.seed,
+                                   num_workers=1, checkpoint_every=max(cfg.iters // 2, 1),
+                                   preview_every=max(cfg.iters // 2, 1)), resume=True)
+        timings[f"train_{name}_s"] = time.time() - t
+        _stage(f"4/5 evaluating {name} on held-out cameras")
+        images_dir = out / "images" / name
+        row = evaluate(EvalConfig(run=str(run), split="novel_view", save_images=str(images_dir)))
+        row["name"] = name
+        row["train_iters_per_s"] = result.iters_per_second
+        rows.append(row)
+        (run / "eval_novel_view.json").write_text(json.dumps(row, indent=2) + "\n")
+    _stage("5/5 report (table, stage timings, images, speed-vs-accuracy chart, orbit video)")
+    chart = speed_accuracy_chart(rows, out / "speed_accuracy.png", "Demo: quality vs speed",
+                                 resolution=f"{cfg.size}x{cfg.size}")
+    video = None
+    try:
+        video = render_video(RenderConfig(run=str(out / "runs" / cfg.models[0]), out=str(out / "orbit.mp4"),
+                                          frames=min(cfg.test_frames, 24)))
+    except RuntimeError as exc:  # no video codec in this OpenCV build: the report says so
+        logger.warning("orbit video skipped: %s", exc)
+    comparison = _comparison_image(out, rows, subject)
+    timings["total_s"] = time.time() - t0
+    report = _write_report(out, cfg, rows, timings, chart, video, comparison)
+    (out / "results.json").write_text(json.dumps({"config": cfg.__dict__, "results": rows, "timings": timings},
+                                                 indent=2, default=str) + "\n")
+    print(results_table(rows, "Held-out cameras (novel view)"))
+    print(f"report: {report}  ({timings['total_s']:.0f} s in total)")
+    return report
+
+
+def _comparison_image(out: Path, rows: list[dict], subject: Path) -> Path | None:
+    """Ground truth | each model for the first evaluated image, side by side."""
+    import cv2
+
+    first = None
+    for r in rows:
+        d = out / "images" / r["name"]
+        files = sorted(d.glob("*/*.png"))
+        if not files:
+            return None
+        first = first or files[0]
+    cam, frame = int(first.parent.name), int(first.stem)
+    gt_files = sorted((subject / "training").glob(f"rgb_*/{frame:06d}/image_alp_c_{cam:03d}_f_{frame:06d}.png"))
+    tiles = []
+    if gt_files:
+        rgba = cv2.imread(str(gt_files[0]), cv2.IMREAD_UNCHANGED).astype(np.float32) / 255
+        a = rgba[..., 3:4]
+        tiles.append((rgba[..., :3] * a + (1 - a)) * 255)
+    for r in rows:
+        tiles.append(cv2.imread(str(out / "images" / r["name"] / f"{cam:03d}" / f"{frame:06d}.png")).astype(np.float32))
+    path = out / "comparison.png"
+    cv2.imwrite(str(path), np.concatenate(tiles, axis=1).clip(0, 255).astype(np.uint8))
+    return path
+
+
+def _write_report(out: Path, cfg: DemoConfig, rows: list[dict], timings: dict, chart: Path, video: Path | None,
+                  comparison: Path | None) -> Path:
+    from deliffas.engine.report import results_table
+
+    lines = ["# deliffas demo", "",
+             f"Synthetic capture of the procedural character: {cfg.frames} training frames, {cfg.test_frames} "
+             f"novel-pose frames, {cfg.cameras} cameras at {cfg.size}x{cfg.size}; ground truth with a loose skirt "
+             "displaced 2–6 cm by pose and velocity, specular and pose-dependent occlusion shading.",
+             f"Each model trained {cfg.iters} iterations ({cfg.cameras_per_frame} cameras per frame, L1), evaluated "
+             "on the held-out cameras with the official protocol (white background, eroded mask, 600x496 crop "
+             "clipped to the image).", "",
+             results_table(rows, "Held-out cameras (novel view)"),
+             "Stage times are per image on this CPU; `cnn` is the per-frame U-Net cost (shared by all cameras of a frame).", ""]
+    if comparison:
+        lines += ["## Images", "", "Ground truth, then " + ", ".join(r["name"] for r in rows) + ":", "",
+                  f"![comparison]({comparison.name})", ""]
+    lines += ["## Speed against accuracy", "", f"![speed vs accuracy]({chart.name})", ""]
+    if video:
+        lines += [f"Free-viewpoint orbit of `{cfg.models[0]}`: [{video.name}]({video.name})", ""]
+    lines += ["## Wall-clock", ""] + [f"- {k}: {v:.0f} s" for k, v in timings.items()] + [""]
+    path = out / "report.md"
+    path.write_text("\n".join(lines))
+    return path

@@ -1,0 +1,73 @@
+"""Markdown reports and speed-vs-accuracy charts of evaluated runs (used by the demo and the recipes)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+__all__ = ["results_table", "pareto_front", "speed_accuracy_chart"]
+
+
+def _fmt(v, spec: str = ".2f") -> str:
+    return "n/a" if v is None else format(v, spec)
+
+
+def results_table(rows: Sequence[dict], title: str | None = None) -> str:
+    """A markdown table of evaluation results (``deliffas eval --json`` dicts with a ``name``)."""
+    lines = [f"### {title}", ""] if title else []
+    lines += ["| model | params | PSNR ↑ | SSIM ↑ | LPIPS ↓ | LPIPS (random VGG, substitute) ↓ | uv ms | cnn ms | sample ms | mlp ms | fps |",
+              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        s = r.get("stage_ms", {})
+        lines.append(
+            f"| {r.get('name', r.get('model'))} | {r.get('num_parameters', 0):,} | {_fmt(r.get('psnr'))} | "
+            f"{_fmt(r.get('ssim'), '.4f')} | {_fmt(r.get('lpips'), '.4f')} | {_fmt(r.get('lpips_random_vgg16'), '.5f')} | "
+            f"{_fmt(s.get('uv'), '.1f')} | {_fmt(s.get('cnn'), '.1f')} | {_fmt(s.get('sample'), '.1f')} | "
+            f"{_fmt(s.get('mlp'), '.1f')} | {_fmt(r.get('fps'))} |")
+    reasons = {r.get("lpips_reason") for r in rows if r.get("lpips") is None and r.get("lpips_reason")}
+    if reasons:
+        lines += ["", "LPIPS unavailable: " + "; ".join(sorted(reasons))]
+    return "\n".join(lines) + "\n"
+
+
+def pareto_front(cost: Sequence[float], quality: Sequence[float]) -> np.ndarray:
+    """Indices of the points no other point beats in both lower cost and higher quality (sorted by cost)."""
+    cost, quality = np.asarray(cost, float), np.asarray(quality, float)
+    order = np.argsort(cost, kind="stable")
+    front, best = [], -np.inf
+    for i in order:
+        if quality[i] > best:
+            front.append(i)
+            best = quality[i]
+    return np.asarray(front, dtype=int)
+
+
+def speed_accuracy_chart(rows: Sequence[dict], path: str | Path, title: str, resolution: str = "") -> Path:
+    """PSNR against milliseconds per frame, one point per row, with the Pareto front drawn."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ms = [sum(r["stage_ms"].values()) for r in rows]
+    psnr = [r["psnr"] for r in rows]
+    fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=120)
+    ax.scatter(ms, psnr, color="tab:blue", zorder=3)
+    for x, y, r in zip(ms, psnr, rows):
+        ax.annotate(str(r.get("name", r.get("model"))), (x, y), textcoords="offset points", xytext=(4, 4), fontsize=7)
+    front = pareto_front(ms, psnr)
+    if len(front) > 1:
+        ax.plot(np.asarray(ms)[front], np.asarray(psnr)[front], "--", color="tab:red", label="Pareto front", zorder=2)
+        ax.legend(loc="lower right")
+    ax.set_xlabel(f"ms per frame (uv + cnn + sample + mlp){', ' + resolution if resolution else ''}, CPU")
+    ax.set_ylabel("PSNR (dB), held-out cameras")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
