@@ -140,7 +140,10 @@ def process_map(fn, tasks: Sequence[tuple], jobs: int, initializer=None, initarg
 
     Spawn (not fork) keeps torch/open3d/h5py state out of the workers. A worker that dies (e.g. a
     signal) raises RuntimeError naming its pid and exit code instead of hanging; on any error the
-    remaining workers (started here) are terminated by handle.
+    remaining workers (started here) are terminated by handle. Keep ``tasks`` small and put large
+    arrays into ``initargs``: CPython's executor can deadlock when a worker dies while a task larger
+    than the pipe buffer (64 kB) is being written to it. Callers need the ``if __name__ ==
+    "__main__"`` guard in their main script (spawn re-imports it).
     """
     pool = ProcessPoolExecutor(jobs, mp_context=get_context("spawn"), initializer=initializer, initargs=initargs)
     try:

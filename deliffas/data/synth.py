@@ -422,20 +422,26 @@ def _init_worker(static: dict) -> None:
     _WORKER["rays"] = [camera_rays(c, static["shading"].supersample) for c in static["cameras"]]
 
 
-def _render_chunk(root: str, frames: list[int], verts: np.ndarray, albedo: np.ndarray, ao_seed: int) -> int:
-    """AO + render + write the images of ``frames`` (every camera); runs in a worker or in-process."""
+def _render_chunk(seq: str, rows: list[int]) -> int:
+    """AO + render + write the images of rows ``rows`` of sequence ``seq`` (every camera).
+
+    Tasks are tiny (the geometry travels once per worker in the initializer's ``static``): a worker
+    that dies then never leaves the pool's task pipe half-written.
+    """
     from deliffas.data.frames import write_image
     from deliffas.geometry.mesh_ops import vertex_normals
 
     s = _WORKER
-    for i, frame in enumerate(frames):  # frames of this chunk
-        normals = vertex_normals(verts[i], s["faces"])
-        ao = vertex_ambient_occlusion(verts[i], s["faces"], normals, s["ao_rays"], seed=ao_seed + frame)
-        views = render_views(verts[i], s["faces"], s["uvs"], s["face_uvs"], s["texture"], s["cameras"],
-                             ao, albedo[i], s["shading"], normals=normals, rays=s["rays"])
+    data = s["sequences"][seq]
+    for i in rows:  # frames of this chunk
+        verts, frame = data["verts"][i], int(data["frames"][i])
+        normals = vertex_normals(verts, s["faces"])
+        ao = vertex_ambient_occlusion(verts, s["faces"], normals, s["ao_rays"], seed=data["ao_seed"] + frame)
+        views = render_views(verts, s["faces"], s["uvs"], s["face_uvs"], s["texture"], s["cameras"],
+                             ao, data["albedo"][i], s["shading"], normals=normals, rays=s["rays"])
         for c, view in enumerate(views):
-            write_image(root, frame, c, view.rgb, view.alpha)
-    return len(frames)
+            write_image(data["root"], frame, c, view.rgb, view.alpha)
+    return len(rows)
 
 
 def _chunks(n: int, parts: int) -> list[np.ndarray]:
@@ -512,12 +518,12 @@ def synthesize_capture(out_dir: str | os.PathLike, config: SynthConfig = SynthCo
         "ao_rays": config.ao_rays,
         "shading": ShadingConfig(**{**asdict(config.shading), "supersample": config.supersample}),
     }
-    tasks = []
-    for k, seq in enumerate(SEQUENCES):
-        root = str(out / seq / f"rgb_{config.width}_{config.height}")
-        for idx in _chunks(len(frames[seq]), 2 * max(1, config.jobs)):
-            tasks.append((root, [frames[seq][i] for i in idx], gt[seq][idx], garment[seq].albedo_scale[idx],
-                          config.seed * 1_000_003 + k * 100_003))
+    static["sequences"] = {
+        seq: {"root": str(out / seq / f"rgb_{config.width}_{config.height}"), "frames": np.asarray(frames[seq]),
+              "verts": gt[seq], "albedo": garment[seq].albedo_scale, "ao_seed": config.seed * 1_000_003 + k * 100_003}
+        for k, seq in enumerate(SEQUENCES)}
+    tasks = [(seq, [int(i) for i in idx]) for seq in SEQUENCES
+             for idx in _chunks(len(frames[seq]), 2 * max(1, config.jobs))]
     if config.jobs <= 1:
         _init_worker(static)
         for task in tasks:
