@@ -104,6 +104,7 @@ class ConvertResult:
     frames_converted: int
     images_converted: int
     seconds: float
+    seconds_setup: float
     bytes_total: int
 
 
@@ -563,6 +564,7 @@ def convert(subject_dir: str | os.PathLike, out_dir: str | os.PathLike, config: 
     write_manifest(out, manifest(len(done) == len(tasks)))
     pending = [t for t in tasks if t.name not in done]
     skipped = len(tasks) - len(pending)
+    setup = time.perf_counter() - t_start
     frames_done = 0
     bar = tqdm(total=len(tasks), initial=skipped, unit="shard", desc="convert", disable=not config.progress)
 
@@ -588,7 +590,8 @@ def convert(subject_dir: str | os.PathLike, out_dir: str | os.PathLike, config: 
     seconds = time.perf_counter() - t_start
     num_cams = len(ctx.converted)
     log.info("convert %s: %d shards (%d skipped), %d frames in %.1f s", out, len(tasks), skipped, frames_done, seconds)
-    return ConvertResult(out, len(tasks), len(pending), skipped, frames_done, frames_done * num_cams, seconds, total)
+    return ConvertResult(out, len(tasks), len(pending), skipped, frames_done, frames_done * num_cams, seconds, setup,
+                         total)
 
 
 def _is_complete_shard(path: Path, task: _Task) -> bool:

@@ -161,11 +161,7 @@ class ShardDataset(Dataset):
         frame = self.frames[pos]
         shard, row = self.shards.locate(self.sequence, frame)
         col_of = {int(c): j for j, c in enumerate(shard.camera_ids)}
-        imgs, masks = [], []
-        for c in cams:  # K cameras
-            rgb, mask = shard.image(row, col_of[c])
-            imgs.append(rgb)
-            masks.append(mask)
+        rgba = torch.from_numpy(np.stack([shard.rgba(row, col_of[c]) for c in cams]))  # (K, H, W, 4) uint8
         T = self.temporal_window
         wrows = shard.h5["window_rows"][row][: T + 1]
         nm_in = shard.geometry("normal_maps_inner", wrows)  # (T+1, 3, S, S)
@@ -174,8 +170,8 @@ class ShardDataset(Dataset):
         r0 = int(wrows[0])
         cam_idx = torch.as_tensor(cams, dtype=torch.long)
         return FrameItem(
-            images=torch.from_numpy(np.stack(imgs)).float().div_(255.0),
-            masks=torch.from_numpy(np.stack(masks)).float().div_(255.0),
+            images=rgba[..., :3] / 255,  # one pass: uint8 -> float32, contiguous
+            masks=rgba[..., 3] / 255,
             intrinsics=self._K[cam_idx],
             world_to_cam=self._E[cam_idx],
             camera_ids=cam_idx,

@@ -301,6 +301,14 @@ class ShardFile:
     def codec(self) -> Codec:
         return Codec.parse(str(self.h5.attrs["codec"]))
 
+    def rgba(self, row: int, col: int) -> np.ndarray:
+        """(H, W, 4) uint8: RGB and mask of frame row ``row``, camera column ``col`` in one array."""
+        f = self.h5
+        if "rgba" in f:
+            return f["rgba"][row, col]
+        rgb, mask = self.image(row, col)
+        return np.concatenate([rgb, mask[..., None]], axis=2)
+
     def image(self, row: int, col: int) -> tuple[np.ndarray, np.ndarray]:
         """rgb (H, W, 3) uint8 and mask (H, W) uint8 of frame row ``row``, camera column ``col``."""
         import cv2
