@@ -72,7 +72,7 @@ def _cmd_convert(args: argparse.Namespace) -> int:
                         resume=args.resume, overwrite=args.overwrite, meshes=tuple(args.meshes or ()),
                         template=str(args.template) if args.template else None, atlas_res=args.atlas_res,
                         offset_mm=args.offset, codec=args.codec, window=args.window, layout=args.layout,
-                        test_cameras=args.test_cameras, progress=not args.no_progress)
+                        test_cameras=args.test_cameras, masks=args.masks, progress=not args.no_progress)
     try:
         res = convert(args.subject, args.out, cfg)
     except (FileExistsError, ValueError) as err:
@@ -152,6 +152,8 @@ def _add_data_commands(sub) -> None:
     p.add_argument("--window", type=int, default=2, help="temporal window T stored per frame (default 2)")
     p.add_argument("--codec", default="raw", help="raw (lossless, default) | png | jpeg:Q")
     p.add_argument("--layout", choices=["auto", "images", "videos"], default="auto", help="frame layout")
+    p.add_argument("--masks", metavar="SUBDIR", help="DDC mask folder in each sequence folder "
+                                                     "(<cam>/image_c_<cam>_f_<frame>.png|jpg) replacing alpha/fg")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_convert)
 

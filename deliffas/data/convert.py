@@ -21,7 +21,7 @@ import os
 import shutil
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from multiprocessing import get_context
 from pathlib import Path
 from typing import Literal, Sequence
@@ -89,6 +89,8 @@ class ConvertConfig:
     """Held-out cameras; None = the subject's ``split.json`` / ``test_cameras.txt`` (or none)."""
     gutter: int = 2
     """Texel-table gutter rings."""
+    masks: str | None = None
+    """Mask folder inside each sequence folder (e.g. ``foregroundSegmentation``) replacing alpha / fg videos."""
     progress: bool = True
     """Show a tqdm progress bar."""
 
@@ -454,7 +456,8 @@ def _convert_shard(ctx: _Context, task: _Task) -> dict:
         st = _state(ctx)
         geo = _geometry(st, task.sequence, task.geometry_frames)
     seq = st["sequences"][task.sequence]
-    src = open_frame_source(seq.seq_dir, ctx.camera_names, ctx.config.layout, seq.first_frame)
+    mask_dir = seq.seq_dir / ctx.config.masks if ctx.config.masks else None
+    src = open_frame_source(seq.seq_dir, ctx.camera_names, ctx.config.layout, seq.first_frame, mask_dir)
     writer = ShardWriter(ctx.out_dir / task.name, task.sequence, task.frames, ctx.converted, seq.height, seq.width,
                          Codec.parse(ctx.config.codec), geo, ctx.config.window, seq.first_frame)
     try:

@@ -274,9 +274,11 @@ class VideoSource:
         camera_names: calibration ``name`` of every camera, by calibration index.
         first_frame: capture frame index of video frame 0.
         max_open: decoders kept open at once (least recently used ones are closed).
+        masks: optional mask source replacing the ``fg`` videos.
     """
 
-    def __init__(self, seq_dir: str | os.PathLike, camera_names: Sequence[str], first_frame: int = 0, max_open: int = 32):
+    def __init__(self, seq_dir: str | os.PathLike, camera_names: Sequence[str], first_frame: int = 0, max_open: int = 32,
+                 masks: "MaskFolderSource | None" = None):
         self.seq_dir = Path(seq_dir)
         if not (self.seq_dir / "img").is_dir():
             raise FileNotFoundError(f"{self.seq_dir / 'img'}: no video folder")
@@ -284,6 +286,7 @@ class VideoSource:
         self.first_frame = int(first_frame)
         self.max_open = max(2, int(max_open))
         self._decoders: OrderedDict[tuple[str, int], _Decoder] = OrderedDict()
+        self.masks = masks
 
     def _decoder(self, kind: str, camera: int) -> _Decoder:
         key = (kind, camera)
@@ -305,7 +308,9 @@ class VideoSource:
         index = int(frame) - self.first_frame
         bgr = self._decoder("img", camera).get(index)
         rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-        if (self.seq_dir / "fg").is_dir():
+        if self.masks is not None:
+            mask = self.masks.read_mask(frame, camera)
+        elif (self.seq_dir / "fg").is_dir():
             fg = self._decoder("fg", camera).get(index)
             mask = np.ascontiguousarray(fg[..., 0]) if fg.ndim == 3 else fg
         else:
@@ -372,7 +377,7 @@ def open_frame_source(seq_dir: str | os.PathLike, camera_names: Sequence[str], l
         camera_names: calibration names by calibration index (needed for video file names).
         layout: ``images``, ``videos`` or ``auto`` (images when present, else videos).
         first_frame: capture frame of video frame 0.
-        mask_dir: optional DDC mask folder replacing the images' alpha.
+        mask_dir: optional DDC mask folder replacing the images' alpha or the ``fg`` videos.
     """
     seq = Path(seq_dir)
     masks = MaskFolderSource(mask_dir, camera_names) if mask_dir is not None else None
@@ -381,5 +386,5 @@ def open_frame_source(seq_dir: str | os.PathLike, camera_names: Sequence[str], l
     if layout in ("auto", "images") and find_image_folder(seq) is not None:
         return ImageFolderSource(seq, masks)
     if layout in ("auto", "videos") and (seq / "img").is_dir():
-        return VideoSource(seq, camera_names, first_frame)
+        return VideoSource(seq, camera_names, first_frame, masks=masks)
     raise FileNotFoundError(f"{seq}: no {'rgb_<W>_<H>/ or img/' if layout == 'auto' else layout} frames found")

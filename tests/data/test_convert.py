@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import subprocess
@@ -16,9 +15,9 @@ import pytest
 
 from deliffas.cli import main as cli_main
 from deliffas.data.convert import ConvertConfig, convert, parse_frame_range
-from deliffas.data.dynacap import read_calibration, read_character
+from deliffas.data.dynacap import read_character
 from deliffas.data.frames import ImageFolderSource
-from deliffas.data.shards import MANIFEST_NAME, ShardFile, ShardSet, read_manifest, verify_shards, write_manifest
+from deliffas.data.shards import MANIFEST_NAME, ShardSet, read_manifest, verify_shards, write_manifest
 
 CFG = dict(shard_frames=2, atlas_res=32, progress=False)
 
@@ -243,3 +242,25 @@ def test_process_map_does_not_hang_on_a_dead_worker():
     with pytest.raises((RuntimeError, BrokenProcessPool)):
         list(process_map(os._exit, [(3,), (4,), (5,)], 2, poll_s=0.2))
     assert time.monotonic() - t0 < 30
+
+
+def test_mask_folder_replaces_alpha(subject, tmp_path):
+    import shutil
+
+    import cv2
+
+    subj = tmp_path / "subject"
+    shutil.copytree(subject, subj)
+    pattern = (np.indices((64, 64)).sum(axis=0) % 3 == 0).astype(np.uint8) * 255
+    for cam in range(4):
+        d = subj / "training" / "foregroundSegmentation" / str(cam)
+        d.mkdir(parents=True)
+        for f in range(3):
+            cv2.imwrite(str(d / f"image_c_{cam}_f_{f}.png"), np.roll(pattern, cam + f, axis=1))
+    for layout in ("images", "videos"):
+        out = tmp_path / layout
+        convert(subj, out, ConvertConfig(**CFG, sequences=("training",), masks="foregroundSegmentation", layout=layout))
+        shard, row = ShardSet(out).locate("training", 2)
+        rgb, mask = shard.image(row, 3)
+        assert np.array_equal(mask, np.roll(pattern, 5, axis=1))
+        assert np.array_equal(rgb, ImageFolderSource(subject / "training").read(2, 3)[0])
