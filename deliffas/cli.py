@@ -78,10 +78,11 @@ def _cmd_convert(args: argparse.Namespace) -> int:
     except (FileExistsError, ValueError) as err:
         print(f"deliffas convert: error: {err}", file=sys.stderr)
         return 2
-    rate = res.frames_converted / res.seconds if res.seconds > 0 else 0.0
+    work = res.seconds - res.seconds_setup
+    rate = res.frames_converted / work if work > 0 else 0.0
     print(f"wrote {res.out_dir}: {res.shards_total} shards ({res.shards_skipped} kept from before), "
           f"{res.frames_converted} frames / {res.images_converted} images in {res.seconds:.1f} s "
-          f"({rate:.2f} frames/s), {res.bytes_total / 1e6:.1f} MB")
+          f"(setup {res.seconds_setup:.1f} s, then {rate:.2f} frames/s), {res.bytes_total / 1e6:.1f} MB")
     return 0
 
 

@@ -485,7 +485,7 @@ def _build_meta(cameras: list[Camera], train, test, seqs, ctx: _Context) -> Shar
     table = st["table"]
     cfg = ctx.config
     attrs = {
-        "subject": str(ctx.subject), "character_path": str(ctx.character),
+        "subject": str(ctx.subject), "character_path": str(ctx.character), "character": str(ctx.character),
         "character_sha256": _character_hash(ctx.character, ctx.outer_obj),
         "outer_obj": str(ctx.outer_obj) if ctx.outer_obj else "",
         "surface": "meshes" if cfg.meshes else ("variant" if cfg.template else "template"),
