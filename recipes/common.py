@@ -20,7 +20,8 @@ from typing import Sequence
 logger = logging.getLogger(__name__)
 
 __all__ = ["RecipeSizes", "recipe_parser", "sizes_from_args", "prepare_capture", "prepare_shards",
-           "train_and_eval", "write_outputs"]
+           "train_and_eval", "write_outputs", "find_character", "shards_source", "prepare_template_variants",
+           "bar_chart"]
 
 
 @dataclass(frozen=True)
@@ -62,8 +63,12 @@ def sizes_from_args(args: argparse.Namespace) -> RecipeSizes:
     return sizes
 
 
-def prepare_capture(out: Path, sizes: RecipeSizes, seed: int = 0, subject: Path | None = None, **synth) -> Path:
-    """The subject folder: ``subject`` if given, else a synthetic capture in ``out/subject`` (made once)."""
+def prepare_capture(out: Path, sizes: RecipeSizes, seed: int = 0, subject: Path | None = None, jobs: int = 2,
+                    **synth) -> Path:
+    """The subject folder: ``subject`` if given, else a synthetic capture in ``out/subject`` (made once).
+
+    ``jobs``: synthesis worker processes (1 = in this process; spawning costs seconds per worker).
+    """
     if subject is not None:
         return Path(subject)
     from deliffas.data.synth import SynthConfig, synthesize_capture
@@ -72,20 +77,72 @@ def prepare_capture(out: Path, sizes: RecipeSizes, seed: int = 0, subject: Path 
     if not (path / "synth.json").is_file():
         synthesize_capture(path, SynthConfig(num_frames=sizes.frames, num_test_frames=sizes.test_frames,
                                              num_cameras=sizes.cameras, width=sizes.size, height=sizes.size,
-                                             test_cameras=max(1, sizes.cameras // 4), seed=seed, jobs=2, **synth))
+                                             test_cameras=max(1, sizes.cameras // 4), seed=seed, jobs=jobs, **synth))
     return path
 
 
 def prepare_shards(out: Path, subject: Path, sizes: RecipeSizes, name: str = "shards", template: str | None = None,
-                   offset_mm: float = 30.0, cameras: Sequence[int] | None = None) -> Path:
-    """Convert ``subject`` (optionally with a template variant or another offset) into ``out/<name>``."""
+                   offset_mm: float = 30.0, cameras: Sequence[int] | None = None, jobs: int = 2) -> Path:
+    """Convert ``subject`` (optionally with a template variant or another offset) into ``out/<name>``.
+
+    ``jobs``: conversion worker processes; 1 converts in this process, which is much faster for the
+    quick sizes (0.4 s against ~10 s for spawning two workers that import torch).
+    """
     from deliffas.data.convert import ConvertConfig, convert
 
     shards = out / name
-    convert(subject, shards, ConvertConfig(atlas_res=sizes.atlas_res, jobs=2, resume=True, template=template,
+    convert(subject, shards, ConvertConfig(atlas_res=sizes.atlas_res, jobs=jobs, resume=True, template=template,
                                            offset_mm=offset_mm, cameras=tuple(cameras) if cameras else None,
                                            progress=False))
     return shards
+
+
+def find_character(subject: Path) -> Path:
+    """The subject's ``character/<name>.character`` (or ``SUBJECT/<name>.character``), as ``convert`` finds it."""
+    for d in (Path(subject) / "character", Path(subject)):
+        found = sorted(d.glob("*.character")) if d.is_dir() else []
+        if len(found) == 1:
+            return found[0]
+        if len(found) > 1:
+            raise FileNotFoundError(f"{d}: several .character files {[p.name for p in found]}")
+    raise FileNotFoundError(f"{subject}: no character/<name>.character")
+
+
+def shards_source(shards: Path) -> dict:
+    """How existing shards were converted: their manifest's ``config`` (``subject``, ``character``,
+    ``template``, ``atlas_res``, ``offset_mm``, ``cameras``, ...), to convert the same images again."""
+    manifest = Path(shards) / "manifest.json"
+    if not manifest.is_file():
+        raise FileNotFoundError(f"{shards}: no manifest.json (not a deliffas shard directory)")
+    return dict(json.loads(manifest.read_text()).get("config", {}))
+
+
+def prepare_template_variants(out: Path, character: Path, smooth_iters: int | None = None,
+                              coarse_faces: int | None = None, offset_mm: float = 30.0,
+                              packing_res: int = 512) -> dict[str, Path]:
+    """Template variants of ``character`` (``build_templates``) in ``out``, built once; {variant: folder}.
+
+    ``original`` is always there; ``smooth`` with ``smooth_iters``, ``coarse`` with ``coarse_faces``.
+    Pass a folder as ``prepare_shards(..., template=str(folder))``. The report (vertex/face counts,
+    shells, atlas statistics) is ``out/report.json``; ``packing_res`` is xatlas' packing resolution.
+    """
+    from deliffas.geometry.template_build import build_templates
+
+    report_path = Path(out) / "report.json"
+    want = {"original"} | ({"smooth"} if smooth_iters is not None else set()) | (
+        {"coarse"} if coarse_faces is not None else set())
+    stamp = {"character": str(character), "smooth_iters": smooth_iters, "coarse_faces": coarse_faces,
+             "offset_mm": float(offset_mm), "packing_res": int(packing_res)}
+    stamp_path = Path(out) / "recipe_request.json"
+    if not (report_path.is_file() and stamp_path.is_file() and json.loads(stamp_path.read_text()) == stamp):
+        build_templates(character, out, smooth_iters=smooth_iters, coarse_faces=coarse_faces, offset_mm=offset_mm,
+                        atlas_res=packing_res)
+        stamp_path.write_text(json.dumps(stamp, indent=2) + "\n")
+    report = json.loads(report_path.read_text())
+    missing = want - set(report["variants"])
+    if missing:
+        raise RuntimeError(f"{report_path}: variants {sorted(missing)} were not built")
+    return {name: Path(out) / name for name in sorted(want, key=("original", "smooth", "coarse").index)}
 
 
 def train_and_eval(name: str, shards: Path, run_dir: Path, sizes: RecipeSizes, model: str, seed: int = 0,
@@ -125,3 +182,45 @@ def write_outputs(out: Path, title: str, rows: list[dict], extra: dict | None = 
     (out / "results.md").write_text("\n".join(md))
     print("\n".join(md))
     return payload
+
+
+def bar_chart(rows: Sequence[dict], path: Path, title: str, key: str = "psnr", ylabel: str = "PSNR (dB), held-out cameras",
+              groups: Sequence[str] | None = None) -> Path:
+    """One bar per row of ``row[key]`` (rows whose value is None are drawn empty and labelled n/a).
+
+    ``groups`` (one label per row, optional) colours the bars by group, e.g. the template variant.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    values = [r.get(key) for r in rows]
+    names = [str(r.get("name", r.get("model"))) for r in rows]
+    palette = plt.get_cmap("tab10")
+    group_ids = {g: i for i, g in enumerate(dict.fromkeys(groups))} if groups else {}
+    colors = [palette(group_ids[g] % 10) for g in groups] if groups else ["tab:blue"] * len(rows)
+    fig, ax = plt.subplots(figsize=(max(4.8, 1.1 * len(rows) + 1.5), 4.4), dpi=120)
+    finite = [v for v in values if v is not None]
+    bars = ax.bar(range(len(rows)), [v if v is not None else 0.0 for v in values], color=colors, zorder=3)
+    for b, v in zip(bars, values):
+        ax.annotate("n/a" if v is None else f"{v:.3g}", (b.get_x() + b.get_width() / 2, b.get_height()),
+                    textcoords="offset points", xytext=(0, 3), ha="center", fontsize=7)
+    if finite:
+        lo, hi = min(finite), max(finite)
+        pad = max(hi - lo, 1e-6 * max(abs(hi), 1.0))
+        ax.set_ylim(max(0.0, lo - 2 * pad) if lo >= 0 else lo - 2 * pad, hi + pad)
+    ax.set_xticks(range(len(rows)), names, rotation=25, ha="right", fontsize=7)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title, fontsize=9)
+    ax.grid(axis="y", alpha=0.3, zorder=0)
+    if groups:
+        from matplotlib.patches import Patch
+
+        ax.legend(handles=[Patch(color=palette(i % 10), label=g) for g, i in group_ids.items()], fontsize=7)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path

@@ -24,6 +24,6 @@ def tiny_recipe_capture(tmp_path_factory) -> TinyRecipeCapture:
 
     root = tmp_path_factory.mktemp("recipe_capture")
     sizes = RecipeSizes.quick()
-    subject = prepare_capture(root, sizes, seed=0)
-    shards = prepare_shards(root, subject, sizes)
+    subject = prepare_capture(root, sizes, seed=0, jobs=1)  # in-process: no worker start-up
+    shards = prepare_shards(root, subject, sizes, jobs=1)
     return TinyRecipeCapture(subject=subject, shards=shards, sizes=sizes)
