@@ -37,7 +37,7 @@ class DemoConfig:
     iters: int = 500
     cameras_per_frame: int = 3
     seed: int = 0
-    jobs: int = 2
+    jobs: int = 1
 
 
 def _stage(name: str) -> None:
