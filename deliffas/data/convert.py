@@ -382,8 +382,8 @@ def _state(ctx: _Context) -> dict:
 
     from deliffas.data.dynacap import read_character, read_meshes, read_motion, read_obj
     from deliffas.geometry.atlas import UVAtlas, uv_texel_table
+    from deliffas.geometry.frame_geometry import FrameGeometryBuilder
     from deliffas.geometry.mesh_ops import vertex_normals
-    from deliffas.geometry.normal_maps import NormalMapGather
     from deliffas.geometry.template import DDCTemplate
 
     character = read_character(ctx.character)
@@ -404,7 +404,7 @@ def _state(ctx: _Context) -> dict:
     _STATE.clear()
     _STATE.update(
         key=key, character=character, faces=faces, offsets=offsets, table=table,
-        gather=NormalMapGather.from_table(table, faces),
+        builder=FrameGeometryBuilder(faces, offsets, table, dtype=torch.float16),
         template=DDCTemplate(character, ctx.config.skinning, dtype=torch.float64),
         motions={k: read_motion(s.motion, character.skeleton.num_dofs) for k, s in seqs.items() if s.motion},
         meshes={k: read_meshes(s.meshes, mesh.num_verts) for k, s in seqs.items() if s.meshes},
@@ -415,9 +415,6 @@ def _state(ctx: _Context) -> dict:
 
 def _geometry(st: dict, sequence: str, frames: Sequence[int]) -> ShardGeometry:
     import torch
-
-    from deliffas.geometry.mesh_ops import vertex_normals
-    from deliffas.geometry.shell import offset_shell
 
     frames = np.asarray(frames, np.int64)
     motion = st["motions"].get(sequence)
@@ -440,11 +437,9 @@ def _geometry(st: dict, sequence: str, frames: Sequence[int]) -> ShardGeometry:
     else:
         with torch.no_grad():
             inner = st["template"].pose(torch.as_tensor(dofs, dtype=torch.float64)).numpy()
-    faces = st["faces"]
-    outer = offset_shell(inner, faces, st["offsets"].astype(np.float64))
-    nm_in = st["gather"].apply(vertex_normals(inner, faces), dtype=torch.float16).numpy()
-    nm_out = st["gather"].apply(vertex_normals(outer, faces), dtype=torch.float16).numpy()
-    return ShardGeometry(frames, dofs, inner.astype(np.float32), outer.astype(np.float32), nm_in, nm_out)
+    geo = st["builder"].build(inner)
+    return ShardGeometry(frames, dofs, geo.inner, geo.outer, geo.normal_maps_inner.numpy(),
+                         geo.normal_maps_outer.numpy())
 
 
 def _convert_shard(ctx: _Context, task: _Task) -> dict:
