@@ -54,8 +54,8 @@ def choose_backbone(requested: str | None, vgg16_path=None) -> tuple[str, str]:
 
 def backbone_title(backbone: str, seed: int) -> str:
     if backbone == "vgg16-random":
-        return f"VGG-16 random backbone, seed {seed} — not ImageNet"
-    return "VGG-16 ImageNet backbone"
+        return f"vgg16-random: VGG-16 random backbone, seed {seed} — not ImageNet"
+    return "vgg16-imagenet: VGG-16 ImageNet backbone"
 
 
 def main(argv=None) -> dict:
