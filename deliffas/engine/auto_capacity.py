@@ -1,0 +1,267 @@
+"""Automatic capacity choice: train a ladder of model sizes and keep the cheapest one within a PSNR tolerance.
+
+``auto_capacity(train_cfg, AutoCapacityConfig(tolerance_db=0.5))`` trains every candidate with the
+same budget (``train_cfg`` with the candidate's ``model_overrides`` merged in), evaluates each on a
+validation split (PSNR, per-stage ms per frame, parameters) and chooses
+
+    among the candidates whose PSNR is within ``tolerance_db`` of the best PSNR it measured,
+    the one with the lowest ms per frame; candidates within ``ms_tie_rel`` of that lowest time
+    count as tied and the one with fewest parameters wins (then the faster).
+
+The search is written to ``train_cfg.out/auto_capacity.json`` (every candidate with its numbers or
+its error, the rule and the choice); candidate runs live in ``train_cfg.out/candidates/<name>/`` and
+``train_cfg.out/chosen`` is a symbolic link to the chosen one (a copy where links are unsupported).
+Candidates that fail (an exception, a non-finite PSNR) are recorded and never chosen.
+
+Validation splits (``AutoCapacityConfig.split``):
+
+* ``novel_view`` (default): the training frames seen from the held-out cameras, the paper's
+  novel-view protocol. It needs shards with test cameras.
+* ``novel_pose``: the test motion from the held-out cameras (every camera under protocol ``all``).
+* ``train``: the training images themselves. This measures how well a model fits, not how it
+  generalises, so it favours large models. Use it only for captures without held-out cameras.
+
+Runs in one process (not under ``torchrun``). ms per frame is measured on the machine at hand; on a
+shared CPU, ``ms_tie_rel`` keeps timing noise from deciding between models of similar cost.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import os
+import shutil
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal, Mapping, Sequence
+
+__all__ = ["AutoCapacityConfig", "Candidate", "auto_capacity", "default_ladder", "choose"]
+
+logger = logging.getLogger(__name__)
+
+RESULT_FILE = "auto_capacity.json"
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One model capacity to try."""
+
+    name: str
+    """Folder name of its run (``candidates/<name>``) and its label in the record."""
+    overrides: dict = field(default_factory=dict)
+    """``ModelConfig`` fields replacing the preset's (nested dicts for ``unet``/``mlp``), merged over
+    ``TrainConfig.model_overrides``."""
+
+
+@dataclass(frozen=True)
+class AutoCapacityConfig:
+    """How ``auto_capacity`` searches."""
+
+    tolerance_db: float = 0.5
+    """Keep candidates whose validation PSNR is at least (best PSNR - tolerance_db)."""
+    candidates: Sequence[Candidate | Mapping] | None = None
+    """Capacities to try: ``Candidate``s or override dicts (named by their content). None = the
+    ``default_ladder`` of the run's model and preset."""
+    iters: int | None = None
+    """Training iterations of every candidate; None = ``TrainConfig.iters``."""
+    split: Literal["novel_view", "novel_pose", "train"] = "novel_view"
+    """Validation split (module docstring)."""
+    max_frames: int | None = None
+    """Validation frames per candidate (evenly spaced); None = all of the split."""
+    cost: Literal["frame_ms", "model_ms"] = "frame_ms"
+    """What "cheapest" measures: ``frame_ms`` = uv + cnn + sample + mlp per frame of one camera;
+    ``model_ms`` = cnn + sample + mlp (leaves out the ray casting, which no capacity changes)."""
+    ms_tie_rel: float = 0.05
+    """Costs within this fraction of the lowest eligible cost count as a tie (fewest parameters wins)."""
+
+    def __post_init__(self) -> None:
+        if not self.tolerance_db >= 0:
+            raise ValueError(f"AutoCapacityConfig: tolerance_db must be >= 0, got {self.tolerance_db}")
+        if self.iters is not None and self.iters < 1:
+            raise ValueError(f"AutoCapacityConfig: iters must be >= 1 or None, got {self.iters}")
+        if self.split not in ("novel_view", "novel_pose", "train"):
+            raise ValueError(f"AutoCapacityConfig: split must be novel_view, novel_pose or train, got {self.split!r}")
+        if self.cost not in ("frame_ms", "model_ms"):
+            raise ValueError(f"AutoCapacityConfig: cost must be frame_ms or model_ms, got {self.cost!r}")
+        if not self.ms_tie_rel >= 0:
+            raise ValueError(f"AutoCapacityConfig: ms_tie_rel must be >= 0, got {self.ms_tie_rel}")
+
+
+def _describe(overrides: Mapping) -> str:
+    parts = []
+    for key in sorted(overrides):
+        value = overrides[key]
+        if isinstance(value, Mapping):
+            parts.append(key + "-" + "-".join(f"{k}{v}" for k, v in sorted(value.items())))
+        else:
+            parts.append(f"{key}{value}")
+    return "_".join(parts).replace("_channels", "").replace("feature_layer", "fl") or "preset"
+
+
+def default_ladder(model: str, preset: str) -> list[Candidate]:
+    """Capacities from small to large around the preset of ``model``.
+
+    Five rungs, each scaling the MLP width and the U-Net's base/max channels by a factor and
+    choosing the MLP depth: (x1/4, depth / 2), (x1/2, depth / 2), (x1/2, depth), (x1, depth) = the
+    preset, (x2, depth). Features enter the MLP after the same relative layer as in the preset.
+    """
+    from deliffas.models.zoo import get_config
+
+    cfg = get_config(model, preset)
+    depth, width, fl = cfg.mlp.depth, cfg.mlp.width, cfg.mlp.feature_layer
+    base, top = cfg.unet.base_channels, cfg.unet.max_channels
+    ladder = []
+    seen = set()
+    for factor, d in ((0.25, max(1, depth // 2)), (0.5, max(1, depth // 2)), (0.5, depth), (1.0, depth), (2.0, depth)):
+        w = max(4, int(round(width * factor)))
+        b = max(1, int(round(base * factor)))
+        m = max(b, int(round(top * factor)))
+        f = min(d - 1, int(fl * d / depth))
+        key = (d, w, b, m, f)
+        if key in seen:
+            continue
+        seen.add(key)
+        overrides = {"mlp": {"depth": d, "width": w, "feature_layer": f}, "unet": {"base_channels": b, "max_channels": m}}
+        ladder.append(Candidate(f"mlp{d}x{w}_unet{b}-{m}", overrides))
+    return ladder
+
+
+def _candidates(train_cfg, ac_cfg: AutoCapacityConfig) -> list[Candidate]:
+    if ac_cfg.candidates is None:
+        return default_ladder(train_cfg.model, train_cfg.preset)
+    out = []
+    for c in ac_cfg.candidates:
+        out.append(c if isinstance(c, Candidate) else Candidate(_describe(c), dict(c)))
+    names = [c.name for c in out]
+    if len(set(names)) != len(names):
+        raise ValueError(f"auto_capacity: candidate names must be unique, got {names}")
+    if not out:
+        raise ValueError("auto_capacity: no candidates")
+    return out
+
+
+def _merge(base: Mapping, extra: Mapping) -> dict:
+    merged = {k: (dict(v) if isinstance(v, Mapping) else v) for k, v in base.items()}
+    for k, v in extra.items():
+        if isinstance(v, Mapping) and isinstance(merged.get(k), Mapping):
+            merged[k] = {**merged[k], **v}
+        else:
+            merged[k] = dict(v) if isinstance(v, Mapping) else v
+    return merged
+
+
+def _finite(x) -> bool:
+    return isinstance(x, (int, float)) and math.isfinite(x)
+
+
+def choose(records: Sequence[Mapping], tolerance_db: float, ms_tie_rel: float = 0.05,
+           cost_key: str = "frame_ms") -> tuple[str | None, float | None]:
+    """The rule of the module docstring over candidate records (``name``, ``psnr``, ``cost_key``,
+    ``num_parameters``, ``error``); returns (chosen name, best PSNR), (None, None) when none is usable."""
+    ok = [r for r in records if r.get("error") is None and _finite(r.get("psnr")) and _finite(r.get(cost_key))]
+    if not ok:
+        return None, None
+    best = max(r["psnr"] for r in ok)
+    eligible = [r for r in ok if r["psnr"] >= best - tolerance_db]
+    cheapest = min(r[cost_key] for r in eligible)
+    tied = [r for r in eligible if r[cost_key] <= cheapest * (1 + ms_tie_rel)]
+    pick = min(tied, key=lambda r: (r.get("num_parameters") or 0, r[cost_key]))
+    return pick["name"], best
+
+
+def _link_chosen(out: Path, run: Path) -> Path:
+    link = out / "chosen"
+    if link.is_symlink() or link.is_file():
+        link.unlink()
+    elif link.is_dir():
+        shutil.rmtree(link)
+    try:
+        link.symlink_to(os.path.relpath(run, out), target_is_directory=True)
+    except OSError:  # file systems without symbolic links
+        shutil.copytree(run, link)
+    return link
+
+
+def _write_json(path: Path, payload: dict) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(payload, indent=2, default=str) + "\n")
+    os.replace(tmp, path)
+
+
+def auto_capacity(train_cfg, ac_cfg: AutoCapacityConfig | None = None) -> dict:
+    """Train and evaluate each candidate capacity and choose the cheapest within tolerance.
+
+    Args:
+        train_cfg: the ``TrainConfig`` every candidate starts from (its ``out`` holds the search).
+        ac_cfg: the search settings (default ``AutoCapacityConfig()``).
+
+    Returns:
+        The record written to ``train_cfg.out/auto_capacity.json``: ``{"tolerance_db", "split",
+        "iters", "cost", "ms_tie_rel", "rule", "candidates": [{"name", "overrides", "run", "psnr",
+        "ssim", "lpips", "stage_ms", "frame_ms", "model_ms", "fps", "num_parameters", "train_s",
+        "error"}], "best_psnr", "choice", "chosen_run", "chosen_link"}``.
+
+    Raises:
+        RuntimeError: every candidate failed (the record is written first).
+    """
+    from deliffas.engine.data_bridge import shard_info
+    from deliffas.engine.evaluate import EvalConfig, evaluate
+    from deliffas.engine.train import train
+
+    ac_cfg = ac_cfg or AutoCapacityConfig()
+    out = Path(train_cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if ac_cfg.split == "novel_view" and not shard_info(train_cfg.shards)["test_cameras"]:
+        raise ValueError(f"{train_cfg.shards}: no held-out cameras for split 'novel_view'; "
+                         "convert with test cameras or use split='train' (fit only)")
+    candidates = _candidates(train_cfg, ac_cfg)
+    iters = ac_cfg.iters or train_cfg.iters
+    rule = (f"among candidates with PSNR >= best - {ac_cfg.tolerance_db} dB, the lowest {ac_cfg.cost}; "
+            f"costs within {100 * ac_cfg.ms_tie_rel:g}% of that lowest are ties, decided by fewest parameters")
+    record: dict = {"model": train_cfg.model, "preset": train_cfg.preset, "shards": str(train_cfg.shards),
+                    "tolerance_db": ac_cfg.tolerance_db, "split": ac_cfg.split, "iters": iters, "cost": ac_cfg.cost,
+                    "ms_tie_rel": ac_cfg.ms_tie_rel, "rule": rule, "candidates": [], "best_psnr": None,
+                    "choice": None, "chosen_run": None, "chosen_link": None}
+    for cand in candidates:
+        run = out / "candidates" / cand.name
+        overrides = _merge(train_cfg.model_overrides, cand.overrides)
+        entry: dict = {"name": cand.name, "overrides": overrides, "run": str(run), "psnr": None, "ssim": None,
+                       "lpips": None, "stage_ms": None, "frame_ms": None, "model_ms": None, "fps": None,
+                       "num_parameters": None, "train_s": None, "error": None}
+        t0 = time.perf_counter()
+        try:
+            cfg = dataclasses.replace(train_cfg, out=str(run), model_overrides=overrides, iters=iters,
+                                      checkpoint_every=min(train_cfg.checkpoint_every, iters))
+            train(cfg, resume=True)
+            entry["train_s"] = time.perf_counter() - t0
+            ev = evaluate(EvalConfig(run=str(run), split=ac_cfg.split, max_frames=ac_cfg.max_frames,
+                                     device=train_cfg.device))
+            stage = ev["stage_ms"]
+            entry.update(psnr=ev["psnr"], ssim=ev["ssim"], lpips=ev["lpips"], stage_ms=stage,
+                         frame_ms=float(sum(stage.values())),
+                         model_ms=float(stage.get("cnn", 0) + stage.get("sample", 0) + stage.get("mlp", 0)),
+                         fps=ev["fps"], num_parameters=ev["num_parameters"], resolution=ev.get("resolution"))
+            if not _finite(entry["psnr"]):
+                entry["error"] = f"non-finite validation PSNR {entry['psnr']}"
+        except Exception as exc:  # a failing capacity is recorded, the search goes on
+            logger.warning("auto_capacity: candidate %s failed: %s", cand.name, exc)
+            entry["error"] = f"{type(exc).__name__}: {exc}"
+            entry["traceback"] = traceback.format_exc(limit=8)
+        logger.info("auto_capacity: %s PSNR %s, %s ms, %s parameters", cand.name, entry["psnr"], entry["frame_ms"],
+                    entry["num_parameters"])
+        record["candidates"].append(entry)
+        _write_json(out / RESULT_FILE, record)  # progress survives an interruption
+    cost_key = "frame_ms" if ac_cfg.cost == "frame_ms" else "model_ms"
+    choice, best = choose(record["candidates"], ac_cfg.tolerance_db, ac_cfg.ms_tie_rel, cost_key)
+    record["best_psnr"] = best
+    if choice is None:
+        _write_json(out / RESULT_FILE, record)
+        raise RuntimeError(f"auto_capacity: every candidate failed; see {out / RESULT_FILE}")
+    chosen_run = out / "candidates" / choice
+    record.update(choice=choice, chosen_run=str(chosen_run), chosen_link=str(_link_chosen(out, chosen_run)))
+    _write_json(out / RESULT_FILE, record)
+    return record
