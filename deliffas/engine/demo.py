@@ -34,7 +34,7 @@ class DemoConfig:
     cameras: int = 10
     size: int = 128
     atlas_res: int = 128
-    iters: int = 500
+    iters: int = 800
     cameras_per_frame: int = 3
     seed: int = 0
     jobs: int = 1
