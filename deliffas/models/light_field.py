@@ -68,7 +68,7 @@ class LightFieldMLP(nn.Module):
             self.hidden.append(nn.Linear(prev, config.width))
             prev = config.width + (self.feature_dim if i == config.feature_layer else 0)
         self.output = nn.Linear(prev, 3)
-        self.activation = nn.ReLU()
+        self.activation = nn.ReLU(inplace=True)  # on each Linear's fresh output: autograd-safe, one pass less
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
@@ -100,7 +100,7 @@ class LightFieldMLP(nn.Module):
             h = self.activation(layer(h))  # (N, width)
             if i == self.config.feature_layer:
                 h = torch.cat([features, h], dim=-1)  # (N, feature_dim + width)
-        return torch.sigmoid(self.output(h))
+        return self.output(h).sigmoid_()  # in place on the fresh Linear output (autograd-safe)
 
     def flops_per_ray(self) -> int:
         """Floating-point operations of one evaluation: 2 per multiply-add, plus bias and ReLU adds."""
