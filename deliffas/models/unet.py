@@ -23,6 +23,10 @@ Normalisation (``UNetConfig.norm``):
 * ``"none"``: no normalisation (all convolutions then get a bias; otherwise only the final one has).
 
 Weights are initialised N(0, 0.02) (conv and transposed conv); norm scales 1, shifts 0.
+
+Speed (CPU): large maps run in channels_last (``CHANNELS_LAST_MIN_PIXELS``); activations are in
+place, and outside autograd (``torch.no_grad`` / ``inference_mode``) the affine norm and the final
+``(tanh + 1) / 2`` are in place too, so rendering allocates one map per layer and no temporaries.
 """
 
 from __future__ import annotations
@@ -40,6 +44,11 @@ __all__ = ["UNetConfig", "UNet", "resolve_levels", "unet_channels"]
 logger = logging.getLogger(__name__)
 
 NormKind = Literal["batch", "affine", "none"]
+
+CHANNELS_LAST_MIN_PIXELS = 32 * 32
+"""On CPU, every (transposed) convolution whose input has at least this many pixels runs in
+channels_last memory format: oneDNN is up to 7x faster there in that layout (e.g. the first
+9 -> 16 convolution at 1024^2), while the deep, small maps are faster in the default layout."""
 
 
 @dataclass(frozen=True)
@@ -116,7 +125,35 @@ class _ChannelAffine(nn.Module):
         self.bias = nn.Parameter(torch.zeros(channels))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return x * self.weight.view(1, -1, 1, 1) + self.bias.view(1, -1, 1, 1)
+        w, b = self.weight.view(1, -1, 1, 1), self.bias.view(1, -1, 1, 1)
+        if torch.is_grad_enabled():
+            return x * w + b
+        return x.mul_(w).add_(b)  # inference: in place on the conv output it follows (same values)
+
+
+def _cpu_layout(x: torch.Tensor) -> torch.Tensor:
+    """On CPU: ``x`` in channels_last when it is a large map, else in the default layout (a
+    channels_last input would make torch copy the large weights of the deep layers to
+    channels_last on every call). Elsewhere: ``x`` unchanged."""
+    if x.device.type != "cpu":
+        return x
+    if x.shape[-2] * x.shape[-1] >= CHANNELS_LAST_MIN_PIXELS:
+        return x.contiguous(memory_format=torch.channels_last)
+    return x.contiguous()
+
+
+class _Conv2d(nn.Conv2d):
+    """``nn.Conv2d`` (same parameters and result) that runs large CPU maps in channels_last."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return super().forward(_cpu_layout(x))
+
+
+class _ConvTranspose2d(nn.ConvTranspose2d):
+    """``nn.ConvTranspose2d`` (same parameters and result) that runs large CPU maps in channels_last."""
+
+    def forward(self, x: torch.Tensor, output_size: list[int] | None = None) -> torch.Tensor:
+        return super().forward(_cpu_layout(x), output_size)
 
 
 def _norm(kind: NormKind, channels: int) -> nn.Module:
@@ -153,25 +190,25 @@ class UNet(nn.Module):
         for i, ch in enumerate(self.channels):
             use_norm = i > 0 and not (config.norm == "batch" and i == self.levels - 1 and innermost_is_1x1)
             layers: list[nn.Module] = [
-                nn.Conv2d(prev, ch, kernel_size=4, stride=2, padding=1, bias=config.norm == "none")
+                _Conv2d(prev, ch, kernel_size=4, stride=2, padding=1, bias=config.norm == "none")
             ]
             if use_norm:
                 layers.append(_norm(config.norm, ch))
-            layers.append(nn.LeakyReLU(config.negative_slope))
+            layers.append(nn.LeakyReLU(config.negative_slope, inplace=True))  # on a fresh conv/norm output
             self.down.append(nn.Sequential(*layers))
             prev = ch
 
         self.up = nn.ModuleList()
         for k, i in enumerate(range(self.levels - 2, -1, -1)):
             ch = self.channels[i]
-            layers = [nn.ConvTranspose2d(prev, ch, kernel_size=4, stride=2, padding=1, bias=config.norm == "none")]
+            layers = [_ConvTranspose2d(prev, ch, kernel_size=4, stride=2, padding=1, bias=config.norm == "none")]
             layers.append(_norm(config.norm, ch))
             if config.dropout and k < 3:
                 layers.append(nn.Dropout(0.5))
-            layers.append(nn.ReLU())
+            layers.append(nn.ReLU(inplace=True))
             self.up.append(nn.Sequential(*layers))
             prev = 2 * ch  # after concatenation with the skip
-        self.final = nn.ConvTranspose2d(prev, config.out_channels, kernel_size=4, stride=2, padding=1, bias=True)
+        self.final = _ConvTranspose2d(prev, config.out_channels, kernel_size=4, stride=2, padding=1, bias=True)
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
@@ -193,7 +230,8 @@ class UNet(nn.Module):
                 channels_last memory format is supported.
 
         Returns:
-            (B, out_channels, H, W) features in [0, 1].
+            (B, out_channels, H, W) features in [0, 1]; in channels_last memory format when
+            computed on CPU with H W >= ``CHANNELS_LAST_MIN_PIXELS``.
         """
         if x.dim() != 4 or x.shape[1] != self.config.in_channels:
             raise ValueError(
@@ -209,4 +247,7 @@ class UNet(nn.Module):
         x = skips.pop()  # bottleneck (B, C_{L-1}, H / 2^L, W / 2^L)
         for block in self.up:
             x = torch.cat([block(x), skips.pop()], dim=1)  # (B, 2 C_i, H / 2^(i+1), W / 2^(i+1))
-        return (torch.tanh(self.final(x)) + 1.0) * 0.5
+        y = self.final(x)
+        if torch.is_grad_enabled():
+            return (torch.tanh(y) + 1.0) * 0.5
+        return y.tanh_().add_(1.0).mul_(0.5)  # inference: in place, same values
