@@ -1,4 +1,4 @@
-"""The posed character, its shell, atlas and cameras shared by the speed benchmarks.
+"""Inputs shared by the speed benchmarks: the posed character, its cameras and ray sets, the paper model.
 
 The DDC sample (``../shared/dynacap-sample``) posed at one frame of its motion; when the sample
 is absent, the procedural character (``deliffas.geometry.procedural``) in a temporary folder.
@@ -127,3 +127,44 @@ def skipped(group: str, reason: str):
     from benchmarks.common import Result
 
     return [Result(group, f"skipped: {reason}", 0.0, "")]
+
+
+@functools.lru_cache(maxsize=None)
+def rays(size: str):
+    """``deliffas.engine.rays.CameraRays`` of the benchmark camera of ``size`` (cached)."""
+    from deliffas.engine.rays import camera_rays
+    from deliffas.geometry.raycast import UVRaycaster
+
+    av = avatar()
+    return camera_rays(UVRaycaster(av.inner, av.faces, av.outer, av.atlas), camera(av, size))
+
+
+@functools.lru_cache(maxsize=1)
+def paper_model():
+    """``DeliffasModel`` of ``two_surface`` at the ``paper`` preset, eval mode, seed 0 (cached)."""
+    from deliffas.models import DeliffasModel, get_config
+
+    torch.manual_seed(0)
+    return DeliffasModel(get_config("two_surface", "paper")).eval()
+
+
+def random_features(model, seed: int = 0):
+    """``FrameFeatures`` of one frame with uniform [0, 1) maps of the model's size, channels_last
+    (as ``DeliffasModel.encode`` stores them); stands in for the per-frame U-Net output."""
+    from deliffas.models.deliffas import FrameFeatures
+
+    cfg = model.config
+    gen = torch.Generator().manual_seed(seed)
+    shape = (1, cfg.feature_channels, cfg.atlas_res, cfg.atlas_res)
+    maps = [torch.rand(shape, generator=gen).contiguous(memory_format=torch.channels_last) for _ in range(2)]
+    return FrameFeatures(inner=maps[0], outer=maps[1] if cfg.uses_outer_surface else None)
+
+
+def ray_tensors(r) -> dict:
+    """The ``shade`` arguments of a ``CameraRays`` as torch tensors (batch index 0)."""
+    return {
+        "batch_index": torch.zeros(r.num_rays, dtype=torch.long),
+        "uv_inner": torch.from_numpy(r.uv_inner),
+        "uv_outer": torch.from_numpy(r.uv_outer),
+        "inner_from_outer": torch.from_numpy(r.inner_from_outer),
+    }

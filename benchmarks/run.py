@@ -19,6 +19,8 @@ import torch
 MODULES = [
     "benchmarks.bench_posing",
     "benchmarks.bench_uv",
+    "benchmarks.bench_mlp",
+    "benchmarks.bench_unet",
 ]
 
 
