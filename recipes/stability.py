@@ -1,0 +1,596 @@
+"""Stability: sweep what breaks deformable light-field avatars and chart where each variant fails.
+
+Usage: ``python -m recipes.stability --out OUT [--quick] [--subject DIR | --shards DIR]
+[--variants single_surface,two_surface] [--fail-db 1.0]``.
+
+Sweeps (each configuration trained with the same iterations, L1 only, evaluated on held-out cameras):
+
+* ``offset``: outer-shell offset d in mm, the plain shell (``ConvertConfig(offset_mm=d)``, every vertex
+  moved by d) and the safe shell (``build_templates(offset_mm=d, safe=True)``, d limited per vertex
+  where the shell would cross another body part; converted with ``--template``). At d = 0 both
+  shells are the inner surface, so the safe row repeats the plain one.
+* ``smoothing``: Taubin iterations of the template's ``smooth`` variant (0 = the original).
+* ``cameras``: number of training cameras (a spread subset, converted with ``--cameras``; the
+  held-out cameras stay the same).
+* ``pose_distance``: the base models (30 mm, original template, all cameras) evaluated frame by
+  frame on the held-out cameras, on training poses (distance 0) and on the test motion, binned by the
+  distance of each test pose to the nearest training pose: the Euclidean norm over the articulation
+  DOFs (every DOF but the first six, the Skeletool root translation and rotation), in DOF units.
+* ``holes``: the template with holes (faces within two rings of k random vertices deleted, so it is
+  not watertight). Depth peeling needs the shell's exit hit where a ray misses the inner surface;
+  the row reports the fraction of shell-hitting rays without an exit hit, the fraction of them
+  that are then not shaded at all, and the PSNR.
+
+A row *fails* when it raised an error, its PSNR is not finite, or its PSNR is more than ``--fail-db``
+below the best PSNR of the same variant in the same sweep. Errors are recorded, never fatal.
+Writes ``results.json``, ``results.md`` and one chart per sweep (``stability_<sweep>.png``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import sys
+import traceback
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from recipes.common import (RecipeSizes, find_character, prepare_capture, prepare_shards, prepare_template_variants,
+                            recipe_parser, shards_source, sizes_from_args, train_and_eval)
+
+logger = logging.getLogger(__name__)
+
+SWEEPS = ("offset", "smoothing", "cameras", "pose_distance", "holes")
+ROOT_DOFS = 6
+"""Skeletool skeletons start with the root's translate_x/y/z and rotate_y/z/x DOFs (global placement)."""
+HOLE_RINGS = 2
+
+
+@dataclass(frozen=True)
+class StabilityPlan:
+    """Values of each sweep."""
+
+    offsets_mm: tuple[float, ...]
+    smooth_iters: tuple[int, ...]
+    train_cameras: tuple[int, ...]
+    """Training-camera counts below the capture's (which is always added as "all")."""
+    pose_bins: int
+    """Equal-count bins of the test frames by pose distance."""
+    holes: tuple[int, ...]
+    """Number of holes punched into the template (0 = the original)."""
+
+    @staticmethod
+    def for_mode(quick: bool) -> "StabilityPlan":
+        if quick:
+            return StabilityPlan(offsets_mm=(0.0, 30.0), smooth_iters=(0, 30), train_cameras=(2,), pose_bins=2,
+                                 holes=(0, 6))
+        return StabilityPlan(offsets_mm=(0.0, 5.0, 15.0, 30.0, 60.0, 100.0), smooth_iters=(0, 10, 50, 200),
+                             train_cameras=(4, 6), pose_bins=4, holes=(0, 2, 8, 32))
+
+
+class _Study:
+    """Shared state: capture, base shards, cached conversions and trained runs."""
+
+    def __init__(self, args, sizes: RecipeSizes, out: Path, subject: Path, base: Path, source: dict, variants):
+        self.args, self.sizes, self.out, self.subject, self.base = args, sizes, out, subject, base
+        self.source = source
+        self.variants = variants
+        self.jobs = 1 if args.quick else 2
+        self.character = Path(source["character"]) if source.get("character") else find_character(subject)
+        self.base_offset = float(source.get("offset_mm", 30.0))
+        self.base_template = source.get("template")
+        self._shards: dict[str, Path | Exception] = {"base": base}
+        self._runs: dict[tuple[str, str], dict] = {}
+
+    def shards(self, key: str, make: Callable[[], Path]) -> Path:
+        """Shards ``key`` (made once by ``make``); a failed conversion raises again for every user."""
+        if key not in self._shards:
+            try:
+                self._shards[key] = make()
+            except Exception as exc:
+                logger.exception("shards %s failed", key)
+                self._shards[key] = exc
+        value = self._shards[key]
+        if isinstance(value, Exception):
+            raise value
+        return value
+
+    def convert(self, key: str, template: str | None = None, offset_mm: float | None = None,
+                cameras: list[int] | None = None) -> Path:
+        return self.shards(key, lambda: prepare_shards(
+            self.out, self.subject, self.sizes, name=f"shards_{key}",
+            template=template if template is not None else self.base_template,
+            offset_mm=self.base_offset if offset_mm is None else offset_mm, cameras=cameras, jobs=self.jobs))
+
+    def run(self, key: str, variant: str, shards: Callable[[], Path]) -> dict:
+        """Train + evaluate ``variant`` on shards ``key`` once; an error becomes a row with ``error``."""
+        if (key, variant) not in self._runs:
+            name = f"{key}/{variant}"
+            try:
+                row = train_and_eval(name, shards(), self.out / "runs" / key / variant, self.sizes, variant,
+                                     self.args.seed, self.args.device)
+                row["run_dir"] = str(self.out / "runs" / key / variant)
+            except Exception as exc:  # one broken configuration never stops the study
+                logger.exception("%s failed", name)
+                print(f"  {name}: ERROR {type(exc).__name__}: {exc}", flush=True)
+                row = _error(exc)
+            self._runs[(key, variant)] = row
+        return dict(self._runs[(key, variant)])
+
+
+def _error(exc: BaseException) -> dict:
+    return {"psnr": None, "ssim": None, "error": f"{type(exc).__name__}: {exc}",
+            "traceback": traceback.format_exc(limit=6)}
+
+
+_KEEP = ("psnr", "ssim", "lpips", "num_parameters", "stage_ms", "fps", "frames", "images", "error", "traceback",
+         "train_s", "run_dir")
+
+
+def _row(sweep: str, series: str, value: float, label: str, variant: str, result: dict, **extra) -> dict:
+    row = {"sweep": sweep, "series": series, "value": float(value), "label": label, "variant": variant,
+           "name": f"{sweep} {label} {variant}" + (f" ({series})" if series else "")}
+    row.update({k: result.get(k) for k in _KEEP if k in result})
+    row.setdefault("error", None)
+    row.update(extra)
+    return row
+
+
+# ------------------------------------------------------------------------------------------------ sweeps
+def sweep_offset(st: _Study, plan: StabilityPlan) -> list[dict]:
+    from deliffas.geometry.template_build import build_templates
+
+    rows = []
+    for d in plan.offsets_mm:
+        plain_key = f"offset{d:g}"
+        stats = _plain_shell_stats(st.character, d)
+        for v in st.variants:
+            rows.append(_row("offset", "plain", d, f"{d:g} mm", v,
+                             st.run(plain_key, v, lambda: st.convert(plain_key, offset_mm=d)), shell=stats))
+        if d == 0:  # nothing to limit: the safe shell is the inner surface too
+            for v in st.variants:
+                rows.append(_row("offset", "safe", d, f"{d:g} mm", v,
+                                 st.run(plain_key, v, lambda: st.convert(plain_key, offset_mm=d)),
+                                 shell=stats, note="d = 0: identical to the plain shell"))
+            continue
+        key = f"safe{d:g}"
+        report: dict = {}
+
+        def make(d=d, key=key, report=report) -> Path:
+            folder = st.out / "templates" / key
+            if not (folder / "report.json").is_file():
+                build_templates(st.character, folder, offset_mm=d, safe=True, atlas_res=128 if st.args.quick else 512)
+            report.update(json.loads((folder / "report.json").read_text())["variants"]["original"]["shell"])
+            return prepare_shards(st.out, st.subject, st.sizes, name=f"shards_{key}", template=str(folder / "original"),
+                                  jobs=st.jobs)
+
+        for v in st.variants:
+            result = st.run(key, v, lambda: st.shards(key, make))
+            rows.append(_row("offset", "safe", d, f"{d:g} mm", v, result, shell=_shell_summary(report) or None))
+    return rows
+
+
+def _shell_summary(report: dict) -> dict:
+    keys = ("num_self_intersecting_faces", "num_clamped", "offset_min_mm", "offset_mean_mm", "watertight")
+    return {k: report[k] for k in keys if k in report}
+
+
+def _plain_shell_stats(character: Path, d: float) -> dict | None:
+    """Rest-pose statistics of the plain shell at d (self-intersecting faces), None if they fail."""
+    try:
+        from deliffas.data.dynacap import read_character
+        from deliffas.geometry.shell import offset_shell, shell_report
+
+        mesh = read_character(character).mesh
+        verts = np.asarray(mesh.verts, np.float64)
+        outer = offset_shell(verts, mesh.faces, np.full(len(verts), float(d)))
+        return _shell_summary(dataclasses.asdict(shell_report(verts, mesh.faces, outer)))
+    except Exception as exc:
+        logger.warning("shell statistics at d=%s failed: %s", d, exc)
+        return None
+
+
+def sweep_smoothing(st: _Study, plan: StabilityPlan) -> list[dict]:
+    rows = []
+    for k in plan.smooth_iters:
+        if k == 0:
+            key, make = "base", (lambda: st.base)
+        else:
+            key = f"smooth{k}"
+
+            def make(k=k, key=key) -> Path:
+                folders = prepare_template_variants(st.out / "templates" / key, st.character, smooth_iters=k,
+                                                    offset_mm=st.base_offset, packing_res=128 if st.args.quick else 512)
+                return st.convert(key, template=str(folders["smooth"]))
+        for v in st.variants:
+            rows.append(_row("smoothing", "", k, f"{k} iterations", v, st.run(key, v, make)))
+    return rows
+
+
+def sweep_cameras(st: _Study, plan: StabilityPlan) -> list[dict]:
+    from deliffas.data.shards import ShardSet
+
+    meta = ShardSet(st.base).meta
+    train = sorted(int(c) for c in meta.train_cameras)
+    test = sorted(int(c) for c in meta.test_cameras)
+    rows = []
+    counts = sorted({c for c in plan.train_cameras if 1 <= c < len(train)}) + [len(train)]
+    for n in counts:
+        if n == len(train):
+            key, make, subset = "base", (lambda: st.base), train
+        else:
+            subset = [train[int((i + 0.5) * len(train) / n)] for i in range(n)]
+            key = f"cameras{n}"
+            make = (lambda key=key, subset=subset: st.convert(key, cameras=sorted(subset + test)))
+        label = f"{n} cameras" + (" (all)" if n == len(train) else "")
+        for v in st.variants:
+            rows.append(_row("cameras", "", n, label, v, st.run(key, v, make), train_cameras=subset,
+                             test_cameras=test))
+    return rows
+
+
+def _sequence_dofs(shards: Path, sequence: str) -> tuple[list[int], np.ndarray]:
+    """Capture frames of ``sequence`` and their (N, D) motion DOFs, read from the shards' geometry."""
+    from deliffas.data.shards import ShardSet
+
+    ss = ShardSet(shards)
+    frames = [int(f) for f in ss.frames(sequence)]
+    dofs = []
+    for f in frames:
+        shard, row = ss.locate(sequence, f)
+        r0 = int(shard.h5["window_rows"][row][0])
+        dofs.append(np.asarray(shard.geometry("dofs", [r0])[0], np.float64))
+    return frames, np.stack(dofs)
+
+
+def pose_distances(shards: Path) -> dict[int, float]:
+    """Test frame -> distance of its articulation DOFs to the nearest training frame's."""
+    _, train = _sequence_dofs(shards, "training")
+    frames, test = _sequence_dofs(shards, "testing")
+    a, b = test[:, ROOT_DOFS:], train[:, ROOT_DOFS:]
+    dist = np.sqrt(((a[:, None] - b[None]) ** 2).sum(-1)).min(1)
+    return {f: float(x) for f, x in zip(frames, dist)}
+
+
+def _per_frame_metrics(run_dir: Path, shards: Path, split: str, frames: list[int] | None, evaluator) -> dict[int, list]:
+    """Protocol metrics of every held-out-camera image of ``split``'s frames (frame -> ``ImageMetrics`` list)."""
+    import torch
+
+    from deliffas.data.dataset import ShardDataset
+    from deliffas.engine.data_bridge import shard_info
+    from deliffas.engine.evaluate import load_run, render_frame
+    from deliffas.engine.samples import FrameSample, composite_target
+    from deliffas.engine.timing import StageTimer
+    from deliffas.geometry.raycast import UVRaycaster
+
+    model, _ = load_run(run_dir)
+    info = shard_info(str(shards), model.config.temporal_window)
+    ds = ShardDataset(shards, split=split, cameras=info["test_cameras"], frames=frames, cameras_per_item=None,
+                      temporal_window=info["temporal_window"], protocol="all")
+    out: dict[int, list[float]] = {}
+    for i in range(len(ds)):
+        item = ds[i]
+        ids = [int(c) for c in item.camera_ids]
+        sample = FrameSample(frame=int(item.frame), images=item.images.numpy(), masks=item.masks.numpy(),
+                             cameras=[info["cameras"][c] for c in ids], camera_ids=np.asarray(ids),
+                             normal_inner=item.normal_maps_inner.numpy(), normal_outer=item.normal_maps_outer.numpy(),
+                             inner_verts=item.inner_verts.numpy(), outer_verts=item.outer_verts.numpy(), rays=[])
+        caster = UVRaycaster(sample.inner_verts, info["faces"], sample.outer_verts, info["atlas"])
+        preds = render_frame(model, sample, caster, torch.device("cpu"), StageTimer("cpu"))
+        gt = composite_target(sample.images, sample.masks)
+        out[sample.frame] = [evaluator.add(preds[k].permute(2, 0, 1), gt[k].permute(2, 0, 1),
+                                           torch.from_numpy(sample.masks[k])) for k in range(len(ids))]
+    return out
+
+
+def _mean_metrics(records: list) -> dict:
+    """Mean PSNR / SSIM of ``ImageMetrics`` records (None when there are none)."""
+    if not records:
+        return {"psnr": None, "ssim": None, "images": 0}
+    return {"psnr": float(np.mean([m.psnr for m in records])), "ssim": float(np.mean([m.ssim for m in records])),
+            "images": len(records)}
+
+
+def sweep_pose_distance(st: _Study, plan: StabilityPlan) -> list[dict]:
+    from deliffas.data.shards import ShardSet
+    from deliffas.models.metrics import Evaluator
+
+    dist = pose_distances(st.base)
+    order = sorted(dist, key=dist.get)
+    bins = [list(b) for b in np.array_split(np.asarray(order), min(plan.pose_bins, len(order))) if len(b)]
+    train_frames = [int(f) for f in ShardSet(st.base).frames("training")]
+    if st.sizes.eval_frames and len(train_frames) > st.sizes.eval_frames:
+        pick = np.linspace(0, len(train_frames) - 1, st.sizes.eval_frames).round().astype(int)
+        train_frames = [train_frames[i] for i in pick]
+    evaluator = Evaluator()
+    rows = []
+    for v in st.variants:
+        base = st.run("base", v, lambda: st.base)
+        if base.get("error"):
+            rows.append(_row("pose_distance", "", 0.0, "training poses", v, base))
+            continue
+        try:
+            seen = _per_frame_metrics(Path(base["run_dir"]), st.base, "novel_view", train_frames, evaluator)
+            rows.append(_row("pose_distance", "", 0.0, "0 (training poses)", v,
+                             {**_mean_metrics([m for ms in seen.values() for m in ms]), "frames": len(seen)},
+                             distance=0.0, test_frames=sorted(seen)))
+            novel = _per_frame_metrics(Path(base["run_dir"]), st.base, "novel_pose", None, evaluator)
+            for b in bins:
+                frames = [int(f) for f in b]
+                mean_d = float(np.mean([dist[f] for f in frames]))
+                rows.append(_row("pose_distance", "", mean_d, f"{mean_d:.2f}", v,
+                                 {**_mean_metrics([m for f in frames for m in novel.get(f, [])]),
+                                  "frames": len(frames)},
+                                 distance=mean_d, distance_range=[min(dist[f] for f in frames),
+                                                                  max(dist[f] for f in frames)], test_frames=frames))
+        except Exception as exc:
+            logger.exception("pose distance of %s failed", v)
+            rows.append(_row("pose_distance", "", 0.0, "n/a", v, _error(exc)))
+    return rows
+
+
+def holed_template(character: Path, folder: Path, holes: int, seed: int = 0, rings: int = HOLE_RINGS) -> dict:
+    """Write ``character`` with the faces within ``rings`` rings of ``holes`` random vertices deleted.
+
+    Vertices stay (the template's vertex order and skinning are untouched); vertices left without a
+    face get no normal and stay in place in the shell. Returns ``{"character", "faces_deleted",
+    "faces", "boundary_edges"}``.
+    """
+    from deliffas.data.dynacap import read_character
+    from deliffas.geometry.shell import boundary_edges
+    from deliffas.geometry.variants import write_variant
+
+    char = read_character(character)
+    mesh = char.mesh
+    faces = np.asarray(mesh.faces, np.int64)
+    used = np.unique(faces)
+    rng = np.random.default_rng(seed)
+    region = np.zeros(mesh.num_verts, bool)
+    region[rng.choice(used, size=min(holes, len(used)), replace=False)] = True
+    for _ in range(rings - 1):
+        touch = region[faces].any(1)
+        region[faces[touch].ravel()] = True
+    drop = region[faces].any(1)
+    keep = ~drop
+    new_mesh = dataclasses.replace(
+        mesh, faces=faces[keep],
+        face_uvs=None if mesh.face_uvs is None else np.asarray(mesh.face_uvs)[keep],
+        face_normals_idx=None if getattr(mesh, "face_normals_idx", None) is None
+        else np.asarray(mesh.face_normals_idx)[keep])
+    path = write_variant(folder, dataclasses.replace(char, mesh=new_mesh), "holes")
+    return {"character": str(path), "faces_deleted": int(drop.sum()), "faces": int(keep.sum()),
+            "boundary_edges": int(len(boundary_edges(faces[keep])))}
+
+
+def exit_hit_stats(shards: Path, max_frames: int | None) -> dict:
+    """Over the held-out cameras of the training frames: rays meeting the shell, the fraction of
+    them without a peeled exit hit, the fraction not shaded at all (no inner hit and no exit), and
+    the fraction of person pixels (mask > 0.5) left unshaded."""
+    from deliffas.engine.data_bridge import evaluation_samples
+    from deliffas.geometry.raycast import UVRaycaster
+
+    samples, info = evaluation_samples(str(shards), "novel_view", max_frames=max_frames, protocol="all")
+    outer = no_exit = dropped = person = person_unshaded = 0
+    for s in samples:
+        caster = UVRaycaster(s.inner_verts, info["faces"], s.outer_verts, info["atlas"])
+        for k, cam in enumerate(s.cameras):
+            h = caster.cast(cam)
+            shaded = h.outer_hit & (h.inner_hit | h.outer_exit_hit)
+            outer += int(h.outer_hit.sum())
+            no_exit += int((h.outer_hit & ~h.outer_exit_hit).sum())
+            dropped += int((h.outer_hit & ~shaded).sum())
+            m = s.masks[k] > 0.5
+            person += int(m.sum())
+            person_unshaded += int((m & ~shaded).sum())
+    return {"rays_hitting_shell": outer, "no_exit_fraction": no_exit / max(outer, 1),
+            "unshaded_fraction": dropped / max(outer, 1), "person_unshaded_fraction": person_unshaded / max(person, 1)}
+
+
+def sweep_holes(st: _Study, plan: StabilityPlan) -> list[dict]:
+    rows = []
+    for n in plan.holes:
+        info: dict = {}
+        if n == 0:
+            key, make = "base", (lambda: st.base)
+            info.update(faces_deleted=0)
+        else:
+            key = f"holes{n}"
+
+            def make(n=n, key=key, info=info) -> Path:
+                info.update(holed_template(st.character, st.out / "templates" / key, n, seed=st.args.seed))
+                return st.convert(key, template=str(st.out / "templates" / key))
+        try:
+            stats = exit_hit_stats(st.shards(key, make), st.sizes.eval_frames)
+        except Exception as exc:
+            logger.exception("exit-hit statistics with %d holes failed", n)
+            stats = {"exit_stats_error": f"{type(exc).__name__}: {exc}"}
+        for v in st.variants:
+            rows.append(_row("holes", "", n, f"{n} holes", v, st.run(key, v, make), **info, **stats))
+    return rows
+
+
+SWEEP_FUNCS = {"offset": sweep_offset, "smoothing": sweep_smoothing, "cameras": sweep_cameras,
+               "pose_distance": sweep_pose_distance, "holes": sweep_holes}
+X_LABELS = {"offset": "outer-shell offset d (mm)", "smoothing": "template smoothing (Taubin iterations)",
+            "cameras": "training cameras", "pose_distance": "test pose distance to nearest training pose (DOF units)",
+            "holes": "holes in the template"}
+
+
+# ------------------------------------------------------------------------------------------------ verdicts
+def _finite(x) -> bool:
+    return isinstance(x, (int, float)) and math.isfinite(x)
+
+
+def mark_failures(rows: list[dict], fail_db: float) -> dict:
+    """Set ``failed``, ``drop_db`` and ``best_psnr`` per row; returns {sweep: {variant: [failing labels]}}."""
+    summary: dict = {}
+    for sweep in dict.fromkeys(r["sweep"] for r in rows):
+        for v in dict.fromkeys(r["variant"] for r in rows if r["sweep"] == sweep):
+            group = [r for r in rows if r["sweep"] == sweep and r["variant"] == v]
+            finite = [r["psnr"] for r in group if r.get("error") is None and _finite(r.get("psnr"))]
+            best = max(finite) if finite else None
+            fails = []
+            for r in group:
+                ok = r.get("error") is None and _finite(r.get("psnr"))
+                r["best_psnr"] = best
+                r["drop_db"] = (best - r["psnr"]) if ok and best is not None else None
+                r["failed"] = (not ok) or r["drop_db"] > fail_db
+                if r["failed"]:
+                    why = "error" if r.get("error") else ("non-finite PSNR" if not ok else f"-{r['drop_db']:.2f} dB")
+                    fails.append(f"{r['label']}{' ' + r['series'] if r['series'] else ''} ({why})")
+            summary.setdefault(sweep, {})[v] = fails
+    return summary
+
+
+def sweep_chart(rows: list[dict], sweep: str, path: Path, title: str, fail_db: float) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    palette = plt.get_cmap("tab10")
+    fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=120)
+    variants = list(dict.fromkeys(r["variant"] for r in rows))
+    series = list(dict.fromkeys(r["series"] for r in rows))
+    styles = ["-o", "--s", ":^"]
+    finite = [r["psnr"] for r in rows if _finite(r.get("psnr"))]
+    floor = (min(finite) - 1.0) if finite else 0.0
+    for i, v in enumerate(variants):
+        for j, s in enumerate(series):
+            pts = sorted((r for r in rows if r["variant"] == v and r["series"] == s), key=lambda r: r["value"])
+            good = [r for r in pts if r.get("error") is None and _finite(r.get("psnr"))]
+            if good:
+                ax.plot([r["value"] for r in good], [r["psnr"] for r in good], styles[j % 3], color=palette(i % 10),
+                        label=f"{v}" + (f" ({s} shell)" if s else ""), zorder=3)
+            bad = [r for r in good if r.get("failed")]
+            if bad:
+                ax.scatter([r["value"] for r in bad], [r["psnr"] for r in bad], marker="x", s=90, color="tab:red",
+                           zorder=4)
+            for r in pts:
+                if r.get("error") is not None or not _finite(r.get("psnr")):
+                    ax.scatter([r["value"]], [floor], marker="X", s=90, color=palette(i % 10), zorder=4)
+                    ax.annotate("error", (r["value"], floor), textcoords="offset points", xytext=(3, 3), fontsize=7,
+                                color="tab:red")
+    ax.scatter([], [], marker="x", color="tab:red", label=f"fails (> {fail_db:g} dB below best, or error)")
+    ax.set_xlabel(X_LABELS.get(sweep, sweep))
+    ax.set_ylabel("PSNR (dB), held-out cameras")
+    ax.set_title(title, fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc="best")
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def _fmt(v, spec: str = ".2f") -> str:
+    return "n/a" if not _finite(v) else format(v, spec)
+
+
+def _extra_text(r: dict) -> str:
+    parts = []
+    if r["sweep"] == "offset" and r.get("shell"):
+        sh = r["shell"]
+        parts.append(f"shell self-intersecting faces {sh.get('num_self_intersecting_faces')}")
+        if sh.get("offset_min_mm") is not None and r["series"] == "safe":
+            parts.append(f"d min/mean {sh['offset_min_mm']:.1f}/{sh['offset_mean_mm']:.1f} mm")
+    if r["sweep"] == "holes":
+        if "no_exit_fraction" in r:
+            parts.append(f"{r.get('faces_deleted', 0)} faces deleted; no exit hit {100 * r['no_exit_fraction']:.2f}% "
+                         f"of shell rays, unshaded {100 * r['unshaded_fraction']:.2f}%, person pixels unshaded "
+                         f"{100 * r['person_unshaded_fraction']:.2f}%")
+        elif r.get("exit_stats_error"):
+            parts.append(f"exit stats: {r['exit_stats_error']}")
+    if r["sweep"] == "pose_distance" and r.get("test_frames") is not None:
+        parts.append(f"{r.get('images')} images, frames {r['test_frames']}")
+    if r["sweep"] == "cameras" and r.get("train_cameras") is not None:
+        parts.append(f"train cameras {r['train_cameras']}")
+    if r.get("note"):
+        parts.append(r["note"])
+    if r.get("error"):
+        parts.append(f"error: {r['error'][:160]}")
+    return "; ".join(parts)
+
+
+def markdown(rows: list[dict], summary: dict, fail_db: float) -> list[str]:
+    md = []
+    for sweep in dict.fromkeys(r["sweep"] for r in rows):
+        md += [f"## {sweep}", "", f"![{sweep}](stability_{sweep}.png)", "",
+               "| value | shell | variant | PSNR ↑ | SSIM ↑ | below best (dB) | fails | details |",
+               "|---|---|---|---:|---:|---:|:---:|---|"]
+        for r in (r for r in rows if r["sweep"] == sweep):
+            md.append(f"| {r['label']} | {r['series']} | {r['variant']} | {_fmt(r.get('psnr'))} | "
+                      f"{_fmt(r.get('ssim'), '.4f')} | {_fmt(r.get('drop_db'))} | {'**yes**' if r['failed'] else 'no'} | "
+                      f"{_extra_text(r)} |")
+        md += [""] + [f"- {v} fails at: {', '.join(f) if f else 'nothing in this sweep'}"
+                      for v, f in summary.get(sweep, {}).items()] + [""]
+    return md
+
+
+# ------------------------------------------------------------------------------------------------ main
+def _parser():
+    p = recipe_parser(__doc__.splitlines()[0])
+    p.add_argument("--variants", default="single_surface,two_surface", help="comma-separated zoo names")
+    p.add_argument("--fail-db", type=float, default=1.0, help="a row fails below (sweep best - this) dB PSNR")
+    p.add_argument("--sweeps", default=",".join(SWEEPS), help=f"comma-separated subset of {','.join(SWEEPS)}")
+    return p
+
+
+def main(argv=None) -> dict:
+    args = _parser().parse_args(argv)
+    sizes = sizes_from_args(args)
+    plan = StabilityPlan.for_mode(args.quick)
+    variants = [v.strip() for v in args.variants.split(",") if v.strip()]
+    sweeps = [s.strip() for s in args.sweeps.split(",") if s.strip()]
+    unknown = sorted(set(sweeps) - set(SWEEPS))
+    if unknown:
+        raise SystemExit(f"stability: unknown sweeps {unknown} (known: {list(SWEEPS)})")
+    out: Path = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    jobs = 1 if args.quick else 2
+    if args.shards:
+        base = Path(args.shards)
+        source = shards_source(base)
+        subject = Path(args.subject or source.get("subject"))
+        sizes = dataclasses.replace(sizes, atlas_res=int(source.get("atlas_res", sizes.atlas_res)))
+    else:
+        subject = prepare_capture(out, sizes, args.seed, args.subject, jobs=jobs)
+        base = prepare_shards(out, subject, sizes, jobs=jobs)
+        source = shards_source(base)
+    st = _Study(args, sizes, out, subject, base, source, variants)
+    rows: list[dict] = []
+    for sweep in sweeps:
+        print(f"sweep {sweep}", flush=True)
+        try:
+            rows += SWEEP_FUNCS[sweep](st, plan)
+        except Exception as exc:  # a whole sweep failing is recorded once per variant
+            logger.exception("sweep %s failed", sweep)
+            rows += [_row(sweep, "", 0.0, "sweep failed", v, _error(exc)) for v in variants]
+    summary = mark_failures(rows, args.fail_db)
+    title = "Stability" + (" — quick mode" if args.quick else "")
+    charts = {}
+    for sweep in dict.fromkeys(r["sweep"] for r in rows):
+        charts[sweep] = str(sweep_chart([r for r in rows if r["sweep"] == sweep], sweep, out / f"stability_{sweep}.png",
+                                        f"{title}: {sweep}", args.fail_db))
+    payload = {"title": title, "quick": args.quick, "sizes": dataclasses.asdict(sizes), "plan": dataclasses.asdict(plan),
+               "variants": variants, "fail_db": args.fail_db,
+               "fail_rule": f"error, non-finite PSNR, or PSNR more than {args.fail_db:g} dB below the best of the "
+                            "same variant in the same sweep",
+               "failures": summary, "charts": charts, "results": rows, "command": " ".join(sys.argv)}
+    (out / "results.json").write_text(json.dumps(payload, indent=2, default=str) + "\n")
+    md = [f"# {title}", "", f"Preset {sizes.preset}, {sizes.iters} iterations per configuration, L1 only; PSNR on "
+          f"held-out cameras. A row fails: {payload['fail_rule']}.", "", *markdown(rows, summary, args.fail_db)]
+    (out / "results.md").write_text("\n".join(md))
+    print("\n".join(md))
+    return payload
+
+
+if __name__ == "__main__":
+    main()
