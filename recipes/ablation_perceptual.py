@@ -112,7 +112,7 @@ def main(argv=None) -> dict:
                 "is partly the training objective. Use --seed other than 0."] if shared_net else []),
              *(["Quick mode: a few iterations of the tiny preset on 48×48 images, where a 32×32 patch covers most of "
                 "the image; the numbers show the pipeline works, not the ordering."] if args.quick else []),
-             "", f"![{metric} per row](perceptual_metric.png)", ""]
+             "", f"![{metric} per row](perceptual_metric.png)", "", "![PSNR per row](psnr.png)", ""]
     payload = write_outputs(args.out, title, rows, {"quick": args.quick, "sizes": dataclasses.asdict(sizes),
                                                      "perceptual_backbone": backbone, "backbone_message": message,
                                                      "perceptual_start": args.perceptual_start,

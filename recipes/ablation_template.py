@@ -63,6 +63,16 @@ def fit_smpl_to_mesh(smpl, target_verts: np.ndarray, iters: int = SMPL_FIT_ITERS
 
     target = np.asarray(target_verts, np.float64)
     tree_t = cKDTree(target)
+
+    def distances(v: np.ndarray) -> np.ndarray:  # both directions, mm
+        return np.concatenate([tree_t.query(v)[0], cKDTree(v).query(target)[0]])
+
+    def objective(v: np.ndarray, body_pose, shape) -> float:  # the optimised loss, without gradients
+        d = distances(v)
+        n = len(v)
+        return float(np.sqrt(d[:n] ** 2 + 1.0).mean() + np.sqrt(d[n:] ** 2 + 1.0).mean()
+                     + pose_prior * 100.0 * float((body_pose ** 2).sum()) + beta_prior * 100.0 * float((shape ** 2).sum()))
+
     target_t = torch.tensor(target, dtype=smpl.v_template.dtype)
     with torch.no_grad():
         rest = smpl.pose(smpl.rest_params()).double().numpy()[0]
@@ -74,7 +84,10 @@ def fit_smpl_to_mesh(smpl, target_verts: np.ndarray, iters: int = SMPL_FIT_ITERS
     opt = torch.optim.Adam([{"params": [transl], "lr": 5e-3}, {"params": [orient, body], "lr": 1e-2},
                             {"params": [betas], "lr": 5e-2}])
     stage_a = int(0.4 * iters)
-    history = []
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda it: 1.0 - 0.9 * it / max(iters, 1))
+    with torch.no_grad():
+        start = distances(smpl.pose(torch.cat([transl, orient, body, betas])[None]).double().numpy()[0])
+    best = (float("inf"), None)
     for it in range(iters):
         params = torch.cat([transl, orient, body if it >= stage_a else body.detach(), betas])[None]
         verts = smpl.pose(params)[0]  # (V, 3) mm
@@ -85,19 +98,22 @@ def fit_smpl_to_mesh(smpl, target_verts: np.ndarray, iters: int = SMPL_FIT_ITERS
         d_ts = ((target_t - verts[nn_s]) ** 2).sum(-1)
         data = torch.sqrt(d_st + 1.0).mean() + torch.sqrt(d_ts + 1.0).mean()  # mm
         loss = data + pose_prior * 100.0 * (body ** 2).sum() + beta_prior * 100.0 * (betas ** 2).sum()
+        if float(loss.detach()) < best[0]:  # Adam's normalised steps can leave a good solution: keep the best
+            best = (float(loss.detach()), params.detach().clone())
         opt.zero_grad()
         loss.backward()
         opt.step()
-        history.append(float(data) / 2)
+        sched.step()
     with torch.no_grad():
         params = torch.cat([transl, orient, body, betas])[None]
+        last = smpl.pose(params).double().numpy()[0]
+        if best[1] is not None and best[0] < objective(last, body, betas):
+            params = best[1]
         verts = smpl.pose(params).double().numpy()[0]
-    d_t = cKDTree(verts).query(target)[0]
-    d_s = tree_t.query(verts)[0]
-    report = {"iterations": int(iters), "initial_mean_mm": history[0] if history else None,
-              "final_vertex_distance_mean_mm": float(np.concatenate([d_s, d_t]).mean()),
-              "final_vertex_distance_max_mm": float(max(d_s.max(), d_t.max())),
-              "betas": [float(b) for b in betas.detach()], "transl": [float(t) for t in transl.detach()]}
+    end = distances(verts)
+    report = {"iterations": int(iters), "initial_vertex_distance_mean_mm": float(start.mean()),
+              "final_vertex_distance_mean_mm": float(end.mean()), "final_vertex_distance_max_mm": float(end.max()),
+              "betas": [float(b) for b in params[0, 3 + 72:]], "transl": [float(t) for t in params[0, :3]]}
     return params.double().numpy()[0], verts, report
 
 

@@ -1,0 +1,201 @@
+"""The template-quality, perceptual and template-vs-body-model ablations in quick mode: output structure.
+
+Each recipe runs once on the shared quick capture (``tiny_recipe_capture``); the numbers of a few
+tiny-preset iterations only show the pipeline works, so only structure and finiteness are checked.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def _perceptual_status() -> dict:
+    from deliffas.models.metrics import perceptual_metrics_status
+
+    return perceptual_metrics_status()
+
+
+def _check_png(path: Path) -> None:
+    import cv2
+
+    assert path.is_file(), path
+    assert path.read_bytes()[:8] == PNG_MAGIC, f"{path} is not a PNG"
+    img = cv2.imread(str(path))
+    assert img is not None and img.ndim == 3 and min(img.shape[:2]) > 100, path
+
+
+def _check_outputs(out: Path, payload: dict, num_rows: int, charts: tuple[str, ...]) -> dict:
+    """Structure shared by every recipe; returns results.json."""
+    data = json.loads((out / "results.json").read_text())
+    assert data["title"] == payload["title"]
+    for key in ("title", "results", "quick", "sizes", "command", "claims"):
+        assert key in data, key
+    assert data["quick"] is True and "quick mode" in data["title"]
+    rows = data["results"]
+    assert len(rows) == num_rows
+    assert len({r["name"] for r in rows}) == num_rows, "one row per configuration"
+    status = _perceptual_status()
+    for r in rows:
+        assert math.isfinite(r["psnr"]) and 0 < r["psnr"] < 100, r["name"]
+        assert math.isfinite(r["ssim"]) and 0 < r["ssim"] <= 1, r["name"]
+        assert r["fid"] is None and r["fid_reason"]
+        if status["lpips"] is None:  # offline: no LPIPS weights
+            assert r["lpips"] is None and "LPIPS" in r["lpips_reason"]
+        assert math.isfinite(r["lpips_random_vgg16"]) and r["lpips_random_vgg16"] >= 0
+        assert r["lpips_random_vgg16_backbone"]["name"] == "vgg16-random"
+        assert set(r["stage_ms"]) == {"uv", "cnn", "sample", "mlp"}
+    md = (out / "results.md").read_text()
+    assert md.startswith(f"# {data['title']}\n")
+    assert md.count("\n| ") >= num_rows + 1  # header + one line per row (+ extra tables)
+    if status["lpips"] is None:
+        assert "LPIPS unavailable" in md
+    for name in ("speed_accuracy.png", *charts):
+        _check_png(out / name)
+        assert name in md
+    return data
+
+
+def test_ablation_coarse_mesh_quick(tiny_recipe_capture, tmp_path):
+    """From existing shards: the subject recorded in their manifest is re-converted per template variant."""
+    from recipes import ablation_coarse_mesh
+
+    out = tmp_path / "coarse"
+    payload = ablation_coarse_mesh.main(["--quick", "--shards", str(tiny_recipe_capture.shards), "--out", str(out)])
+    data = _check_outputs(out, payload, 6, ("psnr_by_template.png",))
+    assert {(r["template"], r["variant"]) for r in data["results"]} == {
+        (t, m) for t in ("original", "smooth", "coarse") for m in ("single_surface", "two_surface")}
+    assert data["subject"] == str(tiny_recipe_capture.subject)
+    assert data["convert_sizes"]["atlas_res"] == tiny_recipe_capture.sizes.atlas_res
+    geo = data["templates"]
+    assert geo["original"]["deviation_mean_mm"] == pytest.approx(0.0, abs=1e-6)
+    assert geo["coarse"]["faces"] <= ablation_coarse_mesh.COARSE_FACES < geo["original"]["faces"]
+    assert geo["smooth"]["faces"] == geo["original"]["faces"] and geo["smooth"]["deviation_mean_mm"] > 1.0
+    for model in ("single_surface", "two_surface"):
+        for variant in ("smooth", "coarse"):
+            assert math.isfinite(data["losses_vs_original"][model][variant]["psnr_loss_db"])
+    claims = data["claims"]
+    assert isinstance(claims["two_surface_loses_less_on_coarse"], bool)
+    assert isinstance(claims["two_surface_loses_less_on_smooth"], bool)
+    md = (out / "results.md").read_text()
+    assert "two-surface loses less" in md and "Quick mode" in md
+    for variant in ("original", "smooth", "coarse"):
+        assert (out / "templates" / variant / "outer.obj").is_file()
+        assert json.loads((out / f"shards_{variant}" / "manifest.json").read_text())["config"]["template"].endswith(variant)
+
+
+def test_ablation_perceptual_quick(tiny_recipe_capture, tmp_path, capsys):
+    from recipes import ablation_perceptual
+
+    out = tmp_path / "perceptual"
+    payload = ablation_perceptual.main(["--quick", "--shards", str(tiny_recipe_capture.shards), "--out", str(out)])
+    data = _check_outputs(out, payload, 3, ("perceptual_metric.png", "psnr.png"))
+    rows = data["results"]
+    assert [r["perceptual"] == "none" for r in rows] == [True, False, False]
+    assert [r["perceptual_mode"] for r in rows] == [None, "patch", "image"]
+    backbone = data["perceptual_backbone"]
+    if ablation_perceptual.imagenet_weights_found() is None:
+        assert backbone == "vgg16-random"
+        assert "vgg16-random" in data["title"] and "not ImageNet" in data["title"]
+        assert "ABSENT" in capsys.readouterr().out
+    for r in rows[1:]:
+        assert r["perceptual_backbone"]["name"] == backbone
+        if backbone == "vgg16-random":
+            assert r["perceptual_backbone"]["seed"] == 1  # the recipe's default: not the metric's seed 0
+            assert r["lpips_random_vgg16_backbone"]["seed"] == 0
+        assert r["stage2_from_iteration"] == int(0.5 * tiny_recipe_capture.sizes.iters)
+        log = [json.loads(x) for x in (Path(r["run"]) / "log.jsonl").read_text().splitlines()]
+        assert log[-1]["stage"] == 2 and log[-1]["perceptual_weight"] > 0
+    claims = data["claims"]
+    assert claims["perceptual_metric"] == ("lpips" if all(r["lpips"] is not None for r in rows) else "lpips_random_vgg16")
+    assert isinstance(claims["image_beats_patch_on_perceptual_metric"], bool)
+    md = (out / "results.md").read_text()
+    assert "Perceptual metric used for the comparison" in md and "substitute" in md.lower()
+
+
+def test_ablation_perceptual_rejects_bad_start(tmp_path):
+    from recipes import ablation_perceptual
+
+    with pytest.raises(SystemExit):
+        ablation_perceptual.main(["--quick", "--out", str(tmp_path), "--perceptual-start", "1.5"])
+
+
+def test_ablation_template_quick_standin(tiny_recipe_capture, tmp_path, capsys):
+    """Without --smpl-model: the DDC-style template against the decimated + smoothed stand-in, said so."""
+    from recipes import ablation_template
+
+    out = tmp_path / "template"
+    payload = ablation_template.main(["--quick", "--subject", str(tiny_recipe_capture.subject), "--out", str(out)])
+    data = _check_outputs(out, payload, 4, ("psnr_by_template.png",))
+    assert data["body_model"] == "standin" and data["claims"]["comparison"] == "standin"
+    assert "stand-in" in data["title"] and "no SMPL" in data["title"]
+    assert "no --smpl-model given" in data["comparison"]
+    assert "comparison: " in capsys.readouterr().out
+    assert {(r["template"], r["variant"]) for r in data["results"]} == {
+        (t, m) for t in ("original", "standin") for m in ("single_surface", "two_surface")}
+    g = data["templates"]["standin"]
+    assert g["faces"] <= ablation_template.STANDIN_FACES and g["deviation_mean_mm"] > 1.0
+    assert "Comparison run:" in (out / "results.md").read_text()
+
+
+def test_ablation_template_missing_smpl_file(tmp_path, capsys):
+    from recipes import ablation_template
+
+    with pytest.raises(SystemExit):
+        ablation_template.main(["--quick", "--out", str(tmp_path), "--smpl-model", str(tmp_path / "none.npz")])
+    assert "not shipped" in capsys.readouterr().err
+
+
+def _synthetic_smpl_npz(path: Path) -> Path:
+    """An SMPL-format model file (nothing shipped): an upright ellipsoid, SMPL's kinematic tree."""
+    import trimesh
+
+    parents = np.array([-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21])
+    m = trimesh.creation.icosphere(subdivisions=2, radius=0.5)
+    rng = np.random.default_rng(0)
+    V = len(m.vertices)
+    v = np.asarray(m.vertices, np.float64) * [0.6, 1.7, 0.3] + [0.0, 0.9, 0.0]
+    J = rng.random((24, V)) ** 4
+    W = rng.random((V, 24)) ** 6
+    kintree = np.stack([np.where(parents < 0, 4294967295, parents), np.arange(24)]).astype(np.int64)
+    np.savez(path, v_template=v, shapedirs=rng.normal(0, 0.01, (V, 3, 10)), posedirs=rng.normal(0, 0.002, (V, 3, 207)),
+             J_regressor=J / J.sum(1, keepdims=True), weights=W / W.sum(1, keepdims=True), kintree_table=kintree,
+             f=np.asarray(m.faces, np.uint32))
+    return path
+
+
+def test_smpl_character_is_a_poseable_template(tiny_recipe_capture, tmp_path):
+    """The SMPL path as far as the API goes: fit, skin transfer, character folder with shell, posable by DDCTemplate."""
+    import torch
+
+    from deliffas.data.dynacap import read_character, read_obj
+    from deliffas.geometry.template import DDCTemplate
+    from recipes.ablation_template import fit_smpl_to_mesh, smpl_character, write_template_folder
+    from recipes.common import find_character
+
+    npz = _synthetic_smpl_npz(tmp_path / "smpl_synthetic.npz")
+    original = read_character(find_character(tiny_recipe_capture.subject))
+    made, report = smpl_character(original, npz, fit_iters=25, packing_res=128)
+    assert report["final_vertex_distance_mean_mm"] < report["initial_vertex_distance_mean_mm"]  # the fit moved towards the body
+    assert made.mesh.num_verts == report["num_verts"] == 162 and made.mesh.face_uvs.shape == (320, 3)
+    assert np.allclose(made.skin.dense().sum(1), 1.0, atol=1e-6)
+    assert made.skin.bones == original.skin.bones
+    path = write_template_folder(tmp_path / "smpl", made, "smpl")
+    assert read_obj(tmp_path / "smpl" / "outer.obj").num_verts == 162
+    again = read_character(path)
+    verts = DDCTemplate(again, "dqs", dtype=torch.float64).pose(torch.as_tensor(again.rest_dofs)[None]).numpy()[0]
+    assert np.allclose(verts, made.mesh.verts, atol=1e-2)  # the rest pose reproduces the fitted SMPL surface
+    # the fit alone: from a translated copy of a mesh, translation is recovered
+    from deliffas.geometry.smpl import SMPLTemplate
+
+    smpl = SMPLTemplate(npz, atlas_res=128, dtype=torch.float64)
+    with torch.no_grad():
+        target = smpl.pose(smpl.rest_params()).numpy()[0] + [30.0, -20.0, 10.0]
+    _, fitted, rep = fit_smpl_to_mesh(smpl, target, iters=60)
+    assert rep["final_vertex_distance_mean_mm"] < 5.0
