@@ -18,9 +18,11 @@ import torch
 
 MODULES = [
     "benchmarks.bench_posing",
+    "benchmarks.bench_data",
     "benchmarks.bench_uv",
     "benchmarks.bench_mlp",
     "benchmarks.bench_unet",
+    "benchmarks.bench_normal_maps",
 ]
 
 

@@ -57,9 +57,11 @@ class _ItemToSample:
         inner = item.inner_verts.numpy()
         outer = item.outer_verts.numpy()
         rays = frame_rays(inner, outer, self.faces, self.atlas, cams) if self.with_rays else []
-        return FrameSample(frame=int(item.frame), images=item.images.numpy(), masks=item.masks.numpy(),
-                           cameras=cams, camera_ids=np.asarray(ids), normal_inner=item.normal_maps_inner.numpy(),
-                           normal_outer=item.normal_maps_outer.numpy(), inner_verts=inner, outer_verts=outer, rays=rays)
+        return FrameSample(frame=int(item.frame), images=item.images.numpy().astype(np.float32) / 255,
+                           masks=item.masks.numpy().astype(np.float32) / 255, cameras=cams, camera_ids=np.asarray(ids),
+                           normal_inner=item.normal_maps_inner.numpy().astype(np.float32),
+                           normal_outer=item.normal_maps_outer.numpy().astype(np.float32),
+                           inner_verts=inner, outer_verts=outer, rays=rays)
 
 
 def _one_thread_worker(_worker_id: int) -> None:

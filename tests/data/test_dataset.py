@@ -22,11 +22,12 @@ def test_item_shapes_and_values(subject, converted):
     assert shapes == {"images": (2, 64, 64, 3), "masks": (2, 64, 64), "intrinsics": (2, 3, 3),
                       "world_to_cam": (2, 4, 4), "camera_ids": (2,), "inner_verts": (V, 3), "outer_verts": (V, 3),
                       "normal_maps_inner": (9, 32, 32), "normal_maps_outer": (9, 32, 32), "dofs": (D,), "frame": ()}
-    assert item.images.dtype == torch.float32 and 0 <= item.images.min() and item.images.max() <= 1
+    assert item.images.dtype == torch.uint8 and item.masks.dtype == torch.uint8
+    assert item.normal_maps_inner.dtype == torch.float16
     assert int(item.frame) == 1 and item.camera_ids.tolist() == [0, 1]
     ref_rgb, ref_mask = ImageFolderSource(subject / "training").read(1, 1)
-    assert torch.equal(item.images[1], torch.from_numpy(ref_rgb).float() / 255)
-    assert torch.equal(item.masks[1], torch.from_numpy(ref_mask).float() / 255)
+    assert torch.equal(item.images[1], torch.from_numpy(ref_rgb))
+    assert torch.equal(item.masks[1], torch.from_numpy(ref_mask))
     # temporal window: channels 3:6 are frame 0, 6:9 clamp to frame 0 as well
     first = ds[0]
     assert torch.equal(item.normal_maps_inner[3:6], first.normal_maps_inner[0:3])
