@@ -145,10 +145,12 @@ def process_map(fn, tasks: Sequence[tuple], jobs: int, initializer=None, initarg
     signal) raises RuntimeError naming its pid and exit code instead of hanging; on any error the
     remaining workers (started here) are terminated by handle. Keep ``tasks`` small and put large
     arrays into ``initargs``: CPython's executor can deadlock when a worker dies while a task larger
-    than the pipe buffer (64 kB) is being written to it. Callers need the ``if __name__ ==
-    "__main__"`` guard in their main script (spawn re-imports it).
+    than the pipe buffer (64 kB) is being written to it. Workers die with the calling process, even
+    when it is killed with SIGKILL (``_exit_when_parent_dies``), so no orphan keeps writing. Callers
+    need the ``if __name__ == "__main__"`` guard in their main script (spawn re-imports it).
     """
-    pool = ProcessPoolExecutor(jobs, mp_context=get_context("spawn"), initializer=initializer, initargs=initargs)
+    pool = ProcessPoolExecutor(jobs, mp_context=get_context("spawn"), initializer=_worker_init,
+                               initargs=(os.getpid(), initializer, initargs))
     try:
         pending = {pool.submit(fn, *t) for t in tasks}
         while pending:
@@ -166,6 +168,49 @@ def process_map(fn, tasks: Sequence[tuple], jobs: int, initializer=None, initarg
         pool.shutdown(wait=False, cancel_futures=True)
         raise
     pool.shutdown(wait=True)
+
+
+_PR_SET_PDEATHSIG = 1
+
+
+def _exit_when_parent_dies(parent_pid: int) -> None:
+    """Make this worker die with the process that started it (even by SIGKILL).
+
+    Without it, workers of a killed ``convert --jobs N`` live on as orphans and keep renaming shards
+    into the output folder while a ``--resume`` or ``--overwrite`` runs there. Linux: the kernel
+    sends SIGKILL on the parent's death (``PR_SET_PDEATHSIG``); elsewhere a daemon thread polls the
+    parent id every 0.2 s.
+    """
+    import signal
+    import sys
+    import threading
+
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+
+            libc = ctypes.CDLL(None, use_errno=True)
+            if libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0) == 0:
+                if os.getppid() != parent_pid:  # died before prctl took effect
+                    os._exit(1)
+                return
+        except (OSError, AttributeError):
+            pass
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(0.2)
+        os._exit(1)
+
+    if os.getppid() != parent_pid:
+        os._exit(1)
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
+def _worker_init(parent_pid: int, initializer, initargs: tuple) -> None:
+    _exit_when_parent_dies(parent_pid)
+    if initializer is not None:
+        initializer(*initargs)
 
 
 # --------------------------------------------------------------------------------------------- planning
