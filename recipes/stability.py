@@ -257,34 +257,36 @@ def pose_distances(shards: Path) -> dict[int, float]:
     return {f: float(x) for f, x in zip(frames, dist)}
 
 
-def _per_frame_metrics(run_dir: Path, shards: Path, split: str, frames: list[int] | None, evaluator) -> dict[int, list]:
-    """Protocol metrics of every held-out-camera image of ``split``'s frames (frame -> ``ImageMetrics`` list)."""
+def _per_frame_metrics(run_dir: Path, shards: Path, split: str, max_frames: int | None, evaluator) -> dict[int, list]:
+    """Protocol metrics of every held-out-camera image of ``split``'s frames (frame -> ``ImageMetrics`` list).
+
+    Frames come from ``evaluation_samples`` under protocol ``all`` (every converted frame, at most
+    ``max_frames`` evenly spaced); only the held-out cameras are rendered.
+    """
     import torch
 
-    from deliffas.data.dataset import ShardDataset
-    from deliffas.engine.data_bridge import shard_info
+    from deliffas.engine.data_bridge import evaluation_samples
     from deliffas.engine.evaluate import load_run, render_frame
-    from deliffas.engine.samples import FrameSample, composite_target
+    from deliffas.engine.samples import composite_target
     from deliffas.engine.timing import StageTimer
     from deliffas.geometry.raycast import UVRaycaster
 
     model, _ = load_run(run_dir)
-    info = shard_info(str(shards), model.config.temporal_window)
-    ds = ShardDataset(shards, split=split, cameras=info["test_cameras"], frames=frames, cameras_per_item=None,
-                      temporal_window=info["temporal_window"], protocol="all")
-    out: dict[int, list[float]] = {}
-    for i in range(len(ds)):
-        item = ds[i]
-        ids = [int(c) for c in item.camera_ids]
-        sample = FrameSample(frame=int(item.frame), images=item.images.numpy(), masks=item.masks.numpy(),
-                             cameras=[info["cameras"][c] for c in ids], camera_ids=np.asarray(ids),
-                             normal_inner=item.normal_maps_inner.numpy(), normal_outer=item.normal_maps_outer.numpy(),
-                             inner_verts=item.inner_verts.numpy(), outer_verts=item.outer_verts.numpy(), rays=[])
+    samples, info = evaluation_samples(str(shards), split, max_frames=max_frames, with_rays=False, protocol="all",
+                                       temporal_window=model.config.temporal_window)
+    held_out = set(info["test_cameras"])
+    out: dict[int, list] = {}
+    for sample in samples:
+        keep = [k for k, c in enumerate(sample.camera_ids) if int(c) in held_out]
+        if not keep:
+            continue
+        sample = dataclasses.replace(sample, images=sample.images[keep], masks=sample.masks[keep],
+                                     cameras=[sample.cameras[k] for k in keep], camera_ids=sample.camera_ids[keep])
         caster = UVRaycaster(sample.inner_verts, info["faces"], sample.outer_verts, info["atlas"])
         preds = render_frame(model, sample, caster, torch.device("cpu"), StageTimer("cpu"))
         gt = composite_target(sample.images, sample.masks)
         out[sample.frame] = [evaluator.add(preds[k].permute(2, 0, 1), gt[k].permute(2, 0, 1),
-                                           torch.from_numpy(sample.masks[k])) for k in range(len(ids))]
+                                           torch.as_tensor(sample.masks[k]).float()) for k in range(len(keep))]
     return out
 
 
@@ -297,16 +299,11 @@ def _mean_metrics(records: list) -> dict:
 
 
 def sweep_pose_distance(st: _Study, plan: StabilityPlan) -> list[dict]:
-    from deliffas.data.shards import ShardSet
     from deliffas.models.metrics import Evaluator
 
     dist = pose_distances(st.base)
     order = sorted(dist, key=dist.get)
     bins = [list(b) for b in np.array_split(np.asarray(order), min(plan.pose_bins, len(order))) if len(b)]
-    train_frames = [int(f) for f in ShardSet(st.base).frames("training")]
-    if st.sizes.eval_frames and len(train_frames) > st.sizes.eval_frames:
-        pick = np.linspace(0, len(train_frames) - 1, st.sizes.eval_frames).round().astype(int)
-        train_frames = [train_frames[i] for i in pick]
     evaluator = Evaluator()
     rows = []
     for v in st.variants:
@@ -315,7 +312,8 @@ def sweep_pose_distance(st: _Study, plan: StabilityPlan) -> list[dict]:
             rows.append(_row("pose_distance", "", 0.0, "training poses", v, base))
             continue
         try:
-            seen = _per_frame_metrics(Path(base["run_dir"]), st.base, "novel_view", train_frames, evaluator)
+            seen = _per_frame_metrics(Path(base["run_dir"]), st.base, "novel_view", st.sizes.eval_frames,
+                                      evaluator)
             rows.append(_row("pose_distance", "", 0.0, "0 (training poses)", v,
                              {**_mean_metrics([m for ms in seen.values() for m in ms]), "frames": len(seen)},
                              distance=0.0, test_frames=sorted(seen)))
