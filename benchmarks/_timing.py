@@ -6,19 +6,23 @@ import time
 from typing import Callable
 
 
-def best_times(fns: dict[str, Callable[[], object]], repeat: int = 5, min_time: float = 0.0) -> dict[str, float]:
+def best_times(fns: dict[str, Callable[[], object]], repeat: int = 5, min_time: float = 0.0,
+               max_rounds: int | None = None) -> dict[str, float]:
     """Best wall time (s) of each function, calling them in turn (a, b, a, b, ...) after one warm-up each.
 
     Interleaving exposes every candidate to the same load of the machine, so the ratio of two
     best times is not skewed by a burst of other work during one of them. Runs ``repeat``
     rounds, and more while the total time of the rounds so far is below ``min_time`` seconds
-    (at most 4 x ``repeat`` rounds).
+    (at most ``max_rounds``, default 4 x ``repeat``). On a loaded 2-core machine a short
+    multi-threaded op sometimes waits tens of ms for its second thread; the best of many rounds
+    is the undisturbed time.
     """
     for fn in fns.values():
         fn()
     best = {name: float("inf") for name in fns}
     spent, rounds = 0.0, 0
-    while rounds < repeat or (spent < min_time and rounds < 4 * repeat):
+    cap = 4 * repeat if max_rounds is None else max_rounds
+    while rounds < repeat or (spent < min_time and rounds < cap):
         for name, fn in fns.items():
             t0 = time.perf_counter()
             fn()

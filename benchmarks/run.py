@@ -23,6 +23,7 @@ MODULES = [
     "benchmarks.bench_mlp",
     "benchmarks.bench_unet",
     "benchmarks.bench_normal_maps",
+    "benchmarks.bench_lightfield_vs_nerf",
 ]
 
 
