@@ -276,6 +276,12 @@ def main(argv: list[str] | None = None) -> int:
     except (DynaCapFormatError, FileNotFoundError) as err:
         print(f"deliffas {args.command}: error: {err}", file=sys.stderr)
         return 2
+    except ValueError as err:
+        zoo = sys.modules.get("deliffas.models.zoo")  # a CheckpointError can only come from a loaded zoo
+        if zoo is None or not isinstance(err, zoo.CheckpointError):
+            raise
+        print(f"deliffas {args.command}: error: {err}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-from deliffas.engine.checkpointing import STATE_FILE, load_training_state, save_training_state
+from deliffas.engine.checkpointing import STATE_FILE, load_training_state, read_training_state, save_training_state
 from deliffas.engine.rays import stack_rays
 from deliffas.engine.samples import FrameSample, composite_target
 from deliffas.engine.timing import StageTimer
@@ -236,7 +236,7 @@ def train(cfg: TrainConfig, resume: bool = False) -> TrainResult:
     start = 0
     state: dict[str, Any] = {}
     if resume and (run / STATE_FILE).is_file():
-        start = json.loads((run / STATE_FILE).read_text())["iteration"]
+        start = read_training_state(run)["iteration"]
     stream, data_info = _samples(cfg, rank, world, start)
     model_cfg = resolve_model_config(cfg, data_info["atlas_res"], data_info["temporal_window"])
     model = DeliffasModel(model_cfg).to(device)
