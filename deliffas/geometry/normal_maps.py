@@ -133,10 +133,16 @@ class NormalMapGather:
             n = vb[:, vi[:, 0]] * w[:, 0] + vb[:, vi[:, 1]] * w[:, 1] + vb[:, vi[:, 2]] * w[:, 2]  # (B, S*S, 3)
         else:
             raise ValueError(f"method: expected 'sparse' or 'gather', got {method!r}")
-        sq = (n * n).sum(-1, keepdim=True)
-        inv = torch.where(sq > NORMAL_EPS**2, sq.rsqrt(), torch.zeros_like(sq))
+        c = n.unbind(-1)  # 3 x (B, S*S) strided views
+        sq = c[0] * c[0]
+        sq.addcmul_(c[1], c[1]).addcmul_(c[2], c[2])  # (B, S*S) squared lengths, no (B, S*S, 3) temporary
+        inv = torch.where(sq > NORMAL_EPS**2, sq.rsqrt(), 0.0)
         out = torch.empty((B, 3, S * S), dtype=out_dtype, device=vn.device)
-        out.copy_((n * inv).transpose(1, 2))  # one strided copy to channel-first (+ cast)
+        for k in range(3):  # normalise straight into the channel-first output (+ cast)
+            if out_dtype == n.dtype:
+                torch.mul(c[k], inv, out=out[:, k])
+            else:
+                out[:, k] = c[k] * inv
         return out.reshape(*lead, 3, S, S)
 
 
