@@ -2,16 +2,16 @@
 
 from __future__ import annotations
 
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from benchmarks._capture import CAMERAS, FRAMES, SIZE, TEST_FRAMES, bench_capture
 from benchmarks.common import Result
 
-FRAMES, CAMERAS, SIZE, K = 12, 6, 256, 4
+K = 4
 
 
 def _png_item(root: Path, frame: int, cams: list[int]) -> tuple[np.ndarray, np.ndarray]:
@@ -39,24 +39,17 @@ def _loader_rate(ds, indices, workers: int) -> float:
 
 
 def run() -> list[Result]:
-    from deliffas.data.convert import ConvertConfig, convert
     from deliffas.data.dataset import ShardDataset
-    from deliffas.data.synth import SynthConfig, synthesize_capture
 
-    tmp = Path(tempfile.mkdtemp(prefix="deliffas-bench-data-"))
-    synthesize_capture(tmp / "subject", SynthConfig(num_frames=FRAMES, num_test_frames=2, num_cameras=CAMERAS,
-                                                    width=SIZE, height=SIZE, test_cameras=(CAMERAS - 1,), seed=0))
-    t0 = time.perf_counter()
-    res = convert(tmp / "subject", tmp / "shards", ConvertConfig(atlas_res=256, progress=False, shard_frames=6))
-    convert_s = time.perf_counter() - t0
-    n_frames = FRAMES + 2
-    png_root = next((tmp / "subject" / "training").glob("rgb_*"))
+    subject, shards, convert_s = bench_capture()
+    n_frames = FRAMES + TEST_FRAMES
+    png_root = next((subject / "training").glob("rgb_*"))
     png_bytes = sum(p.stat().st_size for p in png_root.rglob("*.png"))
-    ds = ShardDataset(tmp / "shards", split="train", cameras_per_item=K, protocol="all")
+    ds = ShardDataset(shards, split="train", cameras_per_item=K, protocol="all")
     shard_image_bytes = 0
     import h5py
 
-    for p in (tmp / "shards" / "shards").glob("*.h5"):
+    for p in (shards / "shards").glob("*.h5"):
         with h5py.File(p, "r") as f:
             if "rgba" in f:
                 shard_image_bytes += f["rgba"].id.get_storage_size()
@@ -75,7 +68,7 @@ def run() -> list[Result]:
 
     png_only = max(png_rate() for _ in range(2))
     rows.append(Result("data", f"PNG folder: K={K} images+masks only (no geometry)", png_only, "samples/s"))
-    geometry = _geometry_from_motion(tmp / "subject", ds)
+    geometry = _geometry_from_motion(subject, ds)
 
     def png_sample_rate() -> float:
         t = time.perf_counter()

@@ -19,6 +19,7 @@ import torch
 MODULES = [
     "benchmarks.bench_posing",
     "benchmarks.bench_data",
+    "benchmarks.bench_engine",
     "benchmarks.bench_uv",
     "benchmarks.bench_mlp",
     "benchmarks.bench_unet",
