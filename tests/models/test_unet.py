@@ -93,3 +93,27 @@ def test_channels_last_matches():
     net_cl = net.to(memory_format=torch.channels_last)
     out = net_cl(x.contiguous(memory_format=torch.channels_last))
     torch.testing.assert_close(out, ref, rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize("size", [1, 2, 8, 16, 32])
+@pytest.mark.parametrize("bias", [False, True])
+def test_cpu_conv_paths_match_torch(size, bias):
+    """The U-Net's conv subclasses (matrix product on small maps, channels_last on large ones)
+    compute nn.Conv2d / nn.ConvTranspose2d, forward and backward."""
+    from deliffas.models.unet import _Conv2d, _ConvTranspose2d
+
+    torch.manual_seed(0)
+    pairs = [(nn.ConvTranspose2d(6, 5, 4, 2, 1, bias=bias), _ConvTranspose2d(6, 5, 4, 2, 1, bias=bias))]
+    if size >= 2:
+        pairs.append((nn.Conv2d(6, 5, 4, 2, 1, bias=bias), _Conv2d(6, 5, 4, 2, 1, bias=bias)))
+    for ref, fast in pairs:
+        fast.load_state_dict(ref.state_dict())
+        x = torch.randn(2, 6, size, size, requires_grad=True)
+        x2 = x.detach().clone().requires_grad_()
+        y_ref, y = ref(x), fast(x2)
+        torch.testing.assert_close(y, y_ref, rtol=1e-5, atol=1e-6)
+        g = torch.randn_like(y_ref)
+        y_ref.backward(g)
+        y.backward(g)
+        torch.testing.assert_close(x2.grad, x.grad, rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(fast.weight.grad, ref.weight.grad, rtol=1e-5, atol=1e-5)
