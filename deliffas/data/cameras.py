@@ -14,7 +14,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from deliffas.checks import check_shape
+from deliffas.checks import check_finite, check_shape
 
 __all__ = ["Camera", "pixel_centers"]
 
@@ -55,6 +55,10 @@ class Camera:
     def __post_init__(self) -> None:
         check_shape(f"camera {self.name} K", self.K, "3 3")
         check_shape(f"camera {self.name} world_to_cam", self.world_to_cam, "4 4")
+        check_finite(f"camera {self.name} K", self.K)  # NaN rays would silently hit nothing
+        check_finite(f"camera {self.name} world_to_cam", self.world_to_cam)
+        if abs(float(np.linalg.det(np.asarray(self.K, np.float64)))) < 1e-12:
+            raise ValueError(f"camera {self.name} K: singular intrinsics (fx, fy must be non-zero, last row 0 0 1)")
         if self.width <= 0 or self.height <= 0:
             raise ValueError(f"camera {self.name}: image size must be positive, got {self.width}x{self.height}")
 

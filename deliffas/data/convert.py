@@ -516,12 +516,24 @@ def _convert_shard(ctx: _Context, task: _Task) -> dict:
 
 
 # --------------------------------------------------------------------------------------------- main entry
+def _warn_if_not_watertight(character: Path, faces: np.ndarray) -> None:
+    """Log where a template has holes: rays through them see no inner surface (the outer exit is used)."""
+    from deliffas.geometry.shell import mesh_edges
+
+    edges, counts, _ = mesh_edges(np.asarray(faces, np.int64))
+    boundary = np.unique(edges[counts == 1])
+    if len(boundary) or np.any(counts > 2):
+        log.warning("%s: the template is not watertight: %d boundary vertices (first ids %s), %d non-manifold edges",
+                    character, len(boundary), boundary[:10].tolist(), int(np.sum(counts > 2)))
+
+
 def _build_meta(cameras: list[Camera], train, test, seqs, ctx: _Context) -> ShardMeta:
     with _single_thread_torch():
         st = _state(ctx)
     w, h = next(iter(seqs.values())).width, next(iter(seqs.values())).height
     scaled = [c.rescaled(w, h) if (c.width, c.height) != (w, h) else c for c in cameras]
     mesh = st["character"].mesh
+    _warn_if_not_watertight(ctx.character, mesh.faces)
     table = st["table"]
     cfg = ctx.config
     attrs = {

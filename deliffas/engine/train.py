@@ -158,7 +158,19 @@ def render_sample_images(model: DeliffasModel, sample: FrameSample, device: torc
 def train_step(model: DeliffasModel, sample: FrameSample, optimizer: torch.optim.Optimizer, device: torch.device,
                perceptual: torch.nn.Module | None = None, perceptual_weight: float = 0.0,
                net: torch.nn.Module | None = None, generator: torch.Generator | None = None) -> dict[str, float]:
-    """One optimisation step on one frame; returns the loss terms and the step's PSNR (on shaded rays)."""
+    """One optimisation step on one frame; returns the loss terms and the step's PSNR (on shaded rays).
+
+    A sample whose cameras shade no ray at all (every camera looks away from the subject, or the
+    outer shell lies outside every image) has no pixel that depends on a parameter, and the mean L1
+    over zero rays would be NaN: the step is skipped (no optimizer step; ``skipped`` = 1, losses 0,
+    ``psnr_rays`` NaN). Under DistributedDataParallel the rank still runs a zero-loss backward and
+    steps with the other ranks' averaged gradients, so no collective hangs and the replicas stay equal.
+    """
+    ddp = isinstance(net, torch.nn.parallel.DistributedDataParallel)
+    num_rays = sum(r.num_rays for r in sample.rays)
+    if num_rays == 0 and not ddp:
+        optimizer.zero_grad(set_to_none=True)
+        return {"l1": 0.0, "loss": 0.0, "psnr_rays": float("nan"), "skipped": 1.0}
     model.train()
     pred = render_sample_images(model, sample, device, net=net)  # (K, H, W, 3)
     target = composite_target(sample.images, sample.masks).to(device)
@@ -169,9 +181,12 @@ def train_step(model: DeliffasModel, sample: FrameSample, optimizer: torch.optim
     shaded = shaded.reshape(K, pred.shape[1], pred.shape[2])
     # L1 over the rays the model paints (pixels outside the shell are background in both images,
     # up to person pixels the shell misses, which no parameter can change).
-    l1 = (pred - target).abs()[shaded].mean()
+    if num_rays:
+        l1 = (pred - target).abs()[shaded].mean()
+    else:  # DDP only: a zero loss that reaches every parameter, so every gradient hook (all-reduce) fires
+        l1 = pred.sum() * 0.0 + sum(p.sum() for p in model.parameters() if p.requires_grad) * 0.0
     loss = l1
-    out = {"l1": float(l1.detach())}
+    out = {"l1": float(l1.detach()), "skipped": 0.0 if num_rays else 1.0}
     if perceptual is not None and perceptual_weight > 0:
         p = perceptual(pred.permute(0, 3, 1, 2), target.permute(0, 3, 1, 2),
                        torch.from_numpy(sample.masks).to(device), generator=generator)
@@ -182,7 +197,7 @@ def train_step(model: DeliffasModel, sample: FrameSample, optimizer: torch.optim
     optimizer.step()
     mse = float(((pred.detach() - target) ** 2)[shaded].mean()) if shaded.any() else float("nan")
     out["loss"] = float(loss.detach())
-    out["psnr_rays"] = 10 * math.log10(1.0 / mse) if mse > 0 else float("inf")
+    out["psnr_rays"] = float("nan") if not num_rays else 10 * math.log10(1.0 / mse) if mse > 0 else float("inf")
     return out
 
 
@@ -283,10 +298,10 @@ def train(cfg: TrainConfig, resume: bool = False) -> TrainResult:
             tb = time.perf_counter()
             weight = 0.0
             if it >= stage2_at and perceptual is not None:
-                if perc_weight is None:
+                if perc_weight is None and sum(r.num_rays for r in sample.rays) > 0:  # not on an empty view
                     perc_weight = _balance_weight(model, sample, device, perceptual)
                     logger.info("stage 2 at iteration %d: perceptual weight %.4g", it, perc_weight)
-                weight = perc_weight
+                weight = perc_weight or 0.0
             last = train_step(model, sample, optimizer, device, perceptual, weight, net=net, generator=gen)
             tc = time.perf_counter()
             data_s += tb - ta

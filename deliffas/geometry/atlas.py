@@ -237,7 +237,8 @@ def uv_texel_table(atlas: UVAtlas, size: int, gutter: int = 2) -> TexelTable:
     degenerate = np.abs(det) <= UV_AREA_EPS
     degenerate_ids = np.flatnonzero(degenerate).astype(np.int64)
     if len(degenerate_ids):
-        log.warning("uv_texel_table: %d zero-area UV faces cover no texel", len(degenerate_ids))
+        log.warning("uv_texel_table: %d zero-area UV faces cover no texel (first face ids %s)", len(degenerate_ids),
+                    degenerate_ids[:10].tolist())
 
     corners = p0[:, None, :] + np.stack([np.zeros_like(e1), e1, e2], axis=1)  # (F, 3, 2)
     lo = np.ceil(corners.min(axis=1) - _INSIDE_TOL).astype(np.int64)  # (F, 2) (x, y)

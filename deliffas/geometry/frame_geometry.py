@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from deliffas.checks import check_shape
+from deliffas.checks import check_finite, check_shape
 from deliffas.geometry.atlas import TexelTable
 from deliffas.geometry.mesh_ops import vertex_normals
 from deliffas.geometry.normal_maps import NormalMapGather, temporal_window
@@ -64,6 +64,7 @@ class FrameGeometryBuilder:
     def build(self, inner: np.ndarray) -> FrameGeometry:
         """Outer surface and normal maps of posed inner surfaces ``inner`` (B, V, 3) mm."""
         check_shape("inner", inner, "B V 3", {"V": len(self.offsets)})
+        check_finite("inner", inner)  # NaN vertices would become NaN normal maps in the shards
         inner = np.asarray(inner, np.float64)
         outer = offset_shell(inner, self.faces, self.offsets)
         nm_in = self.gather.apply(vertex_normals(inner, self.faces), dtype=self.dtype)

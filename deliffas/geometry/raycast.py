@@ -22,7 +22,7 @@ from typing import Literal, Sequence
 
 import numpy as np
 
-from deliffas.checks import check_shape
+from deliffas.checks import check_finite, check_shape
 from deliffas.data.cameras import Camera
 from deliffas.geometry.atlas import UVAtlas
 
@@ -68,11 +68,14 @@ def build_scene(verts: np.ndarray, faces: np.ndarray):
     """An open3d ``RaycastingScene`` holding one triangle mesh (float32 positions).
 
     Args:
-        verts: (V, 3) float, mm.
-        faces: (F, 3) int.
+        verts: (V, 3) float, mm (finite: NaN or inf raise ValueError).
+        faces: (F, 3) int in [0, V).
     """
-    check_shape("verts", verts, "V 3")
+    sizes = check_shape("verts", verts, "V 3")
     check_shape("faces", faces, "F 3")
+    check_finite("verts", verts)  # open3d would silently drop the faces of a NaN vertex
+    if len(faces) and (int(np.min(faces)) < 0 or int(np.max(faces)) >= sizes["V"]):
+        raise ValueError(f"faces: indices must be in [0, {sizes['V']}), got [{int(np.min(faces))}, {int(np.max(faces))}]")
     o3d = _o3d()
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(

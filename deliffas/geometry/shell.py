@@ -475,6 +475,10 @@ def shell_report(
     nonmanifold = int((counts > 2).sum())
     inner_bad = self_intersecting_faces(inner, faces)
     outer_bad = self_intersecting_faces(outer, faces)
+    if len(boundary) or nonmanifold:
+        ids = np.unique(boundary)
+        log.warning("shell_report: the inner mesh is not watertight: %d boundary edges at %d vertices (first ids %s), "
+                    "%d non-manifold edges; rays through a hole hit the back faces of the far side (the mesh's inside)", len(boundary), len(ids), ids[:10].tolist(), nonmanifold)
     report = ShellReport(
         num_verts=int(sizes["V"]),
         num_faces=int(sizes["F"]),
