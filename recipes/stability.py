@@ -14,8 +14,10 @@ Sweeps (each configuration trained with the same iterations, L1 only, evaluated 
   held-out cameras stay the same).
 * ``pose_distance``: the base models (30 mm, original template, all cameras) evaluated frame by
   frame on the held-out cameras, on training poses (distance 0) and on the test motion, binned by the
-  distance of each test pose to the nearest training pose: the Euclidean norm over the articulation
-  DOFs (every DOF but the first six, the Skeletool root translation and rotation), in DOF units.
+  distance of each test pose to the nearest training pose: the Euclidean norm over every DOF but
+  the first three (the Skeletool root translation, which moves the body without changing how it
+  looks), in DOF units (radians times the skeleton's DOF weights). The root rotation counts: the
+  normal maps, and the synthetic captures' lighting, are in world space.
 * ``holes``: the template with holes (faces within two rings of k random vertices deleted, so it is
   not watertight). Depth peeling needs the shell's exit hit where a ray misses the inner surface;
   the row reports the fraction of shell-hitting rays without an exit hit, the fraction of them
@@ -46,8 +48,8 @@ from recipes.common import (RecipeSizes, find_character, prepare_capture, prepar
 logger = logging.getLogger(__name__)
 
 SWEEPS = ("offset", "smoothing", "cameras", "pose_distance", "holes")
-ROOT_DOFS = 6
-"""Skeletool skeletons start with the root's translate_x/y/z and rotate_y/z/x DOFs (global placement)."""
+ROOT_TRANSLATION_DOFS = 3
+"""Skeletool skeletons start with the root's translate_x/y/z DOFs (then its rotate_y/z/x)."""
 HOLE_RINGS = 2
 
 
@@ -249,10 +251,10 @@ def _sequence_dofs(shards: Path, sequence: str) -> tuple[list[int], np.ndarray]:
 
 
 def pose_distances(shards: Path) -> dict[int, float]:
-    """Test frame -> distance of its articulation DOFs to the nearest training frame's."""
+    """Test frame -> distance of its DOFs (root translation left out) to the nearest training frame's."""
     _, train = _sequence_dofs(shards, "training")
     frames, test = _sequence_dofs(shards, "testing")
-    a, b = test[:, ROOT_DOFS:], train[:, ROOT_DOFS:]
+    a, b = test[:, ROOT_TRANSLATION_DOFS:], train[:, ROOT_TRANSLATION_DOFS:]
     dist = np.sqrt(((a[:, None] - b[None]) ** 2).sum(-1)).min(1)
     return {f: float(x) for f, x in zip(frames, dist)}
 
@@ -525,7 +527,8 @@ def markdown(rows: list[dict], summary: dict, fail_db: float) -> list[str]:
                "|---|---|---|---:|---:|---:|:---:|---|"]
         for r in (r for r in rows if r["sweep"] == sweep):
             md.append(f"| {r['label']} | {r['series']} | {r['variant']} | {_fmt(r.get('psnr'))} | "
-                      f"{_fmt(r.get('ssim'), '.4f')} | {_fmt(r.get('drop_db'))} | {'**yes**' if r['failed'] else 'no'} | "
+                      f"{_fmt(r.get('ssim'), '.4f')} | {_fmt(r.get('drop_db'))} | "
+                      f"{'**yes**' if r['failed'] else 'no'} | "
                       f"{_extra_text(r)} |")
         md += [""] + [f"- {v} fails at: {', '.join(f) if f else 'nothing in this sweep'}"
                       for v, f in summary.get(sweep, {}).items()] + [""]
@@ -538,13 +541,15 @@ def _parser():
     p.add_argument("--variants", default="single_surface,two_surface", help="comma-separated zoo names")
     p.add_argument("--fail-db", type=float, default=1.0, help="a row fails below (sweep best - this) dB PSNR")
     p.add_argument("--sweeps", default=",".join(SWEEPS), help=f"comma-separated subset of {','.join(SWEEPS)}")
+    p.add_argument("--plan", choices=["auto", "quick", "full"], default="auto",
+                   help="swept values: quick (a couple per sweep) or full; auto follows --quick")
     return p
 
 
 def main(argv=None) -> dict:
     args = _parser().parse_args(argv)
     sizes = sizes_from_args(args)
-    plan = StabilityPlan.for_mode(args.quick)
+    plan = StabilityPlan.for_mode(args.quick if args.plan == "auto" else args.plan == "quick")
     variants = [v.strip() for v in args.variants.split(",") if v.strip()]
     sweeps = [s.strip() for s in args.sweeps.split(",") if s.strip()]
     unknown = sorted(set(sweeps) - set(SWEEPS))
@@ -577,7 +582,8 @@ def main(argv=None) -> dict:
     for sweep in dict.fromkeys(r["sweep"] for r in rows):
         charts[sweep] = str(sweep_chart([r for r in rows if r["sweep"] == sweep], sweep, out / f"stability_{sweep}.png",
                                         f"{title}: {sweep}", args.fail_db))
-    payload = {"title": title, "quick": args.quick, "sizes": dataclasses.asdict(sizes), "plan": dataclasses.asdict(plan),
+    payload = {"title": title, "quick": args.quick, "sizes": dataclasses.asdict(sizes),
+               "plan": dataclasses.asdict(plan),
                "variants": variants, "fail_db": args.fail_db,
                "fail_rule": f"error, non-finite PSNR, or PSNR more than {args.fail_db:g} dB below the best of the "
                             "same variant in the same sweep",

@@ -49,15 +49,17 @@ def stability(tiny_recipe_capture, tmp_path_factory):
 
     out = tmp_path_factory.mktemp("stability")
     # a variant that does not exist: every configuration of it must become a recorded error
-    return out, stability.main(_args(tiny_recipe_capture, out) + ["--variants", "single_surface,two_surface,no_such_model"])
+    variants = "single_surface,two_surface,no_such_model"
+    return out, stability.main(_args(tiny_recipe_capture, out) + ["--variants", variants])
 
 
-def test_speed_accuracy_rows_and_pareto(speed):
+def test_speed_accuracy_rows_and_pareto(speed, tiny_recipe_capture):
     from deliffas.engine.report import pareto_front
     from recipes.speed_accuracy import VARIANTS, SweepPlan
 
     out, payload = speed
-    assert json.loads((out / "results.json").read_text())["results"] == json.loads(json.dumps(payload["results"], default=str))
+    written = json.loads((out / "results.json").read_text())
+    assert written["results"] == json.loads(json.dumps(payload["results"], default=str))
     rows = payload["results"]
     plan = SweepPlan.for_mode(True)
     knobs = [r["knob"] for r in rows]
@@ -78,9 +80,10 @@ def test_speed_accuracy_rows_and_pareto(speed):
     front = pareto_front([r["ms_per_frame"] for r in usable], [r["psnr"] for r in usable])
     assert {usable[i]["name"] for i in front} == {r["name"] for r in usable if r["pareto"]}
     assert payload["pareto_front"] == [usable[i]["name"] for i in front]
-    assert payload["resolution"] == [48, 48]
+    side = tiny_recipe_capture.sizes.size
+    assert payload["resolution"] == [side, side]
     md = (out / "results.md").read_text()
-    assert "on Pareto front" in md and "48x48" in md
+    assert "on Pareto front" in md and f"{side}x{side}" in md
     for r in rows:
         assert r["name"] in md
     _valid_png(out / "speed_accuracy.png")
