@@ -41,7 +41,7 @@ def _train_config(args: argparse.Namespace):
         values.update(json.loads(Path(args.config).read_text()))
     values.update(shards=str(args.shards), out=str(args.out))
     for key in ("model", "preset", "iters", "perceptual", "perceptual_mode", "cameras_per_frame", "device",
-                "num_workers", "seed", "vgg16_path", "checkpoint_every", "preview_every"):
+                "num_workers", "seed", "vgg16_path", "checkpoint_every", "preview_every", "ray_chunk"):
         v = getattr(args, key, None)
         if v is not None:
             values[key] = v
@@ -135,6 +135,8 @@ def add_engine_commands(sub) -> None:
     p.add_argument("--device", default=None, help="cpu | cuda | cuda:N")
     p.add_argument("--workers", dest="num_workers", type=int, default=None, help="DataLoader workers")
     p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--ray-chunk", type=int, default=None,
+                   help="rays per backward pass (bounds training memory; single process)")
     p.add_argument("--checkpoint-every", type=int, default=None)
     p.add_argument("--preview-every", type=int, default=None)
     p.add_argument("--auto-capacity", action="store_true",

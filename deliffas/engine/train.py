@@ -77,6 +77,9 @@ class TrainConfig:
     device: str = "cpu"
     num_workers: int = 1
     """DataLoader workers (they also ray-cast the uv maps)."""
+    ray_chunk: int | None = None
+    """Rays per backward pass (single process): bounds the light-field activations of a step to
+    this many rays; None = every ray of the step's K images in one graph (docs/reliability.md)."""
     checkpoint_every: int = 250
     preview_every: int = 250
     log_every: int = 10
@@ -155,10 +158,75 @@ def render_sample_images(model: DeliffasModel, sample: FrameSample, device: torc
     return canvas.reshape(K, H, W, 3)
 
 
+def _chunked_backward(model: DeliffasModel, sample: FrameSample, device: torch.device,
+                      perceptual: torch.nn.Module | None, perceptual_weight: float,
+                      generator: torch.Generator | None, ray_chunk: int) -> dict[str, float]:
+    """Gradients of one step's loss, shading at most ``ray_chunk`` rays per graph (same gradient).
+
+    The U-Nets run once and keep their graph; the light field's gradient w.r.t. the feature maps is
+    accumulated chunk by chunk on detached copies and then pushed through the U-Nets in one
+    backward. The perceptual term (a function of the whole images) is differentiated once w.r.t.
+    the rendered images (rendered without a graph), and that image gradient enters each chunk's
+    backward. Returns the loss terms and ``sq_sum`` (sum of squared errors over shaded values).
+    """
+    from deliffas.models.deliffas import FrameFeatures
+
+    cfg = model.config
+    K = sample.num_cameras
+    H, W = sample.images.shape[1:3]
+    ni = torch.from_numpy(sample.normal_inner)[None].to(device)
+    no = torch.from_numpy(sample.normal_outer)[None].to(device) if cfg.uses_outer_surface else None
+    batch = stack_rays(sample.rays, [0] * K).to(device)
+    two = cfg.uses_outer_surface
+    features = model.encode(ni, no)  # (1, C, S, S) maps with the U-Net graph
+    leaves = FrameFeatures(inner=features.inner.detach().requires_grad_(),
+                           outer=None if features.outer is None else features.outer.detach().requires_grad_())
+    target = composite_target(sample.images, sample.masks).to(device)  # (K, H, W, 3)
+    target_rays = target.reshape(K, H * W, 3)[batch.image_index, batch.pixels]  # (N, 3)
+    n = batch.num_rays
+    args = (batch.uv_inner, batch.uv_outer if two else None, batch.viewdir if cfg.uses_viewdir else None,
+            batch.inner_from_outer if two else None)
+    out: dict[str, float] = {}
+    image_grad = None
+    if perceptual is not None and perceptual_weight > 0:
+        with torch.no_grad():
+            pred_all = model.shade_chunked(leaves, batch.batch_index, *args, chunk_size=ray_chunk)
+        canvas = pred_all.new_zeros(K, H * W, 3).index_put((batch.image_index, batch.pixels), pred_all)
+        canvas = canvas.reshape(K, H, W, 3).requires_grad_()
+        p = perceptual(canvas.permute(0, 3, 1, 2), target.permute(0, 3, 1, 2),
+                       torch.from_numpy(sample.masks).to(device), generator=generator)
+        (perceptual_weight * p).backward()
+        image_grad = canvas.grad.reshape(K, H * W, 3)[batch.image_index, batch.pixels]  # (N, 3)
+        out["perceptual"] = float(p.detach())
+        del canvas, pred_all
+    l1_sum = sq_sum = 0.0
+    for start in range(0, n, ray_chunk):
+        sl = slice(start, start + ray_chunk)
+        pred = model.shade(leaves, batch.batch_index[sl], *(None if a is None else a[sl] for a in args))
+        diff = pred - target_rays[sl]
+        l1_part = diff.abs().sum() / (3 * n)  # the mean over all shaded values, split into chunks
+        chunk_loss = l1_part if image_grad is None else l1_part + (pred * image_grad[sl]).sum()
+        chunk_loss.backward()
+        l1_sum += float(l1_part.detach())
+        sq_sum += float(diff.detach().square().sum())
+    roots = [(f, leaf.grad) for f, leaf in ((features.inner, leaves.inner), (features.outer, leaves.outer))
+             if f is not None and leaf.grad is not None]
+    if roots:
+        torch.autograd.backward([f for f, _ in roots], [g for _, g in roots])
+    out.update(l1=l1_sum, loss=l1_sum + perceptual_weight * out.get("perceptual", 0.0), sq_sum=sq_sum)
+    return out
+
+
 def train_step(model: DeliffasModel, sample: FrameSample, optimizer: torch.optim.Optimizer, device: torch.device,
                perceptual: torch.nn.Module | None = None, perceptual_weight: float = 0.0,
-               net: torch.nn.Module | None = None, generator: torch.Generator | None = None) -> dict[str, float]:
+               net: torch.nn.Module | None = None, generator: torch.Generator | None = None,
+               ray_chunk: int | None = None) -> dict[str, float]:
     """One optimisation step on one frame; returns the loss terms and the step's PSNR (on shaded rays).
+
+    ``ray_chunk`` bounds the rays shaded in one graph (single process only): the U-Nets run once,
+    the light field chunk by chunk, and the gradient equals the unchunked one up to float
+    summation order. Peak memory is then U-Nets + ``ray_chunk`` rays instead of every ray of the K
+    images (docs/reliability.md).
 
     A sample whose cameras shade no ray at all (every camera looks away from the subject, or the
     outer shell lies outside every image) has no pixel that depends on a parameter, and the mean L1
@@ -167,11 +235,20 @@ def train_step(model: DeliffasModel, sample: FrameSample, optimizer: torch.optim
     steps with the other ranks' averaged gradients, so no collective hangs and the replicas stay equal.
     """
     ddp = isinstance(net, torch.nn.parallel.DistributedDataParallel)
+    if ray_chunk is not None and (ray_chunk < 1 or ddp):
+        raise ValueError(f"ray_chunk must be >= 1 and needs a single process (got {ray_chunk}, DDP {ddp})")
     num_rays = sum(r.num_rays for r in sample.rays)
     if num_rays == 0 and not ddp:
         optimizer.zero_grad(set_to_none=True)
         return {"l1": 0.0, "loss": 0.0, "psnr_rays": float("nan"), "skipped": 1.0}
     model.train()
+    if ray_chunk is not None and num_rays > ray_chunk:
+        optimizer.zero_grad(set_to_none=True)
+        out = _chunked_backward(model, sample, device, perceptual, perceptual_weight, generator, ray_chunk)
+        optimizer.step()
+        mse = out.pop("sq_sum") / (3 * num_rays)
+        out.update(skipped=0.0, psnr_rays=10 * math.log10(1.0 / mse) if mse > 0 else float("inf"))
+        return out
     pred = render_sample_images(model, sample, device, net=net)  # (K, H, W, 3)
     target = composite_target(sample.images, sample.masks).to(device)
     K = sample.num_cameras
@@ -237,6 +314,8 @@ def train(cfg: TrainConfig, resume: bool = False) -> TrainResult:
     ground truth), ``checkpoint/`` (safetensors + JSON), ``optimizer.safetensors``, ``train_state.json``.
     """
     rank, world = _distributed()
+    if cfg.ray_chunk is not None and world > 1:
+        raise ValueError("ray_chunk needs a single process (under DDP every rank shades its rays in one graph)")
     device = torch.device(cfg.device if cfg.device != "cuda" or torch.cuda.is_available() else "cpu")
     if device.type == "cuda" and world > 1:
         device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", 0)))
@@ -302,7 +381,8 @@ def train(cfg: TrainConfig, resume: bool = False) -> TrainResult:
                     perc_weight = _balance_weight(model, sample, device, perceptual)
                     logger.info("stage 2 at iteration %d: perceptual weight %.4g", it, perc_weight)
                 weight = perc_weight or 0.0
-            last = train_step(model, sample, optimizer, device, perceptual, weight, net=net, generator=gen)
+            last = train_step(model, sample, optimizer, device, perceptual, weight, net=net, generator=gen,
+                              ray_chunk=cfg.ray_chunk)
             tc = time.perf_counter()
             data_s += tb - ta
             step_s += tc - tb
