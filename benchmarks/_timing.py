@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import time
-from typing import Callable
+from typing import Callable, Iterator
 
 
 def best_times(fns: dict[str, Callable[[], object]], repeat: int = 5, min_time: float = 0.0,
@@ -31,3 +32,24 @@ def best_times(fns: dict[str, Callable[[], object]], repeat: int = 5, min_time: 
             spent += dt
         rounds += 1
     return best
+
+
+BENCH_THREADS = 1
+"""torch intra-op threads inside the speed benchmarks (bench_uv, _mlp, _unet, _normal_maps,
+_lightfield_vs_nerf). On this shared 2-core machine, with other jobs running, every parallel region
+of a 2-thread op can wait tens of ms for its second thread (the paper U-Net at 256^2: 62 ms of
+convolutions with 1 thread, 514 ms with 2); such waits hit an op made of many short calls far more
+than the one long call it is compared with. Both sides of every ratio run with the same setting."""
+
+
+@contextlib.contextmanager
+def torch_threads(num: int = BENCH_THREADS) -> Iterator[None]:
+    """Run the block with ``torch.set_num_threads(num)``, then restore the previous count."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(num)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)

@@ -17,7 +17,7 @@ from __future__ import annotations
 import torch
 
 from benchmarks import _avatar
-from benchmarks._timing import best_times
+from benchmarks._timing import best_times, torch_threads
 from benchmarks.common import Result
 
 GROUP = "normals"
@@ -27,6 +27,11 @@ SIZES = (256, 512, 1024)
 
 
 def run() -> list[Result]:
+    with torch_threads():
+        return _run()
+
+
+def _run() -> list[Result]:
     from deliffas.geometry.atlas import uv_texel_table
     from deliffas.geometry.normal_maps import NormalMapGather, rasterize_normal_map_naive
 

@@ -10,7 +10,7 @@ against the same-run baseline ``build_scene(inner)`` + one open3d ``cast_rays`` 
 from __future__ import annotations
 
 from benchmarks import _avatar
-from benchmarks._timing import best_times
+from benchmarks._timing import BENCH_THREADS, best_times, torch_threads
 from benchmarks.common import Result
 
 GROUP = "uv"
@@ -18,6 +18,11 @@ TARGET = 2.5
 
 
 def run() -> list[Result]:
+    with torch_threads():
+        return _run()
+
+
+def _run() -> list[Result]:
     import numpy as np
     import open3d as o3d
 
@@ -27,7 +32,8 @@ def run() -> list[Result]:
         av = _avatar.avatar()
     except _avatar.Unavailable as exc:
         return _avatar.skipped(GROUP, str(exc))
-    results = []
+    results = [Result(GROUP, "torch intra-op threads in the uv/mlp/unet/normals/lf_vs_nerf rows", BENCH_THREADS,
+                      "threads", note="see benchmarks/_timing.py BENCH_THREADS")]
     for size, repeat in (("256^2", 15), ("940x1285", 7)):
         cam = _avatar.camera(av, size)
         origins, dirs = cam.rays()  # (N, 3) float64 each
