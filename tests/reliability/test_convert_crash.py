@@ -217,16 +217,17 @@ def _chains(num_shards: int) -> list[list[KillPlan]]:
     """Seeded kill points. Each chain is one output folder: its first process converts, every later
     one is a ``--resume`` of the killed one, and after the last kill a clean ``--resume`` completes."""
     rng = random.Random(SEED)
-    a, b, c = sorted(rng.sample(range(0, num_shards - 1), 3))
-    delay = lambda: rng.uniform(0.0, 0.08)  # noqa: E731 - a few shard writes at most
+    a, b, c = sorted(rng.sample(range(0, num_shards - 2), 3))
+    delay = lambda: rng.uniform(0.0, 0.04)  # noqa: E731 - within the next shard or two
+    setup = lambda: rng.uniform(0.3, 1.2)  # noqa: E731 - imports (torch alone takes longer), planning
     chain_jobs1 = [
-        KillPlan(1, "setup", 0, rng.uniform(1.0, 4.0)),  # imports, planning, character, meta.h5
+        KillPlan(1, "setup", 0, setup()),
         KillPlan(1, "shards", a, delay()),
-        KillPlan(1, "setup", 0, rng.uniform(1.0, 4.0)),  # a resume killed before it converts anything
+        KillPlan(1, "setup", 0, setup()),  # a resume killed before it converts anything
         KillPlan(1, "shards", b, delay()),
         KillPlan(1, "shards", c, delay()),
     ]
-    chain_jobs2 = [KillPlan(2, "shards", rng.randrange(0, num_shards - 2), delay())]
+    chain_jobs2 = [KillPlan(2, "shards", rng.randrange(0, num_shards - 3), delay())]
     return [chain_jobs1, chain_jobs2]
 
 
@@ -239,7 +240,7 @@ def test_sigkill_then_resume_equals_uninterrupted(rel_subject, rel_reference, tm
     assert num_shards == 7
     source_before = tree_state(rel_subject)
 
-    kills = chains = 0
+    kills = chains = missed = 0
     watch = Watch()
     log = []
     for r, kill_plans in enumerate(_chains(num_shards)):
@@ -250,7 +251,10 @@ def test_sigkill_then_resume_equals_uninterrupted(rel_subject, rel_reference, tm
             for k, plan in enumerate(kill_plans):
                 res = _run_and_kill(_convert_cmd(rel_subject, out, plan.jobs, resume=k > 0), out, plan)
                 log.append((r, plan, {key: v for key, v in res.items() if key != "stderr"}))
-                assert res["killed"], f"chain {r} kill {k}: not killed (rc {res['rc']}): {res['stderr']}"
+                if not res["killed"]:  # a fast machine finished before the kill point: fine, but count it
+                    assert res["rc"] == 0, f"chain {r} run {k} failed (rc {res['rc']}): {res['stderr']}"
+                    missed += 1
+                    continue
                 assert not res["orphans"], f"chain {r}: worker processes {res['orphans']} outlived the killed convert"
                 if plan.jobs > 1:
                     assert res["children"] >= 2, "the --jobs 2 run was killed before it started its workers"
@@ -273,12 +277,15 @@ def test_sigkill_then_resume_equals_uninterrupted(rel_subject, rel_reference, tm
     assert cli_main(["verify", str(out)]) == 0
     assert tree_state(rel_subject) == source_before, "the source folder changed"
     assert watch.files_checked > 0 and watch.manifests_read > 0
+    assert kills >= 4, f"only {kills} of {kills + missed} kills landed before the conversion finished"
 
     listed = [x[2]["listed_at_kill"] for x in log]
     COUNTS["convert: SIGKILLs survived"] += kills
     COUNTS["convert: kill chains resumed to the reference"] += chains
+    COUNTS["convert: runs that finished before their kill point"] += missed
     COUNTS["convert: kills with a temporary file left behind"] += sum(x[2]["temp_files"] > 0 for x in log)
     COUNTS["convert: final-name files checked while converting"] += watch.files_checked
     COUNTS["convert: manifest versions checked while converting"] += watch.manifests_read
-    print(f"\n[convert-crash] {kills} SIGKILLs in {chains} chains survived; shards listed at each kill: {listed}; "
+    print(f"\n[convert-crash] {kills} SIGKILLs in {chains} chains survived ({missed} runs finished before their "
+          f"kill point); shards listed at each kill: {listed}; "
           f"{watch.files_checked} final-name files and {watch.manifests_read} manifests checked in {watch.polls} polls")
