@@ -180,24 +180,31 @@ def chart(rows: list[dict], path: Path, title: str, resolution: str, key: str = 
     return path
 
 
-def retime(row: dict, run: Path, repeats: int, device: str = "cpu") -> dict:
-    """Evaluate ``run`` on one frame ``repeats - 1`` more times and keep each stage's minimum ms.
+def retime(timed: list[tuple[dict, Path]], repeats: int, device: str = "cpu") -> None:
+    """Time every run ``repeats - 1`` more times, round-robin, and keep each stage's minimum ms.
 
-    On a shared CPU other processes only ever add time, so the minimum over repeats is the steadier
-    estimate of a stage's cost. Sets ``row["stage_ms"]``, ``row["fps"]``, ``row["stage_ms_first"]``
-    (the first evaluation's) and ``row["timing_repeats"]``.
+    Each round evaluates every run once on one frame, so a burst of load from other processes
+    falls on all configurations alike rather than on whichever trained last; other processes only
+    ever add time, so the minimum over rounds is the steadier estimate. Sets ``stage_ms``, ``fps``,
+    ``stage_ms_first`` (the first evaluation's) and ``timing_repeats`` of each row.
     """
     from deliffas.engine.evaluate import EvalConfig, evaluate
 
-    first = dict(row["stage_ms"])
-    best = dict(first)
+    for row, _ in timed:
+        row["stage_ms_first"] = dict(row["stage_ms"])
     for _ in range(max(repeats, 1) - 1):
-        again = evaluate(EvalConfig(run=str(run), split=row.get("split", "novel_view"), max_frames=1, device=device))
-        best = {k: min(v, again["stage_ms"].get(k, v)) for k, v in best.items()}
-    total = sum(best.values())
-    row.update(stage_ms=best, stage_ms_first=first, fps=1000.0 / total if total > 0 else None,
-               timing_repeats=max(repeats, 1))
-    return row
+        for row, run in timed:
+            try:
+                again = evaluate(EvalConfig(run=str(run), split=row.get("split", "novel_view"), max_frames=1,
+                                            device=device))
+            except Exception as exc:  # timing only: keep what was measured
+                logger.warning("re-timing %s failed: %s", run, exc)
+                continue
+            row["stage_ms"] = {k: min(v, again["stage_ms"].get(k, v)) for k, v in row["stage_ms"].items()}
+    for row, _ in timed:
+        total = sum(row["stage_ms"].values())
+        row.update(fps=1000.0 / total if total > 0 else None, timing_repeats=max(repeats, 1),
+                   ms_per_frame=total)
 
 
 def _coarse_budgets(character: Path, fractions: tuple[float, ...]) -> list[int]:
@@ -253,12 +260,13 @@ def main(argv=None) -> dict:
         return shards[key]
 
     rows = []
+    timed: list[tuple[dict, Path]] = []
     for p in points:
         try:
             run = out / "runs" / p.name.replace(" ", "_")
             row = train_and_eval(p.name, shards_for(p.shards_key), run, sizes, p.model, args.seed, args.device,
                                  model_overrides=p.overrides)
-            retime(row, run, args.timing_repeats, args.device)
+            timed.append((row, run))
         except Exception as exc:  # one broken configuration never stops the study
             logger.exception("%s failed", p.name)
             print(f"  {p.name}: ERROR {type(exc).__name__}: {exc}", flush=True)
@@ -266,6 +274,7 @@ def main(argv=None) -> dict:
         row.update(knob=p.knob, overrides=p.overrides, shards=str(shards.get(p.shards_key, "")),
                    ms_per_frame=total_ms(row))
         rows.append(row)
+    retime(timed, args.timing_repeats, args.device)
     mark_pareto(rows, "psnr", True, "pareto")
     have_lpips = any(_usable(r, "lpips") for r in rows)
     if have_lpips:
@@ -281,7 +290,8 @@ def main(argv=None) -> dict:
     front = [r["name"] for r in sorted((r for r in rows if r.get("pareto")), key=total_ms)]
     notes = [f"Cost: ms per frame of one camera at {resolution} (uv ray casting + U-Net(s) + sampling + MLP; "
              f"the U-Net is paid once per frame), {args.device}; each stage is the minimum over "
-             f"{args.timing_repeats} timed evaluations (other jobs may share the CPU).",
+             f"{args.timing_repeats} timed evaluations, rounds taken over all points in turn (other jobs may "
+             "share the CPU).",
              f"Pareto front (PSNR): {' → '.join(front) if front else 'empty'}.",
              f"Preset {sizes.preset}; {sizes.iters} iterations per point; knob rows change one thing of {KNOB_MODEL}.",
              "LPIPS: " + ("available (second chart)" if have_lpips else f"unavailable ({lpips_reason})")]

@@ -323,7 +323,7 @@ def sweep_pose_distance(st: _Study, plan: StabilityPlan) -> list[dict]:
             for b in bins:
                 frames = [int(f) for f in b]
                 mean_d = float(np.mean([dist[f] for f in frames]))
-                rows.append(_row("pose_distance", "", mean_d, f"{mean_d:.2f}", v,
+                rows.append(_row("pose_distance", "", mean_d, f"{mean_d:.3g}", v,
                                  {**_mean_metrics([m for f in frames for m in novel.get(f, [])]),
                                   "frames": len(frames)},
                                  distance=mean_d, distance_range=[min(dist[f] for f in frames),

@@ -78,8 +78,9 @@ class AutoCapacityConfig:
     ms_tie_rel: float = 0.05
     """Costs within this fraction of the lowest eligible cost count as a tie (fewest parameters wins)."""
     timing_repeats: int = 3
-    """Timed evaluations per candidate (the validation pass, then ``timing_repeats - 1`` passes over one
-    frame); each stage keeps its minimum, since other processes on a shared CPU only ever add time."""
+    """Timed evaluations per candidate: the validation pass, then ``timing_repeats - 1`` rounds over all
+    candidates in turn (one frame each); each stage keeps its minimum, since other processes on a
+    shared CPU only ever add time."""
 
     def __post_init__(self) -> None:
         if not self.tolerance_db >= 0:
@@ -179,6 +180,14 @@ def choose(records: Sequence[Mapping], tolerance_db: float, ms_tie_rel: float = 
     return pick["name"], best
 
 
+def _set_costs(entry: dict, stage_ms: Mapping[str, float]) -> None:
+    stage = dict(stage_ms)
+    frame_ms = float(sum(stage.values()))
+    entry.update(stage_ms=stage, frame_ms=frame_ms,
+                 model_ms=float(stage.get("cnn", 0) + stage.get("sample", 0) + stage.get("mlp", 0)),
+                 fps=1000.0 / frame_ms if frame_ms > 0 else None)
+
+
 def _link_chosen(out: Path, run: Path) -> Path:
     link = out / "chosen"
     if link.is_symlink() or link.is_file():
@@ -246,15 +255,9 @@ def auto_capacity(train_cfg, ac_cfg: AutoCapacityConfig | None = None) -> dict:
             entry["train_s"] = time.perf_counter() - t0
             ev = evaluate(EvalConfig(run=str(run), split=ac_cfg.split, max_frames=ac_cfg.max_frames,
                                      device=train_cfg.device))
-            stage = dict(ev["stage_ms"])
-            for _ in range(ac_cfg.timing_repeats - 1):
-                again = evaluate(EvalConfig(run=str(run), split=ac_cfg.split, max_frames=1, device=train_cfg.device))
-                stage = {k: min(v, again["stage_ms"].get(k, v)) for k, v in stage.items()}
-            frame_ms = float(sum(stage.values()))
-            entry.update(psnr=ev["psnr"], ssim=ev["ssim"], lpips=ev["lpips"], stage_ms=stage, frame_ms=frame_ms,
-                         model_ms=float(stage.get("cnn", 0) + stage.get("sample", 0) + stage.get("mlp", 0)),
-                         fps=1000.0 / frame_ms if frame_ms > 0 else None, num_parameters=ev["num_parameters"],
+            entry.update(psnr=ev["psnr"], ssim=ev["ssim"], lpips=ev["lpips"], num_parameters=ev["num_parameters"],
                          resolution=ev.get("resolution"))
+            _set_costs(entry, ev["stage_ms"])
             if not _finite(entry["psnr"]):
                 entry["error"] = f"non-finite validation PSNR {entry['psnr']}"
         except Exception as exc:  # a failing capacity is recorded, the search goes on
@@ -265,6 +268,19 @@ def auto_capacity(train_cfg, ac_cfg: AutoCapacityConfig | None = None) -> dict:
                     entry["num_parameters"])
         record["candidates"].append(entry)
         _write_json(out / RESULT_FILE, record)  # progress survives an interruption
+    # Re-time round-robin (one frame per candidate per round): load bursts from other processes fall
+    # on every candidate alike; each stage keeps its minimum.
+    for _ in range(ac_cfg.timing_repeats - 1):
+        for entry in record["candidates"]:
+            if entry["error"] is not None:
+                continue
+            try:
+                again = evaluate(EvalConfig(run=entry["run"], split=ac_cfg.split, max_frames=1,
+                                            device=train_cfg.device))
+            except Exception as exc:  # timing only: keep what was measured
+                logger.warning("auto_capacity: re-timing %s failed: %s", entry["name"], exc)
+                continue
+            _set_costs(entry, {k: min(v, again["stage_ms"].get(k, v)) for k, v in entry["stage_ms"].items()})
     cost_key = "frame_ms" if ac_cfg.cost == "frame_ms" else "model_ms"
     choice, best = choose(record["candidates"], ac_cfg.tolerance_db, ac_cfg.ms_tie_rel, cost_key)
     record["best_psnr"] = best
