@@ -524,8 +524,11 @@ def read_calibration(path: PathLike) -> list[Camera]:
         K4, E = cur["intrinsic"], cur["extrinsic"]
         if abs(E[3, 3] - 1) > 1e-6 or np.abs(E[3, :3]).max() > 1e-6:
             raise DynaCapFormatError(path, cur["line"], f"camera '{cur['name']}': extrinsic last row must be 0 0 0 1")
-        cams.append(Camera(cur["name"] + suffix, K4[:3, :3].copy(), E.copy(), cur["size"][0], cur["size"][1],
-                           cur.get("sensor"), cur.get("radial", 0.0)))
+        try:
+            cams.append(Camera(cur["name"] + suffix, K4[:3, :3].copy(), E.copy(), cur["size"][0], cur["size"][1],
+                               cur.get("sensor"), cur.get("radial", 0.0)))
+        except ValueError as err:  # e.g. singular intrinsics
+            raise DynaCapFormatError(path, cur["line"], f"camera '{cur['name']}': {err}") from None
 
     while not t.at_end():
         toks = t.next("a calibration line").split()

@@ -177,7 +177,16 @@ def test_non_finite_inputs_raise_naming_the_array(rel_character, tmp_path):
     K0[1, 1] = 0.0
     with pytest.raises(ValueError, match="singular intrinsics"):
         dataclasses.replace(cam, K=K0)
-    cases += 7
+    from deliffas.data.dynacap import read_calibration, write_calibration
+
+    write_calibration(tmp_path / "c.calibration", [cam])
+    text = (tmp_path / "c.calibration").read_text().splitlines()
+    row = next(i for i, line in enumerate(text) if line.split()[:1] == ["intrinsic"])
+    text[row] = "  intrinsic " + " ".join(["0.0"] + text[row].split()[2:])
+    (tmp_path / "c.calibration").write_text("\n".join(text) + "\n")
+    with pytest.raises(DynaCapFormatError, match=r"c\.calibration:\d+: camera 'front'.*singular"):
+        read_calibration(tmp_path / "c.calibration")
+    cases += 8
     COUNTS["geometry: bad cases checked"] += cases
 
 
