@@ -7,7 +7,8 @@ presets): the paper widths (16 -> 512, log2 S levels) and the ``small`` preset w
 at S = 256, and the paper network itself (paper widths at S = 1024, 10 levels).
 
 Baseline, same run, same dtype: one 3x3 conv2d 64 -> 64 at 256^2 (padding 1, no bias), a
-large, well-shaped convolution. Target: U-Net FLOP/s >= 0.50 x that.
+large, well-shaped convolution, timed interleaved with every U-Net; all ratios use its best time
+over the whole module. Target: U-Net FLOP/s >= 0.50 x that.
 """
 
 from __future__ import annotations
@@ -66,19 +67,26 @@ def _run() -> list[Result]:
     conv = nn.Conv2d(64, 64, 3, padding=1, bias=False).eval()
     xc = torch.rand(1, 64, 256, 256, generator=gen)
     conv_fl = 2 * 256 * 256 * 64 * 64 * 9
-    results = []
+    with torch.inference_mode():
+        t_conv = best_times({"conv": lambda: conv(xc)}, repeat=5, min_time=2.0, max_rounds=30)["conv"]
+    rows = []
     for preset, size, repeat in (("paper", 256, 4), ("small", 256, 4), ("paper", 1024, 2)):
         net = _unet(preset, size)
         x = torch.rand(1, 9, size, size, generator=gen) * 2 - 1  # normals in [-1, 1]
         flops = conv_flops(net, x)
         with torch.inference_mode():
             t = best_times({"unet": lambda: net(x), "conv": lambda: conv(xc)}, repeat=repeat, min_time=4.0, max_rounds=30)
-        achieved = flops / t["unet"] / 1e9
-        reference = conv_fl / t["conv"] / 1e9
+        t_conv = min(t_conv, t["conv"])
+        rows.append((preset, size, net.levels, flops, t["unet"]))
+    # every ratio uses the best convolution time of the whole module (the strictest reference)
+    reference = conv_fl / t_conv / 1e9
+    results = []
+    for preset, size, levels, flops, t_unet in rows:
+        achieved = flops / t_unet / 1e9
         ratio = achieved / reference
         results.append(Result(
-            GROUP, f"{preset} widths S={size} ({net.levels} levels), fp32", achieved, "GFLOP/s",
+            GROUP, f"{preset} widths S={size} ({levels} levels), fp32", achieved, "GFLOP/s",
             baseline="3x3 conv 64->64 at 256^2, fp32", ratio=ratio, target=f">= {TARGET:.2f}", passed=ratio >= TARGET,
-            note=f"{flops / 1e9:.2f} GFLOP in {t['unet'] * 1e3:.1f} ms; conv {reference:.1f} GFLOP/s ({t['conv'] * 1e3:.1f} ms)",
+            note=f"{flops / 1e9:.2f} GFLOP in {t_unet * 1e3:.1f} ms; conv {reference:.1f} GFLOP/s ({t_conv * 1e3:.1f} ms)",
         ))  # fmt: skip
     return results
