@@ -57,7 +57,7 @@ def _run() -> list[Result]:
         t = best_times({"apply": one_frame, "index_select": lambda: torch.index_select(src, 0, idx),
                         "batch": lambda: gather.apply(normals)}, repeat=5, min_time=3.0, max_rounds=60)
         t_naive = best_times({"naive": lambda: rasterize_normal_map_naive(normals[:1], faces, av.atlas, size)},
-                             repeat=1 if size == 1024 else 2)["naive"]
+                             repeat=3)["naive"]
         check = (rasterize_normal_map_naive(normals[:1], faces, av.atlas, size)[0] - gather.apply(normals[0])).abs().max()
         speedup = t_naive / t["apply"]
         over_gather = t["apply"] / t["index_select"]
