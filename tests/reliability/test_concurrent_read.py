@@ -4,7 +4,9 @@
   open, refreshes it and reads every item that became visible (manifest-based visibility). Each
   item must equal the same item of the uninterrupted reference conversion; the visible frames only
   grow; items of shards not yet listed are never reachable. In the middle, a DataLoader with two
-  worker processes reads the partial dataset too.
+  worker processes reads the partial dataset too. The first three partial states are read while
+  the converter is held with SIGSTOP wherever it is (possibly mid-shard), so a fast machine cannot
+  finish before the reader looks; the others are read while it runs.
 - DataLoader workers each open their own HDF5 handles: the parent opens handles first, then forked
   workers read every item; each item is read through a handle opened by the worker that returns it,
   and equals the parent's read. The pickled dataset (what spawned workers receive) holds no handle.
@@ -14,6 +16,7 @@ from __future__ import annotations
 
 import os
 import pickle
+import signal
 import subprocess
 import sys
 import time
@@ -69,7 +72,7 @@ def test_training_reads_finished_shards_while_converting(rel_subject, rel_refere
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     ds = None
     seen: list[int] = []
-    items_read = partial_states = loader_items = 0
+    items_read = items_partial = partial_states = loader_items = holds = 0
     try:
         while True:
             running = proc.poll() is None
@@ -83,23 +86,35 @@ def test_training_reads_finished_shards_while_converting(rel_subject, rel_refere
             ds.refresh()
             frames = list(ds.frames)
             assert frames[: len(seen)] == seen, "visible frames must only grow"
-            if not ds.shards.complete and frames:
-                partial_states += 1
-                unlisted = sorted(set(ref_items) - set(frames))
-                if unlisted:
-                    with pytest.raises(KeyError):  # not yet listed: never reachable, even if on disk
-                        ds.shards.locate("training", unlisted[0])
-            for pos in range(len(seen), len(frames)):
-                item = ds[pos]
-                assert _same_item(item, ref_items[frames[pos]]), f"frame {frames[pos]} differs from the reference"
-                items_read += 1
-            if partial_states == 1 and loader_items == 0 and len(frames) > 0:
-                loader = DataLoader(_Probe(ds), batch_size=1, num_workers=2, collate_fn=_collate_one,
-                                    multiprocessing_context="fork")
-                for item, pid, opener in loader:
-                    assert pid == opener != os.getpid()
-                    assert _same_item(item, ref_items[int(item.frame)])
-                    loader_items += 1
+            partial = not ds.shards.complete and bool(frames)
+            # Hold the converter (SIGSTOP, wherever it is, possibly mid-shard) while the first few
+            # partial states are read, so a fast machine cannot finish before the reader looks.
+            hold = partial and running and holds < 3 and len(frames) > len(seen)
+            if hold:
+                os.kill(proc.pid, signal.SIGSTOP)
+                holds += 1
+            try:
+                if partial:
+                    partial_states += 1
+                    unlisted = sorted(set(ref_items) - set(frames))
+                    if unlisted:
+                        with pytest.raises(KeyError):  # not yet listed: never reachable, even if on disk
+                            ds.shards.locate("training", unlisted[0])
+                for pos in range(len(seen), len(frames)):
+                    item = ds[pos]
+                    assert _same_item(item, ref_items[frames[pos]]), f"frame {frames[pos]} differs from the reference"
+                    items_read += 1
+                    items_partial += partial
+                if partial and loader_items == 0:
+                    loader = DataLoader(_Probe(ds), batch_size=1, num_workers=2, collate_fn=_collate_one,
+                                        multiprocessing_context="fork")
+                    for item, pid, opener in loader:
+                        assert pid == opener != os.getpid()
+                        assert _same_item(item, ref_items[int(item.frame)])
+                        loader_items += 1
+            finally:
+                if hold:
+                    os.kill(proc.pid, signal.SIGCONT)
             seen = frames
             if not running and ds.shards.complete:
                 break
@@ -111,11 +126,11 @@ def test_training_reads_finished_shards_while_converting(rel_subject, rel_refere
             proc.wait()
     assert proc.returncode == 0, stderr[-2000:]
     assert seen == sorted(ref_items) and items_read == len(ref_items)
-    assert partial_states >= 1, "never saw a partial conversion (the converter finished before the reader looked)"
+    assert partial_states >= 1 and items_partial >= 1, "never read a partial conversion"
     assert loader_items >= 1
     assert verify_shards(out) == []
-    COUNTS["concurrent: items read while converting"] += items_read
-    COUNTS["concurrent: partial manifest states read"] += partial_states
+    COUNTS["concurrent: items read before the conversion was complete"] += items_partial
+    COUNTS["concurrent: reader passes over a partial conversion"] += partial_states
     COUNTS["concurrent: items read by DataLoader workers mid-conversion"] += loader_items
 
 
