@@ -25,6 +25,8 @@ from recipes.common import (bar_chart, prepare_capture, prepare_shards, recipe_p
                             write_outputs)
 
 MODEL = "two_surface"
+PATCH_PIXELS = 8 * 32 * 32
+"""Pixels the patch-level loss looks at per image (``PerceptualLoss`` defaults: 8 patches of 32x32)."""
 EVAL_SUBSTITUTE_SEED = 0
 """Seed of the random VGG-16 behind ``lpips_random_vgg16`` (``deliffas.models.metrics.Evaluator`` default)."""
 ROWS = (("a. image-level, L1 only", "none", "image"),
@@ -86,6 +88,7 @@ def main(argv=None) -> dict:
                    stage2_from_iteration=None if perceptual == "none" else stage2)
         rows.append(row)
     a, b, c = rows
+    width, height = a["resolution"]
     lpips_ok = all(r.get("lpips") is not None for r in rows)
     metric = "lpips" if lpips_ok else "lpips_random_vgg16"
     metric_name = "LPIPS" if lpips_ok else f"lpips_random_vgg16 (substitute: random VGG-16, seed {EVAL_SUBSTITUTE_SEED})"
@@ -107,7 +110,9 @@ def main(argv=None) -> dict:
              "Paper (D2, ImageNet VGG-16): LPIPS×1000 L1 18.51, patch 16.54, image 12.85; PSNR 33.27 / 33.24 / 33.30.",
              f"All rows: two-surface, {sizes.iters} iterations, stage 2 from iteration {stage2} "
              f"(perceptual weight balanced with L1 when stage 2 starts); patches: 8 random 32×32 per image "
-             f"centred in the foreground box, images {sizes.size}×{sizes.size}.",
+             f"centred in the foreground box, images {width}×{height}: the patches cover up to "
+             f"{100 * min(1.0, PATCH_PIXELS / (width * height)):.0f}% of the image (the paper's 1285×940 images: 0.7%), so "
+             "patch- and image-level supervision differ less the smaller the images are.",
              *(["WARNING: the substitute metric's random VGG-16 is the training loss's network (both seed 0): the metric "
                 "is partly the training objective. Use --seed other than 0."] if shared_net else []),
              *(["Quick mode: a few iterations of the tiny preset on 48×48 images, where a 32×32 patch covers most of "
