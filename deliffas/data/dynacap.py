@@ -659,8 +659,12 @@ def read_character_files(path: PathLike) -> CharacterFiles:
             raise DynaCapFormatError(p, 0, f"expected a '{key}' entry, found none")
     for key, paths in entries.items():
         for q in paths:
-            if not q.is_file():
-                raise DynaCapFormatError(p, 0, f"'{key}' file {q} referenced by the character does not exist")
+            try:
+                exists = q.is_file()
+            except OSError as err:  # e.g. a path longer than the file system allows
+                raise DynaCapFormatError(p, 0, f"'{key}' path is not a usable file name ({err.strerror})") from None
+            if not exists:
+                raise DynaCapFormatError(p, 0, f"'{key}' file {str(q)[:200]} referenced by the character does not exist")
     sk = entries["skeleton"]
     return CharacterFiles(sk[0], entries["mesh"][0], entries["skin"][0],
                           entries["pose"][0] if "pose" in entries else None, sk[1] if len(sk) > 1 else None)

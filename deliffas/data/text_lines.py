@@ -27,9 +27,12 @@ class DynaCapFormatError(ValueError):
 def read_text(path: str | os.PathLike, what: str = "file") -> str:
     """Read a text file with universal newlines; missing files and non-text bytes become DynaCapFormatError."""
     p = Path(path)
-    if not p.is_file():
+    try:
+        data = p.read_bytes() if p.is_file() else None
+    except OSError as err:  # unreadable, or a name the file system rejects
+        raise DynaCapFormatError(p, 0, f"{what} cannot be read ({err.strerror})") from None
+    if data is None:
         raise DynaCapFormatError(p, 0, f"{what} not found")
-    data = p.read_bytes()
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as err:
