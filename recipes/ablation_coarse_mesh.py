@@ -28,7 +28,8 @@ from recipes.common import (RecipeSizes, bar_chart, find_character, prepare_capt
 MODELS = (("single-surface", "single_surface"), ("two-surface", "two_surface"))
 SMOOTH_ITERS = 300
 """Taubin iterations of the smooth variant: on the procedural character 300 move the surface by
-~10 mm on average (25 mm at most); 10 iterations move it by < 1 mm, invisible at these image sizes."""
+~10 mm on average (25 mm at most), mostly outwards (lambda 0.5 / mu -0.53 inflates slightly per
+iteration); 10 iterations move it by < 1 mm, invisible at these image sizes."""
 COARSE_FACES = 400
 """Face budget of the coarse variant (the procedural character has 7,652 faces): ~4 mm mean, ~20 mm
 largest deviation."""
@@ -76,6 +77,29 @@ def template_deviation(variant_character: Path, original_character: Path) -> dic
             "deviation_max_mm": float(d.max())}
 
 
+def silhouette_errors(shards: Path, max_frames: int = 4) -> dict:
+    """How the inner surface's image footprint differs from the person's (training cameras, a few frames).
+
+    ``inner_outside_mask``: pixels the inner surface covers outside the ground-truth mask, and
+    ``mask_missed``: mask pixels it does not cover, both as fractions of the mask's pixels. A
+    single-surface model paints on the inner surface only: it cannot cover missed pixels, and a
+    texel that lies outside the silhouette in one view (target: background) is on the person in another.
+    """
+    from deliffas.engine.data_bridge import evaluation_samples
+
+    samples, _ = evaluation_samples(str(shards), "train", max_frames=max_frames, with_rays=True, protocol="all")
+    outside = missed = fg = 0
+    for sample in samples:
+        for k, rays in enumerate(sample.rays):
+            mask = sample.masks[k].reshape(-1) > 0.5
+            hit = np.zeros(mask.size, bool)
+            hit[rays.pixels[~rays.inner_from_outer]] = True
+            outside += int((hit & ~mask).sum())
+            missed += int((~hit & mask).sum())
+            fg += int(mask.sum())
+    return {"inner_outside_mask": outside / max(fg, 1), "mask_missed": missed / max(fg, 1)}
+
+
 def run_variants(args, sizes: RecipeSizes, source: VariantSource, variants: dict[str, Path],
                  models=MODELS) -> tuple[list[dict], dict[str, dict]]:
     """Convert the subject with each template variant and train + evaluate each model on it (L1)."""
@@ -90,6 +114,7 @@ def run_variants(args, sizes: RecipeSizes, source: VariantSource, variants: dict
               flush=True)
         shards = prepare_shards(args.out, source.subject, source.sizes, name=f"shards_{variant}", template=str(folder),
                                 offset_mm=source.offset_mm, cameras=source.cameras, jobs=1 if args.quick else 2)
+        geometry[variant].update(silhouette_errors(shards))
         for label, model in models:
             row = train_and_eval(f"{label} · {variant}", shards, args.out / "runs" / variant / model, sizes, model,
                                  args.seed, args.device)
@@ -114,9 +139,10 @@ def losses_against_original(rows: list[dict], models=MODELS) -> dict[str, dict[s
 def loss_table(losses: dict, geometry: dict, rows: list[dict]) -> list[str]:
     """Markdown: per variant, its geometry, each model's PSNR and its loss against the original."""
     by = {(r["variant"], r["template"]): r for r in rows}
-    lines = ["| template | faces | deviation mean / max (mm) | single-surface PSNR | two-surface PSNR | "
-             "single-surface loss (dB) | two-surface loss (dB) | two-surface loses less |",
-             "|---|---:|---:|---:|---:|---:|---:|:---:|"]
+    lines = ["| template | faces | deviation mean / max (mm) | inner surface outside mask / mask missed | "
+             "single-surface PSNR | two-surface PSNR | single-surface loss (dB) | two-surface loss (dB) | "
+             "two-surface loses less |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|:---:|"]
     for variant, g in geometry.items():
         s, t = by.get(("single_surface", variant)), by.get(("two_surface", variant))
         if variant == "original":
@@ -127,6 +153,7 @@ def loss_table(losses: dict, geometry: dict, rows: list[dict]) -> list[str]:
             ls, lt = f"{a:+.2f}", f"{b:+.2f}"
             verdict = "yes" if b < a else "no"
         lines.append(f"| {variant} | {g['faces']:,} | {g['deviation_mean_mm']:.1f} / {g['deviation_max_mm']:.1f} | "
+                     f"{100 * g['inner_outside_mask']:.1f}% / {100 * g['mask_missed']:.1f}% | "
                      f"{s['psnr']:.2f} | {t['psnr']:.2f} | {ls} | {lt} | {verdict} |")
     return lines
 
@@ -164,6 +191,9 @@ def main(argv=None) -> dict:
              "quadric edge collapse, which keeps the silhouette, with a new xatlas atlas) is an additional variant that "
              "also changes the uv parametrisation. Deviation: symmetric rest-pose surface distance to the original "
              f"(largest here: {max(geometry, key=lambda v: geometry[v]['deviation_mean_mm'])}).",
+             "Silhouette columns: training-camera pixels the inner surface covers outside the person's mask, and mask "
+             "pixels it misses, as fractions of the mask (a few frames). The single-surface model can only paint on "
+             "the inner surface; the two-surface model also shades the 30 mm shell around it.",
              "Every row: L1 only, the same subject images, iterations, cameras per frame and seed; only the template "
              "(inner surface, its 30 mm shell and uv atlas) changes.",
              *(["Quick mode: a few iterations of the tiny preset; the numbers show the pipeline works, not the "

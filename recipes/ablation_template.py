@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from recipes.ablation_coarse_mesh import MODELS, template_deviation, variant_source
+from recipes.ablation_coarse_mesh import MODELS, silhouette_errors, template_deviation, variant_source
 from recipes.common import bar_chart, prepare_shards, prepare_template_variants, recipe_parser, sizes_from_args, \
     train_and_eval, write_outputs
 
@@ -233,6 +233,7 @@ def main(argv=None) -> dict:
               f"{geometry[variant]['deviation_max_mm']:.1f} mm max", flush=True)
         shards = prepare_shards(args.out, source.subject, source.sizes, name=f"shards_{variant}", template=str(fold),
                                 offset_mm=source.offset_mm, cameras=source.cameras, jobs=1 if args.quick else 2)
+        geometry[variant].update(silhouette_errors(shards))
         for label, model in MODELS:
             row = train_and_eval(f"{label} · {labels[variant]}", shards, args.out / "runs" / variant / model, sizes,
                                  model, args.seed, args.device)
@@ -250,7 +251,10 @@ def main(argv=None) -> dict:
     g = geometry[body]
     notes = [f"Comparison run: {comparison}.",
              f"{body_label}: {g['faces']:,} faces, {g['verts']:,} vertices; symmetric rest-pose distance to the capture's "
-             f"template {g['deviation_mean_mm']:.1f} mm mean / {g['deviation_max_mm']:.1f} mm max.",
+             f"template {g['deviation_mean_mm']:.1f} mm mean / {g['deviation_max_mm']:.1f} mm max; its inner surface covers "
+             f"{100 * g['inner_outside_mask']:.1f}% (mask-relative) of training pixels outside the person and misses "
+             f"{100 * g['mask_missed']:.1f}% of the person (DDC-style template: "
+             f"{100 * geometry['original']['inner_outside_mask']:.1f}% / {100 * geometry['original']['mask_missed']:.1f}%).",
              f"PSNR lost against the DDC-style template: single-surface {loss['single_surface']:+.2f} dB, two-surface "
              f"{loss['two_surface']:+.2f} dB (two-surface loses less: {'yes' if claims['two_surface_loses_less'] else 'no'}); "
              f"two-surface beats single-surface on the {body_label} template: "

@@ -77,6 +77,9 @@ def test_ablation_coarse_mesh_quick(tiny_recipe_capture, tmp_path):
     assert geo["original"]["deviation_mean_mm"] == pytest.approx(0.0, abs=1e-6)
     assert geo["coarse"]["faces"] <= ablation_coarse_mesh.COARSE_FACES < geo["original"]["faces"]
     assert geo["smooth"]["faces"] == geo["original"]["faces"] and geo["smooth"]["deviation_mean_mm"] > 1.0
+    for g in geo.values():
+        assert 0.0 <= g["inner_outside_mask"] < 1.0 and 0.0 <= g["mask_missed"] < 1.0
+    assert geo["original"]["inner_outside_mask"] == 0.0  # the synthetic person is the template plus an outward garment
     for model in ("single_surface", "two_surface"):
         for variant in ("smooth", "coarse"):
             assert math.isfinite(data["losses_vs_original"][model][variant]["psnr_loss_db"])
@@ -141,6 +144,7 @@ def test_ablation_template_quick_standin(tiny_recipe_capture, tmp_path, capsys):
         (t, m) for t in ("original", "standin") for m in ("single_surface", "two_surface")}
     g = data["templates"]["standin"]
     assert g["faces"] <= ablation_template.STANDIN_FACES and g["deviation_mean_mm"] > 1.0
+    assert 0.0 <= g["mask_missed"] < 1.0 and 0.0 <= g["inner_outside_mask"] < 1.0
     assert "Comparison run:" in (out / "results.md").read_text()
 
 
