@@ -30,7 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from recipes.ablation_coarse_mesh import MODELS, silhouette_errors, template_deviation, variant_source
+from recipes.ablation_coarse_mesh import MODELS, loses_less, silhouette_errors, template_deviation, variant_source, \
+    verdict
 from recipes.common import bar_chart, prepare_shards, prepare_template_variants, recipe_parser, sizes_from_args, \
     train_and_eval, write_outputs
 
@@ -244,7 +245,7 @@ def main(argv=None) -> dict:
     claims = {"comparison": body,
               "two_surface_beats_single_surface_on_body_model": bool(
                   by[("two_surface", body)]["psnr"] > by[("single_surface", body)]["psnr"]),
-              "two_surface_loses_less": bool(loss["two_surface"] < loss["single_surface"]),
+              "two_surface_loses_less": loses_less(loss["single_surface"], loss["two_surface"]),
               "better_template_improves_two_surface": bool(loss["two_surface"] > 0)}
     title = (f"Ablation: DDC-style template vs {'SMPL' if body == 'smpl' else 'simpler body model (stand-in, no SMPL)'}, "
              "single vs two surfaces, L1" + (" — quick mode" if args.quick else ""))
@@ -256,7 +257,7 @@ def main(argv=None) -> dict:
              f"{100 * g['mask_missed']:.1f}% of the person (DDC-style template: "
              f"{100 * geometry['original']['inner_outside_mask']:.1f}% / {100 * geometry['original']['mask_missed']:.1f}%).",
              f"PSNR lost against the DDC-style template: single-surface {loss['single_surface']:+.2f} dB, two-surface "
-             f"{loss['two_surface']:+.2f} dB (two-surface loses less: {'yes' if claims['two_surface_loses_less'] else 'no'}); "
+             f"{loss['two_surface']:+.2f} dB (two-surface loses less: {verdict(claims['two_surface_loses_less'])}); "
              f"two-surface beats single-surface on the {body_label} template: "
              f"{'yes' if claims['two_surface_beats_single_surface_on_body_model'] else 'no'}.",
              "Paper (appendix, SMPL, figure only): two-surface on SMPL still recovers geometry beyond the mesh, "
