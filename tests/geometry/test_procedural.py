@@ -9,11 +9,10 @@ import pytest
 import torch
 
 from deliffas.data.dynacap import read_character, read_motion, write_motion
-from deliffas.geometry.procedural import (LABELS, PROCEDURAL_DOF_NAMES, make_procedural_character,
+from deliffas.geometry.procedural import (LABELS, PROCEDURAL_DOF_NAMES,
                                           marching_tetrahedra, procedural_skeleton)
 from deliffas.geometry.template import DDCTemplate
 
-BUILD = dict(seed=0, target_faces=6000, texture_size=256)
 
 # DOF names of the DDC skeleton the brief lists (the procedural skeleton must use a subset of them)
 DDC_BODY_DOFS = set(
@@ -25,18 +24,9 @@ DDC_BODY_DOFS = set(
 )
 
 
-def shared_procedural(tmp_path_factory) -> Path:
-    """One build of BUILD per test session (the .character is written last, so it marks completion)."""
-    d = tmp_path_factory.getbasetemp() / "procedural_s0_f6000_t256"
-    path = d / "procedural.character"
-    if not path.is_file():
-        make_procedural_character(d, **BUILD)
-    return path
-
-
 @pytest.fixture(scope="module")
-def char_path(tmp_path_factory) -> Path:
-    return shared_procedural(tmp_path_factory)
+def char_path(procedural_character_path) -> Path:
+    return procedural_character_path
 
 
 @pytest.fixture(scope="module")
@@ -187,12 +177,13 @@ def test_embedded_graph_template_close_to_skinning(character):
     assert d[1].median() < 3.0
 
 
-def test_deterministic_for_a_seed_and_cli(character, char_path, tmp_path):
+def test_deterministic_for_a_seed_and_cli(character, char_path, tmp_path, procedural_build):
     """``deliffas character procedural`` with the same seed writes the same character again."""
     from deliffas.cli import main
 
-    assert main(["character", "procedural", str(tmp_path), "--seed", str(BUILD["seed"]),
-                 "--faces", str(BUILD["target_faces"]), "--texture-size", str(BUILD["texture_size"])]) == 0
+    build = procedural_build
+    assert main(["character", "procedural", str(tmp_path), "--seed", str(build["seed"]),
+                 "--faces", str(build["target_faces"]), "--texture-size", str(build["texture_size"])]) == 0
     again = read_character(tmp_path / "procedural.character")
     for name in ("procedural.obj", "procedural.skin", "procedural.skeleton", "segmentation.txt",
                  "procedural_graph.obj"):

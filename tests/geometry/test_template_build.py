@@ -12,23 +12,9 @@ from deliffas.data.dynacap import read_character
 from deliffas.data.obj_io import read_obj
 
 
-BUILD = dict(seed=0, target_faces=6000, texture_size=256)
-
-
-def shared_procedural(tmp_path_factory):
-    """Same session-wide build as tests/geometry/test_procedural.py (which also tests its CLI)."""
-    from deliffas.geometry.procedural import make_procedural_character
-
-    d = tmp_path_factory.getbasetemp() / "procedural_s0_f6000_t256"
-    path = d / "procedural.character"
-    if not path.is_file():
-        make_procedural_character(d, **BUILD)
-    return path
-
-
 @pytest.fixture(scope="module")
-def built(tmp_path_factory):
-    char_path = shared_procedural(tmp_path_factory)
+def built(tmp_path_factory, procedural_character_path):
+    char_path = procedural_character_path
     out = tmp_path_factory.mktemp("template_build") / "templates"
     assert main(["template", str(char_path), "--out", str(out), "--smooth", "4",
                  "--coarse", "2500", "--atlas-res", "128"]) == 0

@@ -12,23 +12,9 @@ from deliffas.geometry.variants import (_closest_on_triangles, _sample_bilinear,
                                         write_variant)
 from deliffas.geometry.template import DDCTemplate
 
-BUILD = dict(seed=0, target_faces=6000, texture_size=256)
-
-
-def shared_procedural(tmp_path_factory):
-    """Same session-wide build as tests/geometry/test_procedural.py (reused when it already ran)."""
-    from deliffas.geometry.procedural import make_procedural_character
-
-    d = tmp_path_factory.getbasetemp() / "procedural_s0_f6000_t256"
-    path = d / "procedural.character"
-    if not path.is_file():
-        make_procedural_character(d, **BUILD)
-    return path
-
-
 @pytest.fixture(scope="module")
-def character(tmp_path_factory):
-    return read_character(shared_procedural(tmp_path_factory))
+def character(procedural_character_path):
+    return read_character(procedural_character_path)
 
 
 @pytest.fixture(scope="module")
