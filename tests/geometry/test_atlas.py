@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import importlib.util
 import logging
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,14 +11,7 @@ import pytest
 from deliffas.geometry.atlas import GUTTER_BARY_MIN, UVAtlas, texel_centers_uv, uv_texel_table
 
 
-def _load_reference():
-    spec = importlib.util.spec_from_file_location("deliffas_geometry_reference", Path(__file__).with_name("reference.py"))
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-ref = _load_reference()
+import reference as ref  # noqa: E402  (pytest's default prepend import mode puts this folder on sys.path)
 
 
 def _small_atlas(seed=0):

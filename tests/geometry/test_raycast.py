@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,14 +11,7 @@ from deliffas.geometry.raycast import UVRaycaster, all_hits, build_scene, first_
 from deliffas.geometry.shell import offset_shell
 
 
-def _load_reference():
-    spec = importlib.util.spec_from_file_location("deliffas_geometry_reference", Path(__file__).with_name("reference.py"))
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-ref = _load_reference()
+import reference as ref  # noqa: E402  (pytest's default prepend import mode puts this folder on sys.path)
 
 R_IN, D = 500.0, 30.0
 

@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import importlib.util
 import itertools
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -23,14 +21,7 @@ from deliffas.geometry.shell import (
 )
 
 
-def _load_reference():
-    spec = importlib.util.spec_from_file_location("deliffas_geometry_reference", Path(__file__).with_name("reference.py"))
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-ref = _load_reference()
+import reference as ref  # noqa: E402  (pytest's default prepend import mode puts this folder on sys.path)
 
 D = 30.0
 GAP = 40.0  # between the two capsules: < 2 D, so their 30 mm shells overlap
