@@ -2,10 +2,9 @@
 
 Light field (``two_surface``, ``paper`` preset), per shaded pixel of the benchmark camera:
 
-* uv: ``UVRaycaster`` (two scene builds) + ``cast_rays`` of every pixel ray + the selection of
-  the shaded rays that ``deliffas.engine.rays.camera_rays`` makes, i.e. the whole image's ray
-  casting divided by the shaded rays. The pixel rays of a fixed camera are computed once
-  (``Camera.rays``, reported separately): they do not change between frames;
+* uv: ``UVRaycaster`` (two scene builds) + ``deliffas.engine.rays.camera_rays`` (the engine's uv
+  stage: rays of the surfaces' projected window, three casts, the shaded-ray selection), i.e.
+  the whole image's ray casting divided by the shaded rays;
 * sample: ``DeliffasModel.gather_inputs`` (two bilinear lookups in 1024^2 x 32 maps + PE);
 * MLP: ``DeliffasModel.mlp``.
 
@@ -104,7 +103,8 @@ def run() -> list[Result]:
 
 
 def _run() -> list[Result]:
-    from deliffas.geometry.raycast import UVRaycaster, uv_inner_or_exit
+    from deliffas.engine.rays import camera_rays
+    from deliffas.geometry.raycast import UVRaycaster
 
     try:
         av = _avatar.avatar()
@@ -134,13 +134,8 @@ def _run() -> list[Result]:
         near_t, far_t = torch.from_numpy(near).float(), torch.from_numpy(far).float()
         pe = model.config.pe_freqs
 
-        origins, dirs = cam.rays()  # a fixed camera's pixel rays do not change between frames
-
         def uv():
-            hits = UVRaycaster(av.inner, av.faces, av.outer, av.atlas).cast_rays(origins, dirs)
-            uv_in, from_outer = uv_inner_or_exit(hits)  # what camera_rays keeps, from cached pixel rays
-            keep = np.flatnonzero(hits.outer_hit & np.isfinite(uv_in).all(-1) & np.isfinite(hits.uv_outer).all(-1))
-            return uv_in[keep], from_outer[keep], hits.uv_outer[keep]
+            return camera_rays(UVRaycaster(av.inner, av.faces, av.outer, av.atlas), cam)
 
         with torch.inference_mode():
             # short stages get many rounds (best of them); the NeRF renderer a few
@@ -150,9 +145,8 @@ def _run() -> list[Result]:
                 "mlp": lambda: model.mlp(enc, feats),
             }, repeat=2, min_time=6.0, max_rounds=30)  # fmt: skip
             t.update(best_times({"nerf": lambda: nerf_render(nerf, o_t, d_t, near_t, far_t, NERF_SAMPLES, pe)}, repeat=3))
-            t.update(best_times({"camera.rays": cam.rays}, repeat=3, min_time=1.0, max_rounds=20))
-        kept = uv()[0].shape[0]
-        assert kept == n, f"uv stage keeps {kept} rays, camera_rays {n}"
+        kept = uv().num_rays
+        assert kept == n, f"uv stage keeps {kept} rays, the cached ray set {n}"
         lf = (t["uv"] + t["sample"] + t["mlp"]) / n
         nerf_px = t["nerf"] / len(sub)
         ratio = nerf_px / lf
@@ -164,8 +158,6 @@ def _run() -> list[Result]:
                   f"NeRF {nerf_px * 1e6:.0f} us/px on {len(sub)} rays"),
         ))  # fmt: skip
         results.append(Result(GROUP, f"{size}: NeRF-style per pixel, {len(sub)} rays", nerf_px * 1e6, "us/px"))
-        results.append(Result(GROUP, f"{size}: Camera.rays() (cached per camera, not in the uv stage)",
-                              t["camera.rays"] * 1e3, "ms"))
         for stage in ("uv", "sample", "mlp"):
             results.append(Result(GROUP, f"{size}: light field stage {stage}", t[stage] * 1e3, "ms",
                                   note=f"{t[stage] / n * 1e6:.2f} us per shaded pixel"))

@@ -123,9 +123,18 @@ class Camera:
         if pixels is None:
             pixels = pixel_centers(self.width, self.height).reshape(-1, 2)
         check_shape("pixels", pixels, "N 2")
-        homog = np.concatenate([pixels, np.ones((len(pixels), 1))], axis=1)  # (N, 3)
-        d_cam = homog @ np.linalg.inv(self.K).T
-        d_world = d_cam @ self.R  # R^T d for each row
-        d_world /= np.linalg.norm(d_world, axis=1, keepdims=True)
-        origins = np.broadcast_to(self.center, d_world.shape).copy()
+        pixels = np.asarray(pixels, np.float64)
+        # d_world = R^T K^-1 (col, row, 1), one column at a time: an (N, 3) @ (3, 3) product goes
+        # through multi-threaded BLAS, which costs more than the arithmetic and stalls under load
+        m = self.R.T @ np.linalg.inv(self.K)  # (3, 3)
+        col, row = pixels[:, 0], pixels[:, 1]
+        d_world = np.empty((len(pixels), 3))
+        for j in range(3):
+            np.multiply(col, m[j, 0], out=d_world[:, j])
+            d_world[:, j] += row * m[j, 1]
+            d_world[:, j] += m[j, 2]
+        length = np.sqrt(d_world[:, 0] ** 2 + d_world[:, 1] ** 2 + d_world[:, 2] ** 2)
+        d_world /= length[:, None]
+        origins = np.empty_like(d_world)
+        origins[:] = self.center
         return origins, d_world

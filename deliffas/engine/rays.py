@@ -48,18 +48,18 @@ class CameraRays:
 
 
 def camera_rays(raycaster: UVRaycaster, camera: Camera) -> CameraRays:
-    """Cast every pixel of ``camera`` and keep the rays the light field shades."""
-    origins, dirs = camera.rays()
-    hits = raycaster.cast_rays(origins, dirs)
+    """The rays of ``camera`` the light field shades (only the surfaces' projected window is cast)."""
+    hits = raycaster.cast_foreground(camera)
     uv_in, from_outer = uv_inner_or_exit(hits)
-    keep = hits.outer_hit & np.isfinite(uv_in).all(-1) & np.isfinite(hits.uv_outer).all(-1)
-    idx = np.flatnonzero(keep)
+    keep = np.flatnonzero(hits.outer_hit & np.isfinite(uv_in).all(-1) & np.isfinite(hits.uv_outer).all(-1))
+    pixels = hits.pixels[keep]  # (N, 2) (col, row)
+    _, dirs = camera.rays(pixels + 0.5)
     return CameraRays(
-        pixels=idx.astype(np.int64),
-        uv_inner=uv_in[idx].astype(np.float32),
-        inner_from_outer=from_outer[idx],
-        uv_outer=hits.uv_outer[idx].astype(np.float32),
-        viewdir=dirs[idx].astype(np.float32),
+        pixels=pixels[:, 1] * camera.width + pixels[:, 0],
+        uv_inner=uv_in[keep].astype(np.float32),
+        inner_from_outer=from_outer[keep],
+        uv_outer=hits.uv_outer[keep].astype(np.float32),
+        viewdir=dirs.astype(np.float32),
         height=camera.height,
         width=camera.width,
     )

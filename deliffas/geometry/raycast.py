@@ -30,6 +30,7 @@ __all__ = [
     "RaycastHits",
     "UVRaycaster",
     "uv_inner_or_exit",
+    "projected_pixel_window",
     "build_scene",
     "first_hits",
     "all_hits",
@@ -253,6 +254,47 @@ def _box_candidates(origins: np.ndarray, directions: np.ndarray, lo: np.ndarray,
     return np.flatnonzero(keep)
 
 
+def projected_pixel_window(camera: Camera, points: np.ndarray, pad: float = 1.0) -> tuple[int, int, int, int] | None:
+    """The pixels whose ray can meet the convex hull of ``points``: a window [c0, c1) x [r0, r1).
+
+    For a pinhole camera and points strictly in front of it (camera z > 0), a triangle projects
+    to the triangle of its projected corners, so every ray that meets the hull passes through the
+    box of the projected points; the window holds the pixels whose centre (col + 0.5, row + 0.5)
+    lies in that box grown by ``pad`` pixels (round-off margin), clipped to the image.
+
+    Args:
+        camera: the camera.
+        points: (N, 3) world mm.
+        pad: margin in pixels.
+
+    Returns:
+        (c0, r0, c1, r1) with 0 <= c0 <= c1 <= W and 0 <= r0 <= r1 <= H (possibly empty), or None
+        when some point is not in front of the camera or not finite: the projection then does not
+        bound the hull and every pixel must be cast.
+    """
+    check_shape("points", points, "N 3")
+    if len(points) == 0:
+        return 0, 0, 0, 0
+    points = np.asarray(points, np.float64)
+    proj = camera.K @ camera.world_to_cam[:3]  # (3, 4)
+    # homogeneous image coordinates column by column (an (N, 3) @ (3, 3) product goes through
+    # multi-threaded BLAS, slower here than the arithmetic); reductions on 1-D columns
+    hom = [points[:, 0] * proj[j, 0] + points[:, 1] * proj[j, 1] + points[:, 2] * proj[j, 2] + proj[j, 3] for j in range(3)]
+    z = points[:, 0] * camera.R[2, 0] + points[:, 1] * camera.R[2, 1] + points[:, 2] * camera.R[2, 2] + camera.t[2]
+    if not z.min() > 0:  # also False for NaN
+        return None
+    col, row = hom[0] / hom[2], hom[1] / hom[2]
+    lo = (float(col.min()) - pad, float(row.min()) - pad)
+    hi = (float(col.max()) + pad, float(row.max()) + pad)
+    if not all(math.isfinite(v) for v in (*lo, *hi)):
+        return None
+    # centre k + 0.5 in [lo, hi]  <=>  ceil(lo - 0.5) <= k <= floor(hi - 0.5)
+    c0, r0 = (max(0, int(math.ceil(v - 0.5))) for v in lo)
+    c1 = min(camera.width, max(0, int(math.floor(hi[0] - 0.5)) + 1))
+    r1 = min(camera.height, max(0, int(math.floor(hi[1] - 0.5)) + 1))
+    return min(c0, c1), min(r0, r1), c1, r1
+
+
 def _put_rows(out: np.ndarray, idx: np.ndarray, values: np.ndarray) -> None:
     """``out[idx] = values`` for C-contiguous (n, ...) ``out``; rows of 2-D arrays are moved as one
     opaque item each (numpy's multi-dimensional fancy assignment is several times slower)."""
@@ -327,6 +369,7 @@ class UVRaycaster:
         both = np.concatenate([np.asarray(inner_verts, np.float64), ov])
         pad = BOX_PAD_REL * max(diag, 1e-6)
         # (3,) float64 corners of the padded box around both surfaces; empty meshes: an empty box
+        self.hull_points = both  # (2V, 3) float64: every ray that meets a surface meets their hull
         self.box_lo = both.min(0) - pad if len(both) else np.full(3, np.inf)
         self.box_hi = both.max(0) + pad if len(both) else np.full(3, -np.inf)
 
@@ -342,29 +385,47 @@ class UVRaycaster:
         n = len(origins)
         cand = _box_candidates(origins, directions, self.box_lo, self.box_hi)  # (M,) int64 ray indices
         sub = _rays(np.take(origins, cand, axis=0), np.take(directions, cand, axis=0))  # (M, 6) float32
-        ti, fi, bi = _cast(self.inner_scene, sub)
-        if self.peel == "recast":
-            to, fo, bo = _cast(self.outer_scene, sub)
-            te = np.full_like(to, np.inf)
-            fe = np.full_like(fo, -1)
-            be = np.zeros_like(bo)
-            hit = np.flatnonzero(fo >= 0)
-            step = to[hit] + np.float32(self.peel_eps)  # (n,)
-            again = np.take(sub, hit, axis=0)  # (n, 6)
-            again[:, :3] += step[:, None] * again[:, 3:]
-            t2, f2, b2 = _cast(self.outer_scene, again)
-            te[hit], fe[hit] = t2 + step, f2
-            _put_rows(be, hit, b2)
-        else:
-            to, fo, bo, te, fe, be = self._peel_list(sub)
+        hits = self._hits(self._cast_packed(sub))
+        fills = {"hit": False, "face": -1, "bary": 0.0, "depth": np.inf}
         out = {}
-        for name, (t, f, b) in (("inner", (ti, fi, bi)), ("outer", (to, fo, bo)), ("outer_exit", (te, fe, be))):
-            out[f"{name}_hit"] = _scatter(n, cand, f >= 0, False)
-            out[f"{name}_face"] = _scatter(n, cand, f, -1)
-            out[f"{name}_bary"] = _scatter(n, cand, b, 0.0)
-            out[f"uv_{name}"] = _scatter(n, cand, _interp_uv(self.corner_uvs, f, b), np.nan)
-            out[f"{name}_depth"] = _scatter(n, cand, t, np.inf)
+        for name, values in hits.items():
+            fill = np.nan if name.startswith("uv_") else fills[name.rsplit("_", 1)[1]]
+            out[name] = _scatter(n, cand, values, fill)
         return RaycastHits(**out)
+
+    def _cast_packed(self, rays: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """Raw hits (t, face, bary) of (M, 6) float32 packed rays for "inner", "outer" and
+        "outer_exit" (no culling, no uvs)."""
+        ti, fi, bi = _cast(self.inner_scene, rays)
+        if self.peel == "list":
+            to, fo, bo, te, fe, be = self._peel_list(rays)
+            return {"inner": (ti, fi, bi), "outer": (to, fo, bo), "outer_exit": (te, fe, be)}
+        to, fo, bo = _cast(self.outer_scene, rays)
+        te = np.full_like(to, np.inf)
+        fe = np.full_like(fo, -1)
+        be = np.zeros_like(bo)
+        hit = np.flatnonzero(fo >= 0)
+        step = to[hit] + np.float32(self.peel_eps)  # (n,)
+        again = np.take(rays, hit, axis=0)  # (n, 6)
+        again[:, :3] += step[:, None] * again[:, 3:]
+        t2, f2, b2 = _cast(self.outer_scene, again)
+        te[hit], fe[hit] = t2 + step, f2
+        _put_rows(be, hit, b2)
+        return {"inner": (ti, fi, bi), "outer": (to, fo, bo), "outer_exit": (te, fe, be)}
+
+    def _hits(self, raw: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]], rows: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """RaycastHits fields (M,) of raw hits, or of their ``rows`` only (uvs are interpolated
+        after the selection)."""
+        out = {}
+        for name, (t, f, b) in raw.items():
+            if rows is not None:
+                t, f, b = np.take(t, rows), np.take(f, rows), np.take(b, rows, axis=0)
+            out[f"{name}_hit"] = f >= 0
+            out[f"{name}_face"] = f
+            out[f"{name}_bary"] = b
+            out[f"uv_{name}"] = _interp_uv(self.corner_uvs, f, b)
+            out[f"{name}_depth"] = t
+        return out
 
     def _peel_list(self, rays: np.ndarray):
         n = len(rays)
@@ -412,6 +473,31 @@ class UVRaycaster:
         origins, dirs = camera.rays(pixels + 0.5)
         hits = self.cast_rays(origins, dirs)
         return RaycastHits(**{**{f.name: getattr(hits, f.name) for f in fields(hits)}, "pixels": pixels})
+
+    def cast_foreground(self, camera: Camera) -> RaycastHits:
+        """Hits of the pixels of ``camera`` whose ray meets either surface, without full-image arrays.
+
+        Only the pixels in the projected window of both surfaces (``projected_pixel_window``)
+        are cast; where that window is undefined (a vertex behind the camera) every pixel is
+        cast, culled by the bounding box as in ``cast_rays``. The result equals ``cast(camera)``
+        restricted to the pixels with ``inner_hit | outer_hit``.
+
+        Returns:
+            RaycastHits with (N,) fields and ``pixels`` (N, 2) int64 (col, row) in row-major
+            order.
+        """
+        window = projected_pixel_window(camera, self.hull_points)
+        c0, r0, c1, r1 = window if window is not None else (0, 0, camera.width, camera.height)
+        cols, rows = np.meshgrid(np.arange(c0, c1, dtype=np.int64), np.arange(r0, r1, dtype=np.int64))
+        pixels = np.stack([cols.reshape(-1), rows.reshape(-1)], axis=1)  # (M, 2) row-major
+        origins, dirs = camera.rays(pixels + 0.5)
+        if window is None:
+            cand = _box_candidates(origins, dirs, self.box_lo, self.box_hi)
+            pixels = np.take(pixels, cand, axis=0)
+            origins, dirs = np.take(origins, cand, axis=0), np.take(dirs, cand, axis=0)
+        raw = self._cast_packed(_rays(origins, dirs))
+        keep = np.flatnonzero((raw["inner"][1] >= 0) | (raw["outer"][1] >= 0))
+        return RaycastHits(**self._hits(raw, keep), pixels=np.take(pixels, keep, axis=0))
 
     def cast_batch(self, cameras: Sequence[Camera]) -> RaycastHits:
         """Full-image hits of several cameras of the same size in one pass: (C, H, W) fields."""

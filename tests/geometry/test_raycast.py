@@ -7,7 +7,14 @@ import numpy as np
 import pytest
 
 from deliffas.geometry.atlas import UVAtlas
-from deliffas.geometry.raycast import UVRaycaster, all_hits, build_scene, first_hits, uv_inner_or_exit
+from deliffas.geometry.raycast import (
+    UVRaycaster,
+    all_hits,
+    build_scene,
+    first_hits,
+    projected_pixel_window,
+    uv_inner_or_exit,
+)
 from deliffas.geometry.shell import offset_shell
 
 
@@ -209,3 +216,47 @@ def test_box_culling_keeps_every_hit(sphere):
     np.testing.assert_array_equal(h.outer_face, f_out)
     np.testing.assert_array_equal(h.inner_depth, t_in)
     assert 0 < h.outer_hit.sum() < len(origins)  # both culled and cast rays occur
+
+
+@pytest.mark.parametrize("peel", ["recast", "list"])
+def test_foreground_cast_equals_full_image_restricted_to_hits(sphere, peel):
+    """cast_foreground casts only the projected window; it must lose no hit pixel and change no hit."""
+    v, f, outer, atlas = sphere
+    rc = UVRaycaster(v, f, outer, atlas, peel=peel)
+    cams = {
+        "centred": ref.look_at([0, 0, 3000], [0, 0, 0], 48, 40, focal=60.0),
+        "clipped by the image": ref.look_at([0, 0, 3000], [900, 600, 0], 48, 40, focal=60.0),
+        "inside (vertices behind)": ref.look_at([0, 0, 300], [0, 0, 0], 32, 24, focal=12.0),
+        "looking away": ref.look_at([0, 0, 3000], [0, 0, 6000], 16, 12, focal=20.0),
+    }
+    for name, cam in cams.items():
+        full = rc.cast(cam)
+        hit = full.inner_hit | full.outer_hit
+        fg = rc.cast_foreground(cam)
+        rows, cols = np.nonzero(hit)
+        np.testing.assert_array_equal(fg.pixels, np.stack([cols, rows], 1), err_msg=name)
+        for field in ("inner_face", "outer_face", "outer_exit_face", "inner_depth", "outer_exit_depth"):
+            np.testing.assert_array_equal(getattr(fg, field), getattr(full, field)[hit], err_msg=f"{name} {field}")
+        np.testing.assert_array_equal(fg.uv_outer_exit, full.uv_outer_exit[hit], err_msg=name)
+        window = projected_pixel_window(cam, rc.hull_points)
+        if name.startswith("inside"):
+            assert window is None and hit.all()
+        elif name == "looking away":
+            assert len(fg.pixels) == 0
+        else:
+            c0, r0, c1, r1 = window
+            assert c0 <= cols.min() and cols.max() < c1 and r0 <= rows.min() and rows.max() < r1
+            assert (c1 - c0) * (r1 - r0) < hit.size  # it does cull
+        if name == "clipped by the image":
+            assert hit[:, 0].any() and c0 == 0 and hit[-1].any() and r1 == cam.height  # crosses left and bottom edges
+
+
+def test_projected_pixel_window_bounds_and_edge_cases():
+    cam = ref.look_at([0, 0, 1000], [0, 0, 0], 40, 30, focal=50.0)
+    # a point on the optical axis projects to the principal point (20, 15): centres 19.5 .. 20.5 with pad 1
+    assert projected_pixel_window(cam, np.zeros((1, 3)), pad=1.0) == (19, 14, 21, 16)
+    assert projected_pixel_window(cam, np.zeros((0, 3))) == (0, 0, 0, 0)
+    assert projected_pixel_window(cam, np.array([[0.0, 0, 1500]])) is None  # behind the camera
+    assert projected_pixel_window(cam, np.array([[np.nan, 0, 0]])) is None
+    c0, r0, c1, r1 = projected_pixel_window(cam, np.array([[1e6, 1e6, 0.0]]))  # far off the image
+    assert (c1 - c0) * (r1 - r0) == 0
