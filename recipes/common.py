@@ -190,10 +190,9 @@ def bar_chart(rows: Sequence[dict], path: Path, title: str, key: str = "psnr", y
 
     ``groups`` (one label per row, optional) colours the bars by group, e.g. the template variant.
     """
-    import matplotlib
+    from deliffas.engine.report import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     values = [r.get(key) for r in rows]
     names = [str(r.get("name", r.get("model"))) for r in rows]
@@ -218,9 +217,4 @@ def bar_chart(rows: Sequence[dict], path: Path, title: str, key: str = "psnr", y
         from matplotlib.patches import Patch
 
         ax.legend(handles=[Patch(color=palette(i % 10), label=g) for g, i in group_ids.items()], fontsize=7)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)

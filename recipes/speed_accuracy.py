@@ -141,10 +141,9 @@ def markdown_table(rows: list[dict]) -> str:
 def chart(rows: list[dict], path: Path, title: str, resolution: str, key: str = "psnr",
           higher_is_better: bool = True, ylabel: str = "PSNR (dB), held-out cameras", flag: str = "pareto") -> Path:
     """Quality against ms per frame, coloured by knob, the Pareto front drawn and its points ringed."""
-    import matplotlib
+    from deliffas.engine.report import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     ok = [r for r in rows if _usable(r, key)]
     knobs = list(dict.fromkeys(r.get("knob", "") for r in ok))
@@ -172,12 +171,7 @@ def chart(rows: list[dict], path: Path, title: str, resolution: str, key: str = 
     ax.set_title(title, fontsize=9)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, loc="best")
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def retime(timed: list[tuple[dict, Path]], repeats: int, device: str = "cpu") -> None:

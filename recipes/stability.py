@@ -448,10 +448,9 @@ def mark_failures(rows: list[dict], fail_db: float) -> dict:
 
 
 def sweep_chart(rows: list[dict], sweep: str, path: Path, title: str, fail_db: float) -> Path:
-    import matplotlib
+    from deliffas.engine.report import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     palette = plt.get_cmap("tab10")
     fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=120)
@@ -482,12 +481,7 @@ def sweep_chart(rows: list[dict], sweep: str, path: Path, title: str, fail_db: f
     ax.set_title(title, fontsize=9)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, loc="best")
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def _fmt(v, spec: str = ".2f") -> str:

@@ -2,12 +2,39 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
-__all__ = ["results_table", "pareto_front", "speed_accuracy_chart"]
+__all__ = ["results_table", "pareto_front", "speed_accuracy_chart", "pyplot", "save_figure"]
+
+
+def pyplot():
+    """``matplotlib.pyplot`` on the non-interactive Agg backend (no display on servers and CI)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def save_figure(fig, path: str | Path) -> Path:
+    """Lay out ``fig``, write it to ``path`` (format from the suffix, parent folders created) and
+    close it. The file appears complete or not at all: it is written next to ``path`` and renamed."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        fig.tight_layout()
+        fig.savefig(tmp, format=path.suffix.lstrip(".") or "png")
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+        pyplot().close(fig)
+    return path
 
 
 def _fmt(v, spec: str = ".2f") -> str:
@@ -46,10 +73,7 @@ def pareto_front(cost: Sequence[float], quality: Sequence[float]) -> np.ndarray:
 
 def speed_accuracy_chart(rows: Sequence[dict], path: str | Path, title: str, resolution: str = "") -> Path:
     """PSNR against milliseconds per frame, one point per row, with the Pareto front drawn."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     ms = [sum(r["stage_ms"].values()) for r in rows]
     psnr = [r["psnr"] for r in rows]
@@ -65,9 +89,4 @@ def speed_accuracy_chart(rows: Sequence[dict], path: str | Path, title: str, res
     ax.set_ylabel("PSNR (dB), held-out cameras")
     ax.set_title(title)
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
