@@ -98,20 +98,10 @@ def avatar(num_normal_frames: int = 8) -> Avatar:
 
 def look_at(center: np.ndarray, target: np.ndarray, width: int, height: int, focal: float):
     """A pinhole ``Camera`` at ``center`` looking at ``target``, y-up world (image y down)."""
-    from deliffas.data.cameras import Camera
+    from deliffas.data.cameras import Camera, look_at as world_to_cam
 
-    z = np.asarray(target, np.float64) - center
-    z /= np.linalg.norm(z)
-    y = np.array([0.0, -1.0, 0.0])
-    y = y - z * (y @ z)
-    y /= np.linalg.norm(y)
-    x = np.cross(y, z)
-    R = np.stack([x, y, z])
-    w2c = np.eye(4)
-    w2c[:3, :3] = R
-    w2c[:3, 3] = -R @ center
     K = np.array([[focal, 0.0, width / 2], [0.0, focal, height / 2], [0.0, 0.0, 1.0]])
-    return Camera(f"bench_{width}x{height}", K, w2c, width, height)
+    return Camera(f"bench_{width}x{height}", K, world_to_cam(center, target), width, height)
 
 
 def camera(av: Avatar, size: str):

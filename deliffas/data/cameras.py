@@ -16,7 +16,7 @@ import numpy as np
 
 from deliffas.checks import check_finite, check_shape
 
-__all__ = ["Camera", "pixel_centers"]
+__all__ = ["Camera", "pixel_centers", "look_at"]
 
 
 def pixel_centers(width: int, height: int) -> np.ndarray:
@@ -27,6 +27,32 @@ def pixel_centers(width: int, height: int) -> np.ndarray:
     """
     cols, rows = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
     return np.stack([cols, rows], axis=-1)
+
+
+def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, 1.0, 0.0)) -> np.ndarray:
+    """The (4, 4) ``world_to_cam`` of a camera at ``eye`` looking at ``target``.
+
+    The camera looks along +z; image y points along world -``up`` (image up = world up) and
+    image x completes a right-handed frame (x = y cross z).
+
+    Raises:
+        ValueError: ``eye`` equals ``target``, or the viewing direction is parallel to ``up``.
+    """
+    eye = np.asarray(eye, np.float64)
+    z = np.asarray(target, np.float64) - eye
+    norm = np.linalg.norm(z)
+    if not norm > 0:
+        raise ValueError(f"look_at: eye {eye.tolist()} and target coincide")
+    z /= norm
+    x = np.cross(-np.asarray(up, np.float64), z)
+    if not np.linalg.norm(x) > 1e-9:
+        raise ValueError(f"look_at: viewing direction {z.tolist()} is parallel to up {list(up)}")
+    x /= np.linalg.norm(x)
+    R = np.stack([x, np.cross(z, x), z])
+    world_to_cam = np.eye(4)
+    world_to_cam[:3, :3] = R
+    world_to_cam[:3, 3] = -R @ eye
+    return world_to_cam
 
 
 @dataclass(frozen=True)

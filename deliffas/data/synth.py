@@ -25,7 +25,7 @@ from typing import Literal, Sequence
 
 import numpy as np
 
-from deliffas.data.cameras import Camera
+from deliffas.data.cameras import Camera, look_at
 from deliffas.data.dynacap import (
     Character,
     MeshSequence,
@@ -288,15 +288,7 @@ def dome_cameras(center: np.ndarray, radius: float, num: int, width: int, height
         el = np.deg2rad(elevation_deg[0] + u * (elevation_deg[1] - elevation_deg[0]))
         dist = rng.uniform(*distance_mm)
         eye = center + dist * np.array([np.cos(el) * np.sin(az), np.sin(el), np.cos(el) * np.cos(az)])
-        fwd = center - eye
-        fwd /= np.linalg.norm(fwd)
-        right = np.cross(fwd, [0.0, 1.0, 0.0])
-        right /= np.linalg.norm(right)
-        down = np.cross(fwd, right)
-        R = np.stack([right, down, fwd])
-        E = np.eye(4)
-        E[:3, :3] = R
-        E[:3, 3] = -R @ eye
+        E = look_at(eye, center)
         half = np.arcsin(min(radius / dist, 0.95))
         f = 0.5 * min(width, height) * 0.95 / np.tan(half)
         K = np.array([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from deliffas.data.cameras import Camera
+from deliffas.data.cameras import Camera, look_at
 from deliffas.engine.evaluate import load_run
 from deliffas.engine.rays import camera_rays, stack_rays
 
@@ -53,17 +53,7 @@ def orbit_cameras(reference: Camera, centers: np.ndarray, radius: float, height:
     for i, c in enumerate(centers):
         a = 2 * math.pi * i / max(n, 1)
         eye = np.array([c[0] + radius * math.sin(a), height, c[2] + radius * math.cos(a)])
-        z = c - eye
-        z /= np.linalg.norm(z)
-        down = np.array([0.0, -1.0, 0.0])  # image y points down, world y up
-        x = np.cross(down, z)  # right-handed camera frame: x = y × z
-        x /= np.linalg.norm(x)
-        y = np.cross(z, x)
-        R = np.stack([x, y, z])
-        E = np.eye(4)
-        E[:3, :3] = R
-        E[:3, 3] = -R @ eye
-        cams.append(Camera(f"orbit{i:04d}", ref.K.copy(), E, ref.width, ref.height))
+        cams.append(Camera(f"orbit{i:04d}", ref.K.copy(), look_at(eye, c), ref.width, ref.height))
     return cams
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from deliffas.data.cameras import Camera
+from deliffas.data.cameras import Camera, look_at
 from deliffas.engine.rays import camera_rays
 from deliffas.geometry.atlas import UVAtlas
 from deliffas.geometry.raycast import UVRaycaster, uv_inner_or_exit
@@ -13,15 +13,8 @@ from deliffas.geometry.shell import offset_shell
 
 
 def _camera(center, width=40, height=32, focal=45.0) -> Camera:
-    """Looking at the origin from ``center`` along -z-ish (world y up = image up)."""
-    center = np.asarray(center, np.float64)
-    z = -center / np.linalg.norm(center)
-    x = np.cross([0.0, -1.0, 0.0], z)
-    x /= np.linalg.norm(x)
-    R = np.stack([x, np.cross(z, x), z])
-    w2c = np.eye(4)
-    w2c[:3, :3], w2c[:3, 3] = R, -R @ center
-    return Camera("c", np.array([[focal, 0, width / 2], [0, focal, height / 2], [0, 0, 1.0]]), w2c, width, height)
+    K = np.array([[focal, 0, width / 2], [0, focal, height / 2], [0, 0, 1.0]])
+    return Camera("c", K, look_at(center, [0.0, 0.0, 0.0]), width, height)
 
 
 def test_camera_rays_equal_the_dense_selection():

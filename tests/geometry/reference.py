@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from deliffas.data import cameras
 from deliffas.data.cameras import Camera
 
 # ----------------------------------------------------------------------------- meshes and cameras
@@ -60,19 +61,8 @@ def grid_plane(n: int = 4, size: float = 400.0, z: float = 0.0) -> tuple[np.ndar
 
 def look_at(center, target, width: int, height: int, focal: float, up=(0.0, 1.0, 0.0), name: str = "cam") -> Camera:
     """A pinhole camera at ``center`` looking at ``target`` (image y down = world -up)."""
-    center = np.asarray(center, np.float64)
-    z = np.asarray(target, np.float64) - center
-    z /= np.linalg.norm(z)
-    y = -np.asarray(up, np.float64)
-    y = y - z * (y @ z)
-    y /= np.linalg.norm(y)
-    x = np.cross(y, z)
-    R = np.stack([x, y, z])
-    w2c = np.eye(4)
-    w2c[:3, :3] = R
-    w2c[:3, 3] = -R @ center
     K = np.array([[focal, 0.0, width / 2], [0.0, focal, height / 2], [0.0, 0.0, 1.0]])
-    return Camera(name, K, w2c, width, height)
+    return Camera(name, K, cameras.look_at(center, target, up), width, height)
 
 
 def read_obj_minimal(path: Path):
