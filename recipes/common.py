@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
 
+from deliffas.engine.run_sizes import RunSizes
+
 logger = logging.getLogger(__name__)
 
 __all__ = ["RecipeSizes", "recipe_parser", "sizes_from_args", "prepare_capture", "prepare_shards",
@@ -24,24 +26,8 @@ __all__ = ["RecipeSizes", "recipe_parser", "sizes_from_args", "prepare_capture",
            "bar_chart"]
 
 
-@dataclass(frozen=True)
-class RecipeSizes:
-    """Sizes of a recipe run: ``quick`` (minutes on 2 CPU cores, used by tests) or full."""
-
-    frames: int = 40
-    test_frames: int = 12
-    cameras: int = 12
-    size: int = 128
-    atlas_res: int = 128
-    iters: int = 1500
-    cameras_per_frame: int = 3
-    preset: str = "small"
-    eval_frames: int | None = None
-
-    @staticmethod
-    def quick() -> "RecipeSizes":
-        return RecipeSizes(frames=6, test_frames=2, cameras=4, size=48, atlas_res=32, iters=8, cameras_per_frame=2,
-                           preset="tiny", eval_frames=2)
+RecipeSizes = RunSizes
+"""The recipes' name for ``deliffas.engine.run_sizes.RunSizes`` (full defaults, ``quick()`` for tests)."""
 
 
 def recipe_parser(description: str) -> argparse.ArgumentParser:

@@ -11,10 +11,13 @@ import json
 import logging
 import shutil
 import time
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from deliffas.engine.run_sizes import RunSizes
 
 __all__ = ["DemoConfig", "run_demo"]
 
@@ -29,13 +32,8 @@ class DemoConfig:
     quick: bool = False
     """A much smaller run for tests (seconds, not minutes); numbers are then meaningless."""
     models: tuple[str, ...] = ("two_surface", "single_surface")
-    frames: int = 30
-    test_frames: int = 10
-    cameras: int = 10
-    size: int = 128
-    atlas_res: int = 128
-    iters: int = 800
-    cameras_per_frame: int = 3
+    sizes: RunSizes = RunSizes(frames=30, test_frames=10, cameras=10, iters=800)
+    """Ignored when ``quick`` (then ``RunSizes.quick()``)."""
     seed: int = 0
     jobs: int = 1
 
@@ -54,8 +52,8 @@ def run_demo(cfg: DemoConfig = DemoConfig()) -> Path:
     from deliffas.engine.train import TrainConfig, train
 
     if cfg.quick:
-        cfg = DemoConfig(out=cfg.out, quick=True, models=cfg.models, frames=6, test_frames=2, cameras=4, size=48,
-                         atlas_res=32, iters=6, cameras_per_frame=2, seed=cfg.seed, jobs=1)
+        cfg = dataclasses.replace(cfg, sizes=RunSizes.quick(), jobs=1)
+    sz = cfg.sizes
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
@@ -64,24 +62,24 @@ def run_demo(cfg: DemoConfig = DemoConfig()) -> Path:
     _stage("1/5 synthetic capture (procedural character, loose garment, specular, occlusion)")
     t = time.time()
     if not (subject / "synth.json").is_file():
-        synthesize_capture(subject, SynthConfig(num_frames=cfg.frames, num_test_frames=cfg.test_frames,
-                                                num_cameras=cfg.cameras, width=cfg.size, height=cfg.size,
-                                                test_cameras=max(1, cfg.cameras // 5), seed=cfg.seed, jobs=cfg.jobs))
+        synthesize_capture(subject, SynthConfig(num_frames=sz.frames, num_test_frames=sz.test_frames,
+                                                num_cameras=sz.cameras, width=sz.size, height=sz.size,
+                                                test_cameras=max(1, sz.cameras // 5), seed=cfg.seed, jobs=cfg.jobs))
     timings["synth_s"] = time.time() - t
     _stage("2/5 conversion into HDF5 shards")
     t = time.time()
-    convert(subject, shards, ConvertConfig(atlas_res=cfg.atlas_res, jobs=cfg.jobs, resume=True))
+    convert(subject, shards, ConvertConfig(atlas_res=sz.atlas_res, jobs=cfg.jobs, resume=True))
     timings["convert_s"] = time.time() - t
     rows = []
-    preset = "tiny" if cfg.quick else "small"
+    preset = sz.preset
     for name in cfg.models:
-        _stage(f"3/5 training {name} ({preset} preset, {cfg.iters} iterations, L1)")
+        _stage(f"3/5 training {name} ({preset} preset, {sz.iters} iterations, L1)")
         run = out / "runs" / name
         t = time.time()
-        result = train(TrainConfig(shards=str(shards), out=str(run), model=name, preset=preset, iters=cfg.iters,
-                                   cameras_per_frame=cfg.cameras_per_frame, protocol="all", seed=cfg.seed,
-                                   num_workers=1, checkpoint_every=max(cfg.iters // 2, 1),
-                                   preview_every=max(cfg.iters // 2, 1)), resume=True)
+        result = train(TrainConfig(shards=str(shards), out=str(run), model=name, preset=preset, iters=sz.iters,
+                                   cameras_per_frame=sz.cameras_per_frame, protocol="all", seed=cfg.seed,
+                                   num_workers=1, checkpoint_every=max(sz.iters // 2, 1),
+                                   preview_every=max(sz.iters // 2, 1)), resume=True)
         timings[f"train_{name}_s"] = time.time() - t
         _stage(f"4/5 evaluating {name} on held-out cameras")
         images_dir = out / "images" / name
@@ -92,17 +90,17 @@ def run_demo(cfg: DemoConfig = DemoConfig()) -> Path:
         (run / "eval_novel_view.json").write_text(json.dumps(row, indent=2) + "\n")
     _stage("5/5 report (table, stage timings, images, speed-vs-accuracy chart, orbit video)")
     chart = speed_accuracy_chart(rows, out / "speed_accuracy.png", "Demo: quality vs speed",
-                                 resolution=f"{cfg.size}x{cfg.size}")
+                                 resolution=f"{sz.size}x{sz.size}")
     video = None
     try:
         video = render_video(RenderConfig(run=str(out / "runs" / cfg.models[0]), out=str(out / "orbit.mp4"),
-                                          frames=min(cfg.test_frames, 24)))
+                                          frames=min(sz.test_frames, 24)))
     except RuntimeError as exc:  # no video codec in this OpenCV build: the report says so
         logger.warning("orbit video skipped: %s", exc)
     comparison = _comparison_image(out, rows, subject)
     timings["total_s"] = time.time() - t0
     report = _write_report(out, cfg, rows, timings, chart, video, comparison)
-    (out / "results.json").write_text(json.dumps({"config": cfg.__dict__, "results": rows, "timings": timings},
+    (out / "results.json").write_text(json.dumps({"config": dataclasses.asdict(cfg), "results": rows, "timings": timings},
                                                  indent=2, default=str) + "\n")
     print(results_table(rows, "Held-out cameras (novel view)"))
     print(f"report: {report}  ({timings['total_s']:.0f} s in total)")
@@ -138,11 +136,12 @@ def _write_report(out: Path, cfg: DemoConfig, rows: list[dict], timings: dict, c
                   comparison: Path | None) -> Path:
     from deliffas.engine.report import results_table
 
+    sz = cfg.sizes
     lines = ["# deliffas demo", "",
-             f"Synthetic capture of the procedural character: {cfg.frames} training frames, {cfg.test_frames} "
-             f"novel-pose frames, {cfg.cameras} cameras at {cfg.size}x{cfg.size}; ground truth with a loose skirt "
+             f"Synthetic capture of the procedural character: {sz.frames} training frames, {sz.test_frames} "
+             f"novel-pose frames, {sz.cameras} cameras at {sz.size}x{sz.size}; ground truth with a loose skirt "
              "displaced 2–6 cm by pose and velocity, specular and pose-dependent occlusion shading.",
-             f"Each model trained {cfg.iters} iterations ({cfg.cameras_per_frame} cameras per frame, L1), evaluated "
+             f"Each model trained {sz.iters} iterations ({sz.cameras_per_frame} cameras per frame, L1), evaluated "
              "on the held-out cameras with the official protocol (white background, eroded mask, 600x496 crop "
              "clipped to the image).", "",
              results_table(rows, "Held-out cameras (novel view)"),

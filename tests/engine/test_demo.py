@@ -1,0 +1,26 @@
+"""The demo end to end at its quick size: capture, shards, two trained models, report."""
+
+from __future__ import annotations
+
+import json
+import math
+
+from deliffas.engine.demo import DemoConfig, run_demo
+from deliffas.engine.run_sizes import RunSizes
+
+
+def test_quick_demo_writes_a_complete_report(tmp_path):
+    report = run_demo(DemoConfig(out=str(tmp_path / "demo"), quick=True))
+    out = report.parent
+    payload = json.loads((out / "results.json").read_text())
+    assert payload["config"]["sizes"] == RunSizes.quick().__dict__
+    names = [r["name"] for r in payload["results"]]
+    assert names == ["two_surface", "single_surface"]
+    for row in payload["results"]:
+        assert math.isfinite(row["psnr"]) and row["psnr"] > 20, row  # 8 iterations already beat a blank image
+        assert set(row["stage_ms"]) == {"uv", "cnn", "sample", "mlp"}
+        assert (row["lpips"] is None) == bool(row.get("lpips_reason"))  # without ImageNet weights: a reason, no number
+    text = report.read_text()
+    assert all(n in text for n in names)
+    for name in ("speed_accuracy.png", "comparison.png"):
+        assert (out / name).stat().st_size > 1000
