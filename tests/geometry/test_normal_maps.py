@@ -3,14 +3,19 @@
 from __future__ import annotations
 
 
+import logging
+
 import numpy as np
 import pytest
 import torch
 
+from deliffas.geometry import normal_maps as nm_module
 from deliffas.geometry.atlas import UVAtlas, uv_texel_table
 from deliffas.geometry.mesh_ops import vertex_normals
 from deliffas.geometry.normal_maps import (
+    FusedKernelStatus,
     NormalMapGather,
+    fused_kernel_status,
     normal_maps,
     rasterize_normal_map_naive,
     temporal_window,
@@ -75,6 +80,61 @@ def test_sparse_and_gather_methods_agree(dtype, device):
         gather.apply(vn[:, :-1])
     extra = torch.cat([vn, torch.randn(3, 2, 3, dtype=dtype, device=device)], dim=1)  # unused trailing vertices
     torch.testing.assert_close(gather.apply(extra), a)
+
+
+@pytest.mark.parametrize("size", [13, 16])  # 13^2 texels: the AVX2 loop (8 at a time) leaves a scalar tail
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_fused_kernel_equals_eager_paths(size, dtype):
+    status = fused_kernel_status()
+    if not status.available:
+        pytest.skip(f"fused kernel unavailable: {status.reason}")
+    v, f, atlas = _small_mesh(5)
+    table = uv_texel_table(atlas, size)
+    gather = NormalMapGather.from_table(table, f)
+    vn = torch.randn(3, len(v) + 2, 3, dtype=dtype)  # 2 unused trailing vertices
+    vn[1, 0] = 0.0  # a zero normal next to non-zero ones
+    fused = gather.apply(vn, method="fused")
+    assert fused.dtype == dtype and fused.shape == (3, 3, size, size)
+    torch.testing.assert_close(fused, gather.apply(vn, method="sparse"), rtol=0, atol=1e-6)
+    torch.testing.assert_close(fused, gather.apply(vn, method="gather"), rtol=0, atol=1e-6)
+    assert torch.equal(gather.apply(vn), fused)  # "auto" takes the fused kernel on CPU
+    invalid = ~torch.as_tensor(table.valid)
+    assert torch.all(fused[:, :, invalid] == 0)
+    # non-contiguous input, float16 output (the eager paths' cast), numpy input, unbatched input
+    strided = vn.transpose(0, 1).contiguous().transpose(0, 1)
+    assert torch.equal(gather.apply(strided, method="fused"), fused)
+    half = gather.apply(vn, dtype=torch.float16, method="fused")
+    assert half.dtype == torch.float16 and torch.equal(half, fused.to(torch.float16))
+    assert torch.equal(gather.apply(vn[2].numpy(), method="fused"), fused[2])
+    # a zero interpolated normal and NaN normals follow the sparse path: 0, resp. NaN on the texels they touch
+    zero = gather.apply(torch.zeros(len(v), 3, dtype=dtype), method="fused")
+    assert torch.all(zero == 0)
+    nan = vn[0].clone()
+    nan[0] = float("nan")
+    torch.testing.assert_close(gather.apply(nan, method="fused"), gather.apply(nan, method="sparse"), equal_nan=True)
+
+
+def test_fused_kernel_fallback(monkeypatch, caplog):
+    v, f, atlas = _small_mesh()
+    gather = NormalMapGather.from_table(uv_texel_table(atlas, 8), f)
+    vn = torch.randn(2, len(v), 3)
+    # a failed build is reported, not raised
+    monkeypatch.delenv(nm_module.NATIVE_ENV, raising=False)
+    monkeypatch.setenv("CC", "/nonexistent/cc")
+    status, lib = nm_module._build_kernel()
+    assert not status.available and lib is None and "nonexistent" in status.reason
+    monkeypatch.setenv(nm_module.NATIVE_ENV, "0")
+    assert "disabled" in nm_module._build_kernel()[0].reason
+    # with the kernel unavailable, "auto" falls back to the sparse product and says why once
+    monkeypatch.setattr(nm_module, "_kernel", (FusedKernelStatus(False, "test: no compiler"), None))
+    monkeypatch.setattr(nm_module, "_fallback_logged", False)
+    with caplog.at_level(logging.INFO, logger=nm_module.__name__):
+        a = gather.apply(vn)
+        gather.apply(vn)
+    assert [r.levelno for r in caplog.records] == [logging.WARNING] and "test: no compiler" in caplog.text
+    assert torch.equal(a, gather.apply(vn, method="sparse"))
+    with pytest.raises(RuntimeError, match="test: no compiler"):
+        gather.apply(vn, method="fused")
 
 
 def test_float16_output_and_numpy_input():
