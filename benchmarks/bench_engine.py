@@ -57,6 +57,34 @@ def _end_to_end(model, sample, info, camera, label: str) -> list[Result]:
                    passed=best_wall / stage_sum <= 1.2)]
 
 
+def _frame_memory(shards, chunk: int = 16384) -> list[Result]:
+    """Peak memory of a 940 x 1285 frame (fresh process, see benchmarks/_frame_memory.py) against its bound."""
+    import json
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from deliffas.engine.memory import MIB, PEAK_PROBE_ENV
+
+    if not Path("/proc/self/clear_refs").exists():
+        return [Result("e2e", "skipped: peak memory needs Linux /proc/self/clear_refs", 0.0, "")]
+    root = Path(__file__).resolve().parents[1]
+    env = dict(os.environ, **PEAK_PROBE_ENV, PYTHONPATH=os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")]))
+    res = subprocess.run([sys.executable, "-m", "benchmarks._frame_memory", str(shards), str(chunk)],
+                         capture_output=True, text=True, env=env, cwd=root, timeout=600)
+    if res.returncode != 0:
+        raise RuntimeError(f"benchmarks._frame_memory failed:\n{res.stderr[-2000:]}")
+    m = json.loads(res.stdout.strip().splitlines()[-1])
+    formula = (f"2 F + 320 B P + 4 KiB c + 64 B N + 16 MiB with F {m['features_bytes'] / MIB:.0f} MiB (paper widths, "
+               f"S = {m['atlas_res']}), P {m['pixels']}, c {chunk}, N {m['rays']}")
+    return [Result("e2e", f"frame 940x1285: peak memory growth, chunk {chunk}", m["chunked"] / MIB, "MiB",
+                   baseline="stated bound (docs/reliability.md)", ratio=m["chunked"] / m["bound"],
+                   target=f"<= bound {m['bound'] / MIB:.0f} MiB", passed=m["chunked"] <= m["bound"], note=formula),
+            Result("e2e", f"frame 940x1285: peak memory growth, chunk_size = all {m['rays']} rays", m["unchunked"] / MIB,
+                   "MiB", note="sampling of every ray at once; the MLP still runs in INFERENCE_CHUNK row blocks")]
+
+
 def _train_step(model, opt, sample, shared: bool):
     """One training step as a function of a StageTimer; ``shared`` encodes once per frame, else once per camera."""
     from deliffas.engine.rays import stack_rays
@@ -122,6 +150,7 @@ def run() -> list[Result]:
         rows += _end_to_end(model, sample, info, sample.cameras[0], "256^2")
         big = sample.cameras[0].rescaled(1285, 940)
         rows += _end_to_end(model, sample, info, big, "940x1285")
+    rows += _frame_memory(shards)
     model.train()
     with torch_threads():  # as the stage benchmarks: 2-thread waits under load would decide the ratio
         timing = _train_timing(model, sample)

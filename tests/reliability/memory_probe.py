@@ -19,32 +19,13 @@ so freed memory leaves the resident set and each phase starts from a clean basel
 from __future__ import annotations
 
 import dataclasses
-import gc
 import json
 import sys
 
 import numpy as np
 import torch
 
-
-def _status() -> dict[str, int]:
-    out = {}
-    with open("/proc/self/status") as fh:
-        for line in fh:
-            if line.startswith(("VmRSS:", "VmHWM:")):
-                key, value = line.split(":")
-                out[key] = int(value.split()[0]) * 1024
-    return out
-
-
-def measure(fn) -> tuple[int, object]:
-    """(peak resident growth in bytes, result) of ``fn()``."""
-    gc.collect()
-    with open("/proc/self/clear_refs", "w") as fh:
-        fh.write("5")  # reset VmHWM to the current resident set
-    base = _status()["VmRSS"]
-    result = fn()
-    return _status()["VmHWM"] - base, result
+from deliffas.engine.memory import peak_rss_growth as measure
 
 
 def _paper_model(S: int):

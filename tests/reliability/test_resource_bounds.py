@@ -27,23 +27,9 @@ from reliability_support import COUNTS
 
 pytestmark = pytest.mark.timeout(600)
 
-KIB, MIB = 1024, 1024 * 1024
-SLACK = 16 * MIB
-"""Interpreter, allocator and page-granularity noise allowed on every bound."""
-RENDER_BYTES_PER_PIXEL = 320
-"""Ray casting of the whole image (float64 rays, hits of the inner/outer/exit surfaces); measured ~240."""
-RENDER_BYTES_PER_CHUNK_RAY = 4 * KIB
-"""Light-field activations per ray of a chunk without autograd (PE, sampled features, 256-wide layers); measured <= 3.0 KiB."""
-RENDER_BYTES_PER_RAY = 64
-"""Per shaded ray of the frame: uvs, indices, (N, 3) output kept until the canvas is filled."""
-TRAIN_BYTES_PER_TEXEL = int(1.5 * KIB)
-"""Saved activations of one paper-width U-Net forward + backward per atlas texel; measured ~1.0 KiB."""
-TRAIN_BYTES_PER_CHUNK_RAY = 16 * KIB
-"""Light-field activations saved for backward per ray of a chunk; measured ~7-12 KiB."""
-TRAIN_BYTES_PER_RAY = 256
-"""Per shaded ray of the step: ray batch, target and image gradient per ray."""
-TRAIN_BYTES_PER_PIXEL = 64
-"""Per image pixel of the step: target image, masks, shaded mask."""
+from deliffas.engine.memory import (KIB, MIB, PEAK_PROBE_ENV, RENDER_BYTES_PER_CHUNK_RAY, RENDER_BYTES_PER_PIXEL,
+                                   RENDER_BYTES_PER_RAY, SLACK, TRAIN_BYTES_PER_TEXEL, render_peak_bound,
+                                   train_peak_bound)
 
 RENDER = [470, 642, 2.0, ["16384", "all"]]
 """Half the paper frame (940 x 1285), zoomed so ~45 % of the pixels are shaded rays, chunk 16k."""
@@ -51,22 +37,12 @@ TRAIN = [256, 235, 321, 3.0, ["4096", "all"]]
 """Atlas S = 256 (paper 1024) with the paper widths; one 235 x 321 image with ~40 k rays; chunk 4096."""
 
 
-def render_bound(features_bytes: int, pixels: int, chunk: int, rays: int) -> int:
-    return 2 * features_bytes + RENDER_BYTES_PER_PIXEL * pixels + RENDER_BYTES_PER_CHUNK_RAY * chunk \
-        + RENDER_BYTES_PER_RAY * rays + SLACK
-
-
-def train_bound(param_bytes: int, atlas_res: int, chunk: int, rays: int, pixels: int, unets: int = 2) -> int:
-    return param_bytes + unets * TRAIN_BYTES_PER_TEXEL * atlas_res ** 2 + TRAIN_BYTES_PER_CHUNK_RAY * chunk \
-        + TRAIN_BYTES_PER_RAY * rays + TRAIN_BYTES_PER_PIXEL * pixels + SLACK
-
-
 @pytest.fixture(scope="module")
 def probe(rel_reference) -> dict:
     if not Path("/proc/self/clear_refs").exists():
         pytest.skip("needs Linux /proc/self/clear_refs to reset the peak resident set")
     spec = {"shards": str(rel_reference), "render": RENDER, "train": TRAIN}
-    env = dict(os.environ, MALLOC_MMAP_THRESHOLD_="65536", OMP_NUM_THREADS="1")
+    env = dict(os.environ, **PEAK_PROBE_ENV)
     res = subprocess.run([sys.executable, str(Path(__file__).with_name("memory_probe.py")), json.dumps(spec)],
                          capture_output=True, text=True, timeout=540, env=env)
     assert res.returncode == 0, res.stderr[-3000:]
@@ -81,7 +57,7 @@ def test_render_frame_peak_stays_under_the_bound(probe):
     assert rays > 4 * chunk, "the frame must hold several chunks of rays"
     assert r["encode"] <= 2 * r["features_bytes"] + SLACK
     assert r["cast"] <= RENDER_BYTES_PER_PIXEL * r["pixels"] + SLACK
-    bound = render_bound(r["features_bytes"], r["pixels"], chunk, rays)
+    bound = render_peak_bound(r["features_bytes"], r["pixels"], chunk, rays)
     assert r["render"] <= bound, f"render_frame grew {r['render'] / MIB:.0f} MiB > bound {bound / MIB:.0f} MiB"
     # the shading stage alone: bounded by the chunk, and growing with all rays when not chunked
     shade_bound = RENDER_BYTES_PER_CHUNK_RAY * chunk + RENDER_BYTES_PER_RAY * rays + SLACK
@@ -95,7 +71,7 @@ def test_train_step_peak_stays_under_the_bound_with_a_ray_chunk(probe):
     chunk, rays = int(TRAIN[-1][0]), t["rays"]
     assert rays > 4 * chunk
     assert t["unet_fwd_bwd"] <= TRAIN_BYTES_PER_TEXEL * t["atlas_res"] ** 2 + SLACK
-    bound = train_bound(t["param_bytes"], t["atlas_res"], chunk, rays, t["pixels"])
+    bound = train_peak_bound(t["param_bytes"], t["atlas_res"], chunk, rays, t["pixels"])
     grown = t["train_step"][str(chunk)]
     assert grown <= bound, f"train_step grew {grown / MIB:.0f} MiB > bound {bound / MIB:.0f} MiB"
     unchunked = t["train_step"]["all"]
