@@ -49,7 +49,7 @@ class CameraRays:
 
 def camera_rays(raycaster: UVRaycaster, camera: Camera) -> CameraRays:
     """The rays of ``camera`` the light field shades (only the surfaces' projected window is cast)."""
-    hits = raycaster.cast_foreground(camera)
+    hits = raycaster.cast_foreground(camera, exits="inner_miss")
     uv_in, from_outer = uv_inner_or_exit(hits)
     keep = np.flatnonzero(hits.outer_hit & np.isfinite(uv_in).all(-1) & np.isfinite(hits.uv_outer).all(-1))
     pixels = hits.pixels[keep]  # (N, 2) (col, row)

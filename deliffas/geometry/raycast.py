@@ -52,6 +52,7 @@ culled."""
 _BOX_CHUNK = 16384  # rays per chunk of the box test (its temporaries stay in cache)
 
 PeelMethod = Literal["recast", "list"]
+ExitRays = Literal["all", "inner_miss"]
 
 
 def _o3d():
@@ -393,9 +394,10 @@ class UVRaycaster:
             out[name] = _scatter(n, cand, values, fill)
         return RaycastHits(**out)
 
-    def _cast_packed(self, rays: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    def _cast_packed(self, rays: np.ndarray, exits: ExitRays = "all") -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """Raw hits (t, face, bary) of (M, 6) float32 packed rays for "inner", "outer" and
-        "outer_exit" (no culling, no uvs)."""
+        "outer_exit" (no culling, no uvs); with ``exits="inner_miss"`` the "recast" peel looks
+        for exits only on the rays that miss the inner surface."""
         ti, fi, bi = _cast(self.inner_scene, rays)
         if self.peel == "list":
             to, fo, bo, te, fe, be = self._peel_list(rays)
@@ -404,7 +406,7 @@ class UVRaycaster:
         te = np.full_like(to, np.inf)
         fe = np.full_like(fo, -1)
         be = np.zeros_like(bo)
-        hit = np.flatnonzero(fo >= 0)
+        hit = np.flatnonzero((fo >= 0) & (fi < 0)) if exits == "inner_miss" else np.flatnonzero(fo >= 0)
         step = to[hit] + np.float32(self.peel_eps)  # (n,)
         again = np.take(rays, hit, axis=0)  # (n, 6)
         again[:, :3] += step[:, None] * again[:, 3:]
@@ -474,7 +476,7 @@ class UVRaycaster:
         hits = self.cast_rays(origins, dirs)
         return RaycastHits(**{**{f.name: getattr(hits, f.name) for f in fields(hits)}, "pixels": pixels})
 
-    def cast_foreground(self, camera: Camera) -> RaycastHits:
+    def cast_foreground(self, camera: Camera, exits: ExitRays = "all") -> RaycastHits:
         """Hits of the pixels of ``camera`` whose ray meets either surface, without full-image arrays.
 
         Only the pixels in the projected window of both surfaces (``projected_pixel_window``)
@@ -482,10 +484,19 @@ class UVRaycaster:
         cast, culled by the bounding box as in ``cast_rays``. The result equals ``cast(camera)``
         restricted to the pixels with ``inner_hit | outer_hit``.
 
+        Args:
+            camera: the camera.
+            exits: "all", or "inner_miss" to peel the outer exit only where the ray misses the
+                inner surface, the only place DELIFFAS uses it (``uv_inner_or_exit``); elsewhere
+                ``outer_exit_hit`` is then False. Saves most of the third cast. The "list"
+                peel method always finds every exit.
+
         Returns:
             RaycastHits with (N,) fields and ``pixels`` (N, 2) int64 (col, row) in row-major
             order.
         """
+        if exits not in ("all", "inner_miss"):
+            raise ValueError(f"exits: expected 'all' or 'inner_miss', got {exits!r}")
         window = projected_pixel_window(camera, self.hull_points)
         c0, r0, c1, r1 = window if window is not None else (0, 0, camera.width, camera.height)
         cols, rows = np.meshgrid(np.arange(c0, c1, dtype=np.int64), np.arange(r0, r1, dtype=np.int64))
@@ -495,7 +506,7 @@ class UVRaycaster:
             cand = _box_candidates(origins, dirs, self.box_lo, self.box_hi)
             pixels = np.take(pixels, cand, axis=0)
             origins, dirs = np.take(origins, cand, axis=0), np.take(dirs, cand, axis=0)
-        raw = self._cast_packed(_rays(origins, dirs))
+        raw = self._cast_packed(_rays(origins, dirs), exits)
         keep = np.flatnonzero((raw["inner"][1] >= 0) | (raw["outer"][1] >= 0))
         return RaycastHits(**self._hits(raw, keep), pixels=np.take(pixels, keep, axis=0))
 

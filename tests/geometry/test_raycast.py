@@ -172,6 +172,8 @@ def test_raycaster_checks(sphere):
         UVRaycaster(v, f, outer[:-1], atlas)
     with pytest.raises(ValueError, match="peel"):
         UVRaycaster(v, f, outer, atlas, peel="zbuffer")
+    with pytest.raises(ValueError, match="exits"):
+        UVRaycaster(v, f, outer, atlas).cast_foreground(ref.look_at([0, 0, 3000], [0, 0, 0], 8, 8, 10.0), exits="some")
     with pytest.raises(ValueError, match="atlas"):
         UVRaycaster(v, f[:-1], outer, atlas)
 
@@ -238,6 +240,12 @@ def test_foreground_cast_equals_full_image_restricted_to_hits(sphere, peel):
         for field in ("inner_face", "outer_face", "outer_exit_face", "inner_depth", "outer_exit_depth"):
             np.testing.assert_array_equal(getattr(fg, field), getattr(full, field)[hit], err_msg=f"{name} {field}")
         np.testing.assert_array_equal(fg.uv_outer_exit, full.uv_outer_exit[hit], err_msg=name)
+        # exits only where the inner surface is missed: the same DELIFFAS inner sample
+        lean = rc.cast_foreground(cam, exits="inner_miss")
+        np.testing.assert_array_equal(lean.pixels, fg.pixels)
+        np.testing.assert_array_equal(uv_inner_or_exit(lean)[0], uv_inner_or_exit(fg)[0], err_msg=name)
+        if peel == "recast":
+            assert not (lean.outer_exit_hit & lean.inner_hit).any()
         window = projected_pixel_window(cam, rc.hull_points)
         if name.startswith("inside"):
             assert window is None and hit.all()
