@@ -117,3 +117,140 @@ def test_cpu_conv_paths_match_torch(size, bias):
         y.backward(g)
         torch.testing.assert_close(x2.grad, x.grad, rtol=1e-5, atol=1e-6)
         torch.testing.assert_close(fast.weight.grad, ref.weight.grad, rtol=1e-5, atol=1e-5)
+
+
+def _reference_forward(net: UNet, x: torch.Tensor) -> torch.Tensor:
+    """The U-Net in plain torch functional ops on the module's parameters (no CPU paths, no fusion)."""
+    import torch.nn.functional as F
+
+    from deliffas.models.unet import _ChannelAffine
+
+    def norm(layers, y):
+        for m in layers:
+            if isinstance(m, _ChannelAffine):
+                y = y * m.weight.view(1, -1, 1, 1) + m.bias.view(1, -1, 1, 1)
+            elif isinstance(m, nn.BatchNorm2d):
+                y = F.batch_norm(y, m.running_mean, m.running_var, m.weight, m.bias, m.training, 0.0, m.eps)
+        return y
+
+    skips = []
+    for block in net.down:
+        conv = block[0]
+        y = norm(block[1:-1], F.conv2d(x, conv.weight, conv.bias, stride=2, padding=1))
+        x = F.leaky_relu(y, block[-1].negative_slope)
+        skips.append(x)
+    x = skips.pop()
+    for block in net.up:
+        conv = block[0]
+        y = norm(block[1:-1], F.conv_transpose2d(x, conv.weight, conv.bias, stride=2, padding=1))
+        x = torch.cat([F.relu(y), skips.pop()], dim=1)
+    y = F.conv_transpose2d(x, net.final.weight, net.final.bias, stride=2, padding=1)
+    return (torch.tanh(y) + 1) / 2
+
+
+def _randomise_norms(net: UNet) -> None:
+    """Norm scales/shifts, BatchNorm statistics and conv biases away from their identity init."""
+    from deliffas.models.unet import _ChannelAffine
+
+    g = torch.Generator().manual_seed(1)
+    with torch.no_grad():
+        for m in net.modules():
+            if isinstance(m, (_ChannelAffine, nn.BatchNorm2d)):
+                m.weight.copy_(torch.rand(m.weight.shape, generator=g) + 0.5)
+                m.bias.copy_(torch.rand(m.bias.shape, generator=g) * 0.4 - 0.2)
+            if isinstance(m, nn.BatchNorm2d):
+                m.running_mean.copy_(torch.rand(m.running_mean.shape, generator=g) * 0.2 - 0.1)
+                m.running_var.copy_(torch.rand(m.running_var.shape, generator=g) * 1.5 + 0.5)
+            if isinstance(m, (nn.Conv2d, nn.ConvTranspose2d)) and m.bias is not None:
+                m.bias.copy_(torch.rand(m.bias.shape, generator=g) * 0.2 - 0.1)
+
+
+@pytest.fixture
+def small_phase_maps(monkeypatch):
+    """Phase path (and several row bands) already on the small maps of the tests."""
+    import deliffas.models.unet as unet_mod
+
+    monkeypatch.setattr(unet_mod, "PHASE_MIN_PIXELS", 8 * 8)
+    monkeypatch.setattr(unet_mod, "BAND_BYTES", 2048)
+
+
+@pytest.mark.parametrize("norm", ["affine", "batch", "none"])
+@pytest.mark.parametrize("phase", [False, True])
+def test_inference_matches_reference(norm, phase, request):
+    """The fused inference forward (norms folded into the convs, up blocks written into the skip
+    concatenation, phase decomposition of the large transposed convs) computes the U-Net."""
+    if phase:
+        request.getfixturevalue("small_phase_maps")
+    torch.manual_seed(0)
+    net = UNet(UNetConfig(in_channels=9, base_channels=4, max_channels=16, norm=norm), 64).eval()
+    _randomise_norms(net)
+    x = torch.randn(2, 9, 64, 64)
+    with torch.no_grad():
+        ref = _reference_forward(net, x)
+        out = net(x)
+    with torch.inference_mode():
+        out_im = net(x)
+    torch.testing.assert_close(out, ref, rtol=1e-5, atol=2e-6)
+    torch.testing.assert_close(out_im, ref, rtol=1e-5, atol=2e-6)
+    with torch.enable_grad():  # the autograd path (no fusion) agrees too
+        torch.testing.assert_close(net(x), ref, rtol=1e-5, atol=2e-6)
+
+
+def test_inference_unfusable_blocks_use_module_path():
+    """BatchNorm with batch statistics and active dropout are not folded: no_grad in training mode
+    gives the same values as the reference (batch statistics; dropout off when p = 0)."""
+    torch.manual_seed(0)
+    net = UNet(UNetConfig(in_channels=3, base_channels=4, max_channels=8, dropout=True), 32).train()
+    for m in net.modules():
+        if isinstance(m, nn.Dropout):
+            m.p = 0.0
+    _randomise_norms(net)
+    x = torch.randn(2, 3, 32, 32)
+    with torch.no_grad():
+        ref = _reference_forward(net, x)
+        out = net(x)
+    torch.testing.assert_close(out, ref, rtol=1e-5, atol=2e-6)
+
+
+def test_conv_hooks_see_original_layers(small_phase_maps):
+    """Every conv module is called once per forward with its usual input and output shapes, fused
+    or not (benchmarks count FLOPs with forward hooks)."""
+    net = UNet(UNetConfig(in_channels=9, base_channels=4, max_channels=16, norm="affine"), 64).eval()
+    x = torch.randn(1, 9, 64, 64)
+    calls: dict[str, list] = {}
+
+    def hook(name):
+        def fn(module, inputs, output):
+            calls.setdefault(name, []).append((tuple(inputs[0].shape), tuple(output.shape)))
+        return fn
+
+    for name, m in net.named_modules():
+        if isinstance(m, (nn.Conv2d, nn.ConvTranspose2d)):
+            m.register_forward_hook(hook(name))
+    with torch.enable_grad():
+        net(x)
+    general = {k: v[:] for k, v in calls.items()}
+    calls.clear()
+    with torch.inference_mode():
+        net(x)
+    assert calls == general
+    assert all(len(v) == 1 for v in calls.values()) and len(calls) == 2 * net.levels
+
+
+@pytest.mark.parametrize("shape", [(2, 6, 7, 5), (1, 3, 1, 1), (1, 5, 9, 4)])
+@pytest.mark.parametrize("band_bytes", [64, 1 << 20])
+def test_phase_decomposition_matches_conv_transpose(shape, band_bytes, monkeypatch):
+    """ConvTranspose2d(k4, s2, p1) as one 2x2 conv of its four output phases, in row bands."""
+    import torch.nn.functional as F
+
+    import deliffas.models.unet as unet_mod
+
+    monkeypatch.setattr(unet_mod, "BAND_BYTES", band_bytes)
+    g = torch.Generator().manual_seed(0)
+    b, c_in, h, w = shape
+    x = torch.randn(shape, generator=g).contiguous(memory_format=torch.channels_last)
+    weight, bias = torch.randn(c_in, 3, 4, 4, generator=g), torch.randn(3, generator=g)
+    ref = F.conv_transpose2d(x, weight, bias, stride=2, padding=1)
+    out = torch.full_like(ref, float("nan"))
+    unet_mod._phase_conv_transpose_into(x, unet_mod._phase_weight(weight), bias.repeat(4), None, out)
+    torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-5)
