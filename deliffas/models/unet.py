@@ -24,17 +24,22 @@ Normalisation (``UNetConfig.norm``):
 
 Weights are initialised N(0, 0.02) (conv and transposed conv); norm scales 1, shifts 0.
 
-Speed (CPU): large maps run in channels_last (``CHANNELS_LAST_MIN_PIXELS``), small ones as plain
-matrix products (``GEMM_MAX_PIXELS``); the parameters are those of ``nn.Conv2d`` /
+Speed (CPU): large maps run in channels_last (``CHANNELS_LAST_MIN_PIXELS``,
+``CONV_TRANSPOSE_CHANNELS_LAST_MIN_PIXELS``), small ones as plain matrix products
+(``GEMM_MAX_PIXELS``, ``CONV_GEMM_MAX_PIXELS``); the parameters are those of ``nn.Conv2d`` /
 ``nn.ConvTranspose2d`` (subclasses, same state_dict) and results agree up to float rounding.
 Activations are in place. Outside autograd (``torch.no_grad`` / ``inference_mode``) on CPU, when
 every norm can be folded (affine, none, BatchNorm in eval mode; dropout inactive), each block is
 a single conv call with its norm and activation fused in (scale and shift folded into the conv
-weights where those are smaller than the output), each up block writes into the first half of
-its skip concatenation's buffer, the final ``(tanh + 1) / 2`` is the identical ``sigmoid(2 x)``
-with the factor 2 folded into the weights, and transposed convolutions on the largest maps run as
-their sub-pixel (phase) decomposition in row bands (``PHASE_MIN_PIXELS``). The conv modules are
-still called once per layer with their usual input and output, so forward hooks see them.
+weights where those are smaller than the output, the activation into oneDNN's transposed
+convolution where torch exposes that), each up block writes into the first half of its skip
+concatenation's buffer, the final ``(tanh + 1) / 2`` is the identical ``sigmoid(2 x)`` with the
+factor 2 folded into the weights, transposed convolutions on the largest maps run as their
+sub-pixel (phase) decomposition in row bands (``PHASE_MIN_PIXELS``), those on maps of at most 16
+pixels multiply through a small C loop compiled at first use (``XW_MAX_ROWS``; torch.mm without a
+compiler or with ``DELIFFAS_NATIVE=0``), and large buffers are advised as huge pages
+(``HUGE_PAGE_MIN_BYTES``). The conv modules are still called once per layer with their usual
+input and output, so forward hooks see them.
 """
 
 from __future__ import annotations
@@ -42,8 +47,15 @@ from __future__ import annotations
 import ctypes
 import logging
 import math
+import os
+import shlex
+import shutil
+import subprocess
 import sys
+import tempfile
+import threading
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Literal
 
 import torch
@@ -57,17 +69,23 @@ logger = logging.getLogger(__name__)
 NormKind = Literal["batch", "affine", "none"]
 
 GEMM_MAX_PIXELS = 8 * 8
-"""On CPU, every (transposed) convolution whose input has at most this many pixels runs as one
-matrix product with the unfolded input (fold after it for the transposed one). These deep
-layers are bound by reading their large weights (16-32 MB each at 512 channels), which oneDNN
-re-lays out on every call; the product reads them once (1.5-9x faster per layer on this
-2-core CPU; at 16 x 16 the two are even)."""
+"""On CPU, every transposed convolution whose input has at most this many pixels runs as one
+matrix product with the input followed by ``fold`` (col2im). These deep layers are bound by
+reading their large weights (16-32 MB each at 512 channels), which oneDNN re-lays out on every
+call; the product reads them once (1.5-9x faster per layer on this 2-core CPU)."""
+
+CONV_GEMM_MAX_PIXELS = 16 * 16
+"""The same for convolutions (one matrix product with the unfolded input): 1.2-1.7x faster
+than oneDNN up to 16 x 16 inputs here (e.g. 128 -> 256 channels at 16^2: 1.7 against 2.1 ms)."""
 
 CHANNELS_LAST_MIN_PIXELS = 32 * 32
-"""On CPU, every (transposed) convolution whose input has at least this many pixels runs in
-channels_last memory format: oneDNN is up to 7x faster there in that layout (e.g. the first
-9 -> 16 convolution at 1024^2), while the deep, small maps are faster in the default layout."""
+"""On CPU, every convolution whose input has at least this many pixels runs in channels_last
+memory format: oneDNN is up to 7x faster there in that layout (e.g. the first 9 -> 16
+convolution at 1024^2), while the deep, small maps are faster in the default layout."""
 
+CONV_TRANSPOSE_CHANNELS_LAST_MIN_PIXELS = 16 * 16
+"""The same for transposed convolutions, which are faster in channels_last from 16 x 16 inputs
+on (256 -> 64 channels at 16^2: 1.9 against 2.4 ms)."""
 
 PHASE_MIN_PIXELS = 256 * 256
 """On CPU outside autograd, every ConvTranspose2d(k4, s2, p1) whose input has at least this many
@@ -190,7 +208,9 @@ class _Epilogue:
             raise ValueError(f"_Epilogue: unknown activation {self.act!r}")
         return y
 
-    def folded(self, weight: torch.Tensor, bias: torch.Tensor | None, out_dim: int) -> tuple[torch.Tensor, torch.Tensor | None]:
+    def folded(
+        self, weight: torch.Tensor, bias: torch.Tensor | None, out_dim: int
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
         """``(weight * scale, bias * scale + shift)`` with the scale along ``weight``'s dim ``out_dim``
         (fresh tensors when they differ from the inputs); the convolution then computes
         ``y * scale + shift`` up to float rounding."""
@@ -209,13 +229,14 @@ class _Epilogue:
         return weight, bias
 
 
-def _cpu_layout(x: torch.Tensor) -> torch.Tensor:
-    """On CPU: ``x`` in channels_last when it is a large map, else in the default layout (a
-    channels_last input would make torch copy the large weights of the deep layers to
-    channels_last on every call). Elsewhere: ``x`` unchanged."""
+def _cpu_layout(x: torch.Tensor, min_pixels: int | None = None) -> torch.Tensor:
+    """On CPU: ``x`` in channels_last when it has at least ``min_pixels`` pixels (default
+    ``CHANNELS_LAST_MIN_PIXELS``), else in the default layout (a channels_last input would make
+    torch copy the large weights of the deep layers to channels_last on every call). Elsewhere:
+    ``x`` unchanged."""
     if x.device.type != "cpu":
         return x
-    if x.shape[-2] * x.shape[-1] >= CHANNELS_LAST_MIN_PIXELS:
+    if x.shape[-2] * x.shape[-1] >= (CHANNELS_LAST_MIN_PIXELS if min_pixels is None else min_pixels):
         return x.contiguous(memory_format=torch.channels_last)
     return x.contiguous()
 
@@ -254,7 +275,9 @@ def _advise_huge_pages(t: torch.Tensor) -> torch.Tensor:
     return t
 
 
-def _new_map(like: torch.Tensor, channels: int, height: int, width: int, channels_last: bool | None = None) -> torch.Tensor:
+def _new_map(
+    like: torch.Tensor, channels: int, height: int, width: int, channels_last: bool | None = None
+) -> torch.Tensor:
     """Uninitialised (B, channels, height, width) map on ``like``'s device and dtype, in the
     layout :func:`_cpu_layout` gives a map of that size (or channels_last if asked), advised as
     huge pages when large."""
@@ -277,10 +300,11 @@ def _new_map(like: torch.Tensor, channels: int, height: int, width: int, channel
 
 def _gemm_ok(x: torch.Tensor, conv: nn.Module) -> bool:
     """Whether ``conv`` on ``x`` takes the matrix-product path (small CPU maps, plain convolution)."""
+    max_pixels = GEMM_MAX_PIXELS if isinstance(conv, nn.ConvTranspose2d) else CONV_GEMM_MAX_PIXELS
     return (
         x.device.type == "cpu"
         and x.dim() == 4
-        and x.shape[-2] * x.shape[-1] <= GEMM_MAX_PIXELS
+        and x.shape[-2] * x.shape[-1] <= max_pixels
         and conv.groups == 1
         and conv.dilation == (1, 1)
         and conv.padding_mode == "zeros"
@@ -338,7 +362,13 @@ class _Conv2d(nn.Conv2d):
         )
 
     def _banded(
-        self, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, epilogue: _Epilogue, h_out: int, w_out: int
+        self,
+        x: torch.Tensor,
+        weight: torch.Tensor,
+        bias: torch.Tensor | None,
+        epilogue: _Epilogue,
+        h_out: int,
+        w_out: int,
     ) -> torch.Tensor:
         """The convolution (+ activation) in bands of output rows, each band's input converted to
         channels_last on its own: a whole-map conversion of a large input (37 MB at 9 x 1024^2)
@@ -350,7 +380,8 @@ class _Conv2d(nn.Conv2d):
         row_bytes = x.shape[1] * x.shape[-1] * x.element_size() * sh
         rows = max(1, min(h_out, BAND_BYTES // max(row_bytes, 1)))
         if rows == h_out and b == 1:  # one band: the whole map, padded by the convolution
-            y = F.conv2d(x.contiguous(memory_format=torch.channels_last), weight, bias, self.stride, self.padding, self.dilation)
+            x = x.contiguous(memory_format=torch.channels_last)
+            y = F.conv2d(x, weight, bias, self.stride, self.padding, self.dilation)
             return epilogue.activate_(y)
         for n in range(b):
             for i0 in range(0, h_out, rows):
@@ -440,6 +471,163 @@ def _phase_conv_transpose_into(
     return out
 
 
+NATIVE_ENV = "DELIFFAS_NATIVE"
+"""``DELIFFAS_NATIVE=0`` disables the compiled kernels (as for the normal maps)."""
+
+XW_MAX_ROWS = 16
+"""Outside autograd on CPU, a transposed convolution on the GEMM path whose input has at most
+this many pixels computes ``x^T W`` with a small compiled C loop (:func:`_native_xw`) instead of
+MKL: MKL's sgemm runs the (pixels x C_in) @ (C_in x 16 C_out) product of these weight-bound layers
+at 2-3 GB/s of weights on this CPU (6.2 ms for the 33.5 MB of 1024 -> 512 channels at 2 x 2), the
+loop streams them once (2.0 ms; 2.7 against 3.0-3.5 ms at 16 pixels)."""
+
+_XW_SOURCE = r"""#include <stdint.h>
+#include <string.h>
+#if defined(__AVX2__) && defined(__FMA__)
+#include <immintrin.h>
+#endif
+
+/* Y (M x N, row stride ldy) = X (M x K, row stride ldx) @ W (K x N, row stride ldw), float32.
+   For few rows M (a transposed convolution on a map of a few pixels): W is streamed once, four
+   rows at a time from start to end (sequential, prefetch friendly) while Y stays in cache; each
+   group of four W rows updates two rows of Y at a time (8 multiply-adds per 4 W loads). */
+static void xw_rows(const float *x, int64_t ldx, const float *w, int64_t ldw, float *y, int64_t ldy,
+                    int64_t m0, int64_t m1, int64_t k, int64_t kn, int64_t N) {
+    const float *w0 = w + k * ldw, *w1 = w0 + ldw, *w2 = w1 + ldw, *w3 = w2 + ldw;
+    int64_t m = m0;
+    if (kn == 4) {
+        for (; m + 2 <= m1; m += 2) {
+            const float *xa = x + m * ldx + k, *xb = xa + ldx;
+            float *ya = y + m * ldy, *yb = ya + ldy;
+            int64_t n = 0;
+#if defined(__AVX2__) && defined(__FMA__)
+            const __m256 a0 = _mm256_set1_ps(xa[0]), a1 = _mm256_set1_ps(xa[1]), a2 = _mm256_set1_ps(xa[2]),
+                         a3 = _mm256_set1_ps(xa[3]), b0 = _mm256_set1_ps(xb[0]), b1 = _mm256_set1_ps(xb[1]),
+                         b2 = _mm256_set1_ps(xb[2]), b3 = _mm256_set1_ps(xb[3]);
+            for (; n + 8 <= N; n += 8) {
+                const __m256 v0 = _mm256_loadu_ps(w0 + n), v1 = _mm256_loadu_ps(w1 + n),
+                             v2 = _mm256_loadu_ps(w2 + n), v3 = _mm256_loadu_ps(w3 + n);
+                __m256 s = _mm256_fmadd_ps(a0, v0, _mm256_loadu_ps(ya + n));
+                __m256 t = _mm256_fmadd_ps(b0, v0, _mm256_loadu_ps(yb + n));
+                __m256 s2 = _mm256_mul_ps(a2, v2), t2 = _mm256_mul_ps(b2, v2);
+                s = _mm256_fmadd_ps(a1, v1, s); t = _mm256_fmadd_ps(b1, v1, t);
+                s2 = _mm256_fmadd_ps(a3, v3, s2); t2 = _mm256_fmadd_ps(b3, v3, t2);
+                _mm256_storeu_ps(ya + n, _mm256_add_ps(s, s2));
+                _mm256_storeu_ps(yb + n, _mm256_add_ps(t, t2));
+            }
+#endif
+            for (; n < N; n++) {
+                ya[n] += xa[0] * w0[n] + xa[1] * w1[n] + xa[2] * w2[n] + xa[3] * w3[n];
+                yb[n] += xb[0] * w0[n] + xb[1] * w1[n] + xb[2] * w2[n] + xb[3] * w3[n];
+            }
+        }
+    }
+    for (; m < m1; m++) {
+        const float *xa = x + m * ldx + k;
+        float *ya = y + m * ldy;
+        for (int64_t j = 0; j < kn; j++) {
+            const float a = xa[j], *wj = w + (k + j) * ldw;
+            for (int64_t n = 0; n < N; n++) ya[n] += a * wj[n];
+        }
+    }
+}
+
+void deliffas_unet_xw(const float *x, int64_t ldx, const float *w, int64_t ldw, float *y, int64_t ldy,
+                      int64_t M, int64_t K, int64_t N) {
+    for (int64_t m = 0; m < M; m++) memset(y + m * ldy, 0, (size_t)N * sizeof(float));
+    for (int64_t k = 0; k < K; k += 4) xw_rows(x, ldx, w, ldw, y, ldy, 0, M, k, K - k < 4 ? K - k : 4, N);
+}
+"""
+
+_xw_lock = threading.Lock()
+_xw_kernel: object = None  # None: not built yet; False: unavailable; else the ctypes function
+
+
+def _build_xw():
+    """Compile and load :data:`_XW_SOURCE` (``$CC``/cc/gcc/clang, ``-march=native`` then portable)."""
+    if os.environ.get(NATIVE_ENV, "1").strip() == "0":
+        return False, f"disabled by {NATIVE_ENV}=0"
+    cc = shlex.split(os.environ.get("CC", "")) or [shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")]
+    if not cc[0]:
+        return False, "no C compiler found"
+    errors = []
+    with tempfile.TemporaryDirectory(prefix="deliffas_unet_", ignore_cleanup_errors=True) as tmp:
+        src, lib_path = Path(tmp) / "unet_xw.c", Path(tmp) / "unet_xw.so"
+        src.write_text(_XW_SOURCE)
+        for arch in (("-march=native",), ()):
+            cmd = [*cc, "-O3", "-std=c99", "-fPIC", "-shared", *arch, str(src), "-o", str(lib_path)]
+            try:
+                proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+            except (OSError, subprocess.SubprocessError) as exc:
+                errors.append(f"{type(exc).__name__}: {exc}")
+                continue
+            if proc.returncode == 0:
+                break
+            errors.append((proc.stderr or proc.stdout).strip()[-300:])
+        else:
+            return False, f"compiler failed: {errors[-1]}"
+        try:
+            lib = ctypes.CDLL(str(lib_path))  # stays mapped after the directory is removed
+        except OSError as exc:
+            return False, f"loading the kernel failed: {exc}"
+    fn = lib.deliffas_unet_xw
+    ptr, i64 = ctypes.c_void_p, ctypes.c_int64
+    fn.argtypes = [ptr, i64, ptr, i64, ptr, i64, i64, i64, i64]
+    fn.restype = None
+    return fn, ""
+
+
+def _native_xw():
+    """The compiled ``Y = X W`` loop, built on first use; None (reason logged once) when unavailable."""
+    global _xw_kernel
+    if _xw_kernel is None:
+        with _xw_lock:
+            if _xw_kernel is None:
+                kernel, reason = _build_xw()
+                if kernel is False:
+                    logger.info("unet: compiled small-matrix kernel unavailable (%s); using torch.mm", reason)
+                _xw_kernel = kernel
+    return _xw_kernel or None
+
+
+def _xw(x_t: torch.Tensor, weight: torch.Tensor) -> torch.Tensor | None:
+    """``x_t @ weight`` through the compiled loop (float32 CPU, contiguous), or None."""
+    kernel = _native_xw()
+    if kernel is None:
+        return None
+    m, k = x_t.shape
+    n = weight.shape[1]
+    y = torch.empty((m, n), dtype=torch.float32)
+    kernel(x_t.data_ptr(), k, weight.data_ptr(), n, y.data_ptr(), n, m, k, n)
+    return y
+
+
+_onednn_pointwise_ok = True
+
+
+def _onednn_conv_transpose_act(
+    x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, conv: nn.ConvTranspose2d, epilogue: _Epilogue
+) -> torch.Tensor | None:
+    """``act(conv_transpose2d(x, weight, bias))`` with the activation applied inside oneDNN's
+    kernel (torch's ``mkldnn._convolution_transpose_pointwise``, the op torch.compile fuses to on
+    CPU) while each output tile is in cache: one pass less over the output. None when the op is
+    missing or refuses the arguments (the caller then activates separately)."""
+    global _onednn_pointwise_ok
+    attr = {"relu": ("relu", []), "leaky_relu": ("leaky_relu", [epilogue.slope]), "sigmoid": ("sigmoid", [])}
+    if not _onednn_pointwise_ok or epilogue.act not in attr or x.device.type != "cpu" or x.dtype != torch.float32:
+        return None
+    name, scalars = attr[epilogue.act]
+    try:
+        return torch.ops.mkldnn._convolution_transpose_pointwise(
+            x, weight, bias, list(conv.padding), list(conv.output_padding), list(conv.stride), list(conv.dilation),
+            conv.groups, name, scalars, "",
+        )
+    except (AttributeError, RuntimeError, NotImplementedError) as exc:
+        _onednn_pointwise_ok = False
+        logger.info("unet: oneDNN fused transposed convolution unavailable (%s); activating separately", exc)
+        return None
+
+
 class _ConvTranspose2d(nn.ConvTranspose2d):
     """``nn.ConvTranspose2d`` (same parameters, same result up to float rounding) tuned for CPU:
     large maps in channels_last, small maps as one matrix product followed by ``fold`` (col2im),
@@ -459,12 +647,28 @@ class _ConvTranspose2d(nn.ConvTranspose2d):
     ) -> torch.Tensor:
         _check_fused(epilogue, out)
         if output_size is not None or self.output_padding != (0, 0):
-            return _finish(super().forward(_cpu_layout(x), output_size), epilogue, out)
+            x = _cpu_layout(x, CONV_TRANSPOSE_CHANNELS_LAST_MIN_PIXELS)
+            return _finish(super().forward(x, output_size), epilogue, out)
         if _gemm_ok(x, self):
             return _finish(self._gemm(x), epilogue, out)
         if not torch.is_grad_enabled() and self._phase_ok(x):
             return self._phase(x, epilogue, out)
-        return _finish(super().forward(_cpu_layout(x)), epilogue, out)
+        x = _cpu_layout(x, CONV_TRANSPOSE_CHANNELS_LAST_MIN_PIXELS)
+        if epilogue is None or self.weight.numel() > x.shape[0] * self.out_channels * 4 * x.shape[-2] * x.shape[-1]:
+            return _finish(super().forward(x), epilogue, out)
+        # scale and shift folded into the (smaller) weights, the activation into oneDNN's kernel
+        weight, bias = epilogue.folded(self.weight, self.bias, 1)
+        y = _onednn_conv_transpose_act(x, weight, bias, self, epilogue)
+        if y is None:
+            y = epilogue.activate_(self._conv_transpose(x, weight, bias))
+        if out is None:
+            return y
+        out.copy_(y)
+        return out
+
+    def _conv_transpose(self, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None) -> torch.Tensor:
+        return F.conv_transpose2d(x, weight, bias, self.stride, self.padding, self.output_padding, self.groups,
+                                  self.dilation)
 
     def _phase_ok(self, x: torch.Tensor) -> bool:
         return (
@@ -499,8 +703,18 @@ class _ConvTranspose2d(nn.ConvTranspose2d):
         h_out, w_out = (h - 1) * sh - 2 * ph + kh, (w - 1) * sw - 2 * pw + kw
         xm = x.reshape(b, c_in, h * w)
         weight = self.weight.reshape(c_in, -1)  # (C_in, C_out kh kw)
-        # x^T @ W (MKL streams W's rows; W^T @ x is up to 10x slower for 4-pixel maps here)
-        cols = [torch.mm(xm[i].t(), weight) for i in range(b)]  # (H W, C_out kh kw) each
+        cols = None
+        if (
+            h * w <= XW_MAX_ROWS
+            and not torch.is_grad_enabled()
+            and x.dtype == torch.float32
+            and weight.dtype == torch.float32
+            and weight.is_contiguous()
+        ):
+            cols = [_xw(xm[i].t().contiguous(), weight) for i in range(b)]
+            cols = None if cols[0] is None else cols
+        if cols is None:  # x^T @ W (MKL streams W's rows; W^T @ x is up to 10x slower for 4-pixel maps here)
+            cols = [torch.mm(xm[i].t(), weight) for i in range(b)]  # (H W, C_out kh kw) each
         cols_t = (cols[0].unsqueeze(0) if b == 1 else torch.stack(cols)).transpose(1, 2)
         y = F.fold(cols_t, (h_out, w_out), self.kernel_size, padding=self.padding, stride=self.stride)
         return y if self.bias is None else y + self.bias.view(1, -1, 1, 1)
@@ -639,7 +853,8 @@ class UNet(nn.Module):
         for block, epilogue in zip(self.up, up):
             skip = skips.pop()
             c = block[0].out_channels
-            cat = _new_map(skip, c + skip.shape[1], skip.shape[-2], skip.shape[-1])
+            h, w = skip.shape[-2:]
+            cat = _new_map(skip, c + skip.shape[1], h, w, h * w >= CONV_TRANSPOSE_CHANNELS_LAST_MIN_PIXELS)
             block[0](x, epilogue=epilogue, out=cat[:, :c])
             cat[:, c:].copy_(skip)
             x = cat

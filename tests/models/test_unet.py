@@ -254,3 +254,31 @@ def test_phase_decomposition_matches_conv_transpose(shape, band_bytes, monkeypat
     out = torch.full_like(ref, float("nan"))
     unet_mod._phase_conv_transpose_into(x, unet_mod._phase_weight(weight), bias.repeat(4), None, out)
     torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("m,k,n", [(4, 1024, 520), (1, 3, 9), (5, 1023, 77), (16, 64, 256)])
+def test_native_small_matrix_product(m, k, n):
+    """The compiled x^T W loop of the small transposed convolutions equals torch.mm (tails included)."""
+    from deliffas.models.unet import _native_xw, _xw
+
+    if _native_xw() is None:
+        pytest.skip("no C compiler (the U-Net then uses torch.mm)")
+    g = torch.Generator().manual_seed(0)
+    x_t, w = torch.randn(m, k, generator=g), torch.randn(k, n, generator=g)
+    torch.testing.assert_close(_xw(x_t, w), x_t @ w, rtol=1e-5, atol=1e-4)
+
+
+def test_small_maps_without_native_kernel(monkeypatch):
+    """Without the compiled loop (no compiler, DELIFFAS_NATIVE=0) the small transposed convolutions
+    fall back to torch.mm with the same result."""
+    import deliffas.models.unet as unet_mod
+
+    torch.manual_seed(0)
+    net = UNet(UNetConfig(in_channels=9, base_channels=4, max_channels=16, norm="affine"), 32).eval()
+    _randomise_norms(net)
+    x = torch.randn(1, 9, 32, 32)
+    with torch.no_grad():
+        out = net(x)
+        monkeypatch.setattr(unet_mod, "_xw_kernel", False)
+        torch.testing.assert_close(net(x), out, rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(out, _reference_forward(net, x), rtol=1e-5, atol=2e-6)
