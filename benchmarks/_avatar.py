@@ -119,6 +119,19 @@ def skipped(group: str, reason: str):
     return [Result(group, f"skipped: {reason}", 0.0, "")]
 
 
+def avatar_run(group: str, body):
+    """``body(avatar())`` with ``BENCH_THREADS`` torch threads, or a "skipped" row of ``group``
+    when neither the DDC sample nor the procedural character is available."""
+    from benchmarks._timing import torch_threads
+
+    with torch_threads():
+        try:
+            av = avatar()
+        except Unavailable as exc:
+            return skipped(group, str(exc))
+        return body(av)
+
+
 @functools.lru_cache(maxsize=None)
 def rays(size: str):
     """``deliffas.engine.rays.CameraRays`` of the benchmark camera of ``size`` (cached)."""

@@ -27,7 +27,7 @@ import torch
 from torch import nn
 
 from benchmarks import _avatar
-from benchmarks._timing import best_times, torch_threads
+from benchmarks._timing import best_times
 from benchmarks.common import Result
 
 GROUP = "lf_vs_nerf"
@@ -98,18 +98,13 @@ def _box_interval(origins: np.ndarray, dirs: np.ndarray, lo: np.ndarray, hi: np.
 
 
 def run() -> list[Result]:
-    with torch_threads():
-        return _run()
+    return _avatar.avatar_run(GROUP, _run)
 
 
-def _run() -> list[Result]:
+def _run(av: _avatar.Avatar) -> list[Result]:
     from deliffas.engine.rays import camera_rays
     from deliffas.geometry.raycast import UVRaycaster
 
-    try:
-        av = _avatar.avatar()
-    except _avatar.Unavailable as exc:
-        return _avatar.skipped(GROUP, str(exc))
     model = _avatar.paper_model()
     features = _avatar.random_features(model)
     mcfg = model.config.mlp

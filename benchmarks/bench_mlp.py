@@ -23,7 +23,7 @@ import math
 import torch
 
 from benchmarks import _avatar
-from benchmarks._timing import best_times, torch_threads
+from benchmarks._timing import best_times
 from benchmarks.common import Result
 
 GROUP = "mlp"
@@ -54,15 +54,10 @@ def mac_flops(mlp: torch.nn.Module) -> int:
 
 
 def run() -> list[Result]:
-    with torch_threads():
-        return _run()
+    return _avatar.avatar_run(GROUP, _run)
 
 
-def _run() -> list[Result]:
-    try:
-        av = _avatar.avatar()
-    except _avatar.Unavailable as exc:
-        return _avatar.skipped(GROUP, str(exc))
+def _run(av: _avatar.Avatar) -> list[Result]:
     model = _avatar.paper_model()
     features = _avatar.random_features(model)
     mlp32 = model.mlp

@@ -20,7 +20,7 @@ from __future__ import annotations
 import torch
 
 from benchmarks import _avatar
-from benchmarks._timing import best_times, torch_threads
+from benchmarks._timing import best_times
 from benchmarks.common import Result
 
 GROUP = "normals"
@@ -30,18 +30,13 @@ SIZES = (256, 512, 1024)
 
 
 def run() -> list[Result]:
-    with torch_threads():
-        return _run()
+    return _avatar.avatar_run(GROUP, _run)
 
 
-def _run() -> list[Result]:
+def _run(av: _avatar.Avatar) -> list[Result]:
     from deliffas.geometry.atlas import uv_texel_table
     from deliffas.geometry.normal_maps import NormalMapGather, fused_kernel_status, rasterize_normal_map_naive
 
-    try:
-        av = _avatar.avatar()
-    except _avatar.Unavailable as exc:
-        return _avatar.skipped(GROUP, str(exc))
     normals = av.normals_seq  # (K, V, 3) float32
     frames, num_verts = normals.shape[0], normals.shape[1]
     faces = torch.from_numpy(av.faces)

@@ -16,7 +16,7 @@ every pixel, for callers that need per-pixel arrays.
 from __future__ import annotations
 
 from benchmarks import _avatar
-from benchmarks._timing import BENCH_THREADS, best_times, torch_threads
+from benchmarks._timing import BENCH_THREADS, best_times
 from benchmarks.common import Result
 
 GROUP = "uv"
@@ -24,21 +24,16 @@ TARGET = 2.5
 
 
 def run() -> list[Result]:
-    with torch_threads():
-        return _run()
+    return _avatar.avatar_run(GROUP, _run)
 
 
-def _run() -> list[Result]:
+def _run(av: _avatar.Avatar) -> list[Result]:
     import numpy as np
     import open3d as o3d
 
     from deliffas.engine.rays import camera_rays
     from deliffas.geometry.raycast import UVRaycaster, build_scene, uv_inner_or_exit
 
-    try:
-        av = _avatar.avatar()
-    except _avatar.Unavailable as exc:
-        return _avatar.skipped(GROUP, str(exc))
     results = [Result(GROUP, "torch intra-op threads in the uv/mlp/unet/normals/lf_vs_nerf rows", BENCH_THREADS,
                       "threads", note="see benchmarks/_timing.py BENCH_THREADS")]
     for size, repeat in (("256^2", 15), ("940x1285", 7)):
