@@ -705,7 +705,7 @@ class _ConvTranspose2d(nn.ConvTranspose2d):
         weight = self.weight.reshape(c_in, -1)  # (C_in, C_out kh kw)
         cols = None
         if (
-            h * w <= XW_MAX_ROWS
+            1 < h * w <= XW_MAX_ROWS  # one pixel: MKL's matrix-vector product is as fast
             and not torch.is_grad_enabled()
             and x.dtype == torch.float32
             and weight.dtype == torch.float32
@@ -827,12 +827,12 @@ class UNet(nn.Module):
         cannot be folded (BatchNorm with batch statistics, active dropout)."""
         down, up = [], []
         for block in self.down:
-            norm = _fold_norm(block[1:-1])
+            norm = _fold_norm(list(block)[1:-1])  # (slicing an nn.Sequential builds a new module)
             if norm is None:
                 return None
             down.append(_Epilogue(*norm, act="leaky_relu", slope=block[-1].negative_slope))
         for block in self.up:
-            norm = _fold_norm(block[1:-1])
+            norm = _fold_norm(list(block)[1:-1])
             if norm is None:
                 return None
             up.append(_Epilogue(*norm, act="relu"))
