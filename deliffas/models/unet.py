@@ -327,6 +327,46 @@ def _check_fused(epilogue: _Epilogue | None, out: torch.Tensor | None) -> None:
         raise RuntimeError("U-Net conv: epilogue/out are for inference only (torch.no_grad / inference_mode)")
 
 
+_onednn_pointwise_ok = True
+
+
+def _onednn_act(
+    transposed: bool,
+    x: torch.Tensor,
+    weight: torch.Tensor,
+    bias: torch.Tensor | None,
+    epilogue: _Epilogue,
+    padding: tuple[int, int],
+    stride: tuple[int, int] = (1, 1),
+    dilation: tuple[int, int] = (1, 1),
+    groups: int = 1,
+    output_padding: tuple[int, int] = (0, 0),
+) -> torch.Tensor | None:
+    """``act(conv(x, weight, bias))`` (``conv_transpose2d`` if ``transposed``) with the epilogue's
+    activation applied inside oneDNN's kernel while each output tile is in cache: one pass less
+    over the output. These are torch's ``mkldnn._convolution[_transpose]_pointwise`` ops, which
+    torch.compile fuses to on CPU. None when they are missing or refuse the arguments (the caller
+    then activates separately)."""
+    global _onednn_pointwise_ok
+    attr = {"relu": ("relu", []), "leaky_relu": ("leaky_relu", [epilogue.slope]), "sigmoid": ("sigmoid", [])}
+    if not _onednn_pointwise_ok or epilogue.act not in attr or x.device.type != "cpu" or x.dtype != torch.float32:
+        return None
+    name, scalars = attr[epilogue.act]
+    try:
+        if transposed:
+            return torch.ops.mkldnn._convolution_transpose_pointwise(
+                x, weight, bias, list(padding), list(output_padding), list(stride), list(dilation), groups, name,
+                scalars, "",
+            )
+        return torch.ops.mkldnn._convolution_pointwise(
+            x, weight, bias, list(padding), list(stride), list(dilation), groups, name, scalars, ""
+        )
+    except (AttributeError, RuntimeError, NotImplementedError) as exc:
+        _onednn_pointwise_ok = False
+        logger.info("unet: oneDNN fused convolution + activation unavailable (%s); activating separately", exc)
+        return None
+
+
 class _Conv2d(nn.Conv2d):
     """``nn.Conv2d`` (same parameters, same result up to float rounding) tuned for CPU: large maps
     in channels_last, small maps as one matrix product of the weights with the unfolded input.
@@ -456,9 +496,11 @@ def _phase_conv_transpose_into(
             top, bottom = int(j0 == 0), int(j1 == h + 1)
             if top or bottom:
                 xb = F.pad(xb, (0, 0, top, bottom))
-            yb = F.conv2d(xb, weight, bias, padding=(0, 1))  # (1, 4C, j1 - j0, W + 1)
-            if act is not None:
-                act.activate_(yb)
+            yb = None if act is None else _onednn_act(False, xb, weight, bias, act, (0, 1))
+            if yb is None:
+                yb = F.conv2d(xb, weight, bias, padding=(0, 1))  # (1, 4C, j1 - j0, W + 1)
+                if act is not None:
+                    act.activate_(yb)
             for ap in (0, 1):  # a' = 1 - a: phase row j is output row 2 j - 1 + a'
                 ja0, ja1 = max(j0, 1 - ap), min(j1, h + 1 - ap)
                 if ja1 <= ja0:
@@ -602,32 +644,6 @@ def _xw(x_t: torch.Tensor, weight: torch.Tensor) -> torch.Tensor | None:
     return y
 
 
-_onednn_pointwise_ok = True
-
-
-def _onednn_conv_transpose_act(
-    x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, conv: nn.ConvTranspose2d, epilogue: _Epilogue
-) -> torch.Tensor | None:
-    """``act(conv_transpose2d(x, weight, bias))`` with the activation applied inside oneDNN's
-    kernel (torch's ``mkldnn._convolution_transpose_pointwise``, the op torch.compile fuses to on
-    CPU) while each output tile is in cache: one pass less over the output. None when the op is
-    missing or refuses the arguments (the caller then activates separately)."""
-    global _onednn_pointwise_ok
-    attr = {"relu": ("relu", []), "leaky_relu": ("leaky_relu", [epilogue.slope]), "sigmoid": ("sigmoid", [])}
-    if not _onednn_pointwise_ok or epilogue.act not in attr or x.device.type != "cpu" or x.dtype != torch.float32:
-        return None
-    name, scalars = attr[epilogue.act]
-    try:
-        return torch.ops.mkldnn._convolution_transpose_pointwise(
-            x, weight, bias, list(conv.padding), list(conv.output_padding), list(conv.stride), list(conv.dilation),
-            conv.groups, name, scalars, "",
-        )
-    except (AttributeError, RuntimeError, NotImplementedError) as exc:
-        _onednn_pointwise_ok = False
-        logger.info("unet: oneDNN fused transposed convolution unavailable (%s); activating separately", exc)
-        return None
-
-
 class _ConvTranspose2d(nn.ConvTranspose2d):
     """``nn.ConvTranspose2d`` (same parameters, same result up to float rounding) tuned for CPU:
     large maps in channels_last, small maps as one matrix product followed by ``fold`` (col2im),
@@ -658,7 +674,8 @@ class _ConvTranspose2d(nn.ConvTranspose2d):
             return _finish(super().forward(x), epilogue, out)
         # scale and shift folded into the (smaller) weights, the activation into oneDNN's kernel
         weight, bias = epilogue.folded(self.weight, self.bias, 1)
-        y = _onednn_conv_transpose_act(x, weight, bias, self, epilogue)
+        y = _onednn_act(True, x, weight, bias, epilogue, self.padding, self.stride, self.dilation, self.groups,
+                        self.output_padding)
         if y is None:
             y = epilogue.activate_(self._conv_transpose(x, weight, bias))
         if out is None:

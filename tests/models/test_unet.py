@@ -282,3 +282,18 @@ def test_small_maps_without_native_kernel(monkeypatch):
         monkeypatch.setattr(unet_mod, "_xw_kernel", False)
         torch.testing.assert_close(net(x), out, rtol=1e-5, atol=1e-6)
         torch.testing.assert_close(out, _reference_forward(net, x), rtol=1e-5, atol=2e-6)
+
+
+def test_inference_without_onednn_fused_activation(monkeypatch, small_phase_maps):
+    """Without torch's oneDNN conv + activation ops the fused path activates separately, same values."""
+    import deliffas.models.unet as unet_mod
+
+    torch.manual_seed(0)
+    net = UNet(UNetConfig(in_channels=9, base_channels=4, max_channels=16, norm="affine"), 64).eval()
+    _randomise_norms(net)
+    x = torch.randn(1, 9, 64, 64)
+    with torch.no_grad():
+        out = net(x)
+        monkeypatch.setattr(unet_mod, "_onednn_pointwise_ok", False)
+        torch.testing.assert_close(net(x), out, rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(out, _reference_forward(net, x), rtol=1e-5, atol=2e-6)
