@@ -64,7 +64,12 @@ IMAGE_GZIP_LEVEL = 4
 """gzip level of raw RGBA image chunks: at 1285x940 as small as PNG level 3 (-3 %), 2.5x faster to
 encode and decode (docs/shards.md, measured)."""
 ARRAY_GZIP_LEVEL = 4
-"""gzip level (+ byte shuffle) of vertex and normal-map chunks: normal maps 2-3.5x smaller."""
+"""gzip level (+ byte shuffle) of vertex chunks."""
+NORMAL_MAP_COMPRESSION = None
+"""Normal-map chunks are stored uncompressed: gzip 4 + shuffle made them 2.4x smaller (164 vs 386
+KiB per float16 map at S = 256) but cost 1.4 ms to decode per map against 0.04 ms, and a training
+item reads 2 (T + 1) maps, which made decoding them the largest part of loading an item
+(docs/shards.md). Shards written with gzip maps are read as before."""
 _TMP_MARK = ".tmp-"
 
 
@@ -215,8 +220,7 @@ class ShardWriter:
                              compression_opts=ARRAY_GZIP_LEVEL, shuffle=True)
         for name in ("normal_maps_inner", "normal_maps_outer"):
             a = np.asarray(getattr(geometry, name), np.float16)
-            g.create_dataset(name, data=a, chunks=(1,) + a.shape[1:], compression="gzip",
-                             compression_opts=ARRAY_GZIP_LEVEL, shuffle=True)
+            g.create_dataset(name, data=a, chunks=(1,) + a.shape[1:], compression=NORMAL_MAP_COMPRESSION)
 
     def put(self, row: int, col: int, rgb: np.ndarray, mask: np.ndarray) -> None:
         """Store the image of frame row ``row`` and camera column ``col``: rgb (H, W, 3), mask (H, W) uint8."""
