@@ -20,16 +20,9 @@ from __future__ import annotations
 
 import ctypes
 import logging
-import os
-import shlex
-import shutil
-import subprocess
-import tempfile
 import threading
-import time
 import warnings
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Literal, Union
 
 import numpy as np
@@ -37,6 +30,7 @@ import torch
 
 from deliffas.checks import check_shape
 from deliffas.geometry.atlas import TexelTable, UVAtlas, uv_texel_table
+from deliffas.native import NATIVE_ENV, build_library  # noqa: F401  (NATIVE_ENV: documented switch)
 
 __all__ = [
     "NormalMapGather",
@@ -55,7 +49,6 @@ log = logging.getLogger(__name__)
 NORMAL_EPS = 1e-8
 """Interpolated normals shorter than this are written as 0 (cannot be normalised)."""
 
-NATIVE_ENV = "DELIFFAS_NATIVE"
 """Set to ``0`` to never build or use the fused C kernel (``apply`` then uses the sparse product)."""
 
 # One pass per frame over the S^2 texels: texel t with vertex ids vid[k][t] (vid[0][t] = -1 when the
@@ -146,7 +139,7 @@ int deliffas_normal_maps_avx2(void) {
 }
 """
 
-_CFLAGS = ("-O3", "-std=c99", "-fPIC", "-shared", "-fno-math-errno", "-fno-trapping-math", "-ffp-contract=off")
+_CFLAGS = ("-fno-math-errno", "-fno-trapping-math", "-ffp-contract=off")
 """No -ffast-math: results stay IEEE (no reciprocal-sqrt approximations, no reassociation)."""
 
 
@@ -175,39 +168,16 @@ _fallback_logged = False
 
 
 def _build_kernel() -> tuple[FusedKernelStatus, ctypes.CDLL | None]:
-    if os.environ.get(NATIVE_ENV, "1").strip() == "0":
-        return FusedKernelStatus(False, f"disabled by {NATIVE_ENV}=0"), None
-    cc = shlex.split(os.environ.get("CC", "")) or [shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")]
-    if not cc[0]:
-        return FusedKernelStatus(False, "no C compiler found (cc, gcc or clang on PATH, or $CC)"), None
-    t0 = time.perf_counter()
-    errors = []
-    with tempfile.TemporaryDirectory(prefix="deliffas_nm_", ignore_cleanup_errors=True) as tmp:
-        src, lib_path = Path(tmp) / "normal_maps.c", Path(tmp) / "normal_maps.so"
-        src.write_text(_KERNEL_SOURCE)
-        for arch in (("-march=native",), ()):  # the build machine is the run machine; retry portable
-            cmd = [*cc, *_CFLAGS, *arch, str(src), "-o", str(lib_path)]
-            try:
-                proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
-            except (OSError, subprocess.SubprocessError) as exc:
-                errors.append(f"{type(exc).__name__}: {exc}")
-                continue
-            if proc.returncode == 0:
-                break
-            errors.append((proc.stderr or proc.stdout).strip()[-400:])
-        else:
-            return FusedKernelStatus(False, f"{' '.join(cc)} failed: {errors[-1]}"), None
-        try:
-            lib = ctypes.CDLL(str(lib_path))  # stays mapped after the temporary directory is removed
-        except OSError as exc:
-            return FusedKernelStatus(False, f"loading the built kernel failed: {exc}"), None
+    built = build_library("normal_maps", _KERNEL_SOURCE, _CFLAGS)
+    lib = built.lib
+    if lib is None:
+        return FusedKernelStatus(False, built.reason), None
     ptr, i64 = ctypes.c_void_p, ctypes.c_int64
     lib.deliffas_normal_maps_f32.argtypes = [ptr, i64, ptr, ptr, ptr, i64, i64, ctypes.c_float]
     lib.deliffas_normal_maps_f64.argtypes = [ptr, i64, ptr, ptr, ptr, i64, i64, ctypes.c_double]
     lib.deliffas_normal_maps_f32.restype = lib.deliffas_normal_maps_f64.restype = None
     avx2 = bool(lib.deliffas_normal_maps_avx2())
-    command = " ".join([*cmd[:-3], "normal_maps.c"])  # without the temporary paths
-    return FusedKernelStatus(True, "", time.perf_counter() - t0, command, avx2), lib
+    return FusedKernelStatus(True, "", built.build_seconds, built.command, avx2), lib
 
 
 def _load_kernel() -> tuple[FusedKernelStatus, ctypes.CDLL | None]:

@@ -47,20 +47,16 @@ from __future__ import annotations
 import ctypes
 import logging
 import math
-import os
-import shlex
-import shutil
-import subprocess
 import sys
-import tempfile
 import threading
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Literal
 
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+from deliffas.native import build_library
 
 __all__ = ["UNetConfig", "UNet", "resolve_levels", "unet_channels"]
 
@@ -513,7 +509,6 @@ def _phase_conv_transpose_into(
     return out
 
 
-NATIVE_ENV = "DELIFFAS_NATIVE"
 """``DELIFFAS_NATIVE=0`` disables the compiled kernels (as for the normal maps)."""
 
 XW_MAX_ROWS = 16
@@ -586,33 +581,11 @@ _xw_kernel: object = None  # None: not built yet; False: unavailable; else the c
 
 
 def _build_xw():
-    """Compile and load :data:`_XW_SOURCE` (``$CC``/cc/gcc/clang, ``-march=native`` then portable)."""
-    if os.environ.get(NATIVE_ENV, "1").strip() == "0":
-        return False, f"disabled by {NATIVE_ENV}=0"
-    cc = shlex.split(os.environ.get("CC", "")) or [shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")]
-    if not cc[0]:
-        return False, "no C compiler found"
-    errors = []
-    with tempfile.TemporaryDirectory(prefix="deliffas_unet_", ignore_cleanup_errors=True) as tmp:
-        src, lib_path = Path(tmp) / "unet_xw.c", Path(tmp) / "unet_xw.so"
-        src.write_text(_XW_SOURCE)
-        for arch in (("-march=native",), ()):
-            cmd = [*cc, "-O3", "-std=c99", "-fPIC", "-shared", *arch, str(src), "-o", str(lib_path)]
-            try:
-                proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
-            except (OSError, subprocess.SubprocessError) as exc:
-                errors.append(f"{type(exc).__name__}: {exc}")
-                continue
-            if proc.returncode == 0:
-                break
-            errors.append((proc.stderr or proc.stdout).strip()[-300:])
-        else:
-            return False, f"compiler failed: {errors[-1]}"
-        try:
-            lib = ctypes.CDLL(str(lib_path))  # stays mapped after the directory is removed
-        except OSError as exc:
-            return False, f"loading the kernel failed: {exc}"
-    fn = lib.deliffas_unet_xw
+    """Compile and load :data:`_XW_SOURCE` (``deliffas.native``): (function or False, reason)."""
+    built = build_library("unet_xw", _XW_SOURCE)
+    if built.lib is None:
+        return False, built.reason
+    fn = built.lib.deliffas_unet_xw
     ptr, i64 = ctypes.c_void_p, ctypes.c_int64
     fn.argtypes = [ptr, i64, ptr, i64, ptr, i64, i64, i64, i64]
     fn.restype = None
