@@ -161,9 +161,9 @@ class ShardDataset(Dataset):
         frame = self.frames[pos]
         shard, row = self.shards.locate(self.sequence, frame)
         col_of = {int(c): j for j, c in enumerate(shard.camera_ids)}
-        rgba = torch.from_numpy(np.stack([shard.rgba(row, col_of[c]) for c in cams]))  # (K, H, W, 4) uint8
+        rgba = torch.from_numpy(shard.rgba_many(row, [col_of[c] for c in cams]))  # (K, H, W, 4) uint8
         T = self.temporal_window
-        wrows = shard.h5["window_rows"][row][: T + 1]
+        wrows = shard.dataset("window_rows")[row][: T + 1]
         nm_in = shard.geometry("normal_maps_inner", wrows)  # (T+1, 3, S, S)
         nm_out = shard.geometry("normal_maps_outer", wrows)
         S = nm_in.shape[-1]

@@ -272,6 +272,7 @@ class ShardFile:
         self.path = Path(path)
         self._f = None
         self._pid = None
+        self._datasets: dict[str, object] = {}
 
     @property
     def h5(self):
@@ -280,12 +281,22 @@ class ShardFile:
         if self._f is None or self._pid != os.getpid():  # never reuse a handle across fork
             self._f = h5py.File(self.path, "r")
             self._pid = os.getpid()
+            self._datasets = {}
         return self._f
+
+    def dataset(self, key: str):
+        """The h5py dataset at ``key`` (e.g. ``"geometry/inner_verts"``), or None if absent;
+        handles are kept, since an h5py name lookup costs about as much as reading a small chunk."""
+        f = self.h5
+        if key not in self._datasets:
+            self._datasets[key] = f[key] if key in f else None
+        return self._datasets[key]
 
     def close(self) -> None:
         if self._f is not None and self._pid == os.getpid():
             self._f.close()
         self._f = None
+        self._datasets = {}
 
     def __getstate__(self):  # picklable for DataLoader workers (spawn): handles are reopened there
         return {"path": self.path}
@@ -313,6 +324,16 @@ class ShardFile:
         rgb, mask = self.image(row, col)
         return np.concatenate([rgb, mask[..., None]], axis=2)
 
+    def rgba_many(self, row: int, cols: Sequence[int]) -> np.ndarray:
+        """(K, H, W, 4) uint8 of frame row ``row`` and camera columns ``cols`` (any order), read in
+        one call where the codec allows."""
+        cols = np.asarray(cols, np.int64)
+        ds = self.dataset("rgba")
+        if ds is None or len(cols) == 0:
+            return np.stack([self.rgba(row, int(c)) for c in cols]) if len(cols) else np.zeros((0, 0, 0, 4), np.uint8)
+        uniq, inverse = np.unique(cols, return_inverse=True)
+        return ds[row, uniq][inverse]
+
     def image(self, row: int, col: int) -> tuple[np.ndarray, np.ndarray]:
         """rgb (H, W, 3) uint8 and mask (H, W) uint8 of frame row ``row``, camera column ``col``."""
         import cv2
@@ -331,7 +352,12 @@ class ShardFile:
         """Rows of a geometry dataset (``dofs``, ``inner_verts``, ``normal_maps_outer``, …), in the given order."""
         rows = np.asarray(rows, np.int64)
         uniq, inverse = np.unique(rows, return_inverse=True)  # h5py wants increasing indices
-        return self.h5["geometry"][name][uniq][inverse]
+        ds = self.dataset(f"geometry/{name}")
+        if ds is None:
+            raise KeyError(f"{self.path}: no geometry dataset {name!r}")
+        if len(uniq) and uniq[-1] - uniq[0] + 1 == len(uniq):  # a slice: much cheaper in h5py than a point list
+            return ds[int(uniq[0]) : int(uniq[-1]) + 1][inverse]
+        return ds[uniq][inverse]
 
     def check(self) -> None:
         """Read every dataset once; raises on unreadable or incomplete content."""
