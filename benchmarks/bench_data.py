@@ -57,8 +57,11 @@ def run() -> list[Result]:
                    n_frames / convert_s, "frames/s"),
             Result("data", "image bytes in shards / PNG folder bytes", shard_image_bytes / png_bytes, "ratio",
                    note=f"{shard_image_bytes / 1e6:.2f} MB vs {png_bytes / 1e6:.2f} MB")]
-    cams = ds.cameras[:K]
-    indices = [(i % len(ds.frames), tuple(cams)) for i in range(3 * len(ds.frames))]
+    # random frames and cameras, as RandomCameraSampler draws them: a sequential sweep would let
+    # the h5py chunk cache serve the overlapping temporal windows of consecutive frames
+    rng = np.random.default_rng(0)
+    indices = [(int(rng.integers(len(ds.frames))), tuple(int(c) for c in rng.choice(ds.cameras, K, replace=False)))
+               for _ in range(3 * len(ds.frames))]
 
     def png_rate() -> float:
         t = time.perf_counter()

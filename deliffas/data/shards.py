@@ -326,13 +326,16 @@ class ShardFile:
 
     def rgba_many(self, row: int, cols: Sequence[int]) -> np.ndarray:
         """(K, H, W, 4) uint8 of frame row ``row`` and camera columns ``cols`` (any order), read in
-        one call where the codec allows."""
+        one call when the columns are adjacent."""
         cols = np.asarray(cols, np.int64)
         ds = self.dataset("rgba")
         if ds is None or len(cols) == 0:
             return np.stack([self.rgba(row, int(c)) for c in cols]) if len(cols) else np.zeros((0, 0, 0, 4), np.uint8)
         uniq, inverse = np.unique(cols, return_inverse=True)
-        return ds[row, uniq][inverse]
+        if uniq[-1] - uniq[0] + 1 == len(uniq):  # adjacent chunks: one slice read
+            return ds[row, int(uniq[0]) : int(uniq[-1]) + 1][inverse]
+        # h5py's point-list selection is pathologically slow (~120 ms for 4 of 6 images): one read each
+        return np.stack([ds[row, int(c)] for c in cols])
 
     def image(self, row: int, col: int) -> tuple[np.ndarray, np.ndarray]:
         """rgb (H, W, 3) uint8 and mask (H, W) uint8 of frame row ``row``, camera column ``col``."""
@@ -357,7 +360,7 @@ class ShardFile:
             raise KeyError(f"{self.path}: no geometry dataset {name!r}")
         if len(uniq) and uniq[-1] - uniq[0] + 1 == len(uniq):  # a slice: much cheaper in h5py than a point list
             return ds[int(uniq[0]) : int(uniq[-1]) + 1][inverse]
-        return ds[uniq][inverse]
+        return np.stack([ds[int(r)] for r in rows]) if len(rows) else ds[uniq]
 
     def check(self) -> None:
         """Read every dataset once; raises on unreadable or incomplete content."""
