@@ -124,6 +124,21 @@ def _lr_at(cfg: TrainConfig, step: int) -> float:
     return cfg.lr * 0.1 ** (step / cfg.lr_decay_steps)
 
 
+def _model_inputs(model: DeliffasModel, sample: FrameSample, device: torch.device):
+    """The model's inputs for a sample: normal_inner (1, C, S, S), normal_outer (or None for
+    single-surface variants), the RayBatch of its cameras, and the per-ray ``shade`` arguments
+    after ``batch_index`` (uv_inner, uv_outer, viewdir, inner_from_outer; None where the variant
+    has no use for one)."""
+    cfg = model.config
+    two = cfg.uses_outer_surface
+    ni = torch.from_numpy(sample.normal_inner)[None].to(device)
+    no = torch.from_numpy(sample.normal_outer)[None].to(device) if two else None
+    batch = stack_rays(sample.rays, [0] * sample.num_cameras).to(device)
+    ray_args = (batch.uv_inner, batch.uv_outer if two else None, batch.viewdir if cfg.uses_viewdir else None,
+                batch.inner_from_outer if two else None)
+    return ni, no, batch, ray_args
+
+
 def render_sample_images(model: DeliffasModel, sample: FrameSample, device: torch.device,
                          net: torch.nn.Module | None = None, timer: StageTimer | None = None,
                          chunk_size: int | None = None) -> torch.Tensor:
@@ -133,26 +148,18 @@ def render_sample_images(model: DeliffasModel, sample: FrameSample, device: torc
     training), by default the model itself. With a ``timer`` the stages are timed separately
     (``cnn`` encode, ``sample`` + ``mlp`` via the model's split methods when present).
     """
-    cfg = model.config
     net = net or model
     K = sample.num_cameras
     H, W = sample.images.shape[1:3]
-    ni = torch.from_numpy(sample.normal_inner)[None].to(device)
-    no = torch.from_numpy(sample.normal_outer)[None].to(device) if cfg.uses_outer_surface else None
-    batch = stack_rays(sample.rays, [0] * K).to(device)
-    two = cfg.uses_outer_surface
-    uv_outer = batch.uv_outer if two else None
-    viewdir = batch.viewdir if cfg.uses_viewdir else None
-    from_outer = batch.inner_from_outer if two else None
+    ni, no, batch, ray_args = _model_inputs(model, sample, device)
     if timer is None and chunk_size is None:
-        pred = net(ni, no, batch.batch_index, batch.uv_inner, uv_outer, viewdir, from_outer)
+        pred = net(ni, no, batch.batch_index, *ray_args)
     else:
         timer = timer or StageTimer(device)
         with timer.stage("cnn"):
             features = model.encode(ni, no)
         with timer.stage("shade"):
-            pred = model.shade_chunked(features, batch.batch_index, batch.uv_inner, uv_outer, viewdir, from_outer,
-                                       chunk_size=chunk_size or 262144)
+            pred = model.shade_chunked(features, batch.batch_index, *ray_args, chunk_size=chunk_size or 262144)
     canvas = pred.new_zeros(K, H * W, 3)
     canvas = canvas.index_put((batch.image_index, batch.pixels), pred)
     return canvas.reshape(K, H, W, 3)
@@ -171,21 +178,15 @@ def _chunked_backward(model: DeliffasModel, sample: FrameSample, device: torch.d
     """
     from deliffas.models.deliffas import FrameFeatures
 
-    cfg = model.config
     K = sample.num_cameras
     H, W = sample.images.shape[1:3]
-    ni = torch.from_numpy(sample.normal_inner)[None].to(device)
-    no = torch.from_numpy(sample.normal_outer)[None].to(device) if cfg.uses_outer_surface else None
-    batch = stack_rays(sample.rays, [0] * K).to(device)
-    two = cfg.uses_outer_surface
+    ni, no, batch, args = _model_inputs(model, sample, device)
     features = model.encode(ni, no)  # (1, C, S, S) maps with the U-Net graph
     leaves = FrameFeatures(inner=features.inner.detach().requires_grad_(),
                            outer=None if features.outer is None else features.outer.detach().requires_grad_())
     target = composite_target(sample.images, sample.masks).to(device)  # (K, H, W, 3)
     target_rays = target.reshape(K, H * W, 3)[batch.image_index, batch.pixels]  # (N, 3)
     n = batch.num_rays
-    args = (batch.uv_inner, batch.uv_outer if two else None, batch.viewdir if cfg.uses_viewdir else None,
-            batch.inner_from_outer if two else None)
     out: dict[str, float] = {}
     image_grad = None
     if perceptual is not None and perceptual_weight > 0:
