@@ -30,7 +30,7 @@ import torch
 
 from deliffas.checks import check_shape
 from deliffas.geometry.atlas import TexelTable, UVAtlas, uv_texel_table
-from deliffas.native import NATIVE_ENV, build_library  # noqa: F401  (NATIVE_ENV: documented switch)
+from deliffas.native import build_library
 
 __all__ = [
     "NormalMapGather",

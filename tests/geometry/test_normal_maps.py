@@ -20,6 +20,7 @@ from deliffas.geometry.normal_maps import (
     rasterize_normal_map_naive,
     temporal_window,
 )
+from deliffas.native import NATIVE_ENV
 
 
 import reference as ref  # noqa: E402  (pytest's default prepend import mode puts this folder on sys.path)
@@ -119,11 +120,11 @@ def test_fused_kernel_fallback(monkeypatch, caplog):
     gather = NormalMapGather.from_table(uv_texel_table(atlas, 8), f)
     vn = torch.randn(2, len(v), 3)
     # a failed build is reported, not raised
-    monkeypatch.delenv(nm_module.NATIVE_ENV, raising=False)
+    monkeypatch.delenv(NATIVE_ENV, raising=False)
     monkeypatch.setenv("CC", "/nonexistent/cc")
     status, lib = nm_module._build_kernel()
     assert not status.available and lib is None and "nonexistent" in status.reason
-    monkeypatch.setenv(nm_module.NATIVE_ENV, "0")
+    monkeypatch.setenv(NATIVE_ENV, "0")
     assert "disabled" in nm_module._build_kernel()[0].reason
     # with the kernel unavailable, "auto" falls back to the sparse product and says why once
     monkeypatch.setattr(nm_module, "_kernel", (FusedKernelStatus(False, "test: no compiler"), None))

@@ -268,32 +268,28 @@ def test_native_small_matrix_product(m, k, n):
     torch.testing.assert_close(_xw(x_t, w), x_t @ w, rtol=1e-5, atol=1e-4)
 
 
-def test_small_maps_without_native_kernel(monkeypatch):
-    """Without the compiled loop (no compiler, DELIFFAS_NATIVE=0) the small transposed convolutions
-    fall back to torch.mm with the same result."""
+def _same_without(monkeypatch, switch: str, size: int) -> None:
+    """The U-Net's inference output is unchanged when the module flag ``switch`` turns a fast path
+    off, and equals the plain-torch reference either way."""
     import deliffas.models.unet as unet_mod
 
     torch.manual_seed(0)
-    net = UNet(UNetConfig(in_channels=9, base_channels=4, max_channels=16, norm="affine"), 32).eval()
+    net = UNet(UNetConfig(in_channels=9, base_channels=4, max_channels=16, norm="affine"), size).eval()
     _randomise_norms(net)
-    x = torch.randn(1, 9, 32, 32)
+    x = torch.randn(1, 9, size, size)
     with torch.no_grad():
         out = net(x)
-        monkeypatch.setattr(unet_mod, "_xw_kernel", False)
+        monkeypatch.setattr(unet_mod, switch, False)
         torch.testing.assert_close(net(x), out, rtol=1e-5, atol=1e-6)
         torch.testing.assert_close(out, _reference_forward(net, x), rtol=1e-5, atol=2e-6)
+
+
+def test_small_maps_without_native_kernel(monkeypatch):
+    """Without the compiled loop (no compiler, DELIFFAS_NATIVE=0) the small transposed convolutions
+    fall back to torch.mm with the same result."""
+    _same_without(monkeypatch, "_xw_kernel", 32)
 
 
 def test_inference_without_onednn_fused_activation(monkeypatch, small_phase_maps):
     """Without torch's oneDNN conv + activation ops the fused path activates separately, same values."""
-    import deliffas.models.unet as unet_mod
-
-    torch.manual_seed(0)
-    net = UNet(UNetConfig(in_channels=9, base_channels=4, max_channels=16, norm="affine"), 64).eval()
-    _randomise_norms(net)
-    x = torch.randn(1, 9, 64, 64)
-    with torch.no_grad():
-        out = net(x)
-        monkeypatch.setattr(unet_mod, "_onednn_pointwise_ok", False)
-        torch.testing.assert_close(net(x), out, rtol=1e-5, atol=1e-6)
-        torch.testing.assert_close(out, _reference_forward(net, x), rtol=1e-5, atol=2e-6)
+    _same_without(monkeypatch, "_onednn_pointwise_ok", 64)
