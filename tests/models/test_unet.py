@@ -293,3 +293,49 @@ def test_small_maps_without_native_kernel(monkeypatch):
 def test_inference_without_onednn_fused_activation(monkeypatch, small_phase_maps):
     """Without torch's oneDNN conv + activation ops the fused path activates separately, same values."""
     _same_without(monkeypatch, "_onednn_pointwise_ok", 64)
+
+
+def test_inference_without_prepacked_weights(monkeypatch):
+    """Without oneDNN's prepacked-weight ops the inference forward takes the unpacked paths, same values."""
+    _same_without(monkeypatch, "_prepack_ok", 32)
+
+
+def test_prepacked_weights_follow_changes():
+    """The per-module prepacked weights are rebuilt when the conv weights, the norm or the input
+    size change (an optimizer step, load_state_dict, a BatchNorm statistics update), never stale;
+    they stay out of the state_dict and deepcopy."""
+    import copy
+
+    import deliffas.models.unet as unet_mod
+
+    torch.manual_seed(0)
+    net = UNet(UNetConfig(in_channels=9, base_channels=4, max_channels=16, norm="batch"), 32).eval()
+    _randomise_norms(net)
+    x = torch.randn(1, 9, 32, 32)
+    keys = set(net.state_dict())
+
+    def check(inp=x):
+        with torch.no_grad():
+            torch.testing.assert_close(net(inp), _reference_forward(net, inp), rtol=1e-5, atol=2e-6)
+
+    check()
+    if not unet_mod._prepack_ok:
+        pytest.skip("oneDNN prepacked convolutions unavailable in this torch build")
+    assert len(unet_mod._packed) == 2 * net.levels - 1  # all but the banded first conv
+    opt = torch.optim.SGD(net.parameters(), lr=0.5)
+    net.train()
+    net(x).square().mean().backward()  # also moves the BatchNorm running statistics
+    opt.step()
+    net.eval()
+    check()
+    other = UNet(net.config, 32)
+    net.load_state_dict(other.state_dict())
+    check()
+    with torch.no_grad():
+        net.up[0][1].running_var.mul_(3.0)  # norm only: folded scale changes, conv weights do not
+    check()
+    check(torch.randn(2, 9, 64, 64))  # another input shape
+    assert set(net.state_dict()) == keys
+    twin = copy.deepcopy(net)
+    with torch.no_grad():
+        torch.testing.assert_close(twin(x), net(x))
