@@ -30,16 +30,13 @@ Speed (CPU): large maps run in channels_last (``CHANNELS_LAST_MIN_PIXELS``,
 ``nn.ConvTranspose2d`` (subclasses, same state_dict) and results agree up to float rounding.
 Activations are in place. Outside autograd (``torch.no_grad`` / ``inference_mode``) on CPU, when
 every norm can be folded (affine, none, BatchNorm in eval mode; dropout inactive), each block is
-a single conv call with its norm and activation fused in: the norm folded into the conv weights
-and the activation into oneDNN's kernel, with those weights reordered to oneDNN's blocked layout
-once and kept per module until they change (:func:`_packed_conv`); each up block writes into the first half of its skip
-concatenation's buffer, the final ``(tanh + 1) / 2`` is the identical ``sigmoid(2 x)`` with the
-factor 2 folded into the weights, transposed convolutions on the largest maps run as their
-sub-pixel (phase) decomposition in row bands (``PHASE_MIN_PIXELS``), those on maps of at most 16
-pixels multiply through a small C loop compiled at first use (``XW_MAX_ROWS``; torch.mm without a
-compiler or with ``DELIFFAS_NATIVE=0``), and large buffers are advised as huge pages
-(``HUGE_PAGE_MIN_BYTES``). The conv modules are still called once per layer with their usual
-input and output, so forward hooks see them.
+a single oneDNN call with its norm folded into the conv weights and its activation into the
+kernel, the weights reordered to oneDNN's blocked layout once and kept per module until they
+change (:func:`_packed_conv`); each up block writes into the first half of its skip
+concatenation's buffer (large ones advised as huge pages, ``HUGE_PAGE_MIN_BYTES``), and the final
+``(tanh + 1) / 2`` is the identical ``sigmoid(2 x)`` with the factor 2 folded into the weights.
+The conv modules are still called once per layer with their usual input and output, so forward
+hooks see them.
 """
 
 from __future__ import annotations
@@ -48,7 +45,6 @@ import ctypes
 import logging
 import math
 import sys
-import threading
 import weakref
 from dataclasses import dataclass
 from typing import Literal
@@ -57,7 +53,6 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from deliffas.native import build_library
 
 __all__ = ["UNetConfig", "UNet", "resolve_levels", "unet_channels"]
 
@@ -84,14 +79,10 @@ CONV_TRANSPOSE_CHANNELS_LAST_MIN_PIXELS = 16 * 16
 """The same for transposed convolutions, which are faster in channels_last from 16 x 16 inputs
 on (256 -> 64 channels at 16^2: 1.9 against 2.4 ms)."""
 
-PHASE_MIN_PIXELS = 256 * 256
-"""On CPU outside autograd, every ConvTranspose2d(k4, s2, p1) whose input has at least this many
-pixels runs as its sub-pixel (phase) decomposition in row bands (:func:`_phase_weight`)."""
-
 BAND_BYTES = 4 << 20
-"""Size of one row band of the banded paths (the phase convolution's output per band; the
-channels_last copy of the input per band of the first convolution): bands stay in cache and in
-reused heap memory (one fresh 100 MB+ temporary would cost a page fault per 4 kB page)."""
+"""Size of one row band of the first convolution's input, converted to channels_last band by band:
+bands stay in cache and in reused heap memory (one fresh 37 MB copy at 9 x 1024^2 would cost a
+page fault per 4 kB page)."""
 
 
 @dataclass(frozen=True)
@@ -240,10 +231,11 @@ def _cpu_layout(x: torch.Tensor, min_pixels: int | None = None) -> torch.Tensor:
 
 HUGE_PAGE_MIN_BYTES = 4 << 20
 """Fresh CPU maps of at least this size that the U-Net allocates itself (skip concatenations, the
-output of the phase path) are advised to the kernel as transparent huge pages (Linux
+output of the banded first convolution) are advised to the kernel as transparent huge pages (Linux
 ``madvise(MADV_HUGEPAGE)``; a no-op elsewhere or when THP is disabled). Their pages are touched
 first by the U-Net's own writes, which otherwise fault in one 4 kB page at a time: on this VM a
-fault costs ~2.5 us, ~80 ms for the 128 MB output of the paper U-Net at 1024^2."""
+fault costs ~2.5 us, ~40 ms for the 64 MB concatenation before the last layer of the paper U-Net
+at 1024^2."""
 
 _MADV_HUGEPAGE = 14
 _HUGE_PAGE = 2 << 20
@@ -409,6 +401,13 @@ pickling never see them). One entry per module: about the size of its weights.""
 _prepack_ok = True
 
 
+def _dense(x: torch.Tensor) -> torch.Tensor:
+    """``x`` when it is dense in the default or the channels_last layout, else a default-layout copy."""
+    if x.is_contiguous() or x.is_contiguous(memory_format=torch.channels_last):
+        return x
+    return x.contiguous()
+
+
 def _packed_conv(conv: nn.Module, x: torch.Tensor, epilogue: _Epilogue) -> torch.Tensor | None:
     """``act(conv(x) * scale + shift)`` in one oneDNN call with prepacked weights (inference, CPU,
     float32): the norm folded into the weights and the activation into the kernel, the weights
@@ -479,7 +478,7 @@ class _Conv2d(nn.Conv2d):
     def forward(self, x: torch.Tensor, *, epilogue: _Epilogue | None = None) -> torch.Tensor:
         _check_fused(epilogue, None)
         if epilogue is not None and not self._banded_ok(x):
-            y = _packed_conv(self, _cpu_layout(x), epilogue)
+            y = _packed_conv(self, _dense(x), epilogue)
             if y is not None:
                 return y
         if _gemm_ok(x, self):
@@ -553,184 +552,9 @@ class _Conv2d(nn.Conv2d):
         return y if self.bias is None else y + self.bias.view(1, -1, 1, 1)
 
 
-def _phase_weight(weight: torch.Tensor) -> torch.Tensor:
-    """ConvTranspose2d(k=4, s=2, p=1) weights as the weights of one 2 x 2 Conv2d computing its four
-    output phases.
-
-    Output row ``2 m + a`` of the transposed convolution takes input rows ``m - 1, m`` with kernel
-    taps 3, 1 (a = 0) and rows ``m, m + 1`` with taps 2, 0 (a = 1); columns likewise. A 2 x 2
-    convolution over the input padded by 1 therefore produces every phase at (H + 1) x (W + 1)
-    positions: phase (a, b) of output pixel (m, n) is its value at (m + a, n + b). Output channel
-    block ``p = 2 a' + b'`` with ``a' = 1 - a``, ``b' = 1 - b`` holds phase (a, b): in that order
-    the interior of the result is the depth-to-space of the phase map shifted by one pixel.
-
-    Args:
-        weight: (C_in, C_out, 4, 4) transposed-convolution weights.
-
-    Returns:
-        (4 C_out, C_in, 2, 2) Conv2d weights in channels_last memory format, channel
-        ``p C_out + c`` = phase block p, output channel c.
-    """
-    c_in, c_out = weight.shape[:2]
-    # tap t = 2 q + r; phase a' uses taps 2 (1 - u) + a' for kernel rows u = 0, 1
-    w6 = weight.reshape(c_in, c_out, 2, 2, 2, 2).flip(2, 4)  # (ci, co, u, a', v, b')
-    w = w6.permute(3, 5, 1, 2, 4, 0).reshape(4 * c_out, 2, 2, c_in)  # (p co, u, v, ci)
-    return w.permute(0, 3, 1, 2)  # (4 co, ci, 2, 2), channels_last strides
-
-
-def _phase_conv_transpose_into(
-    x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, act: _Epilogue | None, out: torch.Tensor
-) -> torch.Tensor:
-    """``out = act(conv_transpose2d(x, W, stride 2, padding 1))`` through the phase convolution.
-
-    Args:
-        x: (B, C_in, H, W) input, channels_last.
-        weight: (4 C, C_in, 2, 2) phase weights (:func:`_phase_weight`, scale folded in).
-        bias: (4 C,) or None.
-        act: its activation is applied (``scale``/``shift`` must already be folded), or None.
-        out: (B, C, 2H, 2W) destination (any strides, e.g. a channel slice of a concatenation).
-    """
-    b, _, h, w = x.shape
-    c = out.shape[1]
-    rows = max(1, min(h + 1, BAND_BYTES // (16 * c * (w + 1))))
-    for n in range(b):
-        xn = x[n : n + 1]
-        for j0 in range(0, h + 1, rows):
-            j1 = min(j0 + rows, h + 1)
-            # phase rows j0 .. j1-1 read input rows j0-1 .. j1-1 (rows -1 and H are the zero padding)
-            xb = xn[:, :, max(j0 - 1, 0) : min(j1, h)]
-            top, bottom = int(j0 == 0), int(j1 == h + 1)
-            if top or bottom:
-                xb = F.pad(xb, (0, 0, top, bottom))
-            yb = None if act is None else _onednn_act(False, xb, weight, bias, act, (0, 1))
-            if yb is None:
-                yb = F.conv2d(xb, weight, bias, padding=(0, 1))  # (1, 4C, j1 - j0, W + 1)
-                if act is not None:
-                    act.activate_(yb)
-            for ap in (0, 1):  # a' = 1 - a: phase row j is output row 2 j - 1 + a'
-                ja0, ja1 = max(j0, 1 - ap), min(j1, h + 1 - ap)
-                if ja1 <= ja0:
-                    continue
-                r0 = 2 * ja0 - 1 + ap
-                for bp in (0, 1):
-                    p = 2 * ap + bp
-                    src = yb[:, p * c : (p + 1) * c, ja0 - j0 : ja1 - j0, 1 - bp : w + 1 - bp]
-                    out[n : n + 1, :, r0 : r0 + 2 * (ja1 - ja0) : 2, 1 - bp :: 2].copy_(src)
-    return out
-
-
-"""``DELIFFAS_NATIVE=0`` disables the compiled kernels (as for the normal maps)."""
-
-XW_MAX_ROWS = 16
-"""Outside autograd on CPU, a transposed convolution on the GEMM path whose input has at most
-this many pixels computes ``x^T W`` with a small compiled C loop (:func:`_native_xw`) instead of
-MKL: MKL's sgemm runs the (pixels x C_in) @ (C_in x 16 C_out) product of these weight-bound layers
-at 2-3 GB/s of weights on this CPU (6.2 ms for the 33.5 MB of 1024 -> 512 channels at 2 x 2), the
-loop streams them once (2.0 ms; 2.7 against 3.0-3.5 ms at 16 pixels)."""
-
-_XW_SOURCE = r"""#include <stdint.h>
-#include <string.h>
-#if defined(__AVX2__) && defined(__FMA__)
-#include <immintrin.h>
-#endif
-
-/* Y (M x N, row stride ldy) = X (M x K, row stride ldx) @ W (K x N, row stride ldw), float32.
-   For few rows M (a transposed convolution on a map of a few pixels): W is streamed once, four
-   rows at a time from start to end (sequential, prefetch friendly) while Y stays in cache; each
-   group of four W rows updates two rows of Y at a time (8 multiply-adds per 4 W loads). */
-static void xw_rows(const float *x, int64_t ldx, const float *w, int64_t ldw, float *y, int64_t ldy,
-                    int64_t m0, int64_t m1, int64_t k, int64_t kn, int64_t N) {
-    const float *w0 = w + k * ldw, *w1 = w0 + ldw, *w2 = w1 + ldw, *w3 = w2 + ldw;
-    int64_t m = m0;
-    if (kn == 4) {
-        for (; m + 2 <= m1; m += 2) {
-            const float *xa = x + m * ldx + k, *xb = xa + ldx;
-            float *ya = y + m * ldy, *yb = ya + ldy;
-            int64_t n = 0;
-#if defined(__AVX2__) && defined(__FMA__)
-            const __m256 a0 = _mm256_set1_ps(xa[0]), a1 = _mm256_set1_ps(xa[1]), a2 = _mm256_set1_ps(xa[2]),
-                         a3 = _mm256_set1_ps(xa[3]), b0 = _mm256_set1_ps(xb[0]), b1 = _mm256_set1_ps(xb[1]),
-                         b2 = _mm256_set1_ps(xb[2]), b3 = _mm256_set1_ps(xb[3]);
-            for (; n + 8 <= N; n += 8) {
-                const __m256 v0 = _mm256_loadu_ps(w0 + n), v1 = _mm256_loadu_ps(w1 + n),
-                             v2 = _mm256_loadu_ps(w2 + n), v3 = _mm256_loadu_ps(w3 + n);
-                __m256 s = _mm256_fmadd_ps(a0, v0, _mm256_loadu_ps(ya + n));
-                __m256 t = _mm256_fmadd_ps(b0, v0, _mm256_loadu_ps(yb + n));
-                __m256 s2 = _mm256_mul_ps(a2, v2), t2 = _mm256_mul_ps(b2, v2);
-                s = _mm256_fmadd_ps(a1, v1, s); t = _mm256_fmadd_ps(b1, v1, t);
-                s2 = _mm256_fmadd_ps(a3, v3, s2); t2 = _mm256_fmadd_ps(b3, v3, t2);
-                _mm256_storeu_ps(ya + n, _mm256_add_ps(s, s2));
-                _mm256_storeu_ps(yb + n, _mm256_add_ps(t, t2));
-            }
-#endif
-            for (; n < N; n++) {
-                ya[n] += xa[0] * w0[n] + xa[1] * w1[n] + xa[2] * w2[n] + xa[3] * w3[n];
-                yb[n] += xb[0] * w0[n] + xb[1] * w1[n] + xb[2] * w2[n] + xb[3] * w3[n];
-            }
-        }
-    }
-    for (; m < m1; m++) {
-        const float *xa = x + m * ldx + k;
-        float *ya = y + m * ldy;
-        for (int64_t j = 0; j < kn; j++) {
-            const float a = xa[j], *wj = w + (k + j) * ldw;
-            for (int64_t n = 0; n < N; n++) ya[n] += a * wj[n];
-        }
-    }
-}
-
-void deliffas_unet_xw(const float *x, int64_t ldx, const float *w, int64_t ldw, float *y, int64_t ldy,
-                      int64_t M, int64_t K, int64_t N) {
-    for (int64_t m = 0; m < M; m++) memset(y + m * ldy, 0, (size_t)N * sizeof(float));
-    for (int64_t k = 0; k < K; k += 4) xw_rows(x, ldx, w, ldw, y, ldy, 0, M, k, K - k < 4 ? K - k : 4, N);
-}
-"""
-
-_xw_lock = threading.Lock()
-_xw_kernel: object = None  # None: not built yet; False: unavailable; else the ctypes function
-
-
-def _build_xw():
-    """Compile and load :data:`_XW_SOURCE` (``deliffas.native``): (function or False, reason)."""
-    built = build_library("unet_xw", _XW_SOURCE)
-    if built.lib is None:
-        return False, built.reason
-    fn = built.lib.deliffas_unet_xw
-    ptr, i64 = ctypes.c_void_p, ctypes.c_int64
-    fn.argtypes = [ptr, i64, ptr, i64, ptr, i64, i64, i64, i64]
-    fn.restype = None
-    return fn, ""
-
-
-def _native_xw():
-    """The compiled ``Y = X W`` loop, built on first use; None (reason logged once) when unavailable."""
-    global _xw_kernel
-    if _xw_kernel is None:
-        with _xw_lock:
-            if _xw_kernel is None:
-                kernel, reason = _build_xw()
-                if kernel is False:
-                    logger.info("unet: compiled small-matrix kernel unavailable (%s); using torch.mm", reason)
-                _xw_kernel = kernel
-    return _xw_kernel or None
-
-
-def _xw(x_t: torch.Tensor, weight: torch.Tensor) -> torch.Tensor | None:
-    """``x_t @ weight`` through the compiled loop (float32 CPU, contiguous), or None."""
-    kernel = _native_xw()
-    if kernel is None:
-        return None
-    m, k = x_t.shape
-    n = weight.shape[1]
-    y = torch.empty((m, n), dtype=torch.float32)
-    kernel(x_t.data_ptr(), k, weight.data_ptr(), n, y.data_ptr(), n, m, k, n)
-    return y
-
-
 class _ConvTranspose2d(nn.ConvTranspose2d):
     """``nn.ConvTranspose2d`` (same parameters, same result up to float rounding) tuned for CPU:
-    large maps in channels_last, small maps as one matrix product followed by ``fold`` (col2im),
-    and outside autograd the largest maps as the phase decomposition (:func:`_phase_weight`).
+    large maps in channels_last, small maps as one matrix product followed by ``fold`` (col2im).
 
     Outside autograd, ``forward(x, epilogue=..., out=...)`` also applies a per-channel scale, shift
     and activation (the U-Net's norm and ReLU) and writes the result into ``out`` (e.g. the first
@@ -745,8 +569,8 @@ class _ConvTranspose2d(nn.ConvTranspose2d):
         out: torch.Tensor | None = None,
     ) -> torch.Tensor:
         _check_fused(epilogue, out)
-        if epilogue is not None and output_size is None and not self._phase_ok(x):
-            y = _packed_conv(self, _cpu_layout(x, CONV_TRANSPOSE_CHANNELS_LAST_MIN_PIXELS), epilogue)
+        if epilogue is not None and output_size is None:
+            y = _packed_conv(self, _dense(x), epilogue)
             if y is not None:
                 return _finish(y, None, out)
         if output_size is not None or self.output_padding != (0, 0):
@@ -754,8 +578,6 @@ class _ConvTranspose2d(nn.ConvTranspose2d):
             return _finish(super().forward(x, output_size), epilogue, out)
         if _gemm_ok(x, self):
             return _finish(self._gemm(x), epilogue, out)
-        if not torch.is_grad_enabled() and self._phase_ok(x):
-            return self._phase(x, epilogue, out)
         x = _cpu_layout(x, CONV_TRANSPOSE_CHANNELS_LAST_MIN_PIXELS)
         if epilogue is None or self.weight.numel() > x.shape[0] * self.out_channels * 4 * x.shape[-2] * x.shape[-1]:
             return _finish(super().forward(x), epilogue, out)
@@ -774,51 +596,14 @@ class _ConvTranspose2d(nn.ConvTranspose2d):
         return F.conv_transpose2d(x, weight, bias, self.stride, self.padding, self.output_padding, self.groups,
                                   self.dilation)
 
-    def _phase_ok(self, x: torch.Tensor) -> bool:
-        return (
-            x.device.type == "cpu"
-            and x.dim() == 4
-            and x.shape[-2] * x.shape[-1] >= PHASE_MIN_PIXELS
-            and self.kernel_size == (4, 4)
-            and self.stride == (2, 2)
-            and self.padding == (1, 1)
-            and self.dilation == (1, 1)
-            and self.groups == 1
-            and self.padding_mode == "zeros"
-        )
-
-    def _phase(self, x: torch.Tensor, epilogue: _Epilogue | None, out: torch.Tensor | None) -> torch.Tensor:
-        b, _, h, w = x.shape
-        weight = _phase_weight(self.weight)  # fresh (4 C, C_in, 2, 2)
-        bias = None if self.bias is None else self.bias.repeat(4)  # per phase block
-        if epilogue is not None:
-            scale, shift = epilogue.scale, epilogue.shift
-            scale = scale.repeat(4) if isinstance(scale, torch.Tensor) else scale
-            shift = None if shift is None else shift.repeat(4)
-            weight, bias = _Epilogue(scale, shift).folded(weight, bias, 0)
-        weight = weight.contiguous(memory_format=torch.channels_last)
-        if out is None:
-            out = _new_map(x, self.out_channels, 2 * h, 2 * w, channels_last=True)
-        return _phase_conv_transpose_into(_cpu_layout(x), weight, bias, epilogue, out)
-
     def _gemm(self, x: torch.Tensor) -> torch.Tensor:
         b, c_in, h, w = x.shape
         (kh, kw), (sh, sw), (ph, pw) = self.kernel_size, self.stride, self.padding
         h_out, w_out = (h - 1) * sh - 2 * ph + kh, (w - 1) * sw - 2 * pw + kw
         xm = x.reshape(b, c_in, h * w)
         weight = self.weight.reshape(c_in, -1)  # (C_in, C_out kh kw)
-        cols = None
-        if (
-            1 < h * w <= XW_MAX_ROWS  # one pixel: MKL's matrix-vector product is as fast
-            and not torch.is_grad_enabled()
-            and x.dtype == torch.float32
-            and weight.dtype == torch.float32
-            and weight.is_contiguous()
-        ):
-            cols = [_xw(xm[i].t().contiguous(), weight) for i in range(b)]
-            cols = None if cols[0] is None else cols
-        if cols is None:  # x^T @ W (MKL streams W's rows; W^T @ x is up to 10x slower for 4-pixel maps here)
-            cols = [torch.mm(xm[i].t(), weight) for i in range(b)]  # (H W, C_out kh kw) each
+        # x^T @ W (MKL streams W's rows; W^T @ x is up to 10x slower for 4-pixel maps here)
+        cols = [torch.mm(xm[i].t(), weight) for i in range(b)]  # (H W, C_out kh kw) each
         cols_t = (cols[0].unsqueeze(0) if b == 1 else torch.stack(cols)).transpose(1, 2)
         y = F.fold(cols_t, (h_out, w_out), self.kernel_size, padding=self.padding, stride=self.stride)
         return y if self.bias is None else y + self.bias.view(1, -1, 1, 1)

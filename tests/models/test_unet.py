@@ -165,22 +165,18 @@ def _randomise_norms(net: UNet) -> None:
                 m.bias.copy_(torch.rand(m.bias.shape, generator=g) * 0.2 - 0.1)
 
 
-@pytest.fixture
-def small_phase_maps(monkeypatch):
-    """Phase path (and several row bands) already on the small maps of the tests."""
+@pytest.mark.parametrize("norm", ["affine", "batch", "none"])
+@pytest.mark.parametrize("paths", ["all", "unpacked", "plain_torch"])
+def test_inference_matches_reference(norm, paths, monkeypatch):
+    """The fused inference forward (norms folded into the convs, up blocks written into the skip
+    concatenation) computes the U-Net, with prepacked oneDNN weights, with per-call weights, and
+    with torch's public ops only."""
     import deliffas.models.unet as unet_mod
 
-    monkeypatch.setattr(unet_mod, "PHASE_MIN_PIXELS", 8 * 8)
-    monkeypatch.setattr(unet_mod, "BAND_BYTES", 2048)
-
-
-@pytest.mark.parametrize("norm", ["affine", "batch", "none"])
-@pytest.mark.parametrize("phase", [False, True])
-def test_inference_matches_reference(norm, phase, request):
-    """The fused inference forward (norms folded into the convs, up blocks written into the skip
-    concatenation, phase decomposition of the large transposed convs) computes the U-Net."""
-    if phase:
-        request.getfixturevalue("small_phase_maps")
+    if paths != "all":
+        monkeypatch.setattr(unet_mod, "_prepack_ok", False)
+    if paths == "plain_torch":
+        monkeypatch.setattr(unet_mod, "_onednn_pointwise_ok", False)
     torch.manual_seed(0)
     net = UNet(UNetConfig(in_channels=9, base_channels=4, max_channels=16, norm=norm), 64).eval()
     _randomise_norms(net)
@@ -212,7 +208,7 @@ def test_inference_unfusable_blocks_use_module_path():
     torch.testing.assert_close(out, ref, rtol=1e-5, atol=2e-6)
 
 
-def test_conv_hooks_see_original_layers(small_phase_maps):
+def test_conv_hooks_see_original_layers():
     """Every conv module is called once per forward with its usual input and output shapes, fused
     or not (benchmarks count FLOPs with forward hooks)."""
     net = UNet(UNetConfig(in_channels=9, base_channels=4, max_channels=16, norm="affine"), 64).eval()
@@ -235,69 +231,6 @@ def test_conv_hooks_see_original_layers(small_phase_maps):
         net(x)
     assert calls == general
     assert all(len(v) == 1 for v in calls.values()) and len(calls) == 2 * net.levels
-
-
-@pytest.mark.parametrize("shape", [(2, 6, 7, 5), (1, 3, 1, 1), (1, 5, 9, 4)])
-@pytest.mark.parametrize("band_bytes", [64, 1 << 20])
-def test_phase_decomposition_matches_conv_transpose(shape, band_bytes, monkeypatch):
-    """ConvTranspose2d(k4, s2, p1) as one 2x2 conv of its four output phases, in row bands."""
-    import torch.nn.functional as F
-
-    import deliffas.models.unet as unet_mod
-
-    monkeypatch.setattr(unet_mod, "BAND_BYTES", band_bytes)
-    g = torch.Generator().manual_seed(0)
-    b, c_in, h, w = shape
-    x = torch.randn(shape, generator=g).contiguous(memory_format=torch.channels_last)
-    weight, bias = torch.randn(c_in, 3, 4, 4, generator=g), torch.randn(3, generator=g)
-    ref = F.conv_transpose2d(x, weight, bias, stride=2, padding=1)
-    out = torch.full_like(ref, float("nan"))
-    unet_mod._phase_conv_transpose_into(x, unet_mod._phase_weight(weight), bias.repeat(4), None, out)
-    torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-5)
-
-
-@pytest.mark.parametrize("m,k,n", [(4, 1024, 520), (1, 3, 9), (5, 1023, 77), (16, 64, 256)])
-def test_native_small_matrix_product(m, k, n):
-    """The compiled x^T W loop of the small transposed convolutions equals torch.mm (tails included)."""
-    from deliffas.models.unet import _native_xw, _xw
-
-    if _native_xw() is None:
-        pytest.skip("no C compiler (the U-Net then uses torch.mm)")
-    g = torch.Generator().manual_seed(0)
-    x_t, w = torch.randn(m, k, generator=g), torch.randn(k, n, generator=g)
-    torch.testing.assert_close(_xw(x_t, w), x_t @ w, rtol=1e-5, atol=1e-4)
-
-
-def _same_without(monkeypatch, switch: str, size: int) -> None:
-    """The U-Net's inference output is unchanged when the module flag ``switch`` turns a fast path
-    off, and equals the plain-torch reference either way."""
-    import deliffas.models.unet as unet_mod
-
-    torch.manual_seed(0)
-    net = UNet(UNetConfig(in_channels=9, base_channels=4, max_channels=16, norm="affine"), size).eval()
-    _randomise_norms(net)
-    x = torch.randn(1, 9, size, size)
-    with torch.no_grad():
-        out = net(x)
-        monkeypatch.setattr(unet_mod, switch, False)
-        torch.testing.assert_close(net(x), out, rtol=1e-5, atol=1e-6)
-        torch.testing.assert_close(out, _reference_forward(net, x), rtol=1e-5, atol=2e-6)
-
-
-def test_small_maps_without_native_kernel(monkeypatch):
-    """Without the compiled loop (no compiler, DELIFFAS_NATIVE=0) the small transposed convolutions
-    fall back to torch.mm with the same result."""
-    _same_without(monkeypatch, "_xw_kernel", 32)
-
-
-def test_inference_without_onednn_fused_activation(monkeypatch, small_phase_maps):
-    """Without torch's oneDNN conv + activation ops the fused path activates separately, same values."""
-    _same_without(monkeypatch, "_onednn_pointwise_ok", 64)
-
-
-def test_inference_without_prepacked_weights(monkeypatch):
-    """Without oneDNN's prepacked-weight ops the inference forward takes the unpacked paths, same values."""
-    _same_without(monkeypatch, "_prepack_ok", 32)
 
 
 def test_prepacked_weights_follow_changes():
