@@ -8,6 +8,8 @@ import json
 import sys
 from pathlib import Path
 
+from deliffas.engine.memory import retain_freed_memory
+
 __all__ = ["add_engine_commands"]
 
 
@@ -53,6 +55,7 @@ def _train_config(args: argparse.Namespace):
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
+    retain_freed_memory()
     cfg = _train_config(args)
     if args.auto_capacity:
         from deliffas.engine.auto_capacity import AutoCapacityConfig, auto_capacity
@@ -69,6 +72,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
+    retain_freed_memory()
     from deliffas.engine.evaluate import EvalConfig, evaluate
 
     result = evaluate(EvalConfig(run=str(args.run), split=args.split, shards=args.shards, max_frames=args.max_frames,
@@ -84,6 +88,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
+    retain_freed_memory()
     from deliffas.engine.render import RenderConfig, render_video
 
     out = render_video(RenderConfig(run=str(args.run), out=str(args.out), orbit=args.orbit,
@@ -94,6 +99,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
+    retain_freed_memory()
     from deliffas.engine.demo import DemoConfig, run_demo
 
     report = run_demo(DemoConfig(out=str(args.out), quick=args.quick))
