@@ -1,27 +1,32 @@
 """Small C kernels compiled at first use with the system C compiler and loaded through ctypes.
 
-The fused normal-map gather in ``geometry/normal_maps.py`` uses one. Each is built once per
+The fused normal-map gather (``geometry/normal_maps.py``) uses one. Each is built once per
 process, with ``-march=native`` first (the build machine is the run machine) and portable flags
 if that fails, from ``$CC`` or the first of ``cc``, ``gcc``, ``clang`` on PATH, in a temporary
 directory that is removed after loading (the library stays mapped). Nothing is cached on disk.
 
+Callers hold a :class:`LazyLibrary`, which builds on first use and logs once when it falls back.
 Set ``DELIFFAS_NATIVE=0`` to never compile; every caller then keeps a pure-torch fallback.
 """
 
 from __future__ import annotations
 
 import ctypes
+import logging
 import os
 import shlex
 import shutil
 import subprocess
 import tempfile
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
-__all__ = ["NATIVE_ENV", "NativeLibrary", "build_library"]
+__all__ = ["NATIVE_ENV", "LazyLibrary", "NativeLibrary", "build_library"]
+
+logger = logging.getLogger(__name__)
 
 NATIVE_ENV = "DELIFFAS_NATIVE"
 """Environment variable: "0" disables every compiled kernel."""
@@ -86,3 +91,48 @@ def build_library(name: str, source: str, flags: Sequence[str] = ()) -> NativeLi
             return NativeLibrary(None, f"loading the built {name} library failed: {exc}")
     command = " ".join([*cmd[:-3], f"{name}.c"])
     return NativeLibrary(lib, "", time.perf_counter() - t0, command)
+
+
+class LazyLibrary:
+    """A C library built on first use, once per process (thread-safe), for one caller.
+
+    Args:
+        name: file stem and the name in log messages.
+        source: C99 source.
+        flags: extra compiler flags (see :func:`build_library`).
+        setup: called once with the loaded library to declare its ctypes signatures; an
+            ``AttributeError`` (a missing symbol) makes the library unavailable.
+        fallback: what the caller uses without it, for the log message.
+    """
+
+    def __init__(self, name: str, source: str, flags: Sequence[str] = (), *,
+                 setup: Callable[[ctypes.CDLL], None] | None = None, fallback: str) -> None:
+        self.name, self.source, self.flags = name, source, tuple(flags)
+        self.setup, self.fallback = setup, fallback
+        self._lock = threading.Lock()
+        self._built: NativeLibrary | None = None
+        self._logged = False
+
+    def load(self) -> NativeLibrary:
+        """The outcome of the build, building on the first call."""
+        if self._built is None:
+            with self._lock:
+                if self._built is None:
+                    built = build_library(self.name, self.source, self.flags)
+                    if built.lib is not None and self.setup is not None:
+                        try:
+                            self.setup(built.lib)
+                        except AttributeError as exc:
+                            built = NativeLibrary(None, f"the built {self.name} library lacks a symbol: {exc}")
+                    self._built = built
+        return self._built
+
+    def get(self) -> ctypes.CDLL | None:
+        """The loaded library, or None after logging (once per process) why the fallback is used:
+        at INFO when disabled by ``DELIFFAS_NATIVE=0``, else as a WARNING."""
+        built = self.load()
+        if built.lib is None and not self._logged:
+            self._logged = True
+            level = logging.INFO if built.reason.startswith("disabled") else logging.WARNING
+            logger.log(level, "%s: compiled kernel unavailable (%s); using %s", self.name, built.reason, self.fallback)
+        return built.lib

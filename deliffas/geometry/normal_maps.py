@@ -19,8 +19,6 @@ which path is in use and how long the build took.
 from __future__ import annotations
 
 import ctypes
-import logging
-import threading
 import warnings
 from dataclasses import dataclass
 from typing import Literal, Union
@@ -30,7 +28,7 @@ import torch
 
 from deliffas.checks import check_shape
 from deliffas.geometry.atlas import TexelTable, UVAtlas, uv_texel_table
-from deliffas.native import build_library
+from deliffas.native import LazyLibrary
 
 __all__ = [
     "NormalMapGather",
@@ -44,12 +42,9 @@ __all__ = [
 
 ArrayLike = Union[np.ndarray, torch.Tensor]
 
-log = logging.getLogger(__name__)
 
 NORMAL_EPS = 1e-8
 """Interpolated normals shorter than this are written as 0 (cannot be normalised)."""
-
-"""Set to ``0`` to never build or use the fused C kernel (``apply`` then uses the sparse product)."""
 
 # One pass per frame over the S^2 texels: texel t with vertex ids vid[k][t] (vid[0][t] = -1 when the
 # texel is not valid) and weights w[k][t] (planar (3, S^2) tables) gets
@@ -162,48 +157,23 @@ class FusedKernelStatus:
     avx2: bool = False
 
 
-_kernel_lock = threading.Lock()
-_kernel: tuple[FusedKernelStatus, ctypes.CDLL | None] | None = None
-_fallback_logged = False
-
-
-def _build_kernel() -> tuple[FusedKernelStatus, ctypes.CDLL | None]:
-    built = build_library("normal_maps", _KERNEL_SOURCE, _CFLAGS)
-    lib = built.lib
-    if lib is None:
-        return FusedKernelStatus(False, built.reason), None
+def _declare(lib: ctypes.CDLL) -> None:
     ptr, i64 = ctypes.c_void_p, ctypes.c_int64
     lib.deliffas_normal_maps_f32.argtypes = [ptr, i64, ptr, ptr, ptr, i64, i64, ctypes.c_float]
     lib.deliffas_normal_maps_f64.argtypes = [ptr, i64, ptr, ptr, ptr, i64, i64, ctypes.c_double]
     lib.deliffas_normal_maps_f32.restype = lib.deliffas_normal_maps_f64.restype = None
-    avx2 = bool(lib.deliffas_normal_maps_avx2())
-    return FusedKernelStatus(True, "", built.build_seconds, built.command, avx2), lib
 
 
-def _load_kernel() -> tuple[FusedKernelStatus, ctypes.CDLL | None]:
-    global _kernel
-    if _kernel is None:
-        with _kernel_lock:
-            if _kernel is None:
-                _kernel = _build_kernel()
-    return _kernel
+_KERNEL = LazyLibrary("normal_maps", _KERNEL_SOURCE, _CFLAGS, setup=_declare,
+                      fallback="the sparse product for normal maps, about 4-5x slower")
 
 
 def fused_kernel_status() -> FusedKernelStatus:
     """Build the fused kernel if this process has not tried yet, and report whether it is in use."""
-    return _load_kernel()[0]
-
-
-def _fused_or_fallback() -> ctypes.CDLL | None:
-    """The loaded kernel, or None after logging (once per process) why ``apply`` falls back."""
-    global _fallback_logged
-    status, lib = _load_kernel()
-    if lib is None and not _fallback_logged:
-        _fallback_logged = True
-        level = logging.INFO if status.reason.startswith("disabled") else logging.WARNING
-        log.log(level, "normal maps: fused C kernel unavailable (%s); using the sparse product, "
-                "about 4-5x slower", status.reason)
-    return lib
+    built = _KERNEL.load()
+    if built.lib is None:
+        return FusedKernelStatus(False, built.reason)
+    return FusedKernelStatus(True, "", built.build_seconds, built.command, bool(built.lib.deliffas_normal_maps_avx2()))
 
 
 @dataclass(frozen=True)
@@ -324,7 +294,7 @@ class NormalMapGather:
         if method in ("auto", "fused"):
             lib = None
             if vn.device.type == "cpu" and vn.dtype in (torch.float32, torch.float64):
-                lib = _fused_or_fallback()
+                lib = _KERNEL.get()
             if lib is not None:
                 return self._apply_fused(lib, vn, out_dtype).reshape(*lead, 3, S, S)
             if method == "fused":

@@ -13,14 +13,13 @@ from deliffas.geometry import normal_maps as nm_module
 from deliffas.geometry.atlas import UVAtlas, uv_texel_table
 from deliffas.geometry.mesh_ops import vertex_normals
 from deliffas.geometry.normal_maps import (
-    FusedKernelStatus,
     NormalMapGather,
     fused_kernel_status,
     normal_maps,
     rasterize_normal_map_naive,
     temporal_window,
 )
-from deliffas.native import NATIVE_ENV
+from deliffas.native import NATIVE_ENV, NativeLibrary, build_library
 
 
 import reference as ref  # noqa: E402  (pytest's default prepend import mode puts this folder on sys.path)
@@ -122,14 +121,14 @@ def test_fused_kernel_fallback(monkeypatch, caplog):
     # a failed build is reported, not raised
     monkeypatch.delenv(NATIVE_ENV, raising=False)
     monkeypatch.setenv("CC", "/nonexistent/cc")
-    status, lib = nm_module._build_kernel()
-    assert not status.available and lib is None and "nonexistent" in status.reason
+    built = build_library("normal_maps", nm_module._KERNEL_SOURCE)
+    assert built.lib is None and "nonexistent" in built.reason
     monkeypatch.setenv(NATIVE_ENV, "0")
-    assert "disabled" in nm_module._build_kernel()[0].reason
+    assert "disabled" in build_library("normal_maps", nm_module._KERNEL_SOURCE).reason
     # with the kernel unavailable, "auto" falls back to the sparse product and says why once
-    monkeypatch.setattr(nm_module, "_kernel", (FusedKernelStatus(False, "test: no compiler"), None))
-    monkeypatch.setattr(nm_module, "_fallback_logged", False)
-    with caplog.at_level(logging.INFO, logger=nm_module.__name__):
+    monkeypatch.setattr(nm_module._KERNEL, "_built", NativeLibrary(None, "test: no compiler"))
+    monkeypatch.setattr(nm_module._KERNEL, "_logged", False)
+    with caplog.at_level(logging.INFO, logger="deliffas.native"):
         a = gather.apply(vn)
         gather.apply(vn)
     assert [r.levelno for r in caplog.records] == [logging.WARNING] and "test: no compiler" in caplog.text
