@@ -496,9 +496,11 @@ class _Conv2d(nn.Conv2d):
         return epilogue.activate_(self._conv_forward(_cpu_layout(x), weight, bias))
 
     def _banded_ok(self, x: torch.Tensor) -> bool:
-        """A large CPU map that is not channels_last yet (the U-Net's input)."""
+        """A CPU map larger than a band that is not channels_last yet (the U-Net's input at 512^2
+        and more; smaller ones go to oneDNN as they are, which converts them as fast)."""
         return (
             x.device.type == "cpu"
+            and x.numel() * x.element_size() > BAND_BYTES
             and x.shape[-2] * x.shape[-1] >= CHANNELS_LAST_MIN_PIXELS
             and not x.is_contiguous(memory_format=torch.channels_last)
             and self.groups == 1
@@ -524,10 +526,6 @@ class _Conv2d(nn.Conv2d):
         out = _new_map(x, self.out_channels, h_out, w_out, channels_last=True)
         row_bytes = x.shape[1] * x.shape[-1] * x.element_size() * sh
         rows = max(1, min(h_out, BAND_BYTES // max(row_bytes, 1)))
-        if rows == h_out and b == 1:  # one band: the whole map, padded by the convolution
-            x = x.contiguous(memory_format=torch.channels_last)
-            y = F.conv2d(x, weight, bias, self.stride, self.padding, self.dilation)
-            return epilogue.activate_(y)
         for n in range(b):
             for i0 in range(0, h_out, rows):
                 i1 = min(i0 + rows, h_out)

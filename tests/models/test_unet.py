@@ -254,7 +254,7 @@ def test_prepacked_weights_follow_changes():
     check()
     if not unet_mod._prepack_ok:
         pytest.skip("oneDNN prepacked convolutions unavailable in this torch build")
-    assert len(unet_mod._packed) == 2 * net.levels - 1  # all but the banded first conv
+    assert len(unet_mod._packed) == 2 * net.levels  # every conv
     opt = torch.optim.SGD(net.parameters(), lr=0.5)
     net.train()
     net(x).square().mean().backward()  # also moves the BatchNorm running statistics
