@@ -100,12 +100,12 @@ def test_channels_last_matches():
 def test_cpu_conv_paths_match_torch(size, bias):
     """The U-Net's conv subclasses (matrix product on small maps, channels_last on large ones)
     compute nn.Conv2d / nn.ConvTranspose2d, forward and backward."""
-    from deliffas.models.unet import _Conv2d, _ConvTranspose2d
+    from deliffas.models.unet_conv import Conv2d, ConvTranspose2d
 
     torch.manual_seed(0)
-    pairs = [(nn.ConvTranspose2d(6, 5, 4, 2, 1, bias=bias), _ConvTranspose2d(6, 5, 4, 2, 1, bias=bias))]
+    pairs = [(nn.ConvTranspose2d(6, 5, 4, 2, 1, bias=bias), ConvTranspose2d(6, 5, 4, 2, 1, bias=bias))]
     if size >= 2:
-        pairs.append((nn.Conv2d(6, 5, 4, 2, 1, bias=bias), _Conv2d(6, 5, 4, 2, 1, bias=bias)))
+        pairs.append((nn.Conv2d(6, 5, 4, 2, 1, bias=bias), Conv2d(6, 5, 4, 2, 1, bias=bias)))
     for ref, fast in pairs:
         fast.load_state_dict(ref.state_dict())
         x = torch.randn(2, 6, size, size, requires_grad=True)
@@ -171,12 +171,12 @@ def test_inference_matches_reference(norm, paths, monkeypatch):
     """The fused inference forward (norms folded into the convs, up blocks written into the skip
     concatenation) computes the U-Net, with prepacked oneDNN weights, with per-call weights, and
     with torch's public ops only."""
-    import deliffas.models.unet as unet_mod
+    import deliffas.models.unet_conv as unet_conv
 
     if paths != "all":
-        monkeypatch.setattr(unet_mod, "_prepack_ok", False)
+        monkeypatch.setattr(unet_conv, "_prepack_ok", False)
     if paths == "plain_torch":
-        monkeypatch.setattr(unet_mod, "_onednn_pointwise_ok", False)
+        monkeypatch.setattr(unet_conv, "_onednn_pointwise_ok", False)
     torch.manual_seed(0)
     net = UNet(UNetConfig(in_channels=9, base_channels=4, max_channels=16, norm=norm), 64).eval()
     _randomise_norms(net)
@@ -239,7 +239,7 @@ def test_prepacked_weights_follow_changes():
     they stay out of the state_dict and deepcopy."""
     import copy
 
-    import deliffas.models.unet as unet_mod
+    import deliffas.models.unet_conv as unet_conv
 
     torch.manual_seed(0)
     net = UNet(UNetConfig(in_channels=9, base_channels=4, max_channels=16, norm="batch"), 32).eval()
@@ -252,9 +252,9 @@ def test_prepacked_weights_follow_changes():
             torch.testing.assert_close(net(inp), _reference_forward(net, inp), rtol=1e-5, atol=2e-6)
 
     check()
-    if not unet_mod._prepack_ok:
+    if not unet_conv._prepack_ok:
         pytest.skip("oneDNN prepacked convolutions unavailable in this torch build")
-    assert len(unet_mod._packed) == 2 * net.levels  # every conv
+    assert len(unet_conv._packed) == 2 * net.levels  # every conv
     opt = torch.optim.SGD(net.parameters(), lr=0.5)
     net.train()
     net(x).square().mean().backward()  # also moves the BatchNorm running statistics

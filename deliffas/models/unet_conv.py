@@ -1,0 +1,491 @@
+"""The U-Net's convolution layers and their CPU inference paths.
+
+``Conv2d`` and ``ConvTranspose2d`` are ``nn.Conv2d`` / ``nn.ConvTranspose2d`` with the same
+parameters and state_dict, computing the same values up to float rounding, tuned for CPU: large
+maps in channels_last, small maps as plain matrix products. Outside autograd they also take an
+:class:`Epilogue` (the block's norm, folded into the weights, and its activation, fused into
+oneDNN's kernel) and, for transposed convolutions, an ``out`` buffer (the first half of a skip
+concatenation). :func:`_packed_conv` keeps each module's folded weights in oneDNN's blocked layout
+until they change. On other devices the layers are plain torch.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import logging
+import sys
+import weakref
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+logger = logging.getLogger(__name__)
+
+GEMM_MAX_PIXELS = 8 * 8
+"""On CPU, every transposed convolution whose input has at most this many pixels runs as one
+matrix product with the input followed by ``fold`` (col2im). These deep layers are bound by
+reading their large weights (16-32 MB each at 512 channels), which oneDNN re-lays out on every
+call; the product reads them once (1.5-9x faster per layer on this 2-core CPU)."""
+
+CONV_GEMM_MAX_PIXELS = 16 * 16
+"""The same for convolutions (one matrix product with the unfolded input): 1.2-1.7x faster
+than oneDNN up to 16 x 16 inputs here (e.g. 128 -> 256 channels at 16^2: 1.7 against 2.1 ms)."""
+
+CHANNELS_LAST_MIN_PIXELS = 32 * 32
+"""On CPU, every convolution whose input has at least this many pixels runs in channels_last
+memory format: oneDNN is up to 7x faster there in that layout (e.g. the first 9 -> 16
+convolution at 1024^2), while the deep, small maps are faster in the default layout."""
+
+CONV_TRANSPOSE_CHANNELS_LAST_MIN_PIXELS = 16 * 16
+"""The same for transposed convolutions, which are faster in channels_last from 16 x 16 inputs
+on (256 -> 64 channels at 16^2: 1.9 against 2.4 ms)."""
+
+BAND_BYTES = 4 << 20
+"""Size of one row band of the first convolution's input, converted to channels_last band by band:
+bands stay in cache and in reused heap memory (one fresh 37 MB copy at 9 x 1024^2 would cost a
+page fault per 4 kB page)."""
+
+
+
+@dataclass(frozen=True)
+class Epilogue:
+    """Per-channel ``act(y * scale + shift)`` fused into a convolution outside autograd.
+
+    ``scale`` and ``shift`` are (C_out,) tensors (or a float scale) or None; ``act`` is None,
+    ``"relu"``, ``"leaky_relu"`` (slope ``slope``) or ``"sigmoid"``."""
+
+    scale: torch.Tensor | float | None = None
+    shift: torch.Tensor | None = None
+    act: str | None = None
+    slope: float = 0.0
+
+    def apply_(self, y: torch.Tensor) -> torch.Tensor:
+        """The epilogue in place on ``y`` (a fresh convolution output)."""
+        if self.scale is not None:
+            y.mul_(self.scale.view(1, -1, 1, 1) if isinstance(self.scale, torch.Tensor) else self.scale)
+        if self.shift is not None:
+            y.add_(self.shift.view(1, -1, 1, 1))
+        return self.activate_(y)
+
+    def activate_(self, y: torch.Tensor) -> torch.Tensor:
+        if self.act == "relu":
+            y.relu_()
+        elif self.act == "leaky_relu":
+            F.leaky_relu_(y, self.slope)
+        elif self.act == "sigmoid":
+            y.sigmoid_()
+        elif self.act is not None:
+            raise ValueError(f"Epilogue: unknown activation {self.act!r}")
+        return y
+
+    def folded(
+        self, weight: torch.Tensor, bias: torch.Tensor | None, out_dim: int
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """``(weight * scale, bias * scale + shift)`` with the scale along ``weight``'s dim ``out_dim``
+        (fresh tensors when they differ from the inputs); the convolution then computes
+        ``y * scale + shift`` up to float rounding."""
+        scale, shift = self.scale, self.shift
+        if scale is not None:
+            if isinstance(scale, torch.Tensor):
+                shape = [1] * weight.dim()
+                shape[out_dim] = -1
+                weight = weight * scale.view(shape)
+            else:
+                weight = weight * scale
+            if bias is not None:
+                bias = bias * scale
+        if shift is not None:
+            bias = shift if bias is None else bias + shift
+        return weight, bias
+
+
+def _cpu_layout(x: torch.Tensor, min_pixels: int | None = None) -> torch.Tensor:
+    """On CPU: ``x`` in channels_last when it has at least ``min_pixels`` pixels (default
+    ``CHANNELS_LAST_MIN_PIXELS``), else in the default layout (a channels_last input would make
+    torch copy the large weights of the deep layers to channels_last on every call). Elsewhere:
+    ``x`` unchanged."""
+    if x.device.type != "cpu":
+        return x
+    if x.shape[-2] * x.shape[-1] >= (CHANNELS_LAST_MIN_PIXELS if min_pixels is None else min_pixels):
+        return x.contiguous(memory_format=torch.channels_last)
+    return x.contiguous()
+
+
+HUGE_PAGE_MIN_BYTES = 4 << 20
+"""Fresh CPU maps of at least this size that the U-Net allocates itself (skip concatenations, the
+output of the banded first convolution) are advised to the kernel as transparent huge pages (Linux
+``madvise(MADV_HUGEPAGE)``; a no-op elsewhere or when THP is disabled). Their pages are touched
+first by the U-Net's own writes, which otherwise fault in one 4 kB page at a time: on this VM a
+fault costs ~2.5 us, ~40 ms for the 64 MB concatenation before the last layer of the paper U-Net
+at 1024^2."""
+
+_MADV_HUGEPAGE = 14
+_HUGE_PAGE = 2 << 20
+_madvise = None
+
+
+def _advise_huge_pages(t: torch.Tensor) -> torch.Tensor:
+    """Advise the 2 MB-aligned pages inside ``t``'s (fresh, untouched) memory as huge pages."""
+    global _madvise
+    nbytes = t.numel() * t.element_size()
+    if t.device.type != "cpu" or nbytes < HUGE_PAGE_MIN_BYTES or not sys.platform.startswith("linux"):
+        return t
+    if _madvise is None:
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.madvise.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int]
+            libc.madvise.restype = ctypes.c_int
+            _madvise = libc.madvise
+        except (OSError, AttributeError):
+            _madvise = False
+    if _madvise:
+        start = -(-t.data_ptr() // _HUGE_PAGE) * _HUGE_PAGE
+        end = (t.data_ptr() + nbytes) // _HUGE_PAGE * _HUGE_PAGE
+        if end > start:
+            _madvise(start, end - start, _MADV_HUGEPAGE)  # advice only: failure changes nothing
+    return t
+
+
+def new_map(
+    like: torch.Tensor, channels: int, height: int, width: int, channels_last: bool | None = None
+) -> torch.Tensor:
+    """Uninitialised (B, channels, height, width) map on ``like``'s device and dtype, in the
+    layout :func:`_cpu_layout` gives a map of that size (or channels_last if asked), advised as
+    huge pages when large."""
+    if channels_last is None:
+        channels_last = height * width >= CHANNELS_LAST_MIN_PIXELS
+    b = like.shape[0]
+    numel, item = b * channels * height * width, like.element_size()
+    if like.device.type != "cpu" or numel * item < HUGE_PAGE_MIN_BYTES:
+        fmt = torch.channels_last if channels_last else torch.contiguous_format
+        return torch.empty((b, channels, height, width), dtype=like.dtype, device=like.device, memory_format=fmt)
+    # one flat buffer with 2 MB of slack, used from its first 2 MB boundary on: every page of the map
+    # can then be a huge page
+    flat = torch.empty(numel + _HUGE_PAGE // item, dtype=like.dtype, device=like.device)
+    start = (-flat.data_ptr() % _HUGE_PAGE) // item
+    flat = _advise_huge_pages(flat[start : start + numel])
+    if channels_last:
+        return flat.view(b, height, width, channels).permute(0, 3, 1, 2)
+    return flat.view(b, channels, height, width)
+
+
+def _gemm_ok(x: torch.Tensor, conv: nn.Module) -> bool:
+    """Whether ``conv`` on ``x`` takes the matrix-product path (small CPU maps, plain convolution)."""
+    max_pixels = GEMM_MAX_PIXELS if isinstance(conv, nn.ConvTranspose2d) else CONV_GEMM_MAX_PIXELS
+    return (
+        x.device.type == "cpu"
+        and x.dim() == 4
+        and x.shape[-2] * x.shape[-1] <= max_pixels
+        and conv.groups == 1
+        and conv.dilation == (1, 1)
+        and conv.padding_mode == "zeros"
+        and isinstance(conv.padding, tuple)
+    )
+
+
+def _finish(y: torch.Tensor, epilogue: Epilogue | None, out: torch.Tensor | None) -> torch.Tensor:
+    """Apply ``epilogue`` in place on the fresh output ``y``, then copy it into ``out`` if given."""
+    if epilogue is not None:
+        epilogue.apply_(y)
+    if out is None:
+        return y
+    out.copy_(y)
+    return out
+
+
+def _check_fused(epilogue: Epilogue | None, out: torch.Tensor | None) -> None:
+    if (epilogue is not None or out is not None) and torch.is_grad_enabled():
+        raise RuntimeError("U-Net conv: epilogue/out are for inference only (torch.no_grad / inference_mode)")
+
+
+_onednn_pointwise_ok = True
+
+
+def _onednn_act(
+    transposed: bool,
+    x: torch.Tensor,
+    weight: torch.Tensor,
+    bias: torch.Tensor | None,
+    epilogue: Epilogue,
+    padding: tuple[int, int],
+    stride: tuple[int, int] = (1, 1),
+    dilation: tuple[int, int] = (1, 1),
+    groups: int = 1,
+    output_padding: tuple[int, int] = (0, 0),
+) -> torch.Tensor | None:
+    """``act(conv(x, weight, bias))`` (``conv_transpose2d`` if ``transposed``) with the epilogue's
+    activation applied inside oneDNN's kernel while each output tile is in cache: one pass less
+    over the output. These are torch's ``mkldnn._convolution[_transpose]_pointwise`` ops, which
+    torch.compile fuses to on CPU. None when they are missing or refuse the arguments (the caller
+    then activates separately)."""
+    global _onednn_pointwise_ok
+    attr = {"relu": ("relu", []), "leaky_relu": ("leaky_relu", [epilogue.slope]), "sigmoid": ("sigmoid", [])}
+    if not _onednn_pointwise_ok or epilogue.act not in attr or x.device.type != "cpu" or x.dtype != torch.float32:
+        return None
+    name, scalars = attr[epilogue.act]
+    try:
+        if transposed:
+            return torch.ops.mkldnn._convolution_transpose_pointwise(
+                x, weight, bias, list(padding), list(output_padding), list(stride), list(dilation), groups, name,
+                scalars, "",
+            )
+        return torch.ops.mkldnn._convolution_pointwise(
+            x, weight, bias, list(padding), list(stride), list(dilation), groups, name, scalars, ""
+        )
+    except (AttributeError, RuntimeError, NotImplementedError) as exc:
+        _onednn_pointwise_ok = False
+        logger.info("unet: oneDNN fused convolution + activation unavailable (%s); activating separately", exc)
+        return None
+
+
+_ONEDNN_ATTR = {"relu": "relu", "leaky_relu": "leaky_relu", "sigmoid": "sigmoid", None: "none"}
+
+
+@dataclass(frozen=True)
+class _PackedWeights:
+    """Folded convolution weights in oneDNN's blocked layout, and what they were built from."""
+
+    weight_source: tuple
+    """(weight tensor, its version, bias tensor or None, its version, input shape): tensors are
+    compared by identity (a kept reference, so the identity cannot be reused) and version."""
+    scale: torch.Tensor | float | None
+    """The epilogue's scale and shift when built (copies; compared by value: BatchNorm's are
+    recomputed every forward)."""
+    shift: torch.Tensor | None
+    weight: torch.Tensor
+    """oneDNN (mkldnn) tensor: ``weight * scale`` reordered for the input shape."""
+    bias: torch.Tensor | None
+    """``bias * scale + shift`` (dense), or None."""
+
+    def matches(self, weight_source: tuple, epilogue: Epilogue) -> bool:
+        w, wv, b, bv, shape = weight_source
+        w0, wv0, b0, bv0, shape0 = self.weight_source
+        return (
+            w is w0 and wv == wv0 and b is b0 and bv == bv0 and shape == shape0
+            and _same_value(self.scale, epilogue.scale) and _same_value(self.shift, epilogue.shift)
+        )  # fmt: skip
+
+
+def _same_value(a: torch.Tensor | float | None, b: torch.Tensor | float | None) -> bool:
+    if isinstance(a, torch.Tensor) and isinstance(b, torch.Tensor):
+        return a.shape == b.shape and torch.equal(a, b)
+    return not isinstance(a, torch.Tensor) and not isinstance(b, torch.Tensor) and a == b
+
+
+def _copy(t: torch.Tensor | float | None) -> torch.Tensor | float | None:
+    return t.detach().clone() if isinstance(t, torch.Tensor) else t
+
+
+_packed: "weakref.WeakKeyDictionary[nn.Module, _PackedWeights]" = weakref.WeakKeyDictionary()
+"""Per conv module, its last prepacked weights (outside the module: state_dict, deepcopy and
+pickling never see them). One entry per module: about the size of its weights."""
+
+_prepack_ok = True
+
+
+def _dense(x: torch.Tensor) -> torch.Tensor:
+    """``x`` when it is dense in the default or the channels_last layout, else a default-layout copy."""
+    if x.is_contiguous() or x.is_contiguous(memory_format=torch.channels_last):
+        return x
+    return x.contiguous()
+
+
+def _packed_conv(conv: nn.Module, x: torch.Tensor, epilogue: Epilogue) -> torch.Tensor | None:
+    """``act(conv(x) * scale + shift)`` in one oneDNN call with prepacked weights (inference, CPU,
+    float32): the norm folded into the weights and the activation into the kernel, the weights
+    reordered to oneDNN's blocked layout once and kept per module (:data:`_packed`) until the
+    weights, the norm or the input shape change. torch otherwise reorders them on every call, a
+    full extra pass over the 8-34 MB weights of the deep layers (1.5-2x their time here); this is
+    what torch.compile's weight freezing does for CPU convolutions. None when oneDNN or these
+    private torch ops are unavailable (logged once; callers use their other paths)."""
+    global _prepack_ok
+    if (
+        not _prepack_ok
+        or x.device.type != "cpu"
+        or x.dtype != torch.float32
+        or conv.weight.dtype != torch.float32
+        or epilogue.act not in _ONEDNN_ATTR
+        or conv.groups != 1
+        or conv.padding_mode != "zeros"
+        or not isinstance(conv.padding, tuple)
+        or not torch.backends.mkldnn.is_available()
+    ):
+        return None
+    transposed = isinstance(conv, nn.ConvTranspose2d)
+    weight_source = (
+        conv.weight, conv.weight._version, conv.bias, None if conv.bias is None else conv.bias._version,
+        tuple(x.shape),
+    )  # fmt: skip
+    entry = _packed.get(conv)
+    scalars = [epilogue.slope] if epilogue.act == "leaky_relu" else []
+    padding, stride, dilation = list(conv.padding), list(conv.stride), list(conv.dilation)
+    try:
+        if entry is None or not entry.matches(weight_source, epilogue):
+            weight, bias = epilogue.folded(conv.weight.detach(), None if conv.bias is None else conv.bias.detach(),
+                                           1 if transposed else 0)
+            if transposed:
+                packed = torch.ops.mkldnn._reorder_convolution_transpose_weight(
+                    weight.contiguous(), padding, list(conv.output_padding), stride, dilation, 1, list(x.shape)
+                )
+            else:
+                packed = torch._C._nn.mkldnn_reorder_conv2d_weight(
+                    weight.contiguous().to_mkldnn(), padding, stride, dilation, 1, list(x.shape)
+                )
+            entry = _PackedWeights(weight_source, _copy(epilogue.scale), _copy(epilogue.shift), packed,
+                                   None if bias is None else bias.contiguous())
+            _packed[conv] = entry
+        attr = _ONEDNN_ATTR[epilogue.act]
+        if transposed:
+            return torch.ops.mkldnn._convolution_transpose_pointwise(
+                x, entry.weight, entry.bias, padding, list(conv.output_padding), stride, dilation, 1, attr,
+                scalars, "",
+            )  # fmt: skip
+        return torch.ops.mkldnn._convolution_pointwise(
+            x, entry.weight, entry.bias, padding, stride, dilation, 1, attr, scalars, ""
+        )
+    except (AttributeError, RuntimeError, NotImplementedError) as exc:
+        _prepack_ok = False
+        _packed.clear()
+        logger.info("unet: oneDNN prepacked convolution unavailable (%s); using the unpacked paths", exc)
+        return None
+
+
+class Conv2d(nn.Conv2d):
+    """``nn.Conv2d`` (same parameters, same result up to float rounding) tuned for CPU: large maps
+    in channels_last, small maps as one matrix product of the weights with the unfolded input.
+
+    Outside autograd, ``forward(x, epilogue=...)`` also applies a per-channel scale, shift and
+    activation (the U-Net's norm and LeakyReLU) to the result."""
+
+    def forward(self, x: torch.Tensor, *, epilogue: Epilogue | None = None) -> torch.Tensor:
+        _check_fused(epilogue, None)
+        if epilogue is not None and not self._banded_ok(x):
+            y = _packed_conv(self, _dense(x), epilogue)
+            if y is not None:
+                return y
+        if _gemm_ok(x, self):
+            return _finish(self._gemm(x), epilogue, None)
+        if epilogue is None:
+            return super().forward(_cpu_layout(x))
+        h_out = (x.shape[-2] + 2 * self.padding[0] - self.kernel_size[0]) // self.stride[0] + 1
+        w_out = (x.shape[-1] + 2 * self.padding[1] - self.kernel_size[1]) // self.stride[1] + 1
+        if self.weight.numel() > x.shape[0] * self.out_channels * h_out * w_out:
+            return epilogue.apply_(self._conv_forward(_cpu_layout(x), self.weight, self.bias))
+        # scale and shift folded into the (smaller) weights and bias: no passes over the output
+        weight, bias = epilogue.folded(self.weight, self.bias, 0)
+        if self._banded_ok(x):
+            return self._banded(x, weight, bias, epilogue, h_out, w_out)
+        return epilogue.activate_(self._conv_forward(_cpu_layout(x), weight, bias))
+
+    def _banded_ok(self, x: torch.Tensor) -> bool:
+        """A CPU map larger than a band that is not channels_last yet (the U-Net's input at 512^2
+        and more; smaller ones go to oneDNN as they are, which converts them as fast)."""
+        return (
+            x.device.type == "cpu"
+            and x.numel() * x.element_size() > BAND_BYTES
+            and x.shape[-2] * x.shape[-1] >= CHANNELS_LAST_MIN_PIXELS
+            and not x.is_contiguous(memory_format=torch.channels_last)
+            and self.groups == 1
+            and self.padding_mode == "zeros"
+            and isinstance(self.padding, tuple)
+        )
+
+    def _banded(
+        self,
+        x: torch.Tensor,
+        weight: torch.Tensor,
+        bias: torch.Tensor | None,
+        epilogue: Epilogue,
+        h_out: int,
+        w_out: int,
+    ) -> torch.Tensor:
+        """The convolution (+ activation) in bands of output rows, each band's input converted to
+        channels_last on its own: a whole-map conversion of a large input (37 MB at 9 x 1024^2)
+        costs a fresh allocation (page faults) and a poorly vectorised 9-channel transpose."""
+        b, _, h, _ = x.shape
+        (kh, _), (sh, _), (ph, pw) = self.kernel_size, self.stride, self.padding
+        dh = self.dilation[0]
+        out = new_map(x, self.out_channels, h_out, w_out, channels_last=True)
+        row_bytes = x.shape[1] * x.shape[-1] * x.element_size() * sh
+        rows = max(1, min(h_out, BAND_BYTES // max(row_bytes, 1)))
+        for n in range(b):
+            for i0 in range(0, h_out, rows):
+                i1 = min(i0 + rows, h_out)
+                lo, hi = i0 * sh - ph, (i1 - 1) * sh - ph + dh * (kh - 1) + 1  # input rows [lo, hi)
+                xb = x[n : n + 1, :, max(lo, 0) : min(hi, h)].contiguous(memory_format=torch.channels_last)
+                if lo < 0 or hi > h:
+                    xb = F.pad(xb, (0, 0, max(-lo, 0), max(hi - h, 0)))
+                yb = F.conv2d(xb, weight, bias, self.stride, (0, pw), self.dilation)
+                out[n : n + 1, :, i0:i1].copy_(epilogue.activate_(yb))
+        return out
+
+    def _gemm(self, x: torch.Tensor) -> torch.Tensor:
+        b, _, h, w = x.shape
+        (kh, kw), (sh, sw), (ph, pw) = self.kernel_size, self.stride, self.padding
+        h_out, w_out = (h + 2 * ph - kh) // sh + 1, (w + 2 * pw - kw) // sw + 1
+        cols = F.unfold(x, self.kernel_size, padding=self.padding, stride=self.stride)  # (B, C_in kh kw, L)
+        weight = self.weight.reshape(self.out_channels, -1)  # (C_out, C_in kh kw)
+        # W @ cols with cols transposed in memory (L rows of C_in kh kw values): MKL then streams the
+        # weights as dot products (2-3x faster than W @ cols for L = 4 on this CPU)
+        ys = [torch.mm(weight, cols[i].t().contiguous().t()) for i in range(b)]  # (C_out, L) each
+        y = (ys[0].unsqueeze(0) if b == 1 else torch.stack(ys)).reshape(b, self.out_channels, h_out, w_out)
+        return y if self.bias is None else y + self.bias.view(1, -1, 1, 1)
+
+
+class ConvTranspose2d(nn.ConvTranspose2d):
+    """``nn.ConvTranspose2d`` (same parameters, same result up to float rounding) tuned for CPU:
+    large maps in channels_last, small maps as one matrix product followed by ``fold`` (col2im).
+
+    Outside autograd, ``forward(x, epilogue=..., out=...)`` also applies a per-channel scale, shift
+    and activation (the U-Net's norm and ReLU) and writes the result into ``out`` (e.g. the first
+    half of the skip concatenation's buffer), which it returns."""
+
+    def forward(
+        self,
+        x: torch.Tensor,
+        output_size: list[int] | None = None,
+        *,
+        epilogue: Epilogue | None = None,
+        out: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        _check_fused(epilogue, out)
+        if epilogue is not None and output_size is None:
+            y = _packed_conv(self, _dense(x), epilogue)
+            if y is not None:
+                return _finish(y, None, out)
+        if output_size is not None or self.output_padding != (0, 0):
+            x = _cpu_layout(x, CONV_TRANSPOSE_CHANNELS_LAST_MIN_PIXELS)
+            return _finish(super().forward(x, output_size), epilogue, out)
+        if _gemm_ok(x, self):
+            return _finish(self._gemm(x), epilogue, out)
+        x = _cpu_layout(x, CONV_TRANSPOSE_CHANNELS_LAST_MIN_PIXELS)
+        if epilogue is None or self.weight.numel() > x.shape[0] * self.out_channels * 4 * x.shape[-2] * x.shape[-1]:
+            return _finish(super().forward(x), epilogue, out)
+        # scale and shift folded into the (smaller) weights, the activation into oneDNN's kernel
+        weight, bias = epilogue.folded(self.weight, self.bias, 1)
+        y = _onednn_act(True, x, weight, bias, epilogue, self.padding, self.stride, self.dilation, self.groups,
+                        self.output_padding)
+        if y is None:
+            y = epilogue.activate_(self._conv_transpose(x, weight, bias))
+        if out is None:
+            return y
+        out.copy_(y)
+        return out
+
+    def _conv_transpose(self, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None) -> torch.Tensor:
+        return F.conv_transpose2d(x, weight, bias, self.stride, self.padding, self.output_padding, self.groups,
+                                  self.dilation)
+
+    def _gemm(self, x: torch.Tensor) -> torch.Tensor:
+        b, c_in, h, w = x.shape
+        (kh, kw), (sh, sw), (ph, pw) = self.kernel_size, self.stride, self.padding
+        h_out, w_out = (h - 1) * sh - 2 * ph + kh, (w - 1) * sw - 2 * pw + kw
+        xm = x.reshape(b, c_in, h * w)
+        weight = self.weight.reshape(c_in, -1)  # (C_in, C_out kh kw)
+        # x^T @ W (MKL streams W's rows; W^T @ x is up to 10x slower for 4-pixel maps here)
+        cols = [torch.mm(xm[i].t(), weight) for i in range(b)]  # (H W, C_out kh kw) each
+        cols_t = (cols[0].unsqueeze(0) if b == 1 else torch.stack(cols)).transpose(1, 2)
+        y = F.fold(cols_t, (h_out, w_out), self.kernel_size, padding=self.padding, stride=self.stride)
+        return y if self.bias is None else y + self.bias.view(1, -1, 1, 1)
