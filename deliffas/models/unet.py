@@ -243,15 +243,18 @@ class UNet(nn.Module):
         cannot be folded (BatchNorm with batch statistics, active dropout)."""
         down, up = [], []
         for block in self.down:
-            norm = _fold_norm(list(block)[1:-1])  # (slicing an nn.Sequential builds a new module)
+            layers = list(block)  # (slicing an nn.Sequential builds a new module)
+            norm = _fold_norm(layers[1:-1])
             if norm is None:
                 return None
-            down.append(Epilogue(*norm, act="leaky_relu", slope=block[-1].negative_slope))
+            scale, shift, sources = norm
+            down.append(Epilogue(scale, shift, "leaky_relu", layers[-1].negative_slope, sources))
         for block in self.up:
             norm = _fold_norm(list(block)[1:-1])
             if norm is None:
                 return None
-            up.append(Epilogue(*norm, act="relu"))
+            scale, shift, sources = norm
+            up.append(Epilogue(scale, shift, "relu", sources=sources))
         # (tanh(y) + 1) / 2 == sigmoid(2 y); the factor 2 is exact in the weights and bias
         return down, up, Epilogue(2.0, None, act="sigmoid")
 
@@ -277,17 +280,19 @@ class UNet(nn.Module):
         return self.final(x, epilogue=final)
 
 
-def _fold_norm(layers) -> tuple[torch.Tensor | None, torch.Tensor | None] | None:
-    """(scale, shift) of the norm among ``layers`` (norm, optional dropout) in inference, (None,
-    None) without a norm, None when it depends on the batch (BatchNorm in training mode or without
-    running statistics) or dropout is active."""
+def _fold_norm(layers) -> tuple[torch.Tensor | None, torch.Tensor | None, tuple] | None:
+    """(scale, shift, sources) of the norm among ``layers`` (norm, optional dropout) in inference,
+    (None, None, ()) without a norm, None when it depends on the batch (BatchNorm in training mode
+    or without running statistics) or dropout is active. ``sources`` are what scale and shift are
+    computed from (see :class:`~deliffas.models.unet_conv.Epilogue`)."""
     scale = shift = None
+    sources: tuple = ()
     for m in layers:
         if isinstance(m, nn.Dropout):
             if m.training and m.p > 0:
                 return None
         elif isinstance(m, _ChannelAffine):
-            scale, shift = m.weight, m.bias
+            scale, shift, sources = m.weight, m.bias, (m.weight, m.bias)
         elif isinstance(m, nn.BatchNorm2d):
             if m.training or m.running_mean is None or m.running_var is None:
                 return None
@@ -297,6 +302,7 @@ def _fold_norm(layers) -> tuple[torch.Tensor | None, torch.Tensor | None] | None
             shift = -m.running_mean * scale
             if m.bias is not None:
                 shift = shift + m.bias
+            sources = (m.running_mean, m.running_var, m.weight, m.bias, float(m.eps))
         elif not isinstance(m, nn.Identity):
             return None
-    return scale, shift
+    return scale, shift, sources

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import ctypes
 import logging
+import os
 import sys
 import weakref
 from dataclasses import dataclass
@@ -54,12 +55,20 @@ class Epilogue:
     """Per-channel ``act(y * scale + shift)`` fused into a convolution outside autograd.
 
     ``scale`` and ``shift`` are (C_out,) tensors (or a float scale) or None; ``act`` is None,
-    ``"relu"``, ``"leaky_relu"`` (slope ``slope``) or ``"sigmoid"``."""
+    ``"relu"``, ``"leaky_relu"`` (slope ``slope``) or ``"sigmoid"``. ``sources`` are the tensors
+    (and numbers) that tensor-valued ``scale`` and ``shift`` are computed from, e.g. a norm's
+    parameters and running statistics: prepacked weights stay valid while these are the same
+    objects at the same version (:func:`_packed_conv`), which is cheaper than comparing values."""
 
     scale: torch.Tensor | float | None = None
     shift: torch.Tensor | None = None
     act: str | None = None
     slope: float = 0.0
+    sources: tuple = ()
+
+    def __post_init__(self) -> None:
+        if (isinstance(self.scale, torch.Tensor) or isinstance(self.shift, torch.Tensor)) and not self.sources:
+            raise ValueError("Epilogue: tensor scale/shift need the sources they are computed from")
 
     def apply_(self, y: torch.Tensor) -> torch.Tensor:
         """The epilogue in place on ``y`` (a fresh convolution output)."""
@@ -243,39 +252,71 @@ def _onednn_act(
 _ONEDNN_ATTR = {"relu": "relu", "leaky_relu": "leaky_relu", "sigmoid": "sigmoid", None: "none"}
 
 
+def _version(t: object) -> object:
+    """What identifies the state of one validity-key item: a tensor's version counter (an object
+    that equals nothing for inference tensors, which have none), else the value itself."""
+    if isinstance(t, torch.Tensor):
+        return object() if t.is_inference() else t._version
+    return t
+
+
+def _pack_key(conv: nn.Module, epilogue: Epilogue, x: torch.Tensor) -> tuple[tuple, tuple]:
+    """(items, states) that prepacked weights of ``conv`` for ``epilogue`` and ``x`` derive from:
+    the conv's weight and bias, the epilogue's sources and constants, the input shape. Items are
+    compared by identity (the entry keeps them alive, so an identity cannot be reused), states by
+    value."""
+    items = (conv.weight, conv.bias, *epilogue.sources)
+    constants = (
+        tuple(x.shape), epilogue.act, epilogue.slope,
+        None if isinstance(epilogue.scale, torch.Tensor) else epilogue.scale, epilogue.shift is None,
+    )  # fmt: skip
+    return items, (tuple(_version(t) for t in items), constants)
+
+
 @dataclass(frozen=True)
 class _PackedWeights:
-    """Folded convolution weights in oneDNN's blocked layout, and what they were built from."""
+    """Folded convolution weights in oneDNN's blocked layout, what they were built from, and the
+    form of the computation (see :func:`_narrow_form`)."""
 
-    weight_source: tuple
-    """(weight tensor, its version, bias tensor or None, its version, input shape): tensors are
-    compared by identity (a kept reference, so the identity cannot be reused) and version."""
-    scale: torch.Tensor | float | None
-    """The epilogue's scale and shift when built (copies; compared by value: BatchNorm's are
-    recomputed every forward)."""
-    shift: torch.Tensor | None
+    items: tuple
+    states: tuple
+    form: str
+    """"direct", "column_pairs" or "phases"."""
     weight: torch.Tensor
-    """oneDNN (mkldnn) tensor: ``weight * scale`` reordered for the input shape."""
+    """oneDNN (mkldnn) tensor: ``weight * scale`` in the form's shape, reordered for the input shape."""
     bias: torch.Tensor | None
-    """``bias * scale + shift`` (dense), or None."""
+    """``bias * scale + shift`` (dense, repeated as the form needs), or None."""
+    padding: list[int]
+    stride: list[int]
+    dilation: list[int]
+    output_padding: list[int]
+    attr: str
+    scalars: list
 
-    def matches(self, weight_source: tuple, epilogue: Epilogue) -> bool:
-        w, wv, b, bv, shape = weight_source
-        w0, wv0, b0, bv0, shape0 = self.weight_source
-        return (
-            w is w0 and wv == wv0 and b is b0 and bv == bv0 and shape == shape0
-            and _same_value(self.scale, epilogue.scale) and _same_value(self.shift, epilogue.shift)
-        )  # fmt: skip
+    def matches(self, items: tuple, states: tuple) -> bool:
+        return len(items) == len(self.items) and all(a is b for a, b in zip(items, self.items)) and states == self.states
 
-
-def _same_value(a: torch.Tensor | float | None, b: torch.Tensor | float | None) -> bool:
-    if isinstance(a, torch.Tensor) and isinstance(b, torch.Tensor):
-        return a.shape == b.shape and torch.equal(a, b)
-    return not isinstance(a, torch.Tensor) and not isinstance(b, torch.Tensor) and a == b
-
-
-def _copy(t: torch.Tensor | float | None) -> torch.Tensor | float | None:
-    return t.detach().clone() if isinstance(t, torch.Tensor) else t
+    def __call__(self, x: torch.Tensor, out: torch.Tensor | None) -> torch.Tensor:
+        if self.form == "transposed":
+            y = torch.ops.mkldnn._convolution_transpose_pointwise(
+                x, self.weight, self.bias, self.padding, self.output_padding, self.stride, self.dilation, 1, self.attr,
+                self.scalars, "",
+            )  # fmt: skip
+        else:
+            y = torch.ops.mkldnn._convolution_pointwise(
+                x, self.weight, self.bias, self.padding, self.stride, self.dilation, 1, self.attr, self.scalars, ""
+            )
+        if self.form == "phases":
+            n, c4, h1, w1 = y.shape
+            if out is None:
+                out = new_map(y, c4 // 4, 2 * (h1 - 1), 2 * (w1 - 1), channels_last=True)
+            return _interleave_phases(y, out)
+        if self.form == "column_pairs":
+            y = _merge_column_pairs(y)
+        if out is None:
+            return y
+        out.copy_(y)
+        return out
 
 
 _packed: "weakref.WeakKeyDictionary[nn.Module, _PackedWeights]" = weakref.WeakKeyDictionary()
@@ -292,14 +333,133 @@ def _dense(x: torch.Tensor) -> torch.Tensor:
     return x.contiguous()
 
 
-def _packed_conv(conv: nn.Module, x: torch.Tensor, epilogue: Epilogue) -> torch.Tensor | None:
+def simd_lanes() -> int:
+    """float32 lanes of the vector unit oneDNN's x86 kernels use here: 16 with AVX-512, 8 with AVX2
+    (also when ``ONEDNN_MAX_CPU_ISA`` / ``DNNL_MAX_CPU_ISA`` caps oneDNN below AVX-512), 0 on other
+    CPUs (no lane-filling forms there: not measured)."""
+    capability = torch.backends.cpu.get_cpu_capability()
+    if capability not in ("AVX2", "AVX512"):
+        return 0
+    cap = (os.environ.get("ONEDNN_MAX_CPU_ISA") or os.environ.get("DNNL_MAX_CPU_ISA") or "ALL").upper()
+    if capability == "AVX512" and (cap == "ALL" or cap.startswith(("AVX512", "AVX10"))):
+        return 16
+    return 8
+
+
+def _narrow_form(conv: nn.Module, x: torch.Tensor) -> str:
+    """How to run ``conv`` (the U-Net's k4 s2 p1 shape) on ``x`` with prepacked weights.
+
+    oneDNN vectorises CPU convolutions over output channels, so a layer whose output channels fill
+    at most half the SIMD lanes (8 channels with AVX-512's 16) leaves lanes idle (the small
+    widths' 9 -> 8 first conv ran at ~50 GFLOP/s against ~100 for a full-width conv here).
+    Such layers on maps of >= ``CHANNELS_LAST_MIN_PIXELS`` output pixels are widened:
+
+    * ``"column_pairs"`` (conv): one conv computes two horizontally adjacent output pixels per
+      position (kernel 4 x 6, stride 2 x 4, 2 C_out channels, zero taps where a pixel's window
+      does not reach). Its channels_last output *is* the C_out-channel map, as a view. 1.5x the
+      multiply-adds, full lanes: 9 -> 8 at 256^2 0.70 -> 0.54 ms, bit-identical.
+    * ``"phases"`` (transposed conv): its sub-pixel decomposition, one 2 x 2 conv over the input
+      padded by 1 that outputs the four output phases (4 C_out channels, exact multiply-adds plus
+      one row and column), interleaved into the output (or the caller's ``out``, replacing the
+      copy into the skip concatenation). 32 -> 8 at 64^2 -> 128^2: 0.67 -> 0.44 ms.
+
+    Everything else is ``"direct"`` (``"transposed"`` for transposed convs). With AVX2 (8 lanes) a
+    C_out of 8 fills the lanes and is left direct (column pairs were slower there: 0.78 -> 0.89 ms).
+    """
+    transposed = isinstance(conv, nn.ConvTranspose2d)
+    direct = "transposed" if transposed else "direct"
+    narrow = 2 * conv.out_channels <= simd_lanes()
+    if not narrow or conv.kernel_size != (4, 4) or conv.stride != (2, 2) or conv.padding != (1, 1) \
+            or conv.dilation != (1, 1):
+        return direct
+    h, w = x.shape[-2:]
+    if transposed:
+        return "phases" if conv.output_padding == (0, 0) and 4 * h * w >= CHANNELS_LAST_MIN_PIXELS else direct
+    h_out, w_out = h // 2, w // 2
+    return "column_pairs" if w_out % 2 == 0 and h_out * w_out >= CHANNELS_LAST_MIN_PIXELS else direct
+
+
+_PHASE_TAPS = torch.tensor([[3, 1], [2, 0]])
+"""For a k4 s2 p1 transposed conv, output index 2 m + a sums input m - 1 + a + d times kernel tap
+``_PHASE_TAPS[a, d]`` = 3 - a - 2 d, d = 0, 1."""
+
+
+def _phase_weights(weight: torch.Tensor) -> torch.Tensor:
+    """(C_in, C, 4, 4) transposed-conv weights -> (4 C, C_in, 2, 2) conv weights whose output channel
+    (2 a + b) C + c at padded-input position (i, j) is output pixel (2 (i - a) + a, 2 (j - b) + b)."""
+    c_in, c = weight.shape[:2]
+    taps = weight[:, :, _PHASE_TAPS][..., _PHASE_TAPS]  # (C_in, C, a, dy, b, dx)
+    return taps.permute(2, 4, 1, 0, 3, 5).reshape(4 * c, c_in, 2, 2)
+
+
+def _interleave_phases(phases: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
+    """Write (N, 4 C, h + 1, w + 1) phase maps into ``out`` (N, C, 2 h, 2 w); returns ``out``."""
+    c = out.shape[1]
+    h, w = out.shape[-2] // 2, out.shape[-1] // 2
+    for a in (0, 1):
+        for b in (0, 1):
+            k = 2 * a + b
+            out[:, :, a::2, b::2].copy_(phases[:, k * c : (k + 1) * c, a : a + h, b : b + w])
+    return out
+
+
+def _column_pair_weights(weight: torch.Tensor, stride: int) -> torch.Tensor:
+    """(C, C_in, kh, kw) conv weights -> (2 C, C_in, kh, kw + stride): channels C.. 2C are the same
+    filter one output pixel (``stride`` input columns) to the right."""
+    c, c_in, kh, kw = weight.shape
+    pairs = weight.new_zeros(2 * c, c_in, kh, kw + stride)
+    pairs[:c, :, :, :kw] = weight
+    pairs[c:, :, :, stride:] = weight
+    return pairs
+
+
+def _merge_column_pairs(y: torch.Tensor) -> torch.Tensor:
+    """(N, 2 C, H, W / 2) column-pair output -> the (N, C, H, W) map, a channels_last view."""
+    y = y.contiguous(memory_format=torch.channels_last)
+    n, c2, h, w2 = y.shape
+    return y.permute(0, 2, 3, 1).reshape(n, h, 2 * w2, c2 // 2).permute(0, 3, 1, 2)
+
+
+def _pack(conv: nn.Module, epilogue: Epilogue, x: torch.Tensor, items: tuple, states: tuple) -> _PackedWeights:
+    """Fold ``epilogue`` into ``conv``'s weights and reorder them for oneDNN in the form
+    :func:`_narrow_form` picks for ``x``."""
+    transposed = isinstance(conv, nn.ConvTranspose2d)
+    form = _narrow_form(conv, x)
+    weight, bias = epilogue.folded(conv.weight.detach(), None if conv.bias is None else conv.bias.detach(),
+                                   1 if transposed else 0)
+    padding, stride, dilation = list(conv.padding), list(conv.stride), list(conv.dilation)
+    output_padding = list(conv.output_padding) if transposed else [0, 0]
+    if form == "phases":
+        weight, stride = _phase_weights(weight), [1, 1]
+        bias = None if bias is None else bias.repeat(4)
+    elif form == "column_pairs":
+        weight, stride = _column_pair_weights(weight, stride[1]), [stride[0], 2 * stride[1]]
+        bias = None if bias is None else bias.repeat(2)
+    if form == "transposed":
+        packed = torch.ops.mkldnn._reorder_convolution_transpose_weight(
+            weight.contiguous(), padding, output_padding, stride, dilation, 1, list(x.shape)
+        )
+    else:
+        packed = torch._C._nn.mkldnn_reorder_conv2d_weight(
+            weight.contiguous().to_mkldnn(), padding, stride, dilation, 1, list(x.shape)
+        )
+    scalars = [epilogue.slope] if epilogue.act == "leaky_relu" else []
+    return _PackedWeights(items, states, form, packed, None if bias is None else bias.contiguous(), padding, stride,
+                          dilation, output_padding, _ONEDNN_ATTR[epilogue.act], scalars)
+
+
+def _packed_conv(
+    conv: nn.Module, x: torch.Tensor, epilogue: Epilogue, out: torch.Tensor | None = None
+) -> torch.Tensor | None:
     """``act(conv(x) * scale + shift)`` in one oneDNN call with prepacked weights (inference, CPU,
-    float32): the norm folded into the weights and the activation into the kernel, the weights
-    reordered to oneDNN's blocked layout once and kept per module (:data:`_packed`) until the
-    weights, the norm or the input shape change. torch otherwise reorders them on every call, a
-    full extra pass over the 8-34 MB weights of the deep layers (1.5-2x their time here); this is
-    what torch.compile's weight freezing does for CPU convolutions. None when oneDNN or these
-    private torch ops are unavailable (logged once; callers use their other paths)."""
+    float32), written into ``out`` when given (which is returned): the norm folded into the
+    weights and the activation into the kernel, the weights reordered to oneDNN's blocked layout
+    once and kept per module (:data:`_packed`) until the weights, the norm or the input shape
+    change (:func:`_pack_key`). torch otherwise reorders them on every call, a full extra pass over
+    the 8-34 MB weights of the deep layers (1.5-2x their time here); this is what torch.compile's
+    weight freezing does for CPU convolutions. Narrow layers run in a lane-filling form
+    (:func:`_narrow_form`). None when oneDNN or these private torch ops are unavailable (logged
+    once; callers use their other paths)."""
     global _prepack_ok
     if (
         not _prepack_ok
@@ -313,38 +473,13 @@ def _packed_conv(conv: nn.Module, x: torch.Tensor, epilogue: Epilogue) -> torch.
         or not torch.backends.mkldnn.is_available()
     ):
         return None
-    transposed = isinstance(conv, nn.ConvTranspose2d)
-    weight_source = (
-        conv.weight, conv.weight._version, conv.bias, None if conv.bias is None else conv.bias._version,
-        tuple(x.shape),
-    )  # fmt: skip
+    items, states = _pack_key(conv, epilogue, x)
     entry = _packed.get(conv)
-    scalars = [epilogue.slope] if epilogue.act == "leaky_relu" else []
-    padding, stride, dilation = list(conv.padding), list(conv.stride), list(conv.dilation)
     try:
-        if entry is None or not entry.matches(weight_source, epilogue):
-            weight, bias = epilogue.folded(conv.weight.detach(), None if conv.bias is None else conv.bias.detach(),
-                                           1 if transposed else 0)
-            if transposed:
-                packed = torch.ops.mkldnn._reorder_convolution_transpose_weight(
-                    weight.contiguous(), padding, list(conv.output_padding), stride, dilation, 1, list(x.shape)
-                )
-            else:
-                packed = torch._C._nn.mkldnn_reorder_conv2d_weight(
-                    weight.contiguous().to_mkldnn(), padding, stride, dilation, 1, list(x.shape)
-                )
-            entry = _PackedWeights(weight_source, _copy(epilogue.scale), _copy(epilogue.shift), packed,
-                                   None if bias is None else bias.contiguous())
+        if entry is None or not entry.matches(items, states):
+            entry = _pack(conv, epilogue, x, items, states)
             _packed[conv] = entry
-        attr = _ONEDNN_ATTR[epilogue.act]
-        if transposed:
-            return torch.ops.mkldnn._convolution_transpose_pointwise(
-                x, entry.weight, entry.bias, padding, list(conv.output_padding), stride, dilation, 1, attr,
-                scalars, "",
-            )  # fmt: skip
-        return torch.ops.mkldnn._convolution_pointwise(
-            x, entry.weight, entry.bias, padding, stride, dilation, 1, attr, scalars, ""
-        )
+        return entry(x, out)
     except (AttributeError, RuntimeError, NotImplementedError) as exc:
         _prepack_ok = False
         _packed.clear()
@@ -452,9 +587,9 @@ class ConvTranspose2d(nn.ConvTranspose2d):
     ) -> torch.Tensor:
         _check_fused(epilogue, out)
         if epilogue is not None and output_size is None:
-            y = _packed_conv(self, _dense(x), epilogue)
+            y = _packed_conv(self, _dense(x), epilogue, out)
             if y is not None:
-                return _finish(y, None, out)
+                return y
         if output_size is not None or self.output_padding != (0, 0):
             x = _cpu_layout(x, CONV_TRANSPOSE_CHANNELS_LAST_MIN_PIXELS)
             return _finish(super().forward(x, output_size), epilogue, out)

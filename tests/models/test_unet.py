@@ -272,3 +272,112 @@ def test_prepacked_weights_follow_changes():
     twin = copy.deepcopy(net)
     with torch.no_grad():
         torch.testing.assert_close(twin(x), net(x))
+
+
+def _epilogue(channels: int, act: str, slope: float = 0.0):
+    from deliffas.models.unet_conv import Epilogue
+
+    g = torch.Generator().manual_seed(2)
+    scale = torch.rand(channels, generator=g) + 0.5
+    shift = torch.rand(channels, generator=g) - 0.5
+    return Epilogue(scale, shift, act, slope, sources=(scale, shift))
+
+
+def _apply_reference(y: torch.Tensor, epilogue) -> torch.Tensor:
+    import torch.nn.functional as F
+
+    y = y * epilogue.scale.view(1, -1, 1, 1) + epilogue.shift.view(1, -1, 1, 1)
+    return F.leaky_relu(y, epilogue.slope) if epilogue.act == "leaky_relu" else F.relu(y)
+
+
+@pytest.mark.parametrize("lanes", [16, 8, 0])
+def test_narrow_layer_forms_match_torch(lanes, monkeypatch):
+    """Narrow layers run widened (column pairs for convs, output phases for transposed convs) when
+    their output channels fill at most half the SIMD lanes; every form computes the layer with its
+    epilogue, into a view of a larger buffer too."""
+    import torch.nn.functional as F
+
+    import deliffas.models.unet_conv as unet_conv
+
+    if not unet_conv._prepack_ok or not torch.backends.mkldnn.is_available():
+        pytest.skip("oneDNN prepacked convolutions unavailable in this torch build")
+    monkeypatch.setattr(unet_conv, "simd_lanes", lambda: lanes)
+    torch.manual_seed(0)
+    forms = []
+    for c_out in (4, 8):
+        conv = unet_conv.Conv2d(9, c_out, 4, 2, 1, bias=False)
+        up = unet_conv.ConvTranspose2d(12, c_out, 4, 2, 1, bias=True)
+        with torch.no_grad():
+            up.bias.uniform_(-0.1, 0.1)
+        for shape in ((2, 9, 64, 64), (1, 9, 64, 62), (1, 9, 32, 32)):  # pairs; odd w_out; 16 x 16 out
+            x = torch.randn(shape)
+            ep = _epilogue(c_out, "leaky_relu", 0.3)
+            with torch.no_grad():
+                ref = _apply_reference(F.conv2d(x, conv.weight, None, 2, 1), ep)
+                got = conv(x, epilogue=ep)
+            forms.append((c_out, "conv", unet_conv._narrow_form(conv, x)))
+            torch.testing.assert_close(got, ref, rtol=1e-5, atol=1e-5)
+        for shape in ((2, 12, 16, 16), (1, 12, 16, 24), (1, 12, 8, 8)):  # the last has 256 output pixels
+            x = torch.randn(shape).contiguous(memory_format=torch.channels_last)
+            ep = _epilogue(c_out, "relu")
+            h, w = 2 * shape[2], 2 * shape[3]
+            cat = torch.full((shape[0], 2 * c_out, h, w), 7.0).contiguous(memory_format=torch.channels_last)
+            with torch.no_grad():
+                ref = _apply_reference(F.conv_transpose2d(x, up.weight, up.bias, 2, 1), ep)
+                got = up(x, epilogue=ep, out=cat[:, :c_out])
+                fresh = up(x, epilogue=ep)
+            forms.append((c_out, "up", unet_conv._narrow_form(up, x)))
+            assert got.data_ptr() == cat.data_ptr()
+            torch.testing.assert_close(cat[:, :c_out], ref, rtol=1e-5, atol=1e-5)
+            torch.testing.assert_close(fresh, ref, rtol=1e-5, atol=1e-5)
+            assert bool((cat[:, c_out:] == 7.0).all())  # the skip half is not touched
+    expected = {
+        16: [(c, "conv", f) for c in (4, 8) for f in ("column_pairs", "direct", "direct")]
+        + [(c, "up", f) for c in (4, 8) for f in ("phases", "phases", "transposed")],
+        8: [(4, "conv", f) for f in ("column_pairs", "direct", "direct")]
+        + [(4, "up", f) for f in ("phases", "phases", "transposed")]
+        + [(8, "conv", "direct")] * 3 + [(8, "up", "transposed")] * 3,
+        0: [(c, "conv", "direct") for c in (4, 8) for _ in range(3)] + [(c, "up", "transposed") for c in (4, 8) for _ in range(3)],
+    }[lanes]
+    assert sorted(forms) == sorted(expected)
+
+
+def test_simd_lanes_follow_the_isa(monkeypatch):
+    import deliffas.models.unet_conv as unet_conv
+
+    for var in ("ONEDNN_MAX_CPU_ISA", "DNNL_MAX_CPU_ISA"):
+        monkeypatch.delenv(var, raising=False)
+    monkeypatch.setattr(torch.backends.cpu, "get_cpu_capability", lambda: "AVX512")
+    assert unet_conv.simd_lanes() == 16
+    monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "avx2")
+    assert unet_conv.simd_lanes() == 8
+    monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "AVX512_CORE_AMX")
+    assert unet_conv.simd_lanes() == 16
+    monkeypatch.setattr(torch.backends.cpu, "get_cpu_capability", lambda: "AVX2")
+    assert unet_conv.simd_lanes() == 8
+    monkeypatch.setattr(torch.backends.cpu, "get_cpu_capability", lambda: "DEFAULT")
+    assert unet_conv.simd_lanes() == 0
+
+
+def test_prepacked_weights_follow_affine_norm_changes():
+    """The affine norm's scale and shift are the validity sources of the prepacked weights: an
+    in-place change or a replaced parameter rebuilds them."""
+    from deliffas.models.unet import _ChannelAffine
+
+    torch.manual_seed(0)
+    net = UNet(UNetConfig(in_channels=9, base_channels=4, max_channels=16, norm="affine"), 64).eval()
+    _randomise_norms(net)
+    x = torch.randn(1, 9, 64, 64)
+
+    def check():
+        with torch.no_grad():
+            torch.testing.assert_close(net(x), _reference_forward(net, x), rtol=1e-5, atol=2e-6)
+
+    check()
+    norms = [m for m in net.modules() if isinstance(m, _ChannelAffine)]
+    with torch.no_grad():
+        norms[0].weight.mul_(-2.0)  # in place: same object, new version
+        norms[-1].bias.add_(0.3)
+    check()
+    norms[1].weight = nn.Parameter(norms[1].weight.detach() * 3.0)  # a new object
+    check()
