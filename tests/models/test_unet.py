@@ -381,3 +381,38 @@ def test_prepacked_weights_follow_affine_norm_changes():
     check()
     norms[1].weight = nn.Parameter(norms[1].weight.detach() * 3.0)  # a new object
     check()
+
+
+@pytest.mark.parametrize("channels", [3, 9, 5])
+def test_channels_last_copy(channels, monkeypatch):
+    """The U-Net's input conversion (a compiled loop when a C compiler exists) equals torch's
+    channels_last copy, without the compiled loop too, and keeps autograd."""
+    import deliffas.models.unet_conv as unet_conv
+
+    x = torch.randn(2, channels, 40, 24)
+    ref = x.contiguous(memory_format=torch.channels_last)
+    got = unet_conv.channels_last(x)
+    assert got.is_contiguous(memory_format=torch.channels_last) and got.data_ptr() != x.data_ptr()
+    assert torch.equal(got, ref)
+    assert unet_conv.channels_last(ref) is ref
+    monkeypatch.setattr(unet_conv._LAYOUT_KERNEL, "get", lambda: None)
+    assert torch.equal(unet_conv.channels_last(x), ref)
+    monkeypatch.undo()
+    xg = x.clone().requires_grad_()
+    unet_conv.channels_last(xg).square().sum().backward()
+    torch.testing.assert_close(xg.grad, 2 * x)
+
+
+def test_channels_last_copy_is_compiled_here():
+    """On a machine with a C compiler (this project's), the conversion runs the compiled loop."""
+    import shutil
+
+    import deliffas.models.unet_conv as unet_conv
+
+    if not (shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")):
+        pytest.skip("no C compiler on PATH")
+    import os
+
+    if os.environ.get("DELIFFAS_NATIVE", "1").strip() == "0":
+        pytest.skip("DELIFFAS_NATIVE=0")
+    assert unet_conv._LAYOUT_KERNEL.get() is not None, unet_conv._LAYOUT_KERNEL.load().reason
