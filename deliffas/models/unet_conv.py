@@ -568,7 +568,9 @@ class Conv2d(nn.Conv2d):
     def forward(self, x: torch.Tensor, *, epilogue: Epilogue | None = None) -> torch.Tensor:
         _check_fused(epilogue, None)
         if epilogue is not None:
-            y = _packed_conv(self, _dense(_cpu_layout(x)), epilogue)
+            # large NCHW maps (the U-Net's input) in channels_last; others as they come
+            large = x.shape[-2] * x.shape[-1] >= CHANNELS_LAST_MIN_PIXELS
+            y = _packed_conv(self, channels_last(x) if large else _dense(x), epilogue)
             if y is not None:
                 return y
         if _gemm_ok(x, self):
