@@ -323,25 +323,24 @@ def _onednn_act(
 _ONEDNN_ATTR = {"relu": "relu", "leaky_relu": "leaky_relu", "sigmoid": "sigmoid", None: "none"}
 
 
-def _version(t: object) -> object:
-    """What identifies the state of one validity-key item: a tensor's version counter (an object
-    that equals nothing for inference tensors, which have none), else the value itself."""
-    if isinstance(t, torch.Tensor):
-        return object() if t.is_inference() else t._version
-    return t
-
-
 def _pack_key(conv: nn.Module, epilogue: Epilogue, x: torch.Tensor) -> tuple[tuple, tuple]:
     """(items, states) that prepacked weights of ``conv`` for ``epilogue`` and ``x`` derive from:
     the conv's weight and bias, the epilogue's sources and constants, the input shape. Items are
-    compared by identity (the entry keeps them alive, so an identity cannot be reused), states by
-    value."""
+    compared by identity (the entry keeps them alive, so an identity cannot be reused); states by
+    value: each tensor item's version counter (in-place changes) and data pointer (``.data``
+    assignments, which keep both identity and version), non-tensor items as they are."""
     items = (conv.weight, conv.bias, *epilogue.sources)
-    constants = (
-        tuple(x.shape), epilogue.act, epilogue.slope,
-        None if isinstance(epilogue.scale, torch.Tensor) else epilogue.scale, epilogue.shift is None,
-    )  # fmt: skip
-    return items, (tuple(_version(t) for t in items), constants)
+    scale = epilogue.scale
+    states = [x.shape, epilogue.act, epilogue.slope, None if isinstance(scale, torch.Tensor) else scale,
+              epilogue.shift is None]
+    for t in items:
+        if isinstance(t, torch.Tensor):
+            # inference tensors have no version counter: a fresh object() never matches
+            states.append(object() if t.is_inference() else t._version)
+            states.append(t.data_ptr())
+        else:
+            states.append(t)
+    return items, tuple(states)
 
 
 @dataclass(frozen=True)

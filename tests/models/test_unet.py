@@ -416,3 +416,20 @@ def test_channels_last_copy_is_compiled_here():
     if os.environ.get("DELIFFAS_NATIVE", "1").strip() == "0":
         pytest.skip("DELIFFAS_NATIVE=0")
     assert unet_conv._LAYOUT_KERNEL.get() is not None, unet_conv._LAYOUT_KERNEL.load().reason
+
+
+def test_prepacked_weights_follow_data_assignment():
+    """``param.data = ...`` keeps the parameter's identity and version counter; the prepacked
+    weights are rebuilt all the same (keyed by the data pointer too)."""
+    torch.manual_seed(0)
+    net = UNet(UNetConfig(in_channels=9, base_channels=4, max_channels=16, norm="affine"), 64).eval()
+    x = torch.randn(1, 9, 64, 64)
+    with torch.no_grad():
+        before = net(x)
+        conv = net.up[-1][0]
+        version = conv.weight._version
+        conv.weight.data = conv.weight.detach() * 2.0
+        assert conv.weight._version == version
+        after = net(x)
+        torch.testing.assert_close(after, _reference_forward(net, x), rtol=1e-5, atol=2e-6)
+    assert not torch.allclose(after, before)
