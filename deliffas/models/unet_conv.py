@@ -351,7 +351,7 @@ class _PackedWeights:
     items: tuple
     states: tuple
     form: str
-    """"direct", "column_pairs" or "phases"."""
+    """"direct" (conv), "transposed" (transposed conv), "column_pairs" or "phases"."""
     weight: torch.Tensor
     """oneDNN (mkldnn) tensor: ``weight * scale`` in the form's shape, reordered for the input shape."""
     bias: torch.Tensor | None
