@@ -282,6 +282,13 @@ def _check_fused(epilogue: Epilogue | None, out: torch.Tensor | None) -> None:
 
 _onednn_pointwise_ok = True
 
+_ONEDNN_ATTR = {"relu": "relu", "leaky_relu": "leaky_relu", "sigmoid": "sigmoid", None: "none"}
+
+
+def _onednn_attr(epilogue: Epilogue) -> tuple[str, list]:
+    """oneDNN's post-op name and scalars for the epilogue's activation (one of ``_ONEDNN_ATTR``)."""
+    return _ONEDNN_ATTR[epilogue.act], [epilogue.slope] if epilogue.act == "leaky_relu" else []
+
 
 def _onednn_act(
     transposed: bool,
@@ -301,10 +308,10 @@ def _onednn_act(
     torch.compile fuses to on CPU. None when they are missing or refuse the arguments (the caller
     then activates separately)."""
     global _onednn_pointwise_ok
-    attr = {"relu": ("relu", []), "leaky_relu": ("leaky_relu", [epilogue.slope]), "sigmoid": ("sigmoid", [])}
-    if not _onednn_pointwise_ok or epilogue.act not in attr or x.device.type != "cpu" or x.dtype != torch.float32:
+    if (not _onednn_pointwise_ok or epilogue.act is None or epilogue.act not in _ONEDNN_ATTR
+            or x.device.type != "cpu" or x.dtype != torch.float32):
         return None
-    name, scalars = attr[epilogue.act]
+    name, scalars = _onednn_attr(epilogue)
     try:
         if transposed:
             return torch.ops.mkldnn._convolution_transpose_pointwise(
@@ -318,9 +325,6 @@ def _onednn_act(
         _onednn_pointwise_ok = False
         logger.info("unet: oneDNN fused convolution + activation unavailable (%s); activating separately", exc)
         return None
-
-
-_ONEDNN_ATTR = {"relu": "relu", "leaky_relu": "leaky_relu", "sigmoid": "sigmoid", None: "none"}
 
 
 def _pack_key(conv: nn.Module, epilogue: Epilogue, x: torch.Tensor) -> tuple[tuple, tuple]:
@@ -364,7 +368,8 @@ class _PackedWeights:
     scalars: list
 
     def matches(self, items: tuple, states: tuple) -> bool:
-        return len(items) == len(self.items) and all(a is b for a, b in zip(items, self.items)) and states == self.states
+        # states hold at least one entry per item, so equal states mean equally many items
+        return states == self.states and all(a is b for a, b in zip(items, self.items))
 
     def __call__(self, x: torch.Tensor, out: torch.Tensor | None) -> torch.Tensor:
         if self.form == "transposed":
@@ -383,10 +388,7 @@ class _PackedWeights:
             return _interleave_phases(y, out)
         if self.form == "column_pairs":
             y = _merge_column_pairs(y)
-        if out is None:
-            return y
-        out.copy_(y)
-        return out
+        return _finish(y, None, out)
 
 
 _packed: "weakref.WeakKeyDictionary[nn.Module, _PackedWeights]" = weakref.WeakKeyDictionary()
@@ -513,9 +515,9 @@ def _pack(conv: nn.Module, epilogue: Epilogue, x: torch.Tensor, items: tuple, st
         packed = torch._C._nn.mkldnn_reorder_conv2d_weight(
             weight.contiguous().to_mkldnn(), padding, stride, dilation, 1, list(x.shape)
         )
-    scalars = [epilogue.slope] if epilogue.act == "leaky_relu" else []
+    attr, scalars = _onednn_attr(epilogue)
     return _PackedWeights(items, states, form, packed, None if bias is None else bias.contiguous(), padding, stride,
-                          dilation, output_padding, _ONEDNN_ATTR[epilogue.act], scalars)
+                          dilation, output_padding, attr, scalars)
 
 
 def _packed_conv(
@@ -632,10 +634,7 @@ class ConvTranspose2d(nn.ConvTranspose2d):
                         self.output_padding)
         if y is None:
             y = epilogue.activate_(self._conv_transpose(x, weight, bias))
-        if out is None:
-            return y
-        out.copy_(y)
-        return out
+        return _finish(y, None, out)
 
     def _conv_transpose(self, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None) -> torch.Tensor:
         return F.conv_transpose2d(x, weight, bias, self.stride, self.padding, self.output_padding, self.groups,
