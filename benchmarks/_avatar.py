@@ -66,7 +66,7 @@ def _character_path() -> tuple[Path, str]:
 @functools.lru_cache(maxsize=1)
 def avatar(num_normal_frames: int = 8) -> Avatar:
     """The posed character (cached per process)."""
-    from deliffas.data.dynacap import read_character, read_motion
+    from deliffas.io.dynacap import read_character, read_motion
     from deliffas.geometry.atlas import UVAtlas
     from deliffas.geometry.mesh_ops import vertex_normals
     from deliffas.geometry.shell import offset_shell
@@ -98,7 +98,7 @@ def avatar(num_normal_frames: int = 8) -> Avatar:
 
 def look_at(center: np.ndarray, target: np.ndarray, width: int, height: int, focal: float):
     """A pinhole ``Camera`` at ``center`` looking at ``target``, y-up world (image y down)."""
-    from deliffas.data.cameras import Camera, look_at as world_to_cam
+    from deliffas.io.cameras import Camera, look_at as world_to_cam
 
     K = np.array([[focal, 0.0, width / 2], [0.0, focal, height / 2], [0.0, 0.0, 1.0]])
     return Camera(f"bench_{width}x{height}", K, world_to_cam(center, target), width, height)

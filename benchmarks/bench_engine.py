@@ -140,7 +140,7 @@ def _train_timing(model, sample, rounds: int = 5) -> dict[str, tuple[float, dict
 
 
 def run() -> list[Result]:
-    from deliffas.data.cameras import Camera  # noqa: F401
+    from deliffas.io.cameras import Camera  # noqa: F401
 
     subject, shards, _ = bench_capture()
     sample, info = _sample(shards)

@@ -8,7 +8,7 @@ from benchmarks.common import SAMPLE_DIR, Result, best_time
 
 
 def run() -> list[Result]:
-    from deliffas.data.dynacap import read_character, read_motion
+    from deliffas.io.dynacap import read_character, read_motion
     from deliffas.geometry.template import DDCTemplate
 
     if not (SAMPLE_DIR / "ddc.character").is_file():

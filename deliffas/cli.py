@@ -100,7 +100,7 @@ def _cmd_verify(args: argparse.Namespace) -> int:
 
 
 def _cmd_cameras(args: argparse.Namespace) -> int:
-    from deliffas.data.cameras_colmap import calibration_from_colmap, calibration_to_colmap
+    from deliffas.io.colmap import calibration_from_colmap, calibration_to_colmap
 
     if args.to_colmap:
         n = calibration_to_colmap(args.calibration, args.to_colmap, text=args.text)
@@ -178,7 +178,7 @@ def _add_data_commands(sub) -> None:
 
 # --------------------------------------------------------------------------------------------- geometry commands
 def _cmd_character_procedural(args: argparse.Namespace) -> int:
-    from deliffas.data.dynacap import read_character
+    from deliffas.io.dynacap import read_character
     from deliffas.geometry.procedural import make_procedural_character
 
     try:
@@ -194,7 +194,7 @@ def _cmd_character_procedural(args: argparse.Namespace) -> int:
 
 
 def _cmd_template(args: argparse.Namespace) -> int:
-    from deliffas.geometry.template_build import build_templates
+    from deliffas.data.template_build import build_templates
 
     try:
         report = build_templates(args.character, args.out, smooth_iters=args.smooth, coarse_faces=args.coarse,
@@ -269,7 +269,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
-    from deliffas.data.text_lines import DynaCapFormatError
+    from deliffas.io.text_lines import DynaCapFormatError
 
     try:
         return int(args.func(args) or 0)

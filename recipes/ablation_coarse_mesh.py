@@ -2,7 +2,7 @@
 
 The paper's "coarse mesh" (table rows e–f, appendix k–l with the perceptual term) is a smoothed
 version of the DDC template. Here the capture's character gives three template variants
-(``deliffas.geometry.template_build.build_templates``): ``original``, ``smooth`` (Taubin) and
+(``deliffas.data.template_build.build_templates``): ``original``, ``smooth`` (Taubin) and
 ``coarse`` (decimated, attributes transferred). The SAME subject images are converted once per
 variant (``convert --template DIR/VARIANT``) and both models are trained on each with L1 only.
 The report gives how much PSNR each model loses against the original template and whether the
@@ -65,7 +65,7 @@ def variant_source(args, sizes: RecipeSizes) -> VariantSource:
 
 def template_deviation(variant_character: Path, original_character: Path) -> dict:
     """Symmetric surface distance (mm, rest pose) between a variant's template and the original's."""
-    from deliffas.data.dynacap import read_character
+    from deliffas.io.dynacap import read_character
     from deliffas.geometry.variants import closest_points_on_mesh
 
     a = read_character(variant_character).mesh

@@ -128,7 +128,7 @@ def smpl_character(character, smpl_model: str | Path, uv_obj: str | Path | None 
     """
     from scipy.spatial import cKDTree
 
-    from deliffas.data.dynacap import ObjData, Skin
+    from deliffas.io.dynacap import ObjData, Skin
     from deliffas.geometry.smpl import SMPLTemplate
     from deliffas.geometry.variants import closest_points_on_mesh, sparsify_weights
 
@@ -164,7 +164,7 @@ def standin_character(character, faces: int = STANDIN_FACES, smooth_iters: int =
 
 def write_template_folder(folder: Path, character, name: str, offset_mm: float = 30.0) -> Path:
     """Write ``character`` as ``folder/<name>.character`` plus its ``outer.obj`` shell (as ``build_templates``)."""
-    from deliffas.data.dynacap import ObjData, write_obj
+    from deliffas.io.dynacap import ObjData, write_obj
     from deliffas.geometry.shell import ShellConfig, offset_shell, shell_offsets
     from deliffas.geometry.variants import write_variant
 
@@ -179,7 +179,7 @@ def write_template_folder(folder: Path, character, name: str, offset_mm: float =
 
 # --------------------------------------------------------------------------------------------- recipe
 def main(argv=None) -> dict:
-    from deliffas.data.dynacap import read_character
+    from deliffas.io.dynacap import read_character
 
     p = recipe_parser(__doc__.splitlines()[0])
     p.add_argument("--smpl-model", type=Path, default=None, help="your SMPL model file (.npz, or .pkl without chumpy)")

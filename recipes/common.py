@@ -112,7 +112,7 @@ def prepare_template_variants(out: Path, character: Path, smooth_iters: int | No
     Pass a folder as ``prepare_shards(..., template=str(folder))``. The report (vertex/face counts,
     shells, atlas statistics) is ``out/report.json``; ``packing_res`` is xatlas' packing resolution.
     """
-    from deliffas.geometry.template_build import build_templates
+    from deliffas.data.template_build import build_templates
 
     report_path = Path(out) / "report.json"
     want = {"original"} | ({"smooth"} if smooth_iters is not None else set()) | (

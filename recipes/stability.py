@@ -145,7 +145,7 @@ def _row(sweep: str, series: str, value: float, label: str, variant: str, result
 
 # ------------------------------------------------------------------------------------------------ sweeps
 def sweep_offset(st: _Study, plan: StabilityPlan) -> list[dict]:
-    from deliffas.geometry.template_build import build_templates
+    from deliffas.data.template_build import build_templates
 
     rows = []
     for d in plan.offsets_mm:
@@ -185,7 +185,7 @@ def _shell_summary(report: dict) -> dict:
 def _plain_shell_stats(character: Path, d: float) -> dict | None:
     """Rest-pose statistics of the plain shell at d (self-intersecting faces), None if they fail."""
     try:
-        from deliffas.data.dynacap import read_character
+        from deliffas.io.dynacap import read_character
         from deliffas.geometry.shell import offset_shell, shell_report
 
         mesh = read_character(character).mesh
@@ -341,7 +341,7 @@ def holed_template(character: Path, folder: Path, holes: int, seed: int = 0, rin
     face get no normal and stay in place in the shell. Returns ``{"character", "faces_deleted",
     "faces", "boundary_edges"}``.
     """
-    from deliffas.data.dynacap import read_character
+    from deliffas.io.dynacap import read_character
     from deliffas.geometry.shell import boundary_edges
     from deliffas.geometry.variants import write_variant
 

@@ -43,13 +43,33 @@ def sample_dir() -> Path:
 
 @pytest.fixture(scope="session")
 def sample_character(sample_dir):
-    from deliffas.data.dynacap import read_character
+    from deliffas.io.dynacap import read_character
 
     return read_character(sample_dir / "ddc.character")
 
 
 @pytest.fixture(scope="session")
 def sample_motion(sample_dir, sample_character):
-    from deliffas.data.dynacap import read_motion
+    from deliffas.io.dynacap import read_motion
 
     return read_motion(sample_dir / "skeletoolToGTPose" / "poseAngles.motion", sample_character.skeleton.num_dofs)
+
+PROCEDURAL_BUILD = dict(seed=0, target_faces=6000, texture_size=256)
+"""The build every geometry test shares (small texture and face budget keep it fast)."""
+
+
+@pytest.fixture(scope="session")
+def procedural_build() -> dict:
+    return dict(PROCEDURAL_BUILD)
+
+
+@pytest.fixture(scope="session")
+def procedural_character_path(tmp_path_factory) -> Path:
+    """One build of PROCEDURAL_BUILD per test session (the .character is written last, so it marks completion)."""
+    from deliffas.geometry.procedural import make_procedural_character
+
+    d = tmp_path_factory.getbasetemp() / "procedural_s0_f6000_t256"
+    path = d / "procedural.character"
+    if not path.is_file():
+        make_procedural_character(d, **PROCEDURAL_BUILD)
+    return path

@@ -28,7 +28,7 @@ from typing import Literal, Sequence
 
 import numpy as np
 
-from deliffas.data.cameras import Camera
+from deliffas.io.cameras import Camera
 from deliffas.data.shards import (
     MANIFEST_NAME,
     META_NAME,
@@ -291,7 +291,7 @@ def _parse_meshes(specs: Sequence[str]) -> dict[str, Path]:
 def _image_size(seq_dir: Path, layout: str, camera_names: Sequence[str]) -> tuple[int, int, str]:
     import cv2
 
-    from deliffas.data.frames import _resolve_video, find_image_folder
+    from deliffas.io.frames import _resolve_video, find_image_folder
 
     folder = find_image_folder(seq_dir) if layout in ("auto", "images") else None
     if folder is not None:
@@ -318,7 +318,7 @@ def _split(subject: Path, num_cameras: int, override: Sequence[int] | None) -> l
 
 
 def _character_hash(character_path: Path, outer_obj: Path | None) -> str:
-    from deliffas.data.dynacap import read_character_files
+    from deliffas.io.dynacap import read_character_files
 
     files = read_character_files(character_path)
     h = hashlib.sha256()
@@ -329,7 +329,7 @@ def _character_hash(character_path: Path, outer_obj: Path | None) -> str:
 
 
 def _plan(subject: Path, out_dir: Path, config: ConvertConfig):
-    from deliffas.data.dynacap import read_calibration, read_meshes, read_motion
+    from deliffas.io.dynacap import read_calibration, read_meshes, read_motion
 
     calib = subject / "cameras.calibration"
     cameras = read_calibration(calib)
@@ -370,7 +370,7 @@ def _plan(subject: Path, out_dir: Path, config: ConvertConfig):
         avail = np.unique(np.asarray(avail, np.int64))
         selected = _select(avail, sl)
         if layout == "images":
-            from deliffas.data.frames import ImageFolderSource
+            from deliffas.io.frames import ImageFolderSource
 
             have = set(ImageFolderSource(seq_dir).frames())
             missing = [int(f) for f in selected if int(f) not in have]
@@ -425,7 +425,7 @@ def _state(ctx: _Context) -> dict:
         return _STATE
     import torch
 
-    from deliffas.data.dynacap import read_character, read_meshes, read_motion, read_obj
+    from deliffas.io.dynacap import read_character, read_meshes, read_motion, read_obj
     from deliffas.geometry.atlas import UVAtlas, uv_texel_table
     from deliffas.geometry.frame_geometry import FrameGeometryBuilder
     from deliffas.geometry.mesh_ops import vertex_normals
@@ -489,7 +489,7 @@ def _geometry(st: dict, sequence: str, frames: Sequence[int]) -> ShardGeometry:
 
 def _convert_shard(ctx: _Context, task: _Task) -> dict:
     """Write one shard; returns its manifest entry. Runs in a worker process or in-process."""
-    from deliffas.data.frames import open_frame_source
+    from deliffas.io.frames import open_frame_source
 
     t0 = time.perf_counter()
     with _single_thread_torch():

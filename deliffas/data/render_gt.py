@@ -3,7 +3,7 @@
 Per pixel (col, row) one ray through (col + 0.5, row + 0.5) (``Camera.rays``, docs/conventions.md),
 or s x s rays at ((col + (i + 0.5) / s), …) with ``supersample = s``. A hit takes the template's
 per-corner uv (barycentric interpolation), the texture bilinearly through
-``deliffas.models.sampling.sample_uv``, the interpolated vertex normal of the *rendered* surface, and
+``deliffas.geometry.sampling.sample_uv``, the interpolated vertex normal of the *rendered* surface, and
 is shaded by
 
     rgb = albedo * albedo_scale * (ambient * ao + diffuse * max(0, n.l)) + specular * ao * max(0, n.h)^shininess
@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from deliffas.checks import check_shape
-from deliffas.data.cameras import Camera, pixel_centers
+from deliffas.io.cameras import Camera, pixel_centers
 
 __all__ = ["ShadingConfig", "RenderedView", "render_views", "camera_rays", "vertex_ambient_occlusion",
            "fibonacci_hemisphere"]
@@ -161,7 +161,7 @@ def render_views(verts: np.ndarray, faces: np.ndarray, uvs: np.ndarray, face_uvs
         One ``RenderedView`` per camera.
     """
     from deliffas.geometry.mesh_ops import vertex_normals
-    from deliffas.models.sampling import sample_uv
+    from deliffas.geometry.sampling import sample_uv
 
     sizes = check_shape("verts", verts, "V 3")
     check_shape("faces", faces, "F 3")

@@ -26,7 +26,7 @@ from typing import Literal, Sequence
 
 import numpy as np
 
-from deliffas.data.cameras import Camera
+from deliffas.io.cameras import Camera
 
 __all__ = [
     "SCHEMA_VERSION",

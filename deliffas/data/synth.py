@@ -25,8 +25,8 @@ from typing import Literal, Sequence
 
 import numpy as np
 
-from deliffas.data.cameras import Camera, look_at
-from deliffas.data.dynacap import (
+from deliffas.io.cameras import Camera, look_at
+from deliffas.io.dynacap import (
     Character,
     MeshSequence,
     Motion,
@@ -38,7 +38,7 @@ from deliffas.data.dynacap import (
     write_motion,
 )
 from deliffas.data.render_gt import ShadingConfig, render_views, vertex_ambient_occlusion
-from deliffas.data.text_lines import write_text_atomic
+from deliffas.io.text_lines import write_text_atomic
 
 __all__ = [
     "SynthConfig",
@@ -420,7 +420,7 @@ def _render_chunk(seq: str, rows: list[int]) -> int:
     Tasks are tiny (the geometry travels once per worker in the initializer's ``static``): a worker
     that dies then never leaves the pool's task pipe half-written.
     """
-    from deliffas.data.frames import write_image
+    from deliffas.io.frames import write_image
     from deliffas.geometry.mesh_ops import vertex_normals
 
     s = _WORKER
@@ -445,7 +445,7 @@ def synthesize_capture(out_dir: str | os.PathLike, config: SynthConfig = SynthCo
     """Write a synthetic DynaCap subject folder (layout in docs/data.md) and return what was written."""
     import torch
 
-    from deliffas.data.frames import ImageFolderSource, VideoWriterSet
+    from deliffas.io.frames import ImageFolderSource, VideoWriterSet
     from deliffas.geometry.template import DDCTemplate
 
     if config.num_frames < 1 or config.num_cameras < 2:

@@ -14,7 +14,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from deliffas.data.cameras import Camera
+from deliffas.io.cameras import Camera
 from deliffas.geometry.atlas import UVAtlas
 from deliffas.geometry.raycast import UVRaycaster, uv_inner_or_exit
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from deliffas.data.cameras import Camera, look_at
+from deliffas.io.cameras import Camera, look_at
 from deliffas.engine.evaluate import load_run
 from deliffas.engine.rays import camera_rays, stack_rays
 
@@ -90,7 +90,7 @@ def render_video(cfg: RenderConfig) -> Path:
     import cv2
     from tqdm import tqdm
 
-    from deliffas.data.dynacap import read_character, read_motion
+    from deliffas.io.dynacap import read_character, read_motion
     from deliffas.data.shards import ShardSet
     from deliffas.geometry.atlas import TexelTable, UVAtlas
     from deliffas.geometry.frame_geometry import FrameGeometryBuilder

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from deliffas.data.cameras import Camera
+from deliffas.io.cameras import Camera
 from deliffas.engine.rays import CameraRays
 
 __all__ = ["FrameSample", "composite_target"]

@@ -23,7 +23,7 @@ import torch
 from torch import nn
 
 from deliffas.checks import check_shape
-from deliffas.data.obj_io import ObjData
+from deliffas.io.obj import ObjData
 from deliffas.geometry.skinning import quaternion_to_matrix, rigid_to_dual_quaternion
 
 __all__ = [

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from deliffas.data.dynacap import Character, Motion, ObjData, read_character, read_motion, write_obj
-from deliffas.data.text_lines import DynaCapFormatError
+from deliffas.io.dynacap import Character, Motion, ObjData, read_character, read_motion, write_obj
+from deliffas.io.text_lines import DynaCapFormatError
 from deliffas.geometry.template import DDCTemplate, Skinning
 
 __all__ = ["pose_frames", "write_posed_mesh"]

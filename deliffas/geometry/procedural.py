@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from deliffas.data.dynacap import (Character, CharacterFiles, Dof, Joint, ObjData, Skeleton, Skin,
+from deliffas.io.dynacap import (Character, CharacterFiles, Dof, Joint, ObjData, Skeleton, Skin,
                                    write_character)
 
 __all__ = [

@@ -23,7 +23,7 @@ from typing import Literal, Sequence
 import numpy as np
 
 from deliffas.checks import check_finite, check_shape
-from deliffas.data.cameras import Camera
+from deliffas.io.cameras import Camera
 from deliffas.geometry.atlas import UVAtlas
 
 __all__ = [

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from deliffas.checks import check_shape
-from deliffas.data.cameras import Camera
+from deliffas.io.cameras import Camera
 from deliffas.geometry.mesh_ops import vertex_normals
 
 __all__ = [

@@ -297,7 +297,7 @@ class SMPLTemplate(nn.Module):
         from deliffas.geometry.atlas import UVAtlas
 
         if uv_obj is not None:
-            from deliffas.data.obj_io import read_obj
+            from deliffas.io.obj import read_obj
 
             obj = read_obj(uv_obj)
             if not obj.has_uvs or obj.num_faces != len(data.faces):

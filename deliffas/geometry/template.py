@@ -14,7 +14,7 @@ import torch
 from torch import nn
 
 from deliffas.checks import check_finite, check_shape
-from deliffas.data.dynacap import Character
+from deliffas.io.dynacap import Character
 from deliffas.geometry.skeleton import SkeletonFK
 from deliffas.geometry.skinning import dqs, lbs
 

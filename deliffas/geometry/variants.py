@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from deliffas.checks import check_shape
-from deliffas.data.dynacap import Character, ObjData, Skin, write_character
+from deliffas.io.dynacap import Character, ObjData, Skin, write_character
 
 __all__ = [
     "MAX_INFLUENCES",

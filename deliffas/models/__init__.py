@@ -5,7 +5,7 @@ from deliffas.models.encoding import PositionalEncoding, positional_encoding
 from deliffas.models.light_field import LightFieldMLP, LightFieldMLPConfig
 from deliffas.models.losses import PerceptualLoss, l1_foreground
 from deliffas.models.metrics import Evaluator, perceptual_metrics_status, psnr, ssim
-from deliffas.models.sampling import sample_uv
+from deliffas.geometry.sampling import sample_uv
 from deliffas.models.unet import UNet, UNetConfig
 from deliffas.models.vgg import BackboneRecord, PerceptualWeightsUnavailable, load_vgg16_weights
 from deliffas.models.zoo import CheckpointError, get_config, list_models, load_checkpoint, save_checkpoint

@@ -6,7 +6,7 @@ A frame is rendered in two stages (architecture.md):
    feature maps (:class:`FrameFeatures`). This depends on the frame only: compute it once and
    reuse it for every camera of that frame.
 2. :meth:`DeliffasModel.shade`: per ray, sample the feature maps at the ray's surface uv
-   (:func:`deliffas.models.sampling.sample_uv`), encode the uv (and the view direction for one
+   (:func:`deliffas.geometry.sampling.sample_uv`), encode the uv (and the view direction for one
    variant) and evaluate the light-field MLP -> RGB. :meth:`DeliffasModel.shade_chunked` does
    the same in chunks of rays for bounded memory.
 
@@ -38,7 +38,7 @@ from torch import nn
 from deliffas.checks import check_shape
 from deliffas.models.encoding import PositionalEncoding
 from deliffas.models.light_field import LightFieldMLP, LightFieldMLPConfig
-from deliffas.models.sampling import sample_uv
+from deliffas.geometry.sampling import sample_uv
 from deliffas.models.unet import UNet, UNetConfig
 
 __all__ = ["Variant", "VARIANTS", "ModelConfig", "FrameFeatures", "DeliffasModel"]

@@ -15,8 +15,8 @@ import pytest
 
 from deliffas.cli import main as cli_main
 from deliffas.data.convert import ConvertConfig, convert, parse_frame_range
-from deliffas.data.dynacap import read_character
-from deliffas.data.frames import ImageFolderSource
+from deliffas.io.dynacap import read_character
+from deliffas.io.frames import ImageFolderSource
 from deliffas.data.shards import MANIFEST_NAME, ShardSet, read_manifest, verify_shards, write_manifest
 
 CFG = dict(shard_frames=2, atlas_res=32, progress=False)
@@ -188,7 +188,7 @@ def test_frame_and_camera_selection_codecs_and_meshes(subject, tmp_path):
     rgb, mask = shard.image(row, 1)
     ref = ImageFolderSource(subject / "training").read(2, 2)
     assert np.array_equal(rgb, ref[0]) and np.array_equal(mask, ref[1])
-    from deliffas.data.dynacap import read_meshes
+    from deliffas.io.dynacap import read_meshes
 
     gt = read_meshes(subject / "training" / "gt.meshes").verts
     assert np.allclose(shard.geometry("inner_verts", [shard.h5["window_rows"][row][0]])[0], gt[2], atol=1e-3)
@@ -202,7 +202,7 @@ def test_frame_and_camera_selection_codecs_and_meshes(subject, tmp_path):
 
 def test_template_variant_with_outer_obj(subject, tmp_path):
     """--template DIR: its character poses the surface, outer.obj gives per-vertex offsets."""
-    from deliffas.data.dynacap import ObjData, write_obj
+    from deliffas.io.dynacap import ObjData, write_obj
     from deliffas.geometry.mesh_ops import vertex_normals
 
     char_path = next((subject / "character").glob("*.character"))

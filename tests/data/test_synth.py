@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from deliffas.data.cameras import Camera
-from deliffas.data.dynacap import read_calibration, read_character, read_meshes, read_motion
-from deliffas.data.frames import ImageFolderSource
+from deliffas.io.cameras import Camera
+from deliffas.io.dynacap import read_calibration, read_character, read_meshes, read_motion
+from deliffas.io.frames import ImageFolderSource, VideoSource, open_frame_source
 from deliffas.data.render_gt import ShadingConfig, render_views
 from deliffas.data.synth import (
     GARMENT_LABEL,
@@ -149,3 +149,16 @@ def test_supersampled_alpha_is_coverage():
     partial = (four.alpha > 0) & (four.alpha < 255)
     assert partial.sum() >= 10 and set(np.unique(four.alpha[partial])) <= {64, 128, 191}
     assert abs(int(four.alpha.astype(int).sum()) - int(one.alpha.astype(int).sum())) < 0.1 * one.alpha.astype(int).sum()
+
+
+def test_synth_videos_equal_images(subject):
+    names = [c.name for c in read_calibration(subject / "cameras.calibration")]
+    for seq, n in (("training", 3), ("testing", 1)):
+        img = open_frame_source(subject / seq, names, "images")
+        vid = open_frame_source(subject / seq, names, "videos")
+        assert isinstance(img, ImageFolderSource) and isinstance(vid, VideoSource)
+        for c in range(len(names)):  # camera-major, as the converter reads
+            for f in range(n):
+                a, b = img.read(f, c), vid.read(f, c)
+                assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+        vid.close()

@@ -89,7 +89,7 @@ def test_cli_eval_json(tiny_shards, tmp_path):
 
 
 def test_orbit_cameras_look_at_subject():
-    from deliffas.data.cameras import Camera
+    from deliffas.io.cameras import Camera
 
     ref = Camera("0", np.array([[100.0, 0, 32], [0, 100, 32], [0, 0, 1]]), np.eye(4), 64, 64)
     centers = np.zeros((8, 3)) + [0, 900, 0]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from deliffas.data.cameras import Camera, look_at
+from deliffas.io.cameras import Camera, look_at
 from deliffas.engine.rays import camera_rays
 from deliffas.geometry.atlas import UVAtlas
 from deliffas.geometry.raycast import UVRaycaster, uv_inner_or_exit

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from deliffas.data import cameras
-from deliffas.data.cameras import Camera
+from deliffas.io import cameras
+from deliffas.io.cameras import Camera
 
 # ----------------------------------------------------------------------------- meshes and cameras
 
@@ -68,7 +68,7 @@ def look_at(center, target, width: int, height: int, focal: float, up=(0.0, 1.0,
 def read_obj_minimal(path: Path):
     """verts, faces, uvs, face_uvs of an OBJ (the project reader when available)."""
     try:
-        from deliffas.data.dynacap import read_obj
+        from deliffas.io.dynacap import read_obj
 
         o = read_obj(path)
         return o.verts, o.faces, o.uvs, o.face_uvs

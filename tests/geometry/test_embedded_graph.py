@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from deliffas.data.obj_io import ObjData
+from deliffas.io.obj import ObjData
 from deliffas.geometry.embedded_graph import (MIN_NODE_RADIUS, EmbeddedDeformation, bind_embedded_graph,
                                               blend_bone_transforms, euler_to_matrix, rigidity_of_labels)
 from deliffas.geometry.skeleton import axis_angle_to_matrix

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from deliffas.data.dynacap import read_character, read_motion, write_motion
+from deliffas.io.dynacap import read_character, read_motion, write_motion
 from deliffas.geometry.procedural import (LABELS, PROCEDURAL_DOF_NAMES,
                                           marching_tetrahedra, procedural_skeleton)
 from deliffas.geometry.template import DDCTemplate
@@ -202,7 +202,7 @@ def test_deterministic_for_a_seed_and_cli(character, char_path, tmp_path, proced
 
 def test_pose_cli_on_procedural(character, char_path, tmp_path):
     from deliffas.cli import main
-    from deliffas.data.obj_io import read_obj
+    from deliffas.io.obj import read_obj
     from deliffas.geometry.motion_gen import procedural_motion
 
     motion = tmp_path / "walk.motion"

@@ -151,7 +151,7 @@ def test_wrong_layout_is_refused(tmp_path, key, bad):
 
 
 def test_uv_obj_and_num_betas(model_npz, tmp_path):
-    from deliffas.data.obj_io import ObjData, write_obj
+    from deliffas.io.obj import ObjData, write_obj
 
     d = _synthetic_arrays()
     F = len(d["f"])

@@ -187,7 +187,7 @@ def test_smpl_character_is_a_poseable_template(tiny_recipe_capture, tmp_path):
     """The SMPL path as far as the API goes: fit, skin transfer, character folder with shell, posable by DDCTemplate."""
     import torch
 
-    from deliffas.data.dynacap import read_character, read_obj
+    from deliffas.io.dynacap import read_character, read_obj
     from deliffas.geometry.template import DDCTemplate
     from recipes.ablation_template import fit_smpl_to_mesh, smpl_character, write_template_folder
     from recipes.common import find_character

@@ -19,9 +19,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from deliffas.data import dynacap as dc
-from deliffas.data.cameras import Camera
-from deliffas.data.dynacap import DynaCapFormatError
+from deliffas.io import dynacap as dc
+from deliffas.io.cameras import Camera
+from deliffas.io.dynacap import DynaCapFormatError
 
 pytestmark = pytest.mark.timeout(300)
 

@@ -1,4 +1,4 @@
-"""Tests of deliffas.models.sampling.sample_uv (texel-centre convention, batching, gradients)."""
+"""Tests of deliffas.geometry.sampling.sample_uv (texel-centre convention, batching, gradients)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from deliffas.models.sampling import sample_uv
+from deliffas.geometry.sampling import sample_uv
 
 
 def uv_centre_map(size: int, dtype=torch.float32) -> torch.Tensor:

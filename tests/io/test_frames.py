@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from deliffas.data.dynacap import read_calibration
-from deliffas.data.frames import (
+from deliffas.io.dynacap import read_calibration
+from deliffas.io.frames import (
     FrameSource,
     ImageFolderSource,
     MaskFolderSource,
@@ -62,19 +62,6 @@ def test_video_round_trip_is_lossless_in_any_order(tmp_path):
 def test_lossy_video_codecs_are_refused(tmp_path):
     with pytest.raises(ValueError, match="lossy"):
         VideoWriterSet(tmp_path, ["0"], 8, 8, codec="MJPG")
-
-
-def test_synth_videos_equal_images(subject):
-    names = [c.name for c in read_calibration(subject / "cameras.calibration")]
-    for seq, n in (("training", 3), ("testing", 1)):
-        img = open_frame_source(subject / seq, names, "images")
-        vid = open_frame_source(subject / seq, names, "videos")
-        assert isinstance(img, ImageFolderSource) and isinstance(vid, VideoSource)
-        for c in range(len(names)):  # camera-major, as the converter reads
-            for f in range(n):
-                a, b = img.read(f, c), vid.read(f, c)
-                assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
-        vid.close()
 
 
 def test_video_names_padded_differently(tmp_path):

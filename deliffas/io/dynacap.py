@@ -15,9 +15,9 @@ from typing import Literal
 
 import numpy as np
 
-from deliffas.data.cameras import Camera
-from deliffas.data.obj_io import ObjData, read_obj, write_obj
-from deliffas.data.text_lines import DynaCapFormatError, TextLines, read_text, write_text_atomic
+from deliffas.io.cameras import Camera
+from deliffas.io.obj import ObjData, read_obj, write_obj
+from deliffas.io.text_lines import DynaCapFormatError, TextLines, read_text, write_text_atomic
 
 __all__ = [
     "DynaCapFormatError",

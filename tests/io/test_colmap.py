@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from deliffas.cli import main as cli_main
-from deliffas.data.cameras import Camera
-from deliffas.data.cameras_colmap import cameras_from_colmap, cameras_to_colmap, opencv_principal_point
-from deliffas.data.dynacap import read_calibration, write_calibration
+from deliffas.io.cameras import Camera
+from deliffas.io.colmap import cameras_from_colmap, cameras_to_colmap, opencv_principal_point
+from deliffas.io.dynacap import read_calibration, write_calibration
 from deliffas.data.synth import dome_cameras
 
 

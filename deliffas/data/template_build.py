@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from deliffas.data.dynacap import Character, ObjData, read_character, write_obj
+from deliffas.io.dynacap import Character, ObjData, read_character, write_obj
 
 __all__ = ["VARIANTS", "build_templates", "atlas_info"]
 

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from deliffas.cli import main
-from deliffas.data.dynacap import read_character
-from deliffas.data.obj_io import read_obj
+from deliffas.io.dynacap import read_character
+from deliffas.io.obj import read_obj
 
 
 @pytest.fixture(scope="module")
@@ -56,7 +56,7 @@ def test_variant_folders_and_outer_shells(built):
 
 
 def test_safe_offsets_reduce_self_intersections(built, tmp_path):
-    from deliffas.geometry.template_build import build_templates
+    from deliffas.data.template_build import build_templates
 
     char_path, out = built
     unsafe = json.loads((out / "report.json").read_text())["variants"]["original"]["shell"]
@@ -72,7 +72,7 @@ def test_safe_offsets_reduce_self_intersections(built, tmp_path):
 
 
 def test_bad_arguments(built, tmp_path):
-    from deliffas.geometry.template_build import build_templates
+    from deliffas.data.template_build import build_templates
 
     with pytest.raises(ValueError, match="offset_mm"):
         build_templates(built[0], tmp_path / "x", offset_mm=0.0)

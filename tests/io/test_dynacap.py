@@ -1,4 +1,4 @@
-"""Readers/writers of deliffas.data.dynacap on the real sample and on malformed files."""
+"""Readers/writers of deliffas.io.dynacap on the real sample and on malformed files."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from deliffas.data import dynacap as dc
-from deliffas.data.cameras import Camera
-from deliffas.data.dynacap import DynaCapFormatError
+from deliffas.io import dynacap as dc
+from deliffas.io.cameras import Camera
+from deliffas.io.dynacap import DynaCapFormatError
 
 
 # ---------------------------------------------------------------- real sample: counts and decoding

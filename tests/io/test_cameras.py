@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from deliffas.data.cameras import Camera, look_at, pixel_centers
+from deliffas.io.cameras import Camera, look_at, pixel_centers
 
 
 def _cam(eye, target, up=(0.0, 1.0, 0.0)) -> Camera:

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from deliffas.data.text_lines import DynaCapFormatError, read_text, write_text_atomic
+from deliffas.io.text_lines import DynaCapFormatError, read_text, write_text_atomic
 
 __all__ = ["ObjData", "read_obj", "write_obj"]
 
