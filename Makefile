@@ -21,6 +21,7 @@ $(STAMP): pyproject.toml scripts/system_deps.sh
 	touch $(STAMP)
 
 test: setup
+	$(VENV)/bin/lint-imports --no-cache
 	$(PY) -m pytest -q $(PYTEST_ARGS)
 
 demo: setup
@@ -30,4 +31,4 @@ bench: setup
 	$(PY) -m benchmarks.run
 
 clean:
-	rm -rf $(VENV) $(DEMO_OUT) bench_out .pytest_cache
+	rm -rf $(VENV) $(DEMO_OUT) bench_out .pytest_cache .import_linter_cache

@@ -70,7 +70,7 @@ def avatar(num_normal_frames: int = 8) -> Avatar:
     from deliffas.geometry.atlas import UVAtlas
     from deliffas.geometry.mesh_ops import vertex_normals
     from deliffas.geometry.shell import offset_shell
-    from deliffas.geometry.template import DDCTemplate
+    from deliffas.geometry.templates import DDCTemplate
 
     path, source = _character_path()
     character = read_character(path)

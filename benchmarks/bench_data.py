@@ -96,7 +96,7 @@ def _geometry_from_motion(subject: Path, ds):
     from deliffas.io.dynacap import read_character, read_motion
     from deliffas.geometry.atlas import UVAtlas, uv_texel_table
     from deliffas.geometry.frame_geometry import FrameGeometryBuilder
-    from deliffas.geometry.template import DDCTemplate
+    from deliffas.geometry.templates import DDCTemplate
 
     meta = ds.shards.meta
     character = read_character(meta.attrs["character_path"])

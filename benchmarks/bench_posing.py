@@ -9,7 +9,7 @@ from benchmarks.common import SAMPLE_DIR, Result, best_time
 
 def run() -> list[Result]:
     from deliffas.io.dynacap import read_character, read_motion
-    from deliffas.geometry.template import DDCTemplate
+    from deliffas.geometry.templates import DDCTemplate
 
     if not (SAMPLE_DIR / "ddc.character").is_file():
         return [Result("posing", "skipped: ../shared/dynacap-sample absent", 0.0, "")]

@@ -53,7 +53,7 @@ def fit_smpl_to_mesh(smpl, target_verts: np.ndarray, iters: int = SMPL_FIT_ITERS
     orientation and betas only.
 
     Args:
-        smpl: ``deliffas.geometry.smpl.SMPLTemplate`` (world units = mm with its default scale).
+        smpl: ``deliffas.geometry.templates.SMPLTemplate`` (world units = mm with its default scale).
         target_verts: (N, 3) float, mm.
 
     Returns:
@@ -129,7 +129,7 @@ def smpl_character(character, smpl_model: str | Path, uv_obj: str | Path | None 
     from scipy.spatial import cKDTree
 
     from deliffas.io.dynacap import ObjData, Skin
-    from deliffas.geometry.smpl import SMPLTemplate
+    from deliffas.geometry.templates import SMPLTemplate
     from deliffas.geometry.variants import closest_points_on_mesh, sparsify_weights
 
     smpl = SMPLTemplate(smpl_model, uv_obj=uv_obj, atlas_res=packing_res)
@@ -190,7 +190,7 @@ def main(argv=None) -> dict:
     p.add_argument("--standin-smooth", type=int, default=STANDIN_SMOOTH, help="Taubin iterations of the stand-in")
     args = p.parse_args(argv)
     if args.smpl_model is not None and not args.smpl_model.is_file():
-        from deliffas.geometry.smpl import SMPL_NOT_SHIPPED
+        from deliffas.io.smpl import SMPL_NOT_SHIPPED
 
         p.error(f"--smpl-model {args.smpl_model}: no such file. {SMPL_NOT_SHIPPED}")
     sizes = sizes_from_args(args)

@@ -1,60 +1,59 @@
-"""Conversion of a DynaCap subject folder (either frame layout) into sharded HDF5 (docs/shards.md).
+"""Conversion of a capture (a ``Subject``) into sharded HDF5 (docs/shards.md).
 
-``convert(subject_dir, out_dir, ConvertConfig)`` plans shards of consecutive selected frames per
-sequence, writes ``meta.h5``, converts the shards (in-process or in spawned worker processes), and
-rewrites ``manifest.json`` atomically after every finished shard. ``resume`` keeps the shards the
-manifest lists whose checksum still matches, and re-adds shards that reached their final name
-before the manifest was updated. The subject folder is only read.
+``convert(subject, out_dir, ConvertConfig)`` plans shards of consecutive selected frames per
+sequence, writes ``meta.h5``, converts the shards (in-process or in spawned worker processes, see
+:mod:`deliffas.data.shard_build`), and rewrites ``manifest.json`` atomically after every finished
+shard. ``resume`` keeps the shards the manifest lists whose checksum still matches, and re-adds
+shards that reached their final name before the manifest was updated. The capture is only read.
 
-Per frame the surface is the skinned template (``DDCTemplate.pose`` of the sequence's motion), or a
-tracked ``.meshes`` sequence, or the template of a variant folder; the outer surface is the inner
-one moved by d (30 mm, or per vertex from the variant's ``outer.obj``) along the vertex normals.
+Per frame the surface is the posed template (``build_template(subject.template).pose`` of the
+sequence's pose parameters), or a tracked ``.meshes`` sequence; the outer surface is the inner one
+moved by d (30 mm, or per vertex from a variant's ``outer.obj``) along the vertex normals.
 """
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
 import logging
 import os
 import shutil
 import time
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import asdict, dataclass
-from multiprocessing import get_context
 from pathlib import Path
-from typing import Literal, Sequence
+from typing import Literal
 
 import numpy as np
+from tqdm import tqdm
 
-from deliffas.io.cameras import Camera
+from deliffas.io.files import sha256_file
+from deliffas.data.shard_build import ShardBuilder, ShardSettings, ShardTask, init_worker, write_shard
 from deliffas.data.shards import (
     MANIFEST_NAME,
     META_NAME,
     SCHEMA_VERSION,
     SHARD_DIR,
     Codec,
-    ShardGeometry,
+    ShardFile,
     ShardMeta,
-    ShardWriter,
     read_manifest,
-    sha256_file,
     write_manifest,
     write_meta,
 )
+from deliffas.data.subjects import Subject, SubjectOptions, parse_subject
+from deliffas.geometry.shell import mesh_edges
+from deliffas.parallel import process_map
 
-__all__ = ["ConvertConfig", "ConvertResult", "convert", "parse_frame_range", "process_map", "SEQUENCES"]
+__all__ = ["ConvertConfig", "ConvertResult", "convert", "parse_frame_range"]
 
 log = logging.getLogger(__name__)
-
-SEQUENCES = ("training", "testing")
 
 
 @dataclass(frozen=True)
 class ConvertConfig:
     """What ``convert`` writes."""
-
+    format: str = "auto"
+    """Capture format (``deliffas.data.subjects.subject_formats()``); auto = detected."""
     frames: str | None = None
     """``A:B:STEP`` (Python slice of capture frame indices, any part may be empty); None = every frame."""
     cameras: tuple[int, ...] | None = None
@@ -94,11 +93,16 @@ class ConvertConfig:
     progress: bool = True
     """Show a tqdm progress bar."""
 
+    def subject_options(self) -> SubjectOptions:
+        """How to read the capture when ``convert`` is given a folder."""
+        return SubjectOptions(template=self.template, skinning=self.skinning, sequences=self.sequences,
+                              layout=self.layout, masks=self.masks, meshes=tuple(self.meshes),
+                              test_cameras=self.test_cameras)
+
 
 @dataclass(frozen=True)
 class ConvertResult:
     """What a ``convert`` call did."""
-
     out_dir: Path
     shards_total: int
     shards_converted: int
@@ -137,439 +141,131 @@ def _select(frames: np.ndarray, sl: slice) -> np.ndarray:
     return frames[keep]
 
 
-# --------------------------------------------------------------------------------------------- processes
-def process_map(fn, tasks: Sequence[tuple], jobs: int, initializer=None, initargs: tuple = (), poll_s: float = 2.0):
-    """Run ``fn(*task)`` for every task in ``jobs`` spawned processes; yield results as they complete.
-
-    Spawn (not fork) keeps torch/open3d/h5py state out of the workers. A worker that dies (e.g. a
-    signal) raises RuntimeError naming its pid and exit code instead of hanging; on any error the
-    remaining workers (started here) are terminated by handle. Keep ``tasks`` small and put large
-    arrays into ``initargs``: CPython's executor can deadlock when a worker dies while a task larger
-    than the pipe buffer (64 kB) is being written to it. Workers die with the calling process, even
-    when it is killed with SIGKILL (``_exit_when_parent_dies``), so no orphan keeps writing. Callers
-    need the ``if __name__ == "__main__"`` guard in their main script (spawn re-imports it).
-    """
-    pool = ProcessPoolExecutor(jobs, mp_context=get_context("spawn"), initializer=_worker_init,
-                               initargs=(os.getpid(), initializer, initargs))
-    try:
-        pending = {pool.submit(fn, *t) for t in tasks}
-        while pending:
-            done, pending = wait(pending, timeout=poll_s, return_when=FIRST_COMPLETED)
-            for fut in done:
-                yield fut.result()
-            dead = [p for p in list(getattr(pool, "_processes", {}).values()) if p.exitcode not in (None, 0)]
-            if dead and pending:
-                raise RuntimeError(f"worker process {dead[0].pid} died (exit code {dead[0].exitcode}); "
-                                   f"{len(pending)} tasks unfinished")
-    except BaseException:
-        for proc in list(getattr(pool, "_processes", {}).values()):
-            if proc.is_alive():
-                proc.terminate()
-        pool.shutdown(wait=False, cancel_futures=True)
-        raise
-    pool.shutdown(wait=True)
-
-
-_PR_SET_PDEATHSIG = 1
-
-
-def _exit_when_parent_dies(parent_pid: int) -> None:
-    """Make this worker die with the process that started it (even by SIGKILL).
-
-    Without it, workers of a killed ``convert --jobs N`` live on as orphans and keep renaming shards
-    into the output folder while a ``--resume`` or ``--overwrite`` runs there. Linux: the kernel
-    sends SIGKILL on the parent's death (``PR_SET_PDEATHSIG``); elsewhere a daemon thread polls the
-    parent id every 0.2 s.
-    """
-    import signal
-    import sys
-    import threading
-
-    if sys.platform.startswith("linux"):
-        try:
-            import ctypes
-
-            libc = ctypes.CDLL(None, use_errno=True)
-            if libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0) == 0:
-                if os.getppid() != parent_pid:  # died before prctl took effect
-                    os._exit(1)
-                return
-        except (OSError, AttributeError):
-            pass
-
-    def watch() -> None:
-        while os.getppid() == parent_pid:
-            time.sleep(0.2)
-        os._exit(1)
-
-    if os.getppid() != parent_pid:
-        os._exit(1)
-    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
-
-
-def _worker_init(parent_pid: int, initializer, initargs: tuple) -> None:
-    _exit_when_parent_dies(parent_pid)
-    if initializer is not None:
-        initializer(*initargs)
-
-
 # --------------------------------------------------------------------------------------------- planning
 @dataclass(frozen=True)
-class _Sequence:
-    name: str
-    seq_dir: Path
-    frames: np.ndarray  # selected
-    first_frame: int
-    motion: Path | None
-    meshes: Path | None
-    width: int
-    height: int
+class _Plan:
+    """The selected frames per sequence, the shard tasks and the camera split of one conversion."""
+    frames: dict[str, np.ndarray]
+    tasks: list[ShardTask]
+    cameras: tuple[int, ...]
+    train: list[int]
+    test: list[int]
 
 
-@dataclass(frozen=True)
-class _Task:
-    name: str
-    sequence: str
-    frames: tuple[int, ...]
-    geometry_frames: tuple[int, ...]
-
-
-@dataclass(frozen=True)
-class _Context:
-    """Everything a worker needs (picklable paths and settings)."""
-
-    subject: Path
-    out_dir: Path
-    character: Path
-    outer_obj: Path | None
-    camera_names: tuple[str, ...]
-    converted: tuple[int, ...]
-    sequences: dict
-    config: ConvertConfig
-
-
-def _find_character(subject: Path, template: str | None) -> tuple[Path, Path | None]:
-    if template is not None:
-        t = Path(template)
-        if t.is_file() and t.suffix == ".character":
-            outer = t.parent / "outer.obj"
-            return t, outer if outer.is_file() else None
-        found = sorted(t.glob("*.character")) if t.is_dir() else []
-        if len(found) != 1:
-            raise FileNotFoundError(f"--template {t}: expected a folder with one .character, found {len(found)}")
-        outer = t / "outer.obj"
-        return found[0], outer if outer.is_file() else None
-    for d in (subject / "character", subject):
-        found = sorted(d.glob("*.character")) if d.is_dir() else []
-        if len(found) == 1:
-            return found[0], None
-        if len(found) > 1:
-            raise FileNotFoundError(f"{d}: several .character files {[p.name for p in found]}; pass --template")
-    raise FileNotFoundError(f"{subject}: no character/<name>.character; pass --template")
-
-
-def _find_motion(seq_dir: Path) -> Path | None:
-    p = seq_dir / "poses.motion"
-    if p.is_file():
-        return p
-    found = sorted((seq_dir / "motions").glob("*.motion")) if (seq_dir / "motions").is_dir() else []
-    return found[0] if found else None
-
-
-def _parse_meshes(specs: Sequence[str]) -> dict[str, Path]:
-    out = {}
-    for s in specs:
-        seq, sep, path = s.partition("=")
-        if not sep:
-            seq, path = "training", s
-        if seq in out:
-            raise ValueError(f"--meshes given twice for sequence {seq}")
-        out[seq] = Path(path).resolve()
-    return out
-
-
-def _image_size(seq_dir: Path, layout: str, camera_names: Sequence[str]) -> tuple[int, int, str]:
-    import cv2
-
-    from deliffas.io.frames import _resolve_video, find_image_folder
-
-    folder = find_image_folder(seq_dir) if layout in ("auto", "images") else None
-    if folder is not None:
-        w, h = folder.name.split("_")[1:3]
-        return int(w), int(h), "images"
-    if layout in ("auto", "videos") and (seq_dir / "img").is_dir():
-        cap = cv2.VideoCapture(str(_resolve_video(seq_dir, "img", camera_names[0])))
-        w, h = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
-        cap.release()
-        return w, h, "videos"
-    raise FileNotFoundError(f"{seq_dir}: no frames ({'rgb_<W>_<H>/ or img/' if layout == 'auto' else layout})")
-
-
-def _split(subject: Path, num_cameras: int, override: Sequence[int] | None) -> list[int]:
-    if override is not None:
-        return sorted({int(c) for c in override})
-    sj = subject / "split.json"
-    if sj.is_file():
-        return sorted(int(c) for c in json.loads(sj.read_text()).get("test_cameras", []))
-    tc = subject / "test_cameras.txt"
-    if tc.is_file():
-        return sorted(int(tok) for tok in tc.read_text().split())
-    return []
-
-
-def _character_hash(character_path: Path, outer_obj: Path | None) -> str:
-    from deliffas.io.dynacap import read_character_files
-
-    files = read_character_files(character_path)
-    h = hashlib.sha256()
-    for p in (character_path, files.skeleton, files.mesh, files.skin, files.pose, outer_obj):
-        if p is not None:
-            h.update(Path(p).name.encode() + b"\0" + Path(p).read_bytes())
-    return h.hexdigest()
-
-
-def _plan(subject: Path, out_dir: Path, config: ConvertConfig):
-    from deliffas.io.dynacap import read_calibration, read_meshes, read_motion
-
-    calib = subject / "cameras.calibration"
-    cameras = read_calibration(calib)
-    names = tuple(c.name for c in cameras)
+def _plan(subject: Subject, config: ConvertConfig) -> _Plan:
+    num_cameras = len(subject.cameras)
     if config.cameras is not None:
         converted = sorted({int(c) for c in config.cameras})
-        if not converted or converted[0] < 0 or converted[-1] >= len(cameras):
-            raise ValueError(f"--cameras {list(config.cameras)}: indices must be in [0, {len(cameras)})")
+        if not converted or converted[0] < 0 or converted[-1] >= num_cameras:
+            raise ValueError(f"--cameras {list(config.cameras)}: indices must be in [0, {num_cameras})")
     else:
-        converted = list(range(len(cameras)))
-    character, outer_obj = _find_character(subject, config.template)
-    meshes = _parse_meshes(config.meshes)
-    seq_names = config.sequences or tuple(s for s in SEQUENCES if (subject / s).is_dir())
-    if not seq_names:
-        raise FileNotFoundError(f"{subject}: no training/ or testing/ sequence folder")
+        converted = list(range(num_cameras))
     sl = parse_frame_range(config.frames)
-    seqs: dict[str, _Sequence] = {}
-    motions = {}
-    size = None
-    for seq in seq_names:
-        seq_dir = subject / seq
-        if not seq_dir.is_dir():
-            raise FileNotFoundError(f"{seq_dir}: sequence folder not found")
-        w, h, layout = _image_size(seq_dir, config.layout, names)
-        if size is not None and size != (w, h):
-            raise ValueError(f"{seq}: images are {w}x{h}, other sequences {size[0]}x{size[1]}")
-        size = (w, h)
-        motion_path = _find_motion(seq_dir)
-        mesh_path = meshes.get(seq)
-        if mesh_path is not None:
-            avail = read_meshes(mesh_path).frames
-        elif motion_path is not None:
-            avail = read_motion(motion_path).frames
-        else:
-            raise FileNotFoundError(f"{seq_dir}: no poses.motion (and no --meshes {seq}=FILE)")
-        if motion_path is not None:
-            motions[seq] = read_motion(motion_path)
-        avail = np.unique(np.asarray(avail, np.int64))
-        selected = _select(avail, sl)
-        if layout == "images":
-            from deliffas.io.frames import ImageFolderSource
-
-            have = set(ImageFolderSource(seq_dir).frames())
+    frames: dict[str, np.ndarray] = {}
+    tasks: list[ShardTask] = []
+    for name, seq in subject.sequences.items():
+        selected = _select(seq.frames, sl)
+        have = seq.images.image_frames()
+        if have is not None:
             missing = [int(f) for f in selected if int(f) not in have]
             if missing:
-                log.warning("%s: %d selected frames have no image folder (first %d); skipped", seq, len(missing), missing[0])
+                log.warning("%s: %d selected frames have no image folder (first %d); skipped", name, len(missing),
+                            missing[0])
                 selected = np.array([f for f in selected if int(f) in have], np.int64)
         if len(selected) == 0:
-            raise ValueError(f"{seq}: no frames selected by --frames {config.frames!r}")
-        seqs[seq] = _Sequence(seq, seq_dir, selected, int(avail.min()), motion_path, mesh_path, w, h)
-    tasks = []
-    for seq, s in seqs.items():
-        for k in range(0, len(s.frames), config.shard_frames):
-            fr = s.frames[k: k + config.shard_frames]
-            geo = np.unique(np.maximum(fr[:, None] - np.arange(config.window + 1)[None], s.first_frame))
-            tasks.append(_Task(f"{SHARD_DIR}/{seq}-{k // config.shard_frames:05d}.h5", seq,
-                               tuple(int(f) for f in fr), tuple(int(f) for f in geo)))
-    test = [c for c in _split(subject, len(cameras), config.test_cameras) if c in converted]
+            raise ValueError(f"{name}: no frames selected by --frames {config.frames!r}")
+        frames[name] = selected
+        for k in range(0, len(selected), config.shard_frames):
+            fr = selected[k: k + config.shard_frames]
+            geo = np.unique(np.maximum(fr[:, None] - np.arange(config.window + 1)[None], seq.first_frame))
+            tasks.append(ShardTask(f"{SHARD_DIR}/{name}-{k // config.shard_frames:05d}.h5", name,
+                                   tuple(int(f) for f in fr), tuple(int(f) for f in geo)))
+    test = [c for c in subject.test_cameras if c in converted]
     train = [c for c in converted if c not in test]
-    ctx = _Context(subject, out_dir, character, outer_obj, names, tuple(converted),
-                   {k: asdict(v) for k, v in seqs.items()}, config)
-    return cameras, train, test, seqs, tasks, ctx
+    return _Plan(frames, tasks, tuple(converted), train, test)
 
 
-def _manifest_config(subject: Path, config: ConvertConfig, character: Path) -> dict:
+def _manifest_config(subject: Subject, config: ConvertConfig) -> dict:
     keep = {k: v for k, v in asdict(config).items() if k not in ("jobs", "resume", "overwrite", "progress")}
-    keep["subject"] = str(subject)
-    keep["character"] = str(character)
+    keep["format"] = subject.format
+    keep["subject"] = str(subject.root)
+    keep["character"] = subject.template.files.get("character", "")
+    keep["template_spec"] = subject.template.to_dict()
     return json.loads(json.dumps(keep))  # tuples -> lists, as read back from JSON
 
 
-# --------------------------------------------------------------------------------------------- workers
-_STATE: dict = {}
-
-
-@contextlib.contextmanager
-def _single_thread_torch():
-    """Geometry runs with one torch thread so results do not depend on --jobs (and workers do not oversubscribe)."""
-    import torch
-
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(n)
-
-
-def _state(ctx: _Context) -> dict:
-    """Per-process cache: character, template, offsets, normal-map gather, motions, meshes."""
-    key = (str(ctx.out_dir), str(ctx.character), ctx.config)
-    if _STATE.get("key") == key:
-        return _STATE
-    import torch
-
-    from deliffas.io.dynacap import read_character, read_meshes, read_motion, read_obj
-    from deliffas.geometry.atlas import UVAtlas, uv_texel_table
-    from deliffas.geometry.frame_geometry import FrameGeometryBuilder
-    from deliffas.geometry.mesh_ops import vertex_normals
-    from deliffas.geometry.template import DDCTemplate
-
-    character = read_character(ctx.character)
-    mesh = character.mesh
-    if mesh.face_uvs is None:
-        raise ValueError(f"{character.files.mesh}: the template has no per-corner uvs (vt); needed for normal maps")
-    faces = np.asarray(mesh.faces, np.int64)
-    if ctx.outer_obj is not None:
-        outer = read_obj(ctx.outer_obj)
-        if outer.num_verts != mesh.num_verts:
-            raise ValueError(f"{ctx.outer_obj}: {outer.num_verts} vertices, template has {mesh.num_verts}")
-        n_rest = vertex_normals(np.asarray(mesh.verts, np.float64), faces)
-        offsets = np.einsum("vc,vc->v", outer.verts - mesh.verts, n_rest).astype(np.float32)
-    else:
-        offsets = np.full(mesh.num_verts, ctx.config.offset_mm, np.float32)
-    table = uv_texel_table(UVAtlas(mesh.uvs, mesh.face_uvs), ctx.config.atlas_res, ctx.config.gutter)
-    seqs = {k: _Sequence(**v) for k, v in ctx.sequences.items()}
-    _STATE.clear()
-    _STATE.update(
-        key=key, character=character, faces=faces, offsets=offsets, table=table,
-        builder=FrameGeometryBuilder(faces, offsets, table, dtype=torch.float16),
-        template=DDCTemplate(character, ctx.config.skinning, dtype=torch.float64),
-        motions={k: read_motion(s.motion, character.skeleton.num_dofs) for k, s in seqs.items() if s.motion},
-        meshes={k: read_meshes(s.meshes, mesh.num_verts) for k, s in seqs.items() if s.meshes},
-        sequences=seqs,
-    )
-    return _STATE
-
-
-def _geometry(st: dict, sequence: str, frames: Sequence[int]) -> ShardGeometry:
-    import torch
-
-    frames = np.asarray(frames, np.int64)
-    motion = st["motions"].get(sequence)
-    num_dofs = st["character"].skeleton.num_dofs
-    if motion is not None:
-        try:
-            rows = np.array([motion.row_of(int(f)) for f in frames])
-        except KeyError as err:
-            raise ValueError(f"{sequence}: motion lacks a frame of the temporal window ({err.args[0]})") from None
-        dofs = motion.dofs[rows]
-    else:
-        dofs = np.zeros((len(frames), num_dofs))
-    seq_meshes = st["meshes"].get(sequence)
-    if seq_meshes is not None:
-        index = {int(f): i for i, f in enumerate(seq_meshes.frames)}
-        missing = [int(f) for f in frames if int(f) not in index]
-        if missing:
-            raise ValueError(f"{sequence}: .meshes lacks frame {missing[0]} (needed by the temporal window)")
-        inner = seq_meshes.verts[[index[int(f)] for f in frames]].astype(np.float64)
-    else:
-        with torch.no_grad():
-            inner = st["template"].pose(torch.as_tensor(dofs, dtype=torch.float64)).numpy()
-    geo = st["builder"].build(inner)
-    return ShardGeometry(frames, dofs, geo.inner, geo.outer, geo.normal_maps_inner.numpy(),
-                         geo.normal_maps_outer.numpy())
-
-
-def _convert_shard(ctx: _Context, task: _Task) -> dict:
-    """Write one shard; returns its manifest entry. Runs in a worker process or in-process."""
-    from deliffas.io.frames import open_frame_source
-
-    t0 = time.perf_counter()
-    with _single_thread_torch():
-        st = _state(ctx)
-        geo = _geometry(st, task.sequence, task.geometry_frames)
-    seq = st["sequences"][task.sequence]
-    mask_dir = seq.seq_dir / ctx.config.masks if ctx.config.masks else None
-    src = open_frame_source(seq.seq_dir, ctx.camera_names, ctx.config.layout, seq.first_frame, mask_dir)
-    writer = ShardWriter(ctx.out_dir / task.name, task.sequence, task.frames, ctx.converted, seq.height, seq.width,
-                         Codec.parse(ctx.config.codec), geo, ctx.config.window, seq.first_frame)
-    try:
-        for col, cam in enumerate(ctx.converted):  # camera-major: each video is decoded forward once
-            for row, frame in enumerate(task.frames):
-                rgb, mask = src.read(frame, cam)
-                writer.put(row, col, rgb, mask)
-        sha, size = writer.commit()
-    except BaseException:
-        writer.abort()
-        raise
-    finally:
-        src.close()
-    return {"name": task.name, "sequence": task.sequence, "frames": list(task.frames), "sha256": sha,
-            "bytes": size, "seconds": time.perf_counter() - t0}
+def _sources_hash(subject: Subject) -> str:
+    """One sha256 over the template's source files (changes when any of them does)."""
+    h = hashlib.sha256()
+    for role in sorted(subject.template.sha256):
+        h.update(f"{role}\0{subject.template.sha256[role]}\0".encode())
+    return h.hexdigest()
 
 
 # --------------------------------------------------------------------------------------------- main entry
-def _warn_if_not_watertight(character: Path, faces: np.ndarray) -> None:
+def _warn_if_not_watertight(where: str, faces: np.ndarray) -> None:
     """Log where a template has holes: rays through them see no inner surface (the outer exit is used)."""
-    from deliffas.geometry.shell import mesh_edges
-
     edges, counts, _ = mesh_edges(np.asarray(faces, np.int64))
     boundary = np.unique(edges[counts == 1])
     if len(boundary) or np.any(counts > 2):
         log.warning("%s: the template is not watertight: %d boundary vertices (first ids %s), %d non-manifold edges",
-                    character, len(boundary), boundary[:10].tolist(), int(np.sum(counts > 2)))
+                    where, len(boundary), boundary[:10].tolist(), int(np.sum(counts > 2)))
 
 
-def _build_meta(cameras: list[Camera], train, test, seqs, ctx: _Context) -> ShardMeta:
-    with _single_thread_torch():
-        st = _state(ctx)
-    w, h = next(iter(seqs.values())).width, next(iter(seqs.values())).height
-    scaled = [c.rescaled(w, h) if (c.width, c.height) != (w, h) else c for c in cameras]
-    mesh = st["character"].mesh
-    _warn_if_not_watertight(ctx.character, mesh.faces)
-    table = st["table"]
-    cfg = ctx.config
+def _build_meta(subject: Subject, plan: _Plan, builder: ShardBuilder, config: ConvertConfig) -> ShardMeta:
+    first = next(iter(subject.sequences.values()))
+    w, h = first.width, first.height
+    scaled = [c.rescaled(w, h) if (c.width, c.height) != (w, h) else c for c in subject.cameras]
+    template = builder.template
+    faces = template.faces.numpy()
+    spec = subject.template
+    _warn_if_not_watertight(spec.files.get("character", spec.kind), faces)
+    table = builder.table
     attrs = {
-        "subject": str(ctx.subject), "character_path": str(ctx.character), "character": str(ctx.character),
-        "character_sha256": _character_hash(ctx.character, ctx.outer_obj),
-        "outer_obj": str(ctx.outer_obj) if ctx.outer_obj else "",
-        "surface": "meshes" if cfg.meshes else ("variant" if cfg.template else "template"),
-        "meshes": json.dumps(list(cfg.meshes)), "skinning": cfg.skinning, "offset_mm": float(cfg.offset_mm),
-        "codec": Codec.parse(cfg.codec).spec, "window": int(cfg.window), "atlas_res": int(cfg.atlas_res),
-        "gutter": int(cfg.gutter), "shard_frames": int(cfg.shard_frames),
+        "subject": str(subject.root), "capture_format": subject.format,
+        "character_path": spec.files.get("character", ""), "character": spec.files.get("character", ""),
+        "character_sha256": _sources_hash(subject), "template_spec": spec.to_json(),
+        "outer_obj": spec.files.get("outer", ""),
+        "surface": "meshes" if config.meshes else ("variant" if config.template else "template"),
+        "meshes": json.dumps(list(config.meshes)), "skinning": spec.option("skinning", config.skinning),
+        "offset_mm": float(config.offset_mm), "codec": Codec.parse(config.codec).spec, "window": int(config.window),
+        "atlas_res": int(config.atlas_res), "gutter": int(config.gutter), "shard_frames": int(config.shard_frames),
     }
     return ShardMeta(
         camera_names=[c.name for c in scaled], K=np.stack([c.K for c in scaled]),
         world_to_cam=np.stack([c.world_to_cam for c in scaled]),
         sizes=np.array([[c.width, c.height] for c in scaled], np.int64),
-        converted_cameras=np.asarray(ctx.converted, np.int64), train_cameras=np.asarray(train, np.int64),
-        test_cameras=np.asarray(test, np.int64),
-        sequence_frames={k: s.frames for k, s in seqs.items()}, first_frames={k: s.first_frame for k, s in seqs.items()},
-        faces=mesh.faces, uvs=mesh.uvs, face_uvs=mesh.face_uvs, rest_verts=mesh.verts, outer_offsets=st["offsets"],
+        converted_cameras=np.asarray(plan.cameras, np.int64), train_cameras=np.asarray(plan.train, np.int64),
+        test_cameras=np.asarray(plan.test, np.int64), sequence_frames=dict(plan.frames),
+        first_frames={k: s.first_frame for k, s in subject.sequences.items()},
+        faces=faces, uvs=template.uvs.numpy(), face_uvs=template.face_uvs.numpy(),
+        rest_verts=template.rest_verts.numpy(), outer_offsets=builder.offsets,
         texel_face=table.face.astype(np.int32), texel_bary=table.bary, texel_valid=table.valid, attrs=attrs)
 
 
-def convert(subject_dir: str | os.PathLike, out_dir: str | os.PathLike, config: ConvertConfig = ConvertConfig()) -> ConvertResult:
-    """Convert a subject folder into shards + ``meta.h5`` + ``manifest.json`` under ``out_dir``."""
-    from tqdm import tqdm
+def convert(subject: Subject | str | os.PathLike, out_dir: str | os.PathLike,
+            config: ConvertConfig = ConvertConfig()) -> ConvertResult:
+    """Convert a capture into shards + ``meta.h5`` + ``manifest.json`` under ``out_dir``.
 
+    Args:
+        subject: a parsed :class:`Subject`, or a capture folder (parsed with ``config.format`` and
+            ``config.subject_options()``).
+    """
     t_start = time.perf_counter()
-    subject = Path(subject_dir).resolve()
     out = Path(out_dir).resolve()
-    if out == subject or subject in out.parents:
-        raise ValueError(f"output {out} lies inside the source folder {subject}; the source is never written to")
     if config.shard_frames < 1 or config.window < 0 or config.atlas_res < 4:
         raise ValueError("shard_frames >= 1, window >= 0 and atlas_res >= 4 are required")
     Codec.parse(config.codec)
-    cameras, train, test, seqs, tasks, ctx = _plan(subject, out, config)
-    mconfig = _manifest_config(subject, config, ctx.character)
+    if not isinstance(subject, Subject):
+        root = Path(subject).resolve()
+        if out == root or root in out.parents:
+            raise ValueError(f"output {out} lies inside the source folder {root}; the source is never written to")
+        subject = parse_subject(root, config.format, config.subject_options())
+    if out == subject.root or subject.root in out.parents:
+        raise ValueError(f"output {out} lies inside the source folder {subject.root}; the source is never written to")
+    plan = _plan(subject, config)
+    tasks = plan.tasks
+    mconfig = _manifest_config(subject, config)
     old = None
     if (out / MANIFEST_NAME).is_file():
         if config.overwrite:
@@ -589,7 +285,10 @@ def convert(subject_dir: str | os.PathLike, out_dir: str | os.PathLike, config: 
         log.info("removing leftover temporary file %s", leftover.name)
         leftover.unlink(missing_ok=True)
 
-    meta = _build_meta(cameras, train, test, seqs, ctx)
+    settings = ShardSettings(out, plan.cameras, config.atlas_res, config.gutter, config.offset_mm, config.window,
+                             config.codec)
+    builder = ShardBuilder.create(subject, settings)
+    meta = _build_meta(subject, plan, builder, config)
     meta_sha, meta_bytes = write_meta(out / META_NAME, meta)
     done: dict[str, dict] = {}
     if old is not None:
@@ -634,24 +333,24 @@ def convert(subject_dir: str | os.PathLike, out_dir: str | os.PathLike, config: 
     try:
         if config.jobs <= 1 or len(pending) <= 1:
             for t in pending:
-                record(_convert_shard(ctx, t))
+                record(builder.write(t))
         else:
-            for entry in process_map(_convert_shard, [(ctx, t) for t in pending], min(config.jobs, len(pending))):
+            # the subject (with its pose parameters) goes to each worker once, as initargs; tasks stay small
+            for entry in process_map(write_shard, [(t,) for t in pending], min(config.jobs, len(pending)),
+                                     init_worker, (subject, settings)):
                 record(entry)
     finally:
         bar.close()
     write_manifest(out, manifest(True))
     total = sum(int(e["bytes"]) for e in done.values()) + meta_bytes
     seconds = time.perf_counter() - t_start
-    num_cams = len(ctx.converted)
+    num_cams = len(plan.cameras)
     log.info("convert %s: %d shards (%d skipped), %d frames in %.1f s", out, len(tasks), skipped, frames_done, seconds)
     return ConvertResult(out, len(tasks), len(pending), skipped, frames_done, frames_done * num_cams, seconds, setup,
                          total)
 
 
-def _is_complete_shard(path: Path, task: _Task) -> bool:
-    from deliffas.data.shards import ShardFile
-
+def _is_complete_shard(path: Path, task: ShardTask) -> bool:
     reader = ShardFile(path)
     try:
         return int(reader.h5.attrs.get("complete", 0)) == 1 and list(reader.frames) == list(task.frames)

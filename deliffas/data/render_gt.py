@@ -27,6 +27,8 @@ import torch
 
 from deliffas.checks import check_shape
 from deliffas.io.cameras import Camera, pixel_centers
+from deliffas.geometry.mesh_ops import vertex_normals
+from deliffas.geometry.sampling import sample_uv
 
 __all__ = ["ShadingConfig", "RenderedView", "render_views", "camera_rays", "vertex_ambient_occlusion",
            "fibonacci_hemisphere"]
@@ -35,7 +37,6 @@ __all__ = ["ShadingConfig", "RenderedView", "render_views", "camera_rays", "vert
 @dataclass(frozen=True)
 class ShadingConfig:
     """Fixed light and material of the synthetic captures."""
-
     light_dir: tuple[float, float, float] = (0.35, 0.85, 0.55)
     """Direction from the subject towards the (directional) light, world frame (normalised here)."""
     ambient: float = 0.35
@@ -60,7 +61,6 @@ class RenderedView:
         rgb: (H, W, 3) uint8, colour over the background.
         alpha: (H, W) uint8, coverage (255 = every ray of the pixel hit the surface).
     """
-
     rgb: np.ndarray
     alpha: np.ndarray
 
@@ -160,9 +160,6 @@ def render_views(verts: np.ndarray, faces: np.ndarray, uvs: np.ndarray, face_uvs
     Returns:
         One ``RenderedView`` per camera.
     """
-    from deliffas.geometry.mesh_ops import vertex_normals
-    from deliffas.geometry.sampling import sample_uv
-
     sizes = check_shape("verts", verts, "V 3")
     check_shape("faces", faces, "F 3")
     check_shape("face_uvs", face_uvs, "F 3", {"F": len(faces)})

@@ -16,7 +16,6 @@ name is always whole. ``ShardSet`` reads only what the manifest lists.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import os
@@ -27,6 +26,8 @@ from typing import Literal, Sequence
 import numpy as np
 
 from deliffas.io.cameras import Camera
+from deliffas.io.files import sha256_file
+from deliffas.geometry.templates import TemplateSpec, ddc_spec
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -44,7 +45,6 @@ __all__ = [
     "read_meta",
     "read_manifest",
     "write_manifest",
-    "sha256_file",
     "verify_shards",
     "temp_path",
     "IMAGE_GZIP_LEVEL",
@@ -77,17 +77,6 @@ def temp_path(path: str | os.PathLike) -> Path:
     """The temporary name a file is written under before its atomic rename: ``.<name>.tmp-<pid>``."""
     p = Path(path)
     return p.with_name(f".{p.name}{_TMP_MARK}{os.getpid()}")
-
-
-def sha256_file(path: str | os.PathLike, chunk: int = 1 << 22) -> str:
-    """Hex sha256 of a file's bytes."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        while True:
-            block = fh.read(chunk)
-            if not block:
-                return h.hexdigest()
-            h.update(block)
 
 
 def _fsync_replace(tmp: Path, final: Path) -> None:
@@ -425,6 +414,16 @@ class ShardMeta:
     @property
     def atlas_res(self) -> int:
         return int(self.texel_face.shape[0])
+
+    def template_spec(self) -> TemplateSpec:
+        """The template the shards were made with (``attrs["template_spec"]``; shard sets written before
+        specs were recorded name a DDC ``.character`` and its skinning instead)."""
+        if "template_spec" in self.attrs:
+            return TemplateSpec.from_json(self.attrs["template_spec"])
+        character = self.attrs.get("character_path", "")
+        if not character or not Path(character).is_file():
+            raise FileNotFoundError(f"{character or '(none recorded)'}: the character the shards were made with is gone")
+        return ddc_spec(character, self.attrs.get("skinning", "dqs"), self.attrs.get("outer_obj") or None)
 
 
 def write_meta(path: str | os.PathLike, meta: ShardMeta) -> tuple[str, int]:

@@ -37,8 +37,14 @@ from deliffas.io.dynacap import (
     write_meshes,
     write_motion,
 )
-from deliffas.data.render_gt import ShadingConfig, render_views, vertex_ambient_occlusion
+from deliffas.io.frames import ImageFolderSource, VideoWriterSet, write_image
 from deliffas.io.text_lines import write_text_atomic
+from deliffas.geometry.mesh_ops import vertex_normals
+from deliffas.geometry.motion_gen import procedural_motion
+from deliffas.geometry.procedural import make_procedural_character
+from deliffas.geometry.templates import build_template, ddc_spec
+from deliffas.data.render_gt import ShadingConfig, camera_rays, render_views, vertex_ambient_occlusion
+from deliffas.parallel import process_map
 
 __all__ = [
     "SynthConfig",
@@ -49,15 +55,12 @@ __all__ = [
     "GarmentFrames",
     "dome_cameras",
     "choose_test_cameras",
-    "SAMPLE_CHARACTER",
     "GARMENT_LABEL",
     "SEQUENCES",
 ]
 
 log = logging.getLogger(__name__)
 
-SAMPLE_CHARACTER = Path("/work/shared/dynacap-sample/ddc.character")
-"""The real DDC character (read only); used when the procedural character is unavailable."""
 GARMENT_LABEL = 12
 """Segmentation label of the loose garment (skirt) of the procedural character."""
 SEQUENCES = ("training", "testing")
@@ -70,7 +73,6 @@ _NOT_GARMENT_BONES = ("Arm", "Hand", "Shoulder", "Head", "Neck")
 @dataclass(frozen=True)
 class SynthConfig:
     """What ``synthesize_capture`` renders."""
-
     num_frames: int = 20
     """Frames of the training sequence (0 .. N-1)."""
     num_test_frames: int | None = None
@@ -118,7 +120,6 @@ class SynthConfig:
 @dataclass(frozen=True)
 class SynthResult:
     """Paths and facts of a synthesized subject."""
-
     out_dir: Path
     character: Path
     calibration: Path
@@ -190,7 +191,6 @@ class GarmentFrames:
         spread_mm: (N,) leg spread of the region relative to the rest pose (the pose input).
         speed_mm_s: (N,) mean lagged speed of the region (the velocity input).
     """
-
     offsets: np.ndarray
     albedo_scale: np.ndarray
     spread_mm: np.ndarray
@@ -220,8 +220,6 @@ def garment_deformation(posed: np.ndarray, faces: np.ndarray, rest_verts: np.nda
         rest_verts: (V, 3) template in its rest pose.
         weights: (V,) garment weights from ``garment_weights``.
     """
-    from deliffas.geometry.mesh_ops import vertex_normals
-
     num_frames, num_verts = posed.shape[:2]
     smoother = _vertex_smoother(faces, num_verts)
     w = np.asarray(weights, np.float64)
@@ -315,57 +313,13 @@ def choose_test_cameras(num_cameras: int, spec: int | Sequence[int] | None) -> l
 
 # --------------------------------------------------------------------------------------------- character & motion
 def _default_character(out_dir: Path, seed: int) -> Path:
-    """The procedural character when ``deliffas.geometry.procedural`` exists, else the DDC sample."""
-    try:
-        from deliffas.geometry.procedural import make_procedural_character
-    except ImportError:
-        make_procedural_character = None
-    if make_procedural_character is not None:
-        return Path(make_procedural_character(out_dir / "character", seed))
-    if not SAMPLE_CHARACTER.is_file():
-        raise FileNotFoundError("no procedural character (deliffas.geometry.procedural) and no DDC sample at "
-                                f"{SAMPLE_CHARACTER}; pass --character")
-    log.warning("deliffas.geometry.procedural not available: using the DDC sample character %s", SAMPLE_CHARACTER)
-    return _copy_character(SAMPLE_CHARACTER, out_dir)
+    """The project's procedural character (the demo's default; no sample data needed)."""
+    return Path(make_procedural_character(out_dir / "character", seed))
 
 
 def _copy_character(path: Path, out_dir: Path) -> Path:
     character = read_character(path)
     return write_character(out_dir / "character", character, name=Path(path).stem)
-
-
-def _fallback_motion(character: Character, num_frames: int, seed: int, fps: float) -> Motion:
-    """A gentle periodic motion about the rest pose (until ``deliffas.geometry.motion_gen`` exists).
-
-    Hips swing in antiphase, knees, shoulders and elbows follow, the spine sways, the root turns and
-    drifts a little. DOFs are picked by name; unknown skeletons just turn and sway.
-    """
-    rng = np.random.default_rng(seed)
-    t = np.arange(num_frames) / fps
-    omega = 2 * np.pi * rng.uniform(0.6, 1.0)
-    phase = rng.uniform(0, 2 * np.pi)
-    dofs = np.repeat(character.rest_dofs[None], num_frames, axis=0).astype(np.float64)
-    for d, dof in enumerate(character.skeleton.dofs):  # ~100 DOFs, each vectorised over frames
-        name = dof.name.lower()
-        side = np.pi if name.startswith("right") else 0.0
-        wave = np.sin(omega * t + phase + side)
-        if "hip" in name and name.endswith("_x"):
-            dofs[:, d] += 0.45 * wave
-        elif "hip" in name and name.endswith("_z"):
-            dofs[:, d] += 0.12 * (0.5 + 0.5 * np.sin(0.5 * omega * t + phase))
-        elif "knee" in name and "varus" not in name and "twist" not in name:
-            dofs[:, d] += 0.25 * np.sin(omega * t + phase + side + 0.8)
-        elif "shoulder" in name and name.endswith(("_y", "_z")):
-            dofs[:, d] += 0.3 * np.sin(omega * t + phase + side + np.pi)
-        elif "elbow" in name and "virtual" not in name:
-            dofs[:, d] += 0.25 * np.sin(omega * t + phase + side)
-        elif name.startswith("spine") and "stretch" not in name:
-            dofs[:, d] += 0.08 * np.sin(omega * t + phase + d)
-        elif name == "rotate_y":
-            dofs[:, d] += 0.7 * np.sin(0.35 * omega * t + phase)
-        elif name in ("translate_x", "translate_z"):
-            dofs[:, d] += 0.12 * np.sin(0.5 * omega * t + phase + d)
-    return Motion(np.arange(num_frames, dtype=np.int64), dofs)
 
 
 def _make_motion(character: Character, path: str | None, num_frames: int, seed: int, fps: float) -> Motion:
@@ -374,15 +328,8 @@ def _make_motion(character: Character, path: str | None, num_frames: int, seed: 
         if m.num_frames < num_frames:
             raise ValueError(f"{path}: has {m.num_frames} frames, {num_frames} requested")
         return Motion(np.arange(num_frames, dtype=np.int64), m.dofs[:num_frames].copy())
-    try:
-        from deliffas.geometry.motion_gen import procedural_motion
-    except ImportError:
-        procedural_motion = None
-    if procedural_motion is not None:
-        m = procedural_motion(character.skeleton, num_frames, seed, style="mixed", rest_dofs=character.rest_dofs,
-                              fps=fps)
-        return Motion(np.arange(m.num_frames, dtype=np.int64), np.asarray(m.dofs, np.float64))
-    return _fallback_motion(character, num_frames, seed, fps)
+    m = procedural_motion(character.skeleton, num_frames, seed, style="mixed", rest_dofs=character.rest_dofs, fps=fps)
+    return Motion(np.arange(m.num_frames, dtype=np.int64), np.asarray(m.dofs, np.float64))
 
 
 def _load_texture(character: Character, seed: int) -> np.ndarray:
@@ -407,7 +354,6 @@ _WORKER: dict = {}
 
 
 def _init_worker(static: dict) -> None:
-    from deliffas.data.render_gt import camera_rays
 
     _WORKER.clear()
     _WORKER.update(static)
@@ -420,9 +366,6 @@ def _render_chunk(seq: str, rows: list[int]) -> int:
     Tasks are tiny (the geometry travels once per worker in the initializer's ``static``): a worker
     that dies then never leaves the pool's task pipe half-written.
     """
-    from deliffas.io.frames import write_image
-    from deliffas.geometry.mesh_ops import vertex_normals
-
     s = _WORKER
     data = s["sequences"][seq]
     for i in rows:  # frames of this chunk
@@ -445,9 +388,6 @@ def synthesize_capture(out_dir: str | os.PathLike, config: SynthConfig = SynthCo
     """Write a synthetic DynaCap subject folder (layout in docs/data.md) and return what was written."""
     import torch
 
-    from deliffas.io.frames import ImageFolderSource, VideoWriterSet
-    from deliffas.geometry.template import DDCTemplate
-
     if config.num_frames < 1 or config.num_cameras < 2:
         raise ValueError(f"synth needs >= 1 frame and >= 2 cameras, got {config.num_frames} and {config.num_cameras}")
     out = Path(out_dir)
@@ -461,7 +401,7 @@ def synthesize_capture(out_dir: str | os.PathLike, config: SynthConfig = SynthCo
         "training": _make_motion(character, config.motion, config.num_frames, config.seed, config.fps),
         "testing": _make_motion(character, config.test_motion, num_test, config.seed + 1000, config.fps),
     }
-    template = DDCTemplate(character, config.skinning, dtype=torch.float64)
+    template = build_template(ddc_spec(char_path, config.skinning), dtype=torch.float64)
     weights = garment_weights(character)
     faces = np.asarray(character.mesh.faces, np.int64)
     gt: dict[str, np.ndarray] = {}
@@ -522,7 +462,6 @@ def synthesize_capture(out_dir: str | os.PathLike, config: SynthConfig = SynthCo
             _render_chunk(*task)
         _WORKER.clear()
     else:
-        from deliffas.data.convert import process_map
 
         for _ in process_map(_render_chunk, tasks, min(config.jobs, len(tasks)), _init_worker, (static,)):
             pass

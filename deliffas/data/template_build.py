@@ -21,6 +21,9 @@ from pathlib import Path
 import numpy as np
 
 from deliffas.io.dynacap import Character, ObjData, read_character, write_obj
+from deliffas.geometry.atlas import UVAtlas, uv_texel_table
+from deliffas.geometry.shell import ShellConfig, offset_shell, shell_offsets, shell_report
+from deliffas.geometry.variants import coarse_variant, smooth_variant, write_variant
 
 __all__ = ["VARIANTS", "build_templates", "atlas_info"]
 
@@ -31,8 +34,6 @@ VARIANTS = ("original", "smooth", "coarse")
 
 def atlas_info(mesh: ObjData, atlas_res: int) -> dict:
     """Statistics of a mesh's per-corner UV atlas at an S x S texel grid (JSON-ready)."""
-    from deliffas.geometry.atlas import UVAtlas, uv_texel_table
-
     atlas = UVAtlas(mesh.uvs, mesh.face_uvs)
     table = uv_texel_table(atlas, atlas_res, gutter=0)
     corner = atlas.corner_uvs
@@ -53,7 +54,6 @@ def _ensure_uvs(character: Character, atlas_res: int) -> tuple[Character, str]:
     """The character with UVs: its own, or a new xatlas atlas when the OBJ has none."""
     if character.mesh.has_uvs:
         return character, "file"
-    from deliffas.geometry.atlas import UVAtlas
 
     log.warning("%s: the template has no per-corner UVs; generating an xatlas atlas", character.path)
     atlas = UVAtlas.from_mesh(character.mesh.verts, character.mesh.faces, resolution=atlas_res, padding=4)
@@ -80,9 +80,6 @@ def build_templates(character_path: str | os.PathLike, out_dir: str | os.PathLik
         {name: {"character", "outer", "num_verts", "num_faces", "watertight", "num_graph_nodes",
         "uv_source", "atlas", "shell", "seconds"}}}``.
     """
-    from deliffas.geometry.shell import ShellConfig, offset_shell, shell_offsets, shell_report
-    from deliffas.geometry.variants import coarse_variant, smooth_variant, write_variant
-
     if smooth_iters is not None and smooth_iters < 0:
         raise ValueError(f"smooth_iters: expected >= 0, got {smooth_iters}")
     if coarse_faces is not None and coarse_faces < 4:

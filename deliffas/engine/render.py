@@ -12,6 +12,11 @@ import numpy as np
 import torch
 
 from deliffas.io.cameras import Camera, look_at
+from deliffas.io.dynacap import read_motion
+from deliffas.data.shards import ShardSet
+from deliffas.geometry.atlas import TexelTable, UVAtlas
+from deliffas.geometry.frame_geometry import FrameGeometryBuilder
+from deliffas.geometry.templates import build_template
 from deliffas.engine.evaluate import load_run
 from deliffas.engine.rays import camera_rays, stack_rays
 
@@ -90,11 +95,6 @@ def render_video(cfg: RenderConfig) -> Path:
     import cv2
     from tqdm import tqdm
 
-    from deliffas.io.dynacap import read_character, read_motion
-    from deliffas.data.shards import ShardSet
-    from deliffas.geometry.atlas import TexelTable, UVAtlas
-    from deliffas.geometry.frame_geometry import FrameGeometryBuilder
-    from deliffas.geometry.template import DDCTemplate
 
     device = torch.device(cfg.device)
     model, record = load_run(cfg.run, device)
@@ -102,14 +102,10 @@ def render_video(cfg: RenderConfig) -> Path:
     if not shards:
         raise ValueError(f"{cfg.run}: train_config.json names no shards")
     meta = ShardSet(shards).meta
-    character_path = Path(meta.attrs["character_path"])
-    if not character_path.is_file():
-        raise FileNotFoundError(f"{character_path}: the character the shards were made with is gone")
-    character = read_character(character_path)
+    template = build_template(meta.template_spec(), dtype=torch.float64)
     motion_path = Path(cfg.motion) if cfg.motion else _default_motion(Path(meta.attrs["subject"]))
-    motion = read_motion(motion_path, character.skeleton.num_dofs)
+    motion = read_motion(motion_path, template.num_dofs)
     n = min(motion.num_frames, cfg.frames or 300)
-    template = DDCTemplate(character, meta.attrs.get("skinning", "dqs"), dtype=torch.float64)
     inner = template.pose(torch.as_tensor(motion.dofs[:n], dtype=torch.float64)).numpy()
     table = TexelTable(meta.texel_face.astype(np.int64), meta.texel_bary, meta.texel_valid, meta.texel_valid)
     builder = FrameGeometryBuilder(meta.faces, meta.outer_offsets, table)

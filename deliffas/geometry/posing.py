@@ -10,7 +10,7 @@ import torch
 
 from deliffas.io.dynacap import Character, Motion, ObjData, read_character, read_motion, write_obj
 from deliffas.io.text_lines import DynaCapFormatError
-from deliffas.geometry.template import DDCTemplate, Skinning
+from deliffas.geometry.templates import Skinning, build_template, ddc_spec
 
 __all__ = ["pose_frames", "write_posed_mesh"]
 
@@ -41,7 +41,7 @@ def pose_frames(character: Character | str | os.PathLike, motion: Motion | str |
             rows = np.array([motion.row_of(f) for f in frames])
         except KeyError as err:
             raise DynaCapFormatError(motion_path or "motion", 0, str(err.args[0])) from None
-    template = DDCTemplate(character, skinning, dtype=dtype)
+    template = build_template(ddc_spec(character.path, skinning), dtype=dtype)
     with torch.no_grad():
         verts = template.pose(torch.as_tensor(motion.dofs[rows], dtype=dtype))
     return verts.cpu().numpy().astype(np.float64), character

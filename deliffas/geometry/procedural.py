@@ -23,6 +23,10 @@ import numpy as np
 
 from deliffas.io.dynacap import (Character, CharacterFiles, Dof, Joint, ObjData, Skeleton, Skin,
                                    write_character)
+from deliffas.geometry.variants import decimate_mesh, remesh_isotropic, sparsify_weights
+from deliffas.geometry.atlas import UVAtlas, uv_texel_table
+from deliffas.geometry.skeleton import SkeletonFK
+from deliffas.geometry.mesh_ops import vertex_normals
 
 __all__ = [
     "PROCEDURAL_DOF_NAMES",
@@ -173,7 +177,6 @@ def procedural_skeleton(height_mm: float = HEIGHT_MM) -> tuple[Skeleton, np.ndar
 @dataclass(frozen=True)
 class _Prim:
     """One SDF primitive: a round cone (a, b, ra, rb) or an oriented ellipsoid (c, R, radii)."""
-
     part: str
     kind: str
     a: np.ndarray
@@ -401,8 +404,6 @@ def _segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.n
 
 def _skin_weights(verts: np.ndarray, segs) -> Skin:
     """Smooth skin weights from radius-normalised distances to the bone segments, <= 6 influences."""
-    from deliffas.geometry.variants import sparsify_weights
-
     q = np.stack([_segment_distance(verts, a, b)[0] / r for _, a, b, r in segs], axis=1)  # (V, Bn)
     dense = np.exp(-((q - q.min(axis=1, keepdims=True)) ** 2) / (2 * SKIN_SIGMA ** 2))
     dense[dense < MIN_SKIN_WEIGHT] = 0.0
@@ -526,8 +527,6 @@ def _bake_texture(verts: np.ndarray, faces: np.ndarray, labels: np.ndarray, atla
     A texel takes its face's label when the face's three corners agree, otherwise ``label_fn`` of
     its 3D point, so label borders are smooth curves rather than triangle staircases.
     """
-    from deliffas.geometry.atlas import uv_texel_table
-
     table = uv_texel_table(atlas, size, gutter=4)
     img = np.full((size * size, 3), 0.5)
     valid = table.valid.ravel()
@@ -554,8 +553,6 @@ def _encode_png(rgb: np.ndarray) -> bytes:
 # --------------------------------------------------------------------------------------------- assembly
 def _rest_frames(skel: Skeleton, rest: np.ndarray) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
     import torch
-
-    from deliffas.geometry.skeleton import SkeletonFK
 
     with torch.no_grad():
         G = SkeletonFK(skel, dtype=torch.float64)(torch.tensor(rest)[None])[0].numpy()
@@ -594,10 +591,6 @@ def procedural_character(seed: int = 0, target_faces: int = 8000, name: str = "p
         disk yet); the texture PNG bytes are in ``extra["texture_png"]``. Write it with
         ``make_procedural_character`` or ``write_character(dir, c, name, texture_png=...)``.
     """
-    from deliffas.geometry.atlas import UVAtlas
-    from deliffas.geometry.mesh_ops import vertex_normals
-    from deliffas.geometry.variants import decimate_mesh, remesh_isotropic
-
     if not 500 <= target_faces <= 200_000:
         raise ValueError(f"target_faces: expected 500..200000, got {target_faces}")
     H, girth, palette = _seed_params(seed)

@@ -21,6 +21,7 @@ import torch
 from deliffas.checks import check_shape
 from deliffas.io.cameras import Camera
 from deliffas.geometry.mesh_ops import vertex_normals
+from deliffas.geometry.raycast import all_hits, build_scene, first_hits
 
 __all__ = [
     "ShellConfig",
@@ -47,7 +48,6 @@ _SEGMENT_EPS = 1e-6  # self-intersection: segment hits with t in (eps, 1 - eps) 
 @dataclass(frozen=True)
 class ShellConfig:
     """How the outer surface is built from the inner one."""
-
     offset_mm: float = 30.0
     """Nominal offset d along the unit vertex normal, mm (DELIFFAS: 30)."""
     safe: bool = False
@@ -92,7 +92,6 @@ class ShellReport:
         offset_nominal_mm: the nominal d (max of the offsets when not given); None without offsets.
         num_clamped: vertices whose offset is below nominal; offset_min_mm / offset_mean_mm.
     """
-
     num_verts: int
     num_faces: int
     watertight: bool
@@ -198,8 +197,6 @@ def self_intersecting_faces(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
     Returns:
         (K,) int64 sorted face ids.
     """
-    from deliffas.geometry.raycast import all_hits, build_scene
-
     check_shape("verts", verts, "V 3")
     check_shape("faces", faces, "F 3")
     verts = np.asarray(verts, np.float64)
@@ -283,8 +280,6 @@ def _neighbourhood_keys(faces: np.ndarray, num_verts: int, rings: int) -> np.nda
 def _distance_to_other_parts(verts: np.ndarray, faces: np.ndarray, normals: np.ndarray, rings: int) -> np.ndarray:
     """Distance (V,) along each vertex normal to the first inner-surface hit outside the vertex's
     own neighbourhood (inf where there is none)."""
-    from deliffas.geometry.raycast import build_scene, first_hits
-
     num_verts = len(verts)
     keys = _neighbourhood_keys(faces, num_verts, rings)
     scene = build_scene(verts, faces)
@@ -491,7 +486,6 @@ def shell_report(
         self_intersecting_face_ids=[int(i) for i in outer_bad],
     )
     if cameras:
-        from deliffas.geometry.raycast import build_scene, first_hits
 
         inner_scene, outer_scene = build_scene(inner, faces), build_scene(outer, faces)
         n_inner = n_ok = 0

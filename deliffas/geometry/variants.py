@@ -23,6 +23,8 @@ import numpy as np
 
 from deliffas.checks import check_shape
 from deliffas.io.dynacap import Character, ObjData, Skin, write_character
+from deliffas.geometry.mesh_ops import vertex_normals
+from deliffas.geometry.atlas import UVAtlas, uv_texel_table
 
 __all__ = [
     "MAX_INFLUENCES",
@@ -281,7 +283,6 @@ def sparsify_weights(dense: np.ndarray, max_influences: int = MAX_INFLUENCES) ->
 
 # --------------------------------------------------------------------------------------------- variants
 def _with_normals(mesh: ObjData, verts: np.ndarray) -> ObjData:
-    from deliffas.geometry.mesh_ops import vertex_normals
 
     normals = vertex_normals(verts, mesh.faces) if mesh.normals is not None else None
     fn = mesh.faces.copy() if normals is not None else None
@@ -346,8 +347,6 @@ def _rebake_texture(src: Character, texture: np.ndarray, verts: np.ndarray, face
                     size: int) -> np.ndarray:
     """(S, S, 3) uint8 RGB for the new atlas: texel -> 3D point -> closest original point -> its
     original uv -> original texture (bilinear). Texels outside every chart (and its gutter) stay grey."""
-    from deliffas.geometry.atlas import uv_texel_table
-
     table = uv_texel_table(atlas, size, gutter=4)
     valid = table.valid.ravel()
     face = table.face.ravel()[valid]
@@ -380,8 +379,6 @@ def coarse_variant(character: Character, target_faces: int, atlas_res: int = 102
         A Character record (nominal paths of the original); write it with ``write_variant``.
     """
     from scipy.spatial import cKDTree
-
-    from deliffas.geometry.atlas import UVAtlas
 
     mesh = character.mesh
     verts, faces = decimate_mesh(mesh.verts, mesh.faces, target_faces)

@@ -29,6 +29,7 @@ from typing import Sequence
 import numpy as np
 
 from deliffas.io.cameras import Camera
+from deliffas.io.dynacap import read_calibration, write_calibration
 
 __all__ = [
     "cameras_to_colmap",
@@ -114,8 +115,6 @@ def cameras_from_colmap(model_dir: str | os.PathLike) -> list[Camera]:
 
 def calibration_to_colmap(calibration: str | os.PathLike, out_dir: str | os.PathLike, text: bool = False) -> int:
     """``cameras.calibration`` -> COLMAP model in ``out_dir``; returns the number of cameras."""
-    from deliffas.io.dynacap import read_calibration
-
     cams = read_calibration(calibration)
     cameras_to_colmap(cams, out_dir, text)
     return len(cams)
@@ -123,8 +122,6 @@ def calibration_to_colmap(calibration: str | os.PathLike, out_dir: str | os.Path
 
 def calibration_from_colmap(model_dir: str | os.PathLike, calibration: str | os.PathLike) -> int:
     """COLMAP model -> ``cameras.calibration``; returns the number of cameras."""
-    from deliffas.io.dynacap import write_calibration
-
     cams = cameras_from_colmap(model_dir)
     write_calibration(calibration, cams)
     return len(cams)

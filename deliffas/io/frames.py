@@ -37,6 +37,7 @@ __all__ = [
     "VideoWriterSet",
     "video_path",
     "open_frame_source",
+    "image_size",
     "VIDEO_CODEC",
     "PNG_COMPRESSION",
 ]
@@ -213,6 +214,22 @@ class MaskFolderSource:
 def video_path(seq_dir: str | os.PathLike, kind: str, camera_name: str) -> Path:
     """``<seq>/<kind>/c_<camera_name>.avi`` with kind ``img`` or ``fg``."""
     return Path(seq_dir) / kind / f"c_{camera_name}.avi"
+
+
+def image_size(seq_dir: str | os.PathLike, layout: str, camera_names: Sequence[str]) -> tuple[int, int, str]:
+    """(width, height, layout) of a sequence folder's frames; ``layout`` auto picks images when present."""
+    seq_dir = Path(seq_dir)
+    folder = find_image_folder(seq_dir) if layout in ("auto", "images") else None
+    if folder is not None:
+        w, h = folder.name.split("_")[1:3]
+        return int(w), int(h), "images"
+    if layout in ("auto", "videos") and (seq_dir / "img").is_dir():
+        cv2 = _cv2()
+        cap = cv2.VideoCapture(str(_resolve_video(seq_dir, "img", camera_names[0])))
+        w, h = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+        cap.release()
+        return w, h, "videos"
+    raise FileNotFoundError(f"{seq_dir}: no frames ({'rgb_<W>_<H>/ or img/' if layout == 'auto' else layout})")
 
 
 def _resolve_video(seq_dir: Path, kind: str, name: str) -> Path:

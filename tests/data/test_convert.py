@@ -235,7 +235,7 @@ def test_bad_inputs(subject, tmp_path):
 def test_process_map_does_not_hang_on_a_dead_worker():
     from concurrent.futures.process import BrokenProcessPool
 
-    from deliffas.data.convert import process_map
+    from deliffas.parallel import process_map
 
     assert sorted(process_map(abs, [(-2,), (3,), (-1,)], 2, poll_s=0.2)) == [1, 2, 3]
     t0 = time.monotonic()

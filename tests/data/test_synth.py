@@ -20,7 +20,7 @@ from deliffas.data.synth import (
     garment_weights,
     synthesize_capture,
 )
-from deliffas.geometry.template import DDCTemplate
+from deliffas.geometry.templates import DDCTemplate
 
 
 def test_subject_layout(subject):

@@ -12,7 +12,7 @@ from deliffas.io.obj import ObjData
 from deliffas.geometry.embedded_graph import (MIN_NODE_RADIUS, EmbeddedDeformation, bind_embedded_graph,
                                               blend_bone_transforms, euler_to_matrix, rigidity_of_labels)
 from deliffas.geometry.skeleton import axis_angle_to_matrix
-from deliffas.geometry.template import DDCTemplate, EmbeddedGraphTemplate
+from deliffas.geometry.templates import DDCTemplate, EmbeddedGraphTemplate
 
 
 def _bfs(neighbours: list[list[int]], src: int) -> np.ndarray:

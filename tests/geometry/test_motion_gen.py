@@ -105,7 +105,7 @@ def test_ddc_skeleton_same_joint_motion(sample_character, proc):
         lim = ddc.skeleton.dofs[i].limits
         unclipped = np.ones(120, bool) if lim is None else (md.dofs[:, i] > lim[0]) & (md.dofs[:, i] < lim[1])
         np.testing.assert_allclose(off_d[unclipped], off_p[unclipped], atol=1e-9, err_msg=name)
-    from deliffas.geometry.template import DDCTemplate
+    from deliffas.geometry.templates import DDCTemplate
 
     v = DDCTemplate(ddc).pose(torch.tensor(md.dofs[::20], dtype=torch.float32))
     assert torch.isfinite(v).all()

@@ -11,7 +11,7 @@ import torch
 
 from deliffas.geometry.skeleton import axis_angle_to_matrix
 from deliffas.geometry.skinning import dqs, lbs, matrix_to_quaternion, quaternion_to_matrix
-from deliffas.geometry.template import DDCTemplate
+from deliffas.geometry.templates import DDCTemplate
 
 
 def _fk_reference(skel, dofs):

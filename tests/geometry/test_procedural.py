@@ -11,7 +11,7 @@ import torch
 from deliffas.io.dynacap import read_character, read_motion, write_motion
 from deliffas.geometry.procedural import (LABELS, PROCEDURAL_DOF_NAMES,
                                           marching_tetrahedra, procedural_skeleton)
-from deliffas.geometry.template import DDCTemplate
+from deliffas.geometry.templates import DDCTemplate
 
 
 # DOF names of the DDC skeleton the brief lists (the procedural skeleton must use a subset of them)
@@ -166,7 +166,7 @@ def test_posed_by_motion_without_nan(character):
 
 
 def test_embedded_graph_template_close_to_skinning(character):
-    from deliffas.geometry.template import EmbeddedGraphTemplate
+    from deliffas.geometry.templates import EmbeddedGraphTemplate
 
     t = EmbeddedGraphTemplate(character, dtype=torch.float64)
     assert t.num_nodes == character.graph.num_verts

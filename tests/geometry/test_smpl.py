@@ -9,8 +9,9 @@ import pytest
 import scipy.sparse as sp
 import torch
 
-from deliffas.geometry.smpl import SMPLModelError, SMPLTemplate, load_smpl_model
-from deliffas.geometry.template import DeformableTemplate
+from deliffas.geometry.templates import SMPLTemplate
+from deliffas.io.smpl import SMPLModelError, load_smpl_model
+from deliffas.geometry.templates import Template
 
 PARENTS = np.array([-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21])
 
@@ -75,7 +76,7 @@ def _reference_smpl(d: dict, transl, pose, betas, scale=1000.0):
 def test_round_trip_against_reference(model_npz):
     d = _synthetic_arrays()
     t = SMPLTemplate(model_npz, dtype=torch.float64)
-    assert isinstance(t, DeformableTemplate)
+    assert isinstance(t, Template)
     assert t.num_dofs == 85 and t.num_verts == len(d["v_template"])
     rng = np.random.default_rng(3)
     params = np.zeros((3, 85))

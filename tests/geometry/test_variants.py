@@ -10,7 +10,7 @@ from deliffas.io.dynacap import read_character
 from deliffas.geometry.variants import (_closest_on_triangles, _sample_bilinear, closest_points_on_mesh,
                                         coarse_variant, smooth_variant, sparsify_weights, taubin_smooth,
                                         write_variant)
-from deliffas.geometry.template import DDCTemplate
+from deliffas.geometry.templates import DDCTemplate
 
 @pytest.fixture(scope="module")
 def character(procedural_character_path):

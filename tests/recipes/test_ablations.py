@@ -188,7 +188,7 @@ def test_smpl_character_is_a_poseable_template(tiny_recipe_capture, tmp_path):
     import torch
 
     from deliffas.io.dynacap import read_character, read_obj
-    from deliffas.geometry.template import DDCTemplate
+    from deliffas.geometry.templates import DDCTemplate
     from recipes.ablation_template import fit_smpl_to_mesh, smpl_character, write_template_folder
     from recipes.common import find_character
 
@@ -205,7 +205,7 @@ def test_smpl_character_is_a_poseable_template(tiny_recipe_capture, tmp_path):
     verts = DDCTemplate(again, "dqs", dtype=torch.float64).pose(torch.as_tensor(again.rest_dofs)[None]).numpy()[0]
     assert np.allclose(verts, made.mesh.verts, atol=1e-2)  # the rest pose reproduces the fitted SMPL surface
     # the fit alone: from a translated copy of a mesh, translation is recovered
-    from deliffas.geometry.smpl import SMPLTemplate
+    from deliffas.geometry.templates import SMPLTemplate
 
     smpl = SMPLTemplate(npz, atlas_res=128, dtype=torch.float64)
     with torch.no_grad():

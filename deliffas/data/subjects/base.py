@@ -1,0 +1,179 @@
+"""The ``Subject`` record every capture format is parsed into, and the registry of format parsers.
+
+A parser (one module per capture format, nerfstudio's DataParser idea with typed records) turns a
+capture folder into a :class:`Subject`: cameras in the deliffas convention (mm, world -> camera,
+pixel centres at +0.5), per sequence the frames it has, where its images and masks are, and the
+template's per-frame pose parameters, plus the template spec and the train/test camera split.
+Pixels are not loaded here: :meth:`FrameSourceSpec.open` opens them in the process that reads.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Literal, Mapping
+
+import numpy as np
+
+from deliffas.io.cameras import Camera
+from deliffas.io.dynacap import Motion
+from deliffas.io.frames import FrameSource, ImageFolderSource, open_frame_source
+from deliffas.geometry.templates import Skinning, TemplateSpec
+
+__all__ = [
+    "FrameSourceSpec",
+    "SubjectSequence",
+    "Subject",
+    "SubjectOptions",
+    "SubjectParser",
+    "register_subject_format",
+    "subject_formats",
+    "parse_subject",
+]
+
+
+@dataclass(frozen=True)
+class FrameSourceSpec:
+    """Where one sequence's images and masks are; picklable, opened where the pixels are read.
+
+    Attributes:
+        folder: the sequence folder.
+        camera_names: calibration names by calibration index (video file names use them).
+        layout: ``images`` or ``videos``.
+        first_frame: capture frame of video frame 0.
+        mask_dir: a mask folder replacing the images' alpha / the ``fg`` videos, or None.
+    """
+
+    folder: Path
+    camera_names: tuple[str, ...]
+    layout: Literal["images", "videos"]
+    first_frame: int = 0
+    mask_dir: Path | None = None
+
+    def open(self) -> FrameSource:
+        return open_frame_source(self.folder, self.camera_names, self.layout, self.first_frame, self.mask_dir)
+
+    def image_frames(self) -> set[int] | None:
+        """Frame numbers that have images (None: a video layout, where every frame of the video has one)."""
+        return set(ImageFolderSource(self.folder).frames()) if self.layout == "images" else None
+
+
+@dataclass(frozen=True)
+class SubjectSequence:
+    """One captured sequence (e.g. ``training``, ``testing``).
+
+    Attributes:
+        name: sequence name; shards and splits refer to it.
+        frames: (N,) int64 sorted frame numbers that have a surface (pose parameters or a tracked mesh).
+        first_frame: the sequence's first frame number (temporal windows clamp to it).
+        width, height: image size in pixels.
+        images: where its images and masks are.
+        poses: per-frame template pose parameters (``frames`` (N,), ``dofs`` (N, D)), or None.
+        surfaces: a tracked ``.meshes`` file giving the surface per frame instead of the posed template.
+    """
+
+    name: str
+    frames: np.ndarray
+    first_frame: int
+    width: int
+    height: int
+    images: FrameSourceSpec
+    poses: Motion | None = None
+    surfaces: Path | None = None
+
+
+@dataclass(frozen=True)
+class Subject:
+    """A capture parsed into deliffas conventions (docs/data.md states each format's).
+
+    Attributes:
+        root: the capture folder.
+        format: the registered format that parsed it.
+        cameras: every calibrated camera, calibration order, deliffas convention.
+        template: the template the pose parameters drive.
+        sequences: name -> sequence, in the order they are converted.
+        test_cameras: calibration indices held out for evaluation (sorted).
+    """
+
+    root: Path
+    format: str
+    cameras: tuple[Camera, ...]
+    template: TemplateSpec
+    sequences: Mapping[str, SubjectSequence]
+    test_cameras: tuple[int, ...] = ()
+
+    @property
+    def camera_names(self) -> tuple[str, ...]:
+        return tuple(c.name for c in self.cameras)
+
+
+@dataclass(frozen=True)
+class SubjectOptions:
+    """Choices a user makes about how a capture is read (each format uses those it has)."""
+
+    template: str | None = None
+    """A template variant folder (its ``.character`` + optional ``outer.obj``) or ``.character`` file."""
+    skinning: Skinning = "dqs"
+    """Skinning of a DDC template."""
+    sequences: tuple[str, ...] | None = None
+    """Sequences to read; None = the format's default ones that exist."""
+    layout: Literal["auto", "images", "videos"] = "auto"
+    """Frame layout (auto: images when present, else videos)."""
+    masks: str | None = None
+    """Mask folder inside each sequence folder replacing the images' alpha / fg videos."""
+    meshes: tuple[str, ...] = ()
+    """Tracked surfaces ``[SEQUENCE=]FILE.meshes`` (default sequence: training) instead of the posed template."""
+    test_cameras: tuple[int, ...] | None = None
+    """Held-out cameras; None = the capture's own split (or none)."""
+    extra: Mapping[str, object] = field(default_factory=dict)
+    """Format-specific options by name."""
+
+
+@dataclass(frozen=True)
+class SubjectParser:
+    """A registered capture format: ``detect(folder)`` says whether a folder is one, ``parse`` reads it."""
+
+    name: str
+    detect: Callable[[Path], bool]
+    parse: Callable[[Path, SubjectOptions], Subject]
+
+
+_PARSERS: dict[str, SubjectParser] = {}
+
+
+def register_subject_format(parser: SubjectParser) -> None:
+    """Register a capture format (once per name)."""
+    if parser.name in _PARSERS:
+        raise ValueError(f"capture format {parser.name!r} is registered already")
+    _PARSERS[parser.name] = parser
+
+
+def subject_formats() -> tuple[str, ...]:
+    """Registered capture format names, in registration order."""
+    return tuple(_PARSERS)
+
+
+def parse_subject(path: str | os.PathLike, format: str = "auto", options: SubjectOptions = SubjectOptions()) -> Subject:
+    """Read a capture folder into a :class:`Subject`.
+
+    Args:
+        path: the capture folder.
+        format: a registered format name, or ``auto`` (the first whose ``detect`` accepts the folder).
+
+    Raises:
+        FileNotFoundError: the folder does not exist.
+        ValueError: unknown format, or no format recognises the folder (the message lists them).
+    """
+    root = Path(path).resolve()
+    if not root.is_dir():
+        raise FileNotFoundError(f"{root}: capture folder not found")
+    if format == "auto":
+        for parser in _PARSERS.values():
+            if parser.detect(root):
+                return parser.parse(root, options)
+        raise ValueError(f"{root}: not a capture of any known format ({', '.join(_PARSERS)}); pass --format")
+    parser = _PARSERS.get(format)
+    if parser is None:
+        raise ValueError(f"unknown capture format {format!r}; registered: {', '.join(_PARSERS)}")
+    return parser.parse(root, options)

@@ -1,0 +1,130 @@
+"""The ``dynacap`` capture format: a DynaCap / DELIFFAS subject folder (layout in docs/data.md).
+
+``<subject>/cameras.calibration``, ``character/<name>.character`` (or ``--template``), and per
+sequence (``training``, ``testing``) the frames (``rgb_<W>_<H>/`` image folders or ``img/`` + ``fg/``
+videos) and ``poses.motion`` (or ``motions/*.motion``, or a tracked ``.meshes`` given by the user).
+The test cameras come from ``split.json`` (``test_cameras``) or ``test_cameras.txt``. DynaCap is
+already in the deliffas convention (mm, y-up, world -> camera, pixel centres at +0.5).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from deliffas.io.dynacap import read_calibration, read_meshes, read_motion
+from deliffas.io.frames import image_size
+from deliffas.geometry.templates import ddc_spec
+from deliffas.data.subjects.base import (
+    FrameSourceSpec,
+    Subject,
+    SubjectOptions,
+    SubjectParser,
+    SubjectSequence,
+    register_subject_format,
+)
+
+__all__ = ["SEQUENCES", "find_character", "parse_dynacap"]
+
+SEQUENCES = ("training", "testing")
+
+
+def find_character(subject: Path, template: str | None) -> tuple[Path, Path | None]:
+    """The ``.character`` to use and a variant's ``outer.obj`` (or None)."""
+    if template is not None:
+        t = Path(template)
+        if t.is_file() and t.suffix == ".character":
+            outer = t.parent / "outer.obj"
+            return t, outer if outer.is_file() else None
+        found = sorted(t.glob("*.character")) if t.is_dir() else []
+        if len(found) != 1:
+            raise FileNotFoundError(f"--template {t}: expected a folder with one .character, found {len(found)}")
+        outer = t / "outer.obj"
+        return found[0], outer if outer.is_file() else None
+    for d in (subject / "character", subject):
+        found = sorted(d.glob("*.character")) if d.is_dir() else []
+        if len(found) == 1:
+            return found[0], None
+        if len(found) > 1:
+            raise FileNotFoundError(f"{d}: several .character files {[p.name for p in found]}; pass --template")
+    raise FileNotFoundError(f"{subject}: no character/<name>.character; pass --template")
+
+
+def _find_motion(seq_dir: Path) -> Path | None:
+    p = seq_dir / "poses.motion"
+    if p.is_file():
+        return p
+    found = sorted((seq_dir / "motions").glob("*.motion")) if (seq_dir / "motions").is_dir() else []
+    return found[0] if found else None
+
+
+def _parse_meshes(specs: Sequence[str]) -> dict[str, Path]:
+    out = {}
+    for s in specs:
+        seq, sep, path = s.partition("=")
+        if not sep:
+            seq, path = "training", s
+        if seq in out:
+            raise ValueError(f"--meshes given twice for sequence {seq}")
+        out[seq] = Path(path).resolve()
+    return out
+
+
+def _test_cameras(subject: Path, override: Sequence[int] | None) -> tuple[int, ...]:
+    if override is not None:
+        return tuple(sorted({int(c) for c in override}))
+    sj = subject / "split.json"
+    if sj.is_file():
+        return tuple(sorted(int(c) for c in json.loads(sj.read_text()).get("test_cameras", [])))
+    tc = subject / "test_cameras.txt"
+    if tc.is_file():
+        return tuple(sorted(int(tok) for tok in tc.read_text().split()))
+    return ()
+
+
+def parse_dynacap(subject: Path, options: SubjectOptions = SubjectOptions()) -> Subject:
+    """Read a DynaCap subject folder into a :class:`Subject` (pose parameters = the motions' DOFs)."""
+    subject = Path(subject)
+    cameras = tuple(read_calibration(subject / "cameras.calibration"))
+    names = tuple(c.name for c in cameras)
+    character, outer_obj = find_character(subject, options.template)
+    meshes = _parse_meshes(options.meshes)
+    seq_names = options.sequences or tuple(s for s in SEQUENCES if (subject / s).is_dir())
+    if not seq_names:
+        raise FileNotFoundError(f"{subject}: no training/ or testing/ sequence folder")
+    sequences: dict[str, SubjectSequence] = {}
+    size = None
+    for seq in seq_names:
+        seq_dir = subject / seq
+        if not seq_dir.is_dir():
+            raise FileNotFoundError(f"{seq_dir}: sequence folder not found")
+        w, h, layout = image_size(seq_dir, options.layout, names)
+        if size is not None and size != (w, h):
+            raise ValueError(f"{seq}: images are {w}x{h}, other sequences {size[0]}x{size[1]}")
+        size = (w, h)
+        motion_path = _find_motion(seq_dir)
+        motion = read_motion(motion_path) if motion_path is not None else None
+        mesh_path = meshes.get(seq)
+        if mesh_path is not None:
+            avail = read_meshes(mesh_path).frames
+        elif motion is not None:
+            avail = motion.frames
+        else:
+            raise FileNotFoundError(f"{seq_dir}: no poses.motion (and no --meshes {seq}=FILE)")
+        avail = np.unique(np.asarray(avail, np.int64))
+        first = int(avail.min())
+        mask_dir = seq_dir / options.masks if options.masks else None
+        images = FrameSourceSpec(seq_dir, names, layout, first, mask_dir)
+        sequences[seq] = SubjectSequence(seq, avail, first, w, h, images, motion, mesh_path)
+    template = ddc_spec(character, options.skinning, outer_obj)
+    return Subject(subject, "dynacap", cameras, template, sequences, _test_cameras(subject, options.test_cameras))
+
+
+def _is_dynacap(folder: Path) -> bool:
+    return (folder / "cameras.calibration").is_file()
+
+
+register_subject_format(SubjectParser("dynacap", _is_dynacap, parse_dynacap))

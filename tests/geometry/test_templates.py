@@ -1,0 +1,91 @@
+"""The template registry: kinds, recorded specs (JSON, source checks) and a kind added by one registration."""
+
+from __future__ import annotations
+
+import shutil
+
+import pytest
+import torch
+
+from deliffas.geometry.templates import (
+    Template,
+    TemplateSourceError,
+    TemplateSpec,
+    build_template,
+    ddc_spec,
+    make_spec,
+    register_template_kind,
+    template_kinds,
+)
+from deliffas.io.dynacap import read_character
+from deliffas.io.obj import read_obj, write_obj, ObjData
+
+
+def test_builtin_kinds_are_registered():
+    assert {"ddc", "ddc_graph", "smpl"} <= set(template_kinds())
+
+
+def test_unknown_kind_lists_the_registered_ones():
+    with pytest.raises(ValueError, match=r"unknown template kind 'nope'.*ddc.*smpl"):
+        build_template(TemplateSpec("nope"))
+
+
+def test_a_kind_registers_once():
+    with pytest.raises(ValueError, match="registered already"):
+        register_template_kind("ddc", lambda spec, dtype: None)
+
+
+def test_spec_json_round_trip_and_errors(procedural_character_path):
+    spec = ddc_spec(procedural_character_path, "lbs")
+    assert TemplateSpec.from_json(spec.to_json()) == spec
+    assert spec.option("skinning") == "lbs" and {"character", "skeleton", "mesh", "skin"} <= set(spec.files)
+    assert all(len(h) == 64 for h in spec.sha256.values())
+    with pytest.raises(ValueError, match="not JSON"):
+        TemplateSpec.from_json("{kind")
+    with pytest.raises(ValueError, match="unknown keys"):
+        TemplateSpec.from_dict({"kind": "ddc", "file": {}})
+    with pytest.raises(FileNotFoundError, match="'model' file does not exist"):
+        make_spec("smpl", {"model": "/nonexistent/body.npz"})
+
+
+def test_changed_or_missing_source_is_refused(tmp_path, procedural_character_path):
+    src = procedural_character_path.parent
+    dst = tmp_path / "character"
+    shutil.copytree(src, dst)
+    spec = ddc_spec(dst / procedural_character_path.name)
+    build_template(spec)  # unchanged: builds
+    skin = spec.path("skin")
+    skin.write_text(skin.read_text() + "\n")
+    with pytest.raises(TemplateSourceError, match=r"'skin' file changed"):
+        build_template(spec)
+    build_template(spec, verify=False)
+    spec.path("skeleton").unlink()
+    with pytest.raises(TemplateSourceError, match=r"'skeleton' file is gone"):
+        build_template(spec)
+
+
+class _RigidTemplate(torch.nn.Module):
+    """A toy kind for the test: a mesh moved by a translation (3 parameters, mm)."""
+
+    def __init__(self, obj: ObjData, dtype: torch.dtype):
+        super().__init__()
+        self.register_buffer("rest_verts", torch.tensor(obj.verts, dtype=dtype))
+        self.register_buffer("faces", torch.as_tensor(obj.faces, dtype=torch.long))
+        self.register_buffer("uvs", torch.tensor(obj.uvs, dtype=dtype))
+        self.register_buffer("face_uvs", torch.as_tensor(obj.face_uvs, dtype=torch.long))
+
+    num_verts = property(lambda self: int(self.rest_verts.shape[0]))
+    num_dofs = property(lambda self: 3)
+
+    def pose(self, dofs: torch.Tensor) -> torch.Tensor:
+        return self.rest_verts[None] + dofs.to(self.rest_verts)[:, None, :]
+
+
+def test_a_new_kind_is_one_registration(tmp_path, procedural_character_path):
+    register_template_kind("test_rigid", lambda spec, dtype: _RigidTemplate(read_obj(spec.path("mesh")), dtype))
+    mesh = read_character(procedural_character_path).mesh
+    write_obj(tmp_path / "rigid.obj", mesh)
+    t = build_template(make_spec("test_rigid", {"mesh": tmp_path / "rigid.obj"}))
+    assert isinstance(t, Template)
+    moved = t.pose(torch.tensor([[0.0, 10.0, 0.0]]))
+    assert torch.allclose(moved[0, :, 1] - t.rest_verts[:, 1], torch.tensor(10.0))
