@@ -18,7 +18,8 @@ from typing import Mapping, Sequence
 import numpy as np
 import torch
 
-from deliffas.io.dynacap import MeshSequence, read_meshes, read_obj
+from deliffas.io.dynacap import read_obj
+from deliffas.io.meshes import MeshSequence, read_meshes
 from deliffas.geometry.atlas import TexelTable, UVAtlas, uv_texel_table
 from deliffas.geometry.frame_geometry import FrameGeometryBuilder
 from deliffas.geometry.mesh_ops import vertex_normals

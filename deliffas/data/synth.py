@@ -26,17 +26,9 @@ from typing import Literal, Sequence
 import numpy as np
 
 from deliffas.io.cameras import Camera, look_at
-from deliffas.io.dynacap import (
-    Character,
-    MeshSequence,
-    Motion,
-    read_character,
-    read_motion,
-    write_calibration,
-    write_character,
-    write_meshes,
-    write_motion,
-)
+from deliffas.io.dynacap import Character, Motion, read_character, read_motion, write_character, write_motion
+from deliffas.io.meshes import MeshSequence, write_meshes
+from deliffas.io.calibration import write_calibration
 from deliffas.io.frames import ImageFolderSource, VideoWriterSet, write_image
 from deliffas.io.text_lines import write_text_atomic
 from deliffas.geometry.mesh_ops import vertex_normals

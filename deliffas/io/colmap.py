@@ -29,7 +29,7 @@ from typing import Sequence
 import numpy as np
 
 from deliffas.io.cameras import Camera
-from deliffas.io.dynacap import read_calibration, write_calibration
+from deliffas.io.calibration import read_calibration, write_calibration
 
 __all__ = [
     "cameras_to_colmap",

@@ -188,7 +188,7 @@ def test_frame_and_camera_selection_codecs_and_meshes(subject, tmp_path):
     rgb, mask = shard.image(row, 1)
     ref = ImageFolderSource(subject / "training").read(2, 2)
     assert np.array_equal(rgb, ref[0]) and np.array_equal(mask, ref[1])
-    from deliffas.io.dynacap import read_meshes
+    from deliffas.io.meshes import read_meshes
 
     gt = read_meshes(subject / "training" / "gt.meshes").verts
     assert np.allclose(shard.geometry("inner_verts", [shard.h5["window_rows"][row][0]])[0], gt[2], atol=1e-3)

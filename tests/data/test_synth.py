@@ -9,7 +9,9 @@ import pytest
 import torch
 
 from deliffas.io.cameras import Camera
-from deliffas.io.dynacap import read_calibration, read_character, read_meshes, read_motion
+from deliffas.io.dynacap import read_character, read_motion
+from deliffas.io.calibration import read_calibration
+from deliffas.io.meshes import read_meshes
 from deliffas.io.frames import ImageFolderSource, VideoSource, open_frame_source
 from deliffas.data.render_gt import ShadingConfig, render_views
 from deliffas.data.synth import (

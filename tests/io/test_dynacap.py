@@ -9,6 +9,8 @@ import numpy as np
 import pytest
 
 from deliffas.io import dynacap as dc
+from deliffas.io.calibration import read_calibration, write_calibration
+from deliffas.io.meshes import MeshSequence, read_meshes, write_meshes
 from deliffas.io.cameras import Camera
 from deliffas.io.dynacap import DynaCapFormatError
 
@@ -96,13 +98,13 @@ def test_motion_round_trip(sample_motion, tmp_path):
 
 def test_meshes_round_trip(tmp_path):
     rng = np.random.default_rng(0)
-    seq = dc.MeshSequence(np.arange(5, 9), np.round(rng.normal(0, 500, (4, 7, 3)), 1).astype(np.float32))
-    dc.write_meshes(tmp_path / "a.meshes", seq)
-    r = dc.read_meshes(tmp_path / "a.meshes", num_verts=7)
+    seq = MeshSequence(np.arange(5, 9), np.round(rng.normal(0, 500, (4, 7, 3)), 1).astype(np.float32))
+    write_meshes(tmp_path / "a.meshes", seq)
+    r = read_meshes(tmp_path / "a.meshes", num_verts=7)
     np.testing.assert_array_equal(r.frames, seq.frames)
     np.testing.assert_allclose(r.verts, seq.verts, atol=1e-3)
     (tmp_path / "b.meshes").write_text("Skeletool Meshes file v2.0\n" + "\n".join(" ".join(map(str, v.ravel())) for v in seq.verts) + "\n")
-    r2 = dc.read_meshes(tmp_path / "b.meshes")
+    r2 = read_meshes(tmp_path / "b.meshes")
     np.testing.assert_array_equal(r2.frames, np.arange(4))
 
 
@@ -125,12 +127,12 @@ extrinsic   -0.453446 -0.3859819 -0.8033708 703.8229 0.6526945 -0.7576083 -0.004
 radial      0
 """
     (tmp_path / "c.calibration").write_text(text)
-    cams = dc.read_calibration(tmp_path / "c.calibration")
+    cams = read_calibration(tmp_path / "c.calibration")
     assert len(cams) == 1 and cams[0].width == 1285 and cams[0].height == 940
     # formats doc 1.9: camera centre ≈ (3175, 2948, -2333) mm
     np.testing.assert_allclose(cams[0].center, [3175, 2948, -2333], atol=2)
-    dc.write_calibration(tmp_path / "d.calibration", cams + [_camera("1")], crlf=True)
-    back = dc.read_calibration(tmp_path / "d.calibration")
+    write_calibration(tmp_path / "d.calibration", cams + [_camera("1")], crlf=True)
+    back = read_calibration(tmp_path / "d.calibration")
     assert [c.name for c in back] == ["0", "1"]
     for a, b in zip(back, cams + [_camera("1")]):
         np.testing.assert_array_equal(a.K, b.K)
@@ -265,8 +267,8 @@ def test_missing_file_and_binary(tmp_path):
 def test_bad_calibration(tmp_path):
     p = tmp_path / "c.calibration"
     p.write_text("Skeletool Camera Calibration File V1.0\nname 0\nsize 10 10\nintrinsic 1 0 0 0 0 1 0 0 0 0 1 0 0 0 0\n")
-    _expect_error(dc.read_calibration, p, 4, "16 numbers")
+    _expect_error(read_calibration, p, 4, "16 numbers")
     p.write_text("Skeletool Camera Calibration File V1.0\nname 0\nsize 10 10\n")
-    _expect_error(dc.read_calibration, p, 2, "lacks its 'intrinsic'")
+    _expect_error(read_calibration, p, 2, "lacks its 'intrinsic'")
     p.write_text("Skeletool Camera File\n")
-    _expect_error(dc.read_calibration, p, 1, "header")
+    _expect_error(read_calibration, p, 1, "header")

@@ -6,7 +6,6 @@ import cv2
 import numpy as np
 import pytest
 
-from deliffas.io.dynacap import read_calibration
 from deliffas.io.frames import (
     FrameSource,
     ImageFolderSource,
@@ -14,7 +13,6 @@ from deliffas.io.frames import (
     VideoSource,
     VideoWriterSet,
     image_path,
-    open_frame_source,
     write_image,
 )
 

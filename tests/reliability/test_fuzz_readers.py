@@ -20,6 +20,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from deliffas.io import dynacap as dc
+from deliffas.io.calibration import read_calibration, write_calibration
+from deliffas.io.meshes import MeshSequence, read_meshes, write_meshes
 from deliffas.io.cameras import Camera
 from deliffas.io.dynacap import DynaCapFormatError
 
@@ -58,11 +60,11 @@ def _valid_files(d: Path) -> dict[str, tuple[Path, object]]:
     files["obj"] = (d / "a.obj", dc.read_obj)
     dc.write_segmentation(d / "segmentation.txt", np.array([0, 5, 12, 18]))
     files["segmentation"] = (d / "segmentation.txt", lambda p: dc.read_segmentation(p, 4))
-    dc.write_meshes(d / "a.meshes", dc.MeshSequence(np.arange(3), np.ones((3, 4, 3), np.float32)))
-    files["meshes"] = (d / "a.meshes", lambda p: dc.read_meshes(p, 4))
+    write_meshes(d / "a.meshes", MeshSequence(np.arange(3), np.ones((3, 4, 3), np.float32)))
+    files["meshes"] = (d / "a.meshes", lambda p: read_meshes(p, 4))
     cam = Camera("0", np.array([[500.0, 0, 32], [0, 500, 32], [0, 0, 1]]), np.eye(4), 64, 64)
-    dc.write_calibration(d / "a.calibration", [cam, Camera("1", cam.K, cam.world_to_cam, 64, 64)])
-    files["calibration"] = (d / "a.calibration", dc.read_calibration)
+    write_calibration(d / "a.calibration", [cam, Camera("1", cam.K, cam.world_to_cam, 64, 64)])
+    files["calibration"] = (d / "a.calibration", read_calibration)
     (d / "a.character").write_text("skeletool character file v1.0\nskeleton\n  a.skeleton\nmesh\n  a.obj\nskin\n  a.skin\npose\n  a.motion\n")
     files["character"] = (d / "a.character", dc.read_character)
     return files

@@ -177,7 +177,7 @@ def test_non_finite_inputs_raise_naming_the_array(rel_character, tmp_path):
     K0[1, 1] = 0.0
     with pytest.raises(ValueError, match="singular intrinsics"):
         dataclasses.replace(cam, K=K0)
-    from deliffas.io.dynacap import read_calibration, write_calibration
+    from deliffas.io.calibration import read_calibration, write_calibration
 
     write_calibration(tmp_path / "c.calibration", [cam])
     text = (tmp_path / "c.calibration").read_text().splitlines()

@@ -15,7 +15,9 @@ from typing import Sequence
 
 import numpy as np
 
-from deliffas.io.dynacap import read_calibration, read_meshes, read_motion
+from deliffas.io.dynacap import read_motion
+from deliffas.io.calibration import read_calibration
+from deliffas.io.meshes import read_meshes
 from deliffas.io.frames import image_size
 from deliffas.geometry.templates import ddc_spec
 from deliffas.data.subjects.base import (
