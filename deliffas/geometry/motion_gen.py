@@ -16,7 +16,8 @@ from typing import Literal
 
 import numpy as np
 
-from deliffas.io.dynacap import Motion, Skeleton
+from deliffas.io.dynacap import Motion
+from deliffas.io.skeleton import Skeleton
 
 __all__ = ["MotionStyle", "procedural_motion", "known_dof_names", "MAX_YAW_RATE"]
 

@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from deliffas.io.dynacap import (Character, CharacterFiles, Dof, Joint, ObjData, Skeleton, Skin,
-                                   write_character)
+from deliffas.io.dynacap import Character, CharacterFiles, ObjData, Skin, write_character
+from deliffas.io.skeleton import Dof, Joint, Skeleton
 from deliffas.geometry.variants import decimate_mesh, remesh_isotropic, sparsify_weights
 from deliffas.geometry.atlas import UVAtlas, uv_texel_table
 from deliffas.geometry.skeleton import SkeletonFK

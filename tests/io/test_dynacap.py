@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from deliffas.io import dynacap as dc
+from deliffas.io import skeleton as skeleton_io
 from deliffas.io.calibration import read_calibration, write_calibration
 from deliffas.io.meshes import MeshSequence, read_meshes, write_meshes
 from deliffas.io.cameras import Camera
@@ -168,7 +169,7 @@ def test_truncated_skeleton(sample_dir, tmp_path):
     lines = (sample_dir / "ddc.skeleton").read_text().splitlines()
     p = tmp_path / "t.skeleton"
     p.write_text("\n".join(lines[:100]) + "\n")
-    _expect_error(dc.read_skeleton, p, 2, "exceeds")
+    _expect_error(skeleton_io.read_skeleton, p, 2, "exceeds")
 
 
 def test_wrong_token_count_skeleton(sample_dir, tmp_path):
@@ -176,14 +177,14 @@ def test_wrong_token_count_skeleton(sample_dir, tmp_path):
     lines[4] = lines[4] + " 7"
     p = tmp_path / "t.skeleton"
     p.write_text("\n".join(lines) + "\n")
-    _expect_error(dc.read_skeleton, p, 5, "10 tokens")
+    _expect_error(skeleton_io.read_skeleton, p, 5, "10 tokens")
 
 
 def test_unknown_joint_in_dof(sample_dir, tmp_path):
     text = (sample_dir / "ddc.skeleton").read_text().replace("Root_tx                    1000", "NoSuchJoint 1000", 1)
     p = tmp_path / "t.skeleton"
     p.write_text(text)
-    err = _expect_error(dc.read_skeleton, p, None, "unknown joint 'NoSuchJoint'")
+    err = _expect_error(skeleton_io.read_skeleton, p, None, "unknown joint 'NoSuchJoint'")
     assert err.line == 278
 
 
@@ -257,7 +258,7 @@ def test_skin_mesh_vertex_mismatch(sample_dir, tmp_path):
 
 
 def test_missing_file_and_binary(tmp_path):
-    _expect_error(dc.read_skeleton, tmp_path / "none.skeleton", 0, "not found")
+    _expect_error(skeleton_io.read_skeleton, tmp_path / "none.skeleton", 0, "not found")
     p = tmp_path / "b.motion"
     p.write_bytes(b"Skeletool Motion File V1.0\n0 1 2\x00\x01\n")
     with pytest.raises(DynaCapFormatError):

@@ -20,6 +20,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from deliffas.io import dynacap as dc
+from deliffas.io import skeleton as skeleton_io
 from deliffas.io.calibration import read_calibration, write_calibration
 from deliffas.io.meshes import MeshSequence, read_meshes, write_meshes
 from deliffas.io.cameras import Camera
@@ -33,19 +34,19 @@ CASES_RUN = itertools.count()
 def _valid_files(d: Path) -> dict[str, tuple[Path, object]]:
     """Write one small valid file of every kind; return name -> (path, reader)."""
     joints = (
-        dc.Joint("Root_tx", "prismatic", "none", np.array([0.0, 900, 0]), np.array([1.0, 0, 0])),
-        dc.Joint("Root_ry", "revolute", "Root_tx", np.zeros(3), np.array([0.0, 1, 0])),
-        dc.Joint("Spine_rx", "revolute", "Root_ry", np.array([0.0, 200, 0]), np.array([1.0, 0, 0])),
-        dc.Joint("HeadEE", "revolute", "Spine_rx", np.array([0.0, 400, 0]), np.array([0.0, 0, 1])),
+        skeleton_io.Joint("Root_tx", "prismatic", "none", np.array([0.0, 900, 0]), np.array([1.0, 0, 0])),
+        skeleton_io.Joint("Root_ry", "revolute", "Root_tx", np.zeros(3), np.array([0.0, 1, 0])),
+        skeleton_io.Joint("Spine_rx", "revolute", "Root_ry", np.array([0.0, 200, 0]), np.array([1.0, 0, 0])),
+        skeleton_io.Joint("HeadEE", "revolute", "Spine_rx", np.array([0.0, 400, 0]), np.array([0.0, 0, 1])),
     )
-    dofs = (dc.Dof("translate_x", None, (("Root_tx", 1000.0),)),
-            dc.Dof("rotate_y", (-3.0, 3.0), (("Root_ry", 1.0),)),
-            dc.Dof("spine_bend", None, (("Spine_rx", 0.5), ("HeadEE", 0.5))))
-    markers = (dc.Marker("m1", "Spine_rx", "point", (1.0, 2.0, 3.0, 10.0, 1.0, 0.0, 0.0)),)
-    skel = dc.Skeleton(joints, markers, (("grp", ("Spine_rx",)),), dofs)
+    dofs = (skeleton_io.Dof("translate_x", None, (("Root_tx", 1000.0),)),
+            skeleton_io.Dof("rotate_y", (-3.0, 3.0), (("Root_ry", 1.0),)),
+            skeleton_io.Dof("spine_bend", None, (("Spine_rx", 0.5), ("HeadEE", 0.5))))
+    markers = (skeleton_io.Marker("m1", "Spine_rx", "point", (1.0, 2.0, 3.0, 10.0, 1.0, 0.0, 0.0)),)
+    skel = skeleton_io.Skeleton(joints, markers, (("grp", ("Spine_rx",)),), dofs)
     files = {}
-    dc.write_skeleton(d / "a.skeleton", skel)
-    files["skeleton"] = (d / "a.skeleton", dc.read_skeleton)
+    skeleton_io.write_skeleton(d / "a.skeleton", skel)
+    files["skeleton"] = (d / "a.skeleton", skeleton_io.read_skeleton)
     motion = dc.Motion(np.arange(4), np.random.default_rng(0).normal(size=(4, 3)))
     dc.write_motion(d / "a.motion", motion)
     files["motion"] = (d / "a.motion", lambda p: dc.read_motion(p, 3))
