@@ -26,8 +26,9 @@ from typing import Literal
 import numpy as np
 from tqdm import tqdm
 
-from deliffas.io.files import sha256_file
+from deliffas.io.files import TMP_MARK, sha256_file
 from deliffas.data.shard_build import ShardBuilder, ShardSettings, ShardTask, init_worker, write_shard
+from deliffas.data.shard_meta import ShardMeta, write_meta
 from deliffas.data.shards import (
     MANIFEST_NAME,
     META_NAME,
@@ -35,10 +36,8 @@ from deliffas.data.shards import (
     SHARD_DIR,
     Codec,
     ShardFile,
-    ShardMeta,
     read_manifest,
     write_manifest,
-    write_meta,
 )
 from deliffas.data.subjects import Subject, SubjectOptions, parse_subject
 from deliffas.geometry.shell import mesh_edges
@@ -281,7 +280,7 @@ def convert(subject: Subject | str | os.PathLike, out_dir: str | os.PathLike,
                               if mconfig.get(k) != old.get("config", {}).get(k))
                 raise ValueError(f"{out}: --resume with a different configuration (differs in {diff})")
     (out / SHARD_DIR).mkdir(parents=True, exist_ok=True)
-    for leftover in list((out / SHARD_DIR).glob(".*.tmp-*")) + list(out.glob(".*.tmp-*")):
+    for leftover in list((out / SHARD_DIR).glob(f".*{TMP_MARK}*")) + list(out.glob(f".*{TMP_MARK}*")):
         log.info("removing leftover temporary file %s", leftover.name)
         leftover.unlink(missing_ok=True)
 

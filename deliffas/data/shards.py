@@ -19,15 +19,14 @@ from __future__ import annotations
 import json
 import logging
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, Sequence
 
 import numpy as np
 
-from deliffas.io.cameras import Camera
-from deliffas.io.files import sha256_file
-from deliffas.geometry.templates import TemplateSpec, ddc_spec
+from deliffas.io.files import durable_replace, sha256_file, temp_path
+from deliffas.data.shard_meta import SCHEMA_VERSION, ShardMeta, read_meta
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -39,23 +38,17 @@ __all__ = [
     "ShardWriter",
     "ShardFile",
     "ShardInfo",
-    "ShardMeta",
     "ShardSet",
-    "write_meta",
-    "read_meta",
     "read_manifest",
     "write_manifest",
     "verify_shards",
-    "temp_path",
     "IMAGE_GZIP_LEVEL",
     "ARRAY_GZIP_LEVEL",
 ]
 
 log = logging.getLogger(__name__)
 
-SCHEMA_VERSION = 1
 SHARD_FORMAT = "deliffas-shard"
-META_FORMAT = "deliffas-meta"
 MANIFEST_FORMAT = "deliffas-shards"
 MANIFEST_NAME = "manifest.json"
 META_NAME = "meta.h5"
@@ -70,23 +63,6 @@ NORMAL_MAP_COMPRESSION = None
 KiB per float16 map at S = 256) but cost 1.4 ms to decode per map against 0.04 ms, and a training
 item reads 2 (T + 1) maps, which made decoding them the largest part of loading an item
 (docs/shards.md). Shards written with gzip maps are read as before."""
-_TMP_MARK = ".tmp-"
-
-
-def temp_path(path: str | os.PathLike) -> Path:
-    """The temporary name a file is written under before its atomic rename: ``.<name>.tmp-<pid>``."""
-    p = Path(path)
-    return p.with_name(f".{p.name}{_TMP_MARK}{os.getpid()}")
-
-
-def _fsync_replace(tmp: Path, final: Path) -> None:
-    fd = os.open(tmp, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-    os.replace(tmp, final)
-
 
 # --------------------------------------------------------------------------------------------- codec
 @dataclass(frozen=True)
@@ -235,7 +211,7 @@ class ShardWriter:
         """Mark complete, close, fsync and rename to the final name; returns (sha256, bytes)."""
         self._f.attrs["complete"] = 1
         self._f.close()
-        _fsync_replace(self.tmp, self.path)
+        durable_replace(self.tmp, self.path)
         return sha256_file(self.path), self.path.stat().st_size
 
     def abort(self) -> None:
@@ -366,123 +342,6 @@ class ShardFile:
             f["geometry"][key][()]
 
 
-# --------------------------------------------------------------------------------------------- meta
-@dataclass(frozen=True)
-class ShardMeta:
-    """Contents of ``meta.h5``.
-
-    Attributes:
-        camera_names: calibration names of every calibrated camera (C_all).
-        K: (C_all, 3, 3) float64 intrinsics for the stored image size.
-        world_to_cam: (C_all, 4, 4) float64.
-        sizes: (C_all, 2) int64 (W, H) of the stored images.
-        converted_cameras: (C,) int64 calibration indices whose images the shards hold.
-        train_cameras / test_cameras: calibration indices (subsets of ``converted_cameras``).
-        sequence_frames: per sequence the selected frames (sorted int64).
-        first_frames: per sequence the first frame of its motion (temporal-window clamp).
-        faces: (F, 3) int64; uvs (T, 2) float64; face_uvs (F, 3) int64; rest_verts (V, 3) float64.
-        outer_offsets: (V,) float32 mm, the per-vertex offset d of the outer surface.
-        texel_face: (S, S) int32 face of each texel (-1 off the atlas); texel_bary (S, S, 3) float32;
-            texel_valid (S, S) bool.
-        attrs: conversion settings and provenance (character path and sha256, codec, window, …).
-    """
-
-    camera_names: list[str]
-    K: np.ndarray
-    world_to_cam: np.ndarray
-    sizes: np.ndarray
-    converted_cameras: np.ndarray
-    train_cameras: np.ndarray
-    test_cameras: np.ndarray
-    sequence_frames: dict[str, np.ndarray]
-    first_frames: dict[str, int]
-    faces: np.ndarray
-    uvs: np.ndarray
-    face_uvs: np.ndarray
-    rest_verts: np.ndarray
-    outer_offsets: np.ndarray
-    texel_face: np.ndarray
-    texel_bary: np.ndarray
-    texel_valid: np.ndarray
-    attrs: dict = field(default_factory=dict)
-
-    def cameras(self) -> list[Camera]:
-        """Every calibrated camera, at the stored image size."""
-        return [Camera(n, self.K[i].copy(), self.world_to_cam[i].copy(), int(self.sizes[i, 0]), int(self.sizes[i, 1]))
-                for i, n in enumerate(self.camera_names)]
-
-    @property
-    def atlas_res(self) -> int:
-        return int(self.texel_face.shape[0])
-
-    def template_spec(self) -> TemplateSpec:
-        """The template the shards were made with (``attrs["template_spec"]``; shard sets written before
-        specs were recorded name a DDC ``.character`` and its skinning instead)."""
-        if "template_spec" in self.attrs:
-            return TemplateSpec.from_json(self.attrs["template_spec"])
-        character = self.attrs.get("character_path", "")
-        if not character or not Path(character).is_file():
-            raise FileNotFoundError(f"{character or '(none recorded)'}: the character the shards were made with is gone")
-        return ddc_spec(character, self.attrs.get("skinning", "dqs"), self.attrs.get("outer_obj") or None)
-
-
-def write_meta(path: str | os.PathLike, meta: ShardMeta) -> tuple[str, int]:
-    """Write ``meta.h5`` atomically (deterministic bytes); returns (sha256, bytes)."""
-    import h5py
-
-    p = Path(path)
-    tmp = temp_path(p)
-    with h5py.File(tmp, "w") as f:
-        f.attrs.update({"format": META_FORMAT, "version": SCHEMA_VERSION})
-        for k, v in sorted(meta.attrs.items()):
-            f.attrs[k] = v
-        c = f.create_group("cameras")
-        c.create_dataset("names", data=np.array(meta.camera_names, dtype=h5py.string_dtype()))
-        c.create_dataset("K", data=np.asarray(meta.K, np.float64))
-        c.create_dataset("world_to_cam", data=np.asarray(meta.world_to_cam, np.float64))
-        c.create_dataset("sizes", data=np.asarray(meta.sizes, np.int64))
-        s = f.create_group("split")
-        s.create_dataset("converted_cameras", data=np.asarray(meta.converted_cameras, np.int64))
-        s.create_dataset("train_cameras", data=np.asarray(meta.train_cameras, np.int64))
-        s.create_dataset("test_cameras", data=np.asarray(meta.test_cameras, np.int64))
-        for seq, frames in sorted(meta.sequence_frames.items()):
-            d = s.create_dataset(f"frames_{seq}", data=np.asarray(frames, np.int64))
-            d.attrs["first_frame"] = int(meta.first_frames[seq])
-        ch = f.create_group("character")
-        ch.create_dataset("faces", data=np.asarray(meta.faces, np.int64))
-        ch.create_dataset("uvs", data=np.asarray(meta.uvs, np.float64))
-        ch.create_dataset("face_uvs", data=np.asarray(meta.face_uvs, np.int64))
-        ch.create_dataset("rest_verts", data=np.asarray(meta.rest_verts, np.float64))
-        ch.create_dataset("outer_offsets", data=np.asarray(meta.outer_offsets, np.float32))
-        ch.create_dataset("texel_face", data=np.asarray(meta.texel_face, np.int32), compression="gzip")
-        ch.create_dataset("texel_bary", data=np.asarray(meta.texel_bary, np.float32), compression="gzip")
-        ch.create_dataset("texel_valid", data=np.asarray(meta.texel_valid, bool), compression="gzip")
-    _fsync_replace(tmp, p)
-    return sha256_file(p), p.stat().st_size
-
-
-def read_meta(path: str | os.PathLike) -> ShardMeta:
-    """Read ``meta.h5`` written by ``write_meta``."""
-    import h5py
-
-    with h5py.File(path, "r") as f:
-        if f.attrs.get("format") != META_FORMAT:
-            raise ValueError(f"{path}: not a deliffas meta file")
-        s = f["split"]
-        seqs = {k[len("frames_"):]: s[k][()] for k in s if k.startswith("frames_")}
-        firsts = {k[len("frames_"):]: int(s[k].attrs["first_frame"]) for k in s if k.startswith("frames_")}
-        ch = f["character"]
-        attrs = {k: (v.item() if isinstance(v, np.generic) else v) for k, v in f.attrs.items()}
-        return ShardMeta(
-            camera_names=[n.decode() if isinstance(n, bytes) else str(n) for n in f["cameras/names"][()]],
-            K=f["cameras/K"][()], world_to_cam=f["cameras/world_to_cam"][()], sizes=f["cameras/sizes"][()],
-            converted_cameras=s["converted_cameras"][()], train_cameras=s["train_cameras"][()],
-            test_cameras=s["test_cameras"][()], sequence_frames=seqs, first_frames=firsts,
-            faces=ch["faces"][()], uvs=ch["uvs"][()], face_uvs=ch["face_uvs"][()], rest_verts=ch["rest_verts"][()],
-            outer_offsets=ch["outer_offsets"][()], texel_face=ch["texel_face"][()], texel_bary=ch["texel_bary"][()],
-            texel_valid=ch["texel_valid"][()], attrs=attrs)
-
-
 # --------------------------------------------------------------------------------------------- manifest
 def read_manifest(out_dir: str | os.PathLike) -> dict:
     """The parsed ``manifest.json`` of an output folder (FileNotFoundError / ValueError when missing or bad)."""
@@ -501,7 +360,7 @@ def write_manifest(out_dir: str | os.PathLike, manifest: dict) -> None:
     p = Path(out_dir) / MANIFEST_NAME
     tmp = temp_path(p)
     tmp.write_text(json.dumps(manifest, indent=1, sort_keys=True) + "\n")
-    _fsync_replace(tmp, p)
+    durable_replace(tmp, p)
 
 
 @dataclass(frozen=True)

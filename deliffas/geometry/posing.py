@@ -9,6 +9,7 @@ import numpy as np
 import torch
 
 from deliffas.io.dynacap import Character, Motion, ObjData, read_character, read_motion, write_obj
+from deliffas.io.files import temp_path
 from deliffas.io.text_lines import DynaCapFormatError
 from deliffas.geometry.templates import Skinning, build_template, ddc_spec
 
@@ -57,7 +58,7 @@ def write_posed_mesh(path: str | os.PathLike, verts: np.ndarray, character: Char
     elif suffix == ".ply":
         import trimesh
 
-        tmp = p.with_name(f".{p.name}.tmp-{os.getpid()}.ply")
+        tmp = temp_path(p, keep_suffix=True)
         trimesh.Trimesh(verts, character.mesh.faces, process=False).export(tmp)
         os.replace(tmp, p)
     else:

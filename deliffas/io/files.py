@@ -1,11 +1,20 @@
-"""File identity: the sha256 of a file's bytes, which manifests, runs and template specs record."""
+"""Files on disk: their identity (sha256, recorded by manifests, runs and template specs) and atomic replacement.
+
+Every writer in deliffas writes under :func:`temp_path` next to the final name and renames it into
+place, so a crash never leaves a half-written file under a final name; ``.<name>.tmp-<pid>`` files
+left by a crash are recognisable (``TMP_MARK``) and removed by the next run.
+"""
 
 from __future__ import annotations
 
 import hashlib
 import os
+from pathlib import Path
 
-__all__ = ["sha256_file"]
+__all__ = ["sha256_file", "temp_path", "durable_replace", "TMP_MARK"]
+
+TMP_MARK = ".tmp-"
+"""Part of every temporary file name (``.<name>.tmp-<pid>``)."""
 
 
 def sha256_file(path: str | os.PathLike, chunk: int = 1 << 22) -> str:
@@ -17,3 +26,22 @@ def sha256_file(path: str | os.PathLike, chunk: int = 1 << 22) -> str:
             if not block:
                 return h.hexdigest()
             h.update(block)
+
+
+def temp_path(path: str | os.PathLike, keep_suffix: bool = False) -> Path:
+    """The temporary name a file is written under before its atomic rename: ``.<name>.tmp-<pid>``
+    (``.<stem>.tmp-<pid><suffix>`` with ``keep_suffix``, for writers that choose a format by suffix)."""
+    p = Path(path)
+    if keep_suffix:
+        return p.with_name(f".{p.stem}{TMP_MARK}{os.getpid()}{p.suffix}")
+    return p.with_name(f".{p.name}{TMP_MARK}{os.getpid()}")
+
+
+def durable_replace(tmp: str | os.PathLike, final: str | os.PathLike) -> None:
+    """fsync ``tmp`` and rename it to ``final`` (atomic on POSIX within one file system)."""
+    fd = os.open(tmp, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    os.replace(tmp, final)

@@ -26,6 +26,8 @@ from typing import Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
+from deliffas.io.files import temp_path
+
 __all__ = [
     "FrameSource",
     "ImageFolderSource",
@@ -167,7 +169,7 @@ def write_image(root: str | os.PathLike, frame: int, camera: int, rgb: np.ndarra
     ok, buf = cv2.imencode(".png", bgra, [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION])
     if not ok:
         raise RuntimeError(f"{p}: PNG encoding failed")
-    tmp = p.with_name(f".{p.name}.tmp-{os.getpid()}")
+    tmp = temp_path(p)
     tmp.write_bytes(buf.tobytes())
     os.replace(tmp, p)
     return p

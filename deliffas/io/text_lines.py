@@ -6,6 +6,8 @@ import math
 import os
 from pathlib import Path
 
+from deliffas.io.files import temp_path
+
 __all__ = ["DynaCapFormatError", "TextLines", "read_text", "write_text_atomic"]
 
 
@@ -56,7 +58,7 @@ def write_text_atomic(path: str | os.PathLike, text: str, crlf: bool = False) ->
     p = Path(path)
     if crlf:
         text = text.replace("\r\n", "\n").replace("\n", "\r\n")
-    tmp = p.with_name(f".{p.name}.tmp-{os.getpid()}")
+    tmp = temp_path(p)
     with open(tmp, "w", encoding="utf-8", newline="") as fh:
         fh.write(text)
         fh.flush()

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from deliffas.data.shards import ShardSet, read_meta, write_meta
+from deliffas.data.shard_meta import read_meta, write_meta
+from deliffas.data.shards import ShardSet
 from deliffas.geometry.templates import (
     DDCTemplate,
     EmbeddedGraphTemplate,
