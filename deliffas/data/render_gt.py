@@ -27,6 +27,7 @@ import torch
 
 from deliffas.checks import check_shape
 from deliffas.io.cameras import Camera, pixel_centers
+from deliffas.geometry import raycast
 from deliffas.geometry.mesh_ops import vertex_normals
 from deliffas.geometry.sampling import sample_uv
 
@@ -73,12 +74,6 @@ def fibonacci_hemisphere(num: int) -> np.ndarray:
     return np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(1 - r**2)], axis=1)
 
 
-def _raycast():
-    from deliffas.geometry import raycast  # the module that owns open3d
-
-    return raycast
-
-
 def vertex_ambient_occlusion(verts: np.ndarray, faces: np.ndarray, normals: np.ndarray, num_dirs: int = 16,
                              max_dist: float = 250.0, seed: int = 0) -> np.ndarray:
     """Ambient-occlusion proxy of a posed mesh: fraction of unoccluded hemisphere rays per vertex.
@@ -96,7 +91,6 @@ def vertex_ambient_occlusion(verts: np.ndarray, faces: np.ndarray, normals: np.n
     """
     check_shape("verts", verts, "V 3")
     check_shape("normals", normals, "V 3", {"V": len(verts)})
-    rc = _raycast()
     num_verts = len(verts)
     local = fibonacci_hemisphere(num_dirs)  # (K, 3)
     angle = np.random.default_rng(seed).uniform(0, 2 * np.pi, num_verts)
@@ -110,8 +104,8 @@ def vertex_ambient_occlusion(verts: np.ndarray, faces: np.ndarray, normals: np.n
     dirs = (local[None, :, 0:1] * a1[:, None] + local[None, :, 1:2] * a2[:, None]
             + local[None, :, 2:3] * n[:, None])  # (V, K, 3)
     origins = np.broadcast_to((verts + 0.5 * n)[:, None], dirs.shape)  # 0.5 mm off the surface
-    scene = rc.build_scene(verts, faces)
-    t, _, _ = rc.first_hits(scene, origins.reshape(-1, 3), dirs.reshape(-1, 3))
+    scene = raycast.build_scene(verts, faces)
+    t, _, _ = raycast.first_hits(scene, origins.reshape(-1, 3), dirs.reshape(-1, 3))
     occluded = (t.reshape(num_verts, num_dirs) < max_dist)
     return (1.0 - occluded.mean(axis=1)).astype(np.float32)
 
@@ -164,7 +158,6 @@ def render_views(verts: np.ndarray, faces: np.ndarray, uvs: np.ndarray, face_uvs
     check_shape("faces", faces, "F 3")
     check_shape("face_uvs", face_uvs, "F 3", {"F": len(faces)})
     check_shape("texture", texture, "_ _ 3")
-    rc = _raycast()
     faces = np.asarray(faces, dtype=np.int64)
     f32 = np.float32  # shading in float32: 8-bit output, half the memory traffic
     vn = (vertex_normals(np.asarray(verts, np.float64), faces) if normals is None else np.asarray(normals)).astype(f32)
@@ -176,11 +169,11 @@ def render_views(verts: np.ndarray, faces: np.ndarray, uvs: np.ndarray, face_uvs
     light /= np.linalg.norm(light)
     bg = np.asarray(shading.background, f32)
     s = max(1, int(shading.supersample))
-    scene = rc.build_scene(verts, faces)
+    scene = raycast.build_scene(verts, faces)
     out = []
     for k, cam in enumerate(cameras):  # a handful of cameras; every pixel is vectorised
         origins, dirs = rays[k] if rays is not None else camera_rays(cam, s)
-        t, face, bary = rc.first_hits(scene, origins, dirs)
+        t, face, bary = raycast.first_hits(scene, origins, dirs)
         hit = face >= 0
         fh, bh, dh = face[hit], bary[hit], dirs[hit].astype(f32)
         fv = faces[fh]  # (M, 3)
