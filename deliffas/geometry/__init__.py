@@ -1,1 +1,2 @@
-"""Deformable templates, skinning, shells, UV atlases, normal maps and ray casting."""
+"""Arrays in, arrays out: templates (registry), skinning, shells, UV atlases, normal maps, ray casting,
+texture sampling and procedural bodies (the layer above io)."""
