@@ -19,76 +19,106 @@ CALIBRATION_HEADER = "Skeletool Camera Calibration File V1.0"
 def read_calibration(path: PathLike) -> list[Camera]:
     """Read ``cameras.calibration`` into Cameras (formats doc 1.9).
 
-    Animated cameras become one Camera per ``frame`` block, named ``<name>@<frame>`` (as DELIFFAS
-    reads free-viewpoint paths: one camera per extrinsic).
+    Animated cameras (``animated 1``) become one Camera per ``frame`` block, named
+    ``<name>@<frame>`` (as DELIFFAS reads free-viewpoint paths: one camera per extrinsic). A frame
+    block takes its own ``intrinsic``/``radial`` when it has them, else the latest ones of that
+    camera; every frame block needs its ``extrinsic``.
+
+    Raises:
+        DynaCapFormatError: naming the line, for a missing or malformed key, a frame block without
+            its extrinsic, a repeated frame, or an extrinsic that is not a rigid transform.
     """
     t = TextLines(path, what="calibration file")
     t.header((CALIBRATION_HEADER,))
     cams: list[Camera] = []
-    cur: dict | None = None
+    cam: dict | None = None  # the camera being read: name, line, sensor, size, animated, and its latest keys
+    block: dict | None = None  # the current frame block of an animated camera: frame, line, and its keys
 
-    def flush():
-        if cur is None:
-            return
+    def emit(keys: dict, name: str, line: int) -> None:
         for key in ("size", "intrinsic", "extrinsic"):
-            if key not in cur:
-                raise DynaCapFormatError(path, cur["line"], f"camera '{cur['name']}' lacks its '{key}' line")
-        suffix = f"@{cur['frame']}" if cur.get("frame") is not None else ""
-        K4, E = cur["intrinsic"], cur["extrinsic"]
+            if key not in keys:
+                raise DynaCapFormatError(path, line, f"camera '{name}' lacks its '{key}' line")
+        K4, E = keys["intrinsic"], keys["extrinsic"]
         if abs(E[3, 3] - 1) > 1e-6 or np.abs(E[3, :3]).max() > 1e-6:
-            raise DynaCapFormatError(path, cur["line"], f"camera '{cur['name']}': extrinsic last row must be 0 0 0 1")
+            raise DynaCapFormatError(path, line, f"camera '{name}': extrinsic last row must be 0 0 0 1")
         try:
-            cams.append(Camera(cur["name"] + suffix, K4[:3, :3].copy(), E.copy(), cur["size"][0], cur["size"][1],
-                               cur.get("sensor"), cur.get("radial", 0.0)))
-        except ValueError as err:  # e.g. singular intrinsics
-            raise DynaCapFormatError(path, cur["line"], f"camera '{cur['name']}': {err}") from None
+            cams.append(Camera(name, K4[:3, :3].copy(), E.copy(), keys["size"][0], keys["size"][1],
+                               keys.get("sensor"), keys.get("radial", 0.0)))
+        except ValueError as err:  # singular intrinsics, a scaled or mirrored rotation
+            raise DynaCapFormatError(path, line, f"camera '{name}': {err}") from None
+
+    def close_block() -> None:
+        nonlocal block
+        if block is None:
+            return
+        if "extrinsic" not in block:
+            raise DynaCapFormatError(path, block["line"], f"camera '{cam['name']}' frame {block['frame']} lacks its "
+                                                          "'extrinsic' line")
+        emit({**cam, **block}, f"{cam['name']}@{block['frame']}", block["line"])
+        for key in ("intrinsic", "radial"):  # later frames without their own take these
+            if key in block:
+                cam[key] = block[key]
+        block = None
+
+    def close_camera() -> None:
+        if cam is None:
+            return
+        if cam.get("animated"):
+            close_block()
+            if not cam["frames"]:
+                raise DynaCapFormatError(path, cam["line"], f"animated camera '{cam['name']}' has no 'frame' block")
+        else:
+            emit(cam, cam["name"], cam["line"])
 
     while not t.at_end():
         toks = t.next("a calibration line").split()
         key, vals = toks[0], toks[1:]
         if key == "name":
-            if cur is not None and not cur.get("emitted"):
-                flush()
+            close_camera()
             if len(vals) != 1:
                 raise t.error(f"expected 'name <id>', got {len(vals)} values")
-            cur = {"name": vals[0], "line": t.line_no}
+            cam = {"name": vals[0], "line": t.line_no, "frames": set()}
             continue
-        if cur is None:
+        if cam is None:
             raise t.error(f"expected 'name <id>' before '{key}'")
+        target = block if block is not None else cam
         if key == "sensor":
             if len(vals) != 2:
                 raise t.error(f"expected 'sensor w h', got {len(vals)} values")
-            cur["sensor"] = tuple(t.floats(vals, "sensor size"))
+            cam["sensor"] = tuple(t.floats(vals, "sensor size"))
         elif key == "size":
             if len(vals) != 2:
                 raise t.error(f"expected 'size W H', got {len(vals)} values")
             w, h = (t.to_int(v, "image size") for v in vals)
             if w <= 0 or h <= 0:
                 raise t.error(f"expected a positive image size, got {w}x{h}")
-            cur["size"] = (w, h)
+            cam["size"] = (w, h)
         elif key == "animated":
-            cur["animated"] = vals == ["1"]
+            if vals not in (["0"], ["1"]):
+                raise t.error(f"expected 'animated 0' or 'animated 1', got {' '.join(vals)[:20]!r}")
+            cam["animated"] = vals == ["1"]
         elif key == "frame":
-            if cur.get("frame") is not None and "extrinsic" in cur:
-                flush()
-            cur["frame"] = t.to_int(vals[0], "frame") if vals else 0
+            if not cam.get("animated"):
+                raise t.error(f"'frame' block in camera '{cam['name']}', which is not 'animated 1'")
+            close_block()
+            frame = t.to_int(vals[0], "frame") if vals else 0
+            if frame in cam["frames"]:
+                raise t.error(f"camera '{cam['name']}' has frame {frame} twice")
+            cam["frames"].add(frame)
+            block = {"frame": frame, "line": t.line_no}
         elif key in ("intrinsic", "extrinsic"):
             if len(vals) != 16:
                 raise t.error(f"expected 16 numbers after '{key}' (row-major 4x4), got {len(vals)}")
-            M = np.array(t.floats(vals, key)).reshape(4, 4)
-            cur[key] = M
-            if key == "extrinsic" and cur.get("animated") and "intrinsic" in cur and "size" in cur:
-                flush()
-                cur["emitted"] = True
+            target[key] = np.array(t.floats(vals, key)).reshape(4, 4)
         elif key == "radial":
             if vals:
-                cur["radial"] = t.to_float(vals[0], "radial coefficient")
+                target["radial"] = t.to_float(vals[0], "radial coefficient")
         elif key in ("polynomial", "polynomialC2W", "polynomialW2C", "imageCircleRadius", "affine"):
-            cur.setdefault("extra", {})[key] = vals  # fisheye model: kept out of the pinhole projection
+            cam.setdefault("extra", {})[key] = vals  # fisheye model: kept out of the pinhole projection
         else:
-            raise t.error(f"expected a calibration key (name, sensor, size, animated, intrinsic, extrinsic, radial), got '{key[:30]}'")
-    if cur is not None and not cur.get("emitted"):
-        flush()
+            raise t.error(f"expected a calibration key (name, sensor, size, animated, frame, intrinsic, extrinsic, "
+                          f"radial), got '{key[:30]}'")
+    close_camera()
     if not cams:
         raise DynaCapFormatError(path, 0, "expected at least one camera, got none")
     return cams

@@ -16,7 +16,11 @@ import numpy as np
 
 from deliffas.checks import check_finite, check_shape
 
-__all__ = ["Camera", "pixel_centers", "look_at"]
+__all__ = ["Camera", "pixel_centers", "look_at", "ROTATION_TOLERANCE"]
+
+ROTATION_TOLERANCE = 1e-4
+"""How far a camera's R may be from a rotation (max |R R^T - I| and |det R - 1|): calibration files
+print ~10 significant digits; a scaled or mirrored R is an error, not rounding."""
 
 
 def pixel_centers(width: int, height: int) -> np.ndarray:
@@ -87,6 +91,13 @@ class Camera:
             raise ValueError(f"camera {self.name} K: singular intrinsics (fx, fy must be non-zero, last row 0 0 1)")
         if self.width <= 0 or self.height <= 0:
             raise ValueError(f"camera {self.name}: image size must be positive, got {self.width}x{self.height}")
+        R = np.asarray(self.world_to_cam, np.float64)[:3, :3]
+        orth = float(np.abs(R @ R.T - np.eye(3)).max())
+        det = float(np.linalg.det(R))
+        if orth > ROTATION_TOLERANCE or abs(det - 1) > ROTATION_TOLERANCE:
+            # a scaled or mirrored R projects differently in every other format (COLMAP stores a quaternion)
+            raise ValueError(f"camera {self.name} world_to_cam: R must be a rotation (R R^T = I, det +1 within "
+                             f"{ROTATION_TOLERANCE}); got |R R^T - I| = {orth:.2g}, det = {det:.6g}")
 
     @property
     def R(self) -> np.ndarray:

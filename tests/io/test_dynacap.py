@@ -273,3 +273,47 @@ def test_bad_calibration(tmp_path):
     _expect_error(read_calibration, p, 2, "lacks its 'intrinsic'")
     p.write_text("Skeletool Camera File\n")
     _expect_error(read_calibration, p, 1, "header")
+
+
+_ANIMATED = """Skeletool Camera Calibration File V1.0
+name        0
+sensor      14.1864 10.3776
+size        64 48
+animated    1
+frame 0
+intrinsic   50 0 32 0 0 50 24 0 0 0 1 0 0 0 0 1
+extrinsic   1 0 0 0 0 1 0 0 0 0 1 3000 0 0 0 1
+radial      0
+frame 1
+extrinsic   1 0 0 10 0 1 0 0 0 0 1 3000 0 0 0 1
+frame 2
+intrinsic   60 0 32 0 0 60 24 0 0 0 1 0 0 0 0 1
+extrinsic   1 0 0 20 0 1 0 0 0 0 1 3000 0 0 0 1
+"""
+
+
+def test_animated_calibration_one_camera_per_frame_block(tmp_path):
+    p = tmp_path / "a.calibration"
+    p.write_text(_ANIMATED)
+    cams = read_calibration(p)
+    assert [c.name for c in cams] == ["0@0", "0@1", "0@2"]
+    assert [c.t[0] for c in cams] == [0, 10, 20]
+    assert [c.K[0, 0] for c in cams] == [50, 50, 60]  # frame 1 keeps frame 0's intrinsic
+
+
+def test_animated_frame_without_extrinsic_is_refused(tmp_path):
+    p = tmp_path / "a.calibration"
+    p.write_text(_ANIMATED.replace("extrinsic   1 0 0 10 0 1 0 0 0 0 1 3000 0 0 0 1\n", ""))
+    _expect_error(read_calibration, p, 10, r"camera '0' frame 1 lacks its 'extrinsic' line")
+    p.write_text(_ANIMATED.replace("frame 2", "frame 1"))
+    _expect_error(read_calibration, p, 12, "has frame 1 twice")
+    p.write_text(_ANIMATED.replace("animated    1", "animated    0"))
+    _expect_error(read_calibration, p, 6, "not 'animated 1'")
+
+
+@pytest.mark.parametrize("R, what", [("2 0 0 0 0 2 0 0 0 0 2", "scaled"), ("-1 0 0 0 0 1 0 0 0 0 1", "mirrored")])
+def test_extrinsic_must_be_a_rotation(tmp_path, R, what):
+    text = _ANIMATED.split("animated")[0] + "animated    0\nintrinsic   50 0 32 0 0 50 24 0 0 0 1 0 0 0 0 1\n"
+    p = tmp_path / f"{what}.calibration"
+    p.write_text(text + f"extrinsic   {R} 3000 0 0 0 1\n")
+    _expect_error(read_calibration, p, 2, r"R must be a rotation")
