@@ -87,7 +87,7 @@ def _frame_memory(shards, chunk: int = 16384) -> list[Result]:
 
 def _train_step(model, opt, sample, shared: bool):
     """One training step as a function of a StageTimer; ``shared`` encodes once per frame, else once per camera."""
-    from deliffas.engine.rays import stack_rays
+    from deliffas.engine.rays import ray_query, stack_rays
     from deliffas.engine.samples import composite_target
 
     K = sample.num_cameras
@@ -97,16 +97,16 @@ def _train_step(model, opt, sample, shared: bool):
     no = torch.from_numpy(sample.normal_outer)[None]
     groups = [list(range(K))] if shared else [[k] for k in range(K)]
     batches = [stack_rays([sample.rays[k] for k in g], [0] * len(g)) for g in groups]
+    queries = [ray_query(batch, model.spec) for batch in batches]
 
     def step(timer) -> None:
         loss = 0.0
         with timer.stage("total"):
-            for g, batch in zip(groups, batches):
+            for g, batch, query in zip(groups, batches, queries):
                 with timer.stage("cnn"):
                     feats = model.encode(ni, no)
                 with timer.stage("sample"):
-                    enc, f = model.gather_inputs(feats, batch.batch_index, batch.uv_inner, batch.uv_outer, None,
-                                                 batch.inner_from_outer)
+                    enc, f = model.gather_inputs(feats, query)
                 with timer.stage("mlp"):
                     pred = model.mlp(enc, f)
                 tgt = target[torch.as_tensor(g)].reshape(len(g), H * W, 3)[batch.image_index, batch.pixels]

@@ -19,7 +19,7 @@ from typing import Literal
 import numpy as np
 import torch
 
-from deliffas.engine.rays import camera_rays, stack_rays
+from deliffas.engine.rays import camera_rays, paint_images, ray_query, stack_rays
 from deliffas.engine.samples import FrameSample, composite_target
 from deliffas.engine.timing import StageTimer
 from deliffas.models.deliffas import DeliffasModel
@@ -70,30 +70,21 @@ def render_frame(model: DeliffasModel, sample: FrameSample, raycaster, device: t
 
     ``sample.rays`` is ignored: the rays are cast here so the ``uv`` stage is timed.
     """
-    cfg = model.config
+    spec = model.spec
     with timer.stage("cnn"):
-        ni = torch.from_numpy(sample.normal_inner)[None].to(device)
-        no = torch.from_numpy(sample.normal_outer)[None].to(device) if cfg.uses_outer_surface else None
-        features = model.encode(ni, no)
+        features = model.encode(*sample.normal_maps(device))
     images = []
     for cam in sample.cameras:
         with timer.stage("uv"):
-            rays = camera_rays(raycaster, cam)
-            batch = stack_rays([rays], [0]).to(device)
-        two = cfg.uses_outer_surface
-        args = (batch.batch_index, batch.uv_inner, batch.uv_outer if two else None,
-                batch.viewdir if cfg.uses_viewdir else None, batch.inner_from_outer if two else None)
+            batch = stack_rays([camera_rays(raycaster, cam)], [0]).to(device)
+            query = ray_query(batch, spec)
         pred_parts = []
-        for start in range(0, max(batch.num_rays, 1), chunk_size):
-            part = tuple(a[start:start + chunk_size] if a is not None else None for a in args)
+        for part in query.chunks(chunk_size):
             with timer.stage("sample"):
-                encoded, feats = model.gather_inputs(features, *part)
+                encoded, feats = model.gather_inputs(features, part)
             with timer.stage("mlp"):
                 pred_parts.append(model.mlp(encoded, feats))
-        pred = torch.cat(pred_parts) if pred_parts else torch.zeros(0, 3, device=device)
-        canvas = torch.zeros(cam.height * cam.width, 3, device=device)
-        canvas[batch.pixels] = pred
-        images.append(canvas.reshape(cam.height, cam.width, 3))
+        images.append(paint_images(torch.cat(pred_parts), batch, 1, cam.height, cam.width)[0])
     return torch.stack(images)
 
 
