@@ -10,6 +10,7 @@ import torch
 from benchmarks._capture import bench_capture
 from benchmarks._timing import BENCH_THREADS, torch_threads
 from benchmarks.common import Result
+from deliffas.models.unet import optimize_for_inference
 
 
 def _sample(shards, K: int = 4):
@@ -144,7 +145,7 @@ def run() -> list[Result]:
 
     subject, shards, _ = bench_capture()
     sample, info = _sample(shards)
-    model = _model(info).eval()
+    model = optimize_for_inference(_model(info).eval())  # as evaluate/render (load_run) run it
     rows = []
     with torch.no_grad():
         rows += _end_to_end(model, sample, info, sample.cameras[0], "256^2")

@@ -24,6 +24,7 @@ from deliffas.engine.samples import FrameSample, composite_target
 from deliffas.engine.timing import StageTimer
 from deliffas.models.deliffas import DeliffasModel
 from deliffas.models.metrics import Evaluator
+from deliffas.models.unet import optimize_for_inference
 from deliffas.models.zoo import load_checkpoint
 
 __all__ = ["EvalConfig", "evaluate", "render_frame", "load_run"]
@@ -56,11 +57,12 @@ class EvalConfig:
 
 
 def load_run(run: str | Path, device: str | torch.device = "cpu") -> tuple[DeliffasModel, dict]:
-    """The trained model (eval mode) and the run's recorded configuration."""
+    """The trained model (eval mode, U-Nets on their fused inference forward: ``optimize_for_inference``)
+    and the run's recorded configuration."""
     run = Path(run)
     ckpt = load_checkpoint(run / "checkpoint", device)
     record = json.loads((run / "train_config.json").read_text()) if (run / "train_config.json").is_file() else {}
-    return ckpt.model.eval(), record
+    return optimize_for_inference(ckpt.model.eval()), record
 
 
 @torch.no_grad()

@@ -7,7 +7,7 @@ from deliffas.models.losses import PerceptualLoss, l1_foreground
 from deliffas.models.metrics import Evaluator, perceptual_metrics_status, psnr, ssim
 from deliffas.models.ray_query import RayQuery
 from deliffas.geometry.sampling import sample_uv
-from deliffas.models.unet import UNet, UNetConfig
+from deliffas.models.unet import UNet, UNetConfig, optimize_for_inference
 from deliffas.models.variants import VariantSpec, get_variant, register_variant, variant_names
 from deliffas.models.vgg import BackboneRecord, PerceptualWeightsUnavailable, load_vgg16_weights
 from deliffas.models.zoo import CheckpointError, get_config, list_models, load_checkpoint, save_checkpoint
@@ -35,6 +35,7 @@ __all__ = [
     "list_models",
     "load_checkpoint",
     "load_vgg16_weights",
+    "optimize_for_inference",
     "perceptual_metrics_status",
     "positional_encoding",
     "psnr",

@@ -27,6 +27,7 @@ import torch
 
 from deliffas.engine.memory import peak_rss_growth as measure
 from deliffas.models.ray_query import RayQuery
+from deliffas.models.unet import optimize_for_inference
 
 
 def _paper_model(S: int):
@@ -47,7 +48,7 @@ def render(shards: str, width: int, height: int, zoom: float, chunks: list[str])
 
     S = 256
     torch.set_num_threads(1)
-    model = _paper_model(S).eval()
+    model = optimize_for_inference(_paper_model(S).eval())  # as evaluate/render (load_run) run it
     frame, info = _frame(shards, width, height, zoom, S, model.config.input_channels)
     cam = frame.cameras[0]
     raycaster = UVRaycaster(frame.inner_verts, info["faces"], frame.outer_verts, info["atlas"])
