@@ -19,9 +19,11 @@ from typing import Literal
 import numpy as np
 import torch
 
+from deliffas.engine.data_bridge import evaluation_samples
 from deliffas.engine.rays import camera_rays, paint_images, ray_query, stack_rays
 from deliffas.engine.samples import FrameSample, composite_target
 from deliffas.engine.timing import StageTimer
+from deliffas.geometry.raycast import UVRaycaster
 from deliffas.models.deliffas import DeliffasModel
 from deliffas.models.metrics import Evaluator
 from deliffas.models.unet import optimize_for_inference
@@ -92,9 +94,6 @@ def render_frame(model: DeliffasModel, sample: FrameSample, raycaster, device: t
 
 def evaluate(cfg: EvalConfig) -> dict:
     """Evaluate a run on a split; returns the JSON-ready result (see ``deliffas eval --json``)."""
-    from deliffas.engine.data_bridge import evaluation_samples
-    from deliffas.geometry.raycast import UVRaycaster
-
     device = torch.device(cfg.device)
     model, record = load_run(cfg.run, device)
     shards = cfg.shards or record.get("train", {}).get("shards")

@@ -14,6 +14,7 @@ import torch
 from deliffas.io.cameras import Camera, look_at
 from deliffas.engine.evaluate import load_run
 from deliffas.engine.rays import camera_rays, paint_images, ray_query, stack_rays
+from deliffas.geometry.raycast import UVRaycaster
 
 __all__ = ["RenderConfig", "render_video", "orbit_cameras", "render_images"]
 
@@ -61,8 +62,6 @@ def orbit_cameras(reference: Camera, centers: np.ndarray, radius: float, height:
 def render_images(model, normal_windows, geometry, faces, atlas, cameras: list[Camera], device: torch.device,
                   chunk_size: int = 262144, background: float = 0.0):
     """Yield one (H, W, 3) uint8 image per frame: frame i seen by ``cameras[i]``."""
-    from deliffas.geometry.raycast import UVRaycaster
-
     for i, cam in enumerate(cameras):
         ni, no = (w.float()[None].to(device) for w in normal_windows(i))
         features = model.encode(ni, no)
