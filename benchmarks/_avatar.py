@@ -160,14 +160,12 @@ def random_features(model, seed: int = 0):
     gen = torch.Generator().manual_seed(seed)
     shape = (1, cfg.feature_channels, cfg.atlas_res, cfg.atlas_res)
     maps = [torch.rand(shape, generator=gen).contiguous(memory_format=torch.channels_last) for _ in range(2)]
-    return FrameFeatures(inner=maps[0], outer=maps[1] if cfg.uses_outer_surface else None)
+    return FrameFeatures(inner=maps[0], outer=maps[1] if model.spec.outer_unet else None)
 
 
-def ray_tensors(r) -> dict:
-    """The ``shade`` arguments of a ``CameraRays`` as torch tensors (batch index 0)."""
-    return {
-        "batch_index": torch.zeros(r.num_rays, dtype=torch.long),
-        "uv_inner": torch.from_numpy(r.uv_inner),
-        "uv_outer": torch.from_numpy(r.uv_outer),
-        "inner_from_outer": torch.from_numpy(r.inner_from_outer),
-    }
+def ray_query(r):
+    """The two-surface ``RayQuery`` of a ``CameraRays`` (batch index 0)."""
+    from deliffas.models.ray_query import RayQuery
+
+    return RayQuery(batch_index=torch.zeros(r.num_rays, dtype=torch.long), uv_inner=torch.from_numpy(r.uv_inner),
+                    uv_outer=torch.from_numpy(r.uv_outer), inner_from_outer=torch.from_numpy(r.inner_from_outer))

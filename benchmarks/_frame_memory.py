@@ -25,7 +25,7 @@ def main(shards: str, chunk: int) -> dict:
     from deliffas.engine.timing import StageTimer
     from deliffas.engine.train import TrainConfig, resolve_model_config
     from deliffas.geometry.raycast import UVRaycaster
-    from deliffas.models import DeliffasModel
+    from deliffas.models import DeliffasModel, optimize_for_inference
 
     torch.set_num_threads(1)
     samples, info = evaluation_samples(shards, "all", max_frames=1, protocol="all")
@@ -35,6 +35,7 @@ def main(shards: str, chunk: int) -> dict:
     torch.manual_seed(0)
     model = DeliffasModel(resolve_model_config(TrainConfig(shards="-", out="-", preset="paper"), info["atlas_res"],
                                                info["temporal_window"])).eval()
+    optimize_for_inference(model)  # as evaluate/render (load_run) run it
     raycaster = UVRaycaster(frame.inner_verts, info["faces"], frame.outer_verts, info["atlas"])
     cpu = torch.device("cpu")
     small = dataclasses.replace(frame, cameras=[cam.rescaled(48, 64)])

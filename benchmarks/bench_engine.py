@@ -10,6 +10,7 @@ import torch
 from benchmarks._capture import bench_capture
 from benchmarks._timing import BENCH_THREADS, torch_threads
 from benchmarks.common import Result
+from deliffas.models.unet import optimize_for_inference
 
 
 def _sample(shards, K: int = 4):
@@ -87,7 +88,7 @@ def _frame_memory(shards, chunk: int = 16384) -> list[Result]:
 
 def _train_step(model, opt, sample, shared: bool):
     """One training step as a function of a StageTimer; ``shared`` encodes once per frame, else once per camera."""
-    from deliffas.engine.rays import stack_rays
+    from deliffas.engine.rays import ray_query, stack_rays
     from deliffas.engine.samples import composite_target
 
     K = sample.num_cameras
@@ -97,16 +98,16 @@ def _train_step(model, opt, sample, shared: bool):
     no = torch.from_numpy(sample.normal_outer)[None]
     groups = [list(range(K))] if shared else [[k] for k in range(K)]
     batches = [stack_rays([sample.rays[k] for k in g], [0] * len(g)) for g in groups]
+    queries = [ray_query(batch, model.spec) for batch in batches]
 
     def step(timer) -> None:
         loss = 0.0
         with timer.stage("total"):
-            for g, batch in zip(groups, batches):
+            for g, batch, query in zip(groups, batches, queries):
                 with timer.stage("cnn"):
                     feats = model.encode(ni, no)
                 with timer.stage("sample"):
-                    enc, f = model.gather_inputs(feats, batch.batch_index, batch.uv_inner, batch.uv_outer, None,
-                                                 batch.inner_from_outer)
+                    enc, f = model.gather_inputs(feats, query)
                 with timer.stage("mlp"):
                     pred = model.mlp(enc, f)
                 tgt = target[torch.as_tensor(g)].reshape(len(g), H * W, 3)[batch.image_index, batch.pixels]
@@ -144,7 +145,7 @@ def run() -> list[Result]:
 
     subject, shards, _ = bench_capture()
     sample, info = _sample(shards)
-    model = _model(info).eval()
+    model = optimize_for_inference(_model(info).eval())  # as evaluate/render (load_run) run it
     rows = []
     with torch.no_grad():
         rows += _end_to_end(model, sample, info, sample.cameras[0], "256^2")

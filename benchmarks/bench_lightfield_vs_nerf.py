@@ -116,10 +116,10 @@ def _run(av: _avatar.Avatar) -> list[Result]:
     for size in ("256^2", "940x1285"):
         cam = _avatar.camera(av, size)
         rays = _avatar.rays(size)
-        args = _avatar.ray_tensors(rays)
+        query = _avatar.ray_query(rays)
         n = rays.num_rays
         with torch.inference_mode():
-            enc, feats = model.gather_inputs(features, **args)
+            enc, feats = model.gather_inputs(features, query)
         # NeRF rays: the first shaded pixels of the same camera
         sub = rays.pixels[:NERF_RAYS]
         rows, cols = np.divmod(sub, cam.width)
@@ -136,7 +136,7 @@ def _run(av: _avatar.Avatar) -> list[Result]:
             # short stages get many rounds (best of them); the NeRF renderer a few
             t = best_times({
                 "uv": uv,
-                "sample": lambda: model.gather_inputs(features, **args),
+                "sample": lambda: model.gather_inputs(features, query),
                 "mlp": lambda: model.mlp(enc, feats),
             }, repeat=2, min_time=6.0, max_rounds=30)  # fmt: skip
             t.update(best_times({"nerf": lambda: nerf_render(nerf, o_t, d_t, near_t, far_t, NERF_SAMPLES, pe)}, repeat=3))

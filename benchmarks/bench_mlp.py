@@ -67,7 +67,7 @@ def _run(av: _avatar.Avatar) -> list[Result]:
     for size in ("256^2", "940x1285"):
         r = _avatar.rays(size)
         with torch.inference_mode():
-            enc, feats = model.gather_inputs(features, **_avatar.ray_tensors(r))
+            enc, feats = model.gather_inputs(features, _avatar.ray_query(r))
             n = enc.shape[0]
             t = best_times({"mlp": lambda: mlp32(enc, feats), "mm": matmul_chain(mlp32, n, torch.float32)},
                            repeat=REPEATS[size], min_time=3.0, max_rounds=40)

@@ -47,14 +47,14 @@ def conv_flops(model: nn.Module, x: torch.Tensor) -> int:
 
 
 def _unet(preset: str, size: int):
-    from deliffas.models.unet import UNet, UNetConfig
+    from deliffas.models.unet import UNet, UNetConfig, optimize_for_inference
 
     if preset == "paper":
         cfg = UNetConfig(in_channels=9, out_channels=32, norm="affine")
     else:
         cfg = UNetConfig(in_channels=9, out_channels=32, base_channels=8, max_channels=64, norm="affine")
     torch.manual_seed(0)
-    return UNet(cfg, size).eval()
+    return optimize_for_inference(UNet(cfg, size).eval())
 
 
 def run() -> list[Result]:

@@ -39,6 +39,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Mapping, Sequence
 
+from deliffas.engine.data_bridge import shard_info
+from deliffas.engine.evaluate import EvalConfig, evaluate
+from deliffas.engine.train import train
+from deliffas.models.zoo import get_config
+
 __all__ = ["AutoCapacityConfig", "Candidate", "auto_capacity", "default_ladder", "choose"]
 
 logger = logging.getLogger(__name__)
@@ -115,8 +120,6 @@ def default_ladder(model: str, preset: str) -> list[Candidate]:
     choosing the MLP depth: (x1/4, depth / 2), (x1/2, depth / 2), (x1/2, depth), (x1, depth) = the
     preset, (x2, depth). Features enter the MLP after the same relative layer as in the preset.
     """
-    from deliffas.models.zoo import get_config
-
     cfg = get_config(model, preset)
     depth, width, fl = cfg.mlp.depth, cfg.mlp.width, cfg.mlp.feature_layer
     base, top = cfg.unet.base_channels, cfg.unet.max_channels
@@ -223,10 +226,6 @@ def auto_capacity(train_cfg, ac_cfg: AutoCapacityConfig | None = None) -> dict:
     Raises:
         RuntimeError: every candidate failed (the record is written first).
     """
-    from deliffas.engine.data_bridge import shard_info
-    from deliffas.engine.evaluate import EvalConfig, evaluate
-    from deliffas.engine.train import train
-
     ac_cfg = ac_cfg or AutoCapacityConfig()
     out = Path(train_cfg.out)
     out.mkdir(parents=True, exist_ok=True)

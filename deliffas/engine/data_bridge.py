@@ -81,18 +81,18 @@ class _EndlessCameraSampler(Sampler):
             yield from RandomCameraSampler(self.dataset, self.k, g)
 
 
-def training_stream(cfg, rank: int = 0, world: int = 1, start_iteration: int = 0) -> tuple[Iterator[FrameSample], dict]:
+def training_stream(cfg, temporal_window: int, rank: int = 0, world: int = 1,
+                    start_iteration: int = 0) -> tuple[Iterator[FrameSample], dict]:
     """Endless training samples (one frame, ``cfg.cameras_per_frame`` random training cameras).
 
     Args:
         cfg: a ``TrainConfig``.
+        temporal_window: T of the model being trained (its resolved config's, so the normal-map
+            windows match its U-Nets' inputs); at most the window the shards store.
         rank, world: distributed rank and size (each rank draws its own frames).
         start_iteration: iteration resumed from (changes the draw so a resumed run sees new samples).
     """
-    from deliffas.models.zoo import get_config
-
-    T = get_config(cfg.model, cfg.preset).temporal_window
-    info = shard_info(cfg.shards, T)
+    info = shard_info(cfg.shards, temporal_window)
     ds = ShardDataset(cfg.shards, split="train", cameras_per_item=cfg.cameras_per_frame,
                       temporal_window=info["temporal_window"], protocol=getattr(cfg, "protocol", "paper"))
     if len(ds.frames) == 0:

@@ -17,7 +17,11 @@ from pathlib import Path
 
 import numpy as np
 
+from deliffas.engine.evaluate import EvalConfig, evaluate
+from deliffas.engine.render import RenderConfig, render_video
+from deliffas.engine.report import results_table, speed_accuracy_chart
 from deliffas.engine.run_sizes import RunSizes
+from deliffas.engine.train import TrainConfig, train
 
 __all__ = ["DemoConfig", "run_demo"]
 
@@ -46,10 +50,6 @@ def run_demo(cfg: DemoConfig = DemoConfig()) -> Path:
     """Run the whole path and return the path of ``report.md``."""
     from deliffas.data.convert import ConvertConfig, convert
     from deliffas.data.synth import SynthConfig, synthesize_capture
-    from deliffas.engine.evaluate import EvalConfig, evaluate
-    from deliffas.engine.render import RenderConfig, render_video
-    from deliffas.engine.report import results_table, speed_accuracy_chart
-    from deliffas.engine.train import TrainConfig, train
 
     if cfg.quick:
         cfg = dataclasses.replace(cfg, sizes=RunSizes.quick(), jobs=1)
@@ -134,8 +134,6 @@ def _comparison_image(out: Path, rows: list[dict], subject: Path) -> Path | None
 
 def _write_report(out: Path, cfg: DemoConfig, rows: list[dict], timings: dict, chart: Path, video: Path | None,
                   comparison: Path | None) -> Path:
-    from deliffas.engine.report import results_table
-
     sz = cfg.sizes
     lines = ["# deliffas demo", "",
              f"Synthetic capture of the procedural character: {sz.frames} training frames, {sz.test_frames} "

@@ -19,11 +19,14 @@ from typing import Literal
 import numpy as np
 import torch
 
-from deliffas.engine.rays import camera_rays, stack_rays
+from deliffas.engine.data_bridge import evaluation_samples
+from deliffas.engine.rays import camera_rays, paint_images, ray_query, stack_rays
 from deliffas.engine.samples import FrameSample, composite_target
 from deliffas.engine.timing import StageTimer
+from deliffas.geometry.raycast import UVRaycaster
 from deliffas.models.deliffas import DeliffasModel
 from deliffas.models.metrics import Evaluator
+from deliffas.models.unet import optimize_for_inference
 from deliffas.models.zoo import load_checkpoint
 
 __all__ = ["EvalConfig", "evaluate", "render_frame", "load_run"]
@@ -56,11 +59,12 @@ class EvalConfig:
 
 
 def load_run(run: str | Path, device: str | torch.device = "cpu") -> tuple[DeliffasModel, dict]:
-    """The trained model (eval mode) and the run's recorded configuration."""
+    """The trained model (eval mode, U-Nets on their fused inference forward: ``optimize_for_inference``)
+    and the run's recorded configuration."""
     run = Path(run)
     ckpt = load_checkpoint(run / "checkpoint", device)
     record = json.loads((run / "train_config.json").read_text()) if (run / "train_config.json").is_file() else {}
-    return ckpt.model.eval(), record
+    return optimize_for_inference(ckpt.model.eval()), record
 
 
 @torch.no_grad()
@@ -70,38 +74,26 @@ def render_frame(model: DeliffasModel, sample: FrameSample, raycaster, device: t
 
     ``sample.rays`` is ignored: the rays are cast here so the ``uv`` stage is timed.
     """
-    cfg = model.config
+    spec = model.spec
     with timer.stage("cnn"):
-        ni = torch.from_numpy(sample.normal_inner)[None].to(device)
-        no = torch.from_numpy(sample.normal_outer)[None].to(device) if cfg.uses_outer_surface else None
-        features = model.encode(ni, no)
+        features = model.encode(*sample.normal_maps(device))
     images = []
     for cam in sample.cameras:
         with timer.stage("uv"):
-            rays = camera_rays(raycaster, cam)
-            batch = stack_rays([rays], [0]).to(device)
-        two = cfg.uses_outer_surface
-        args = (batch.batch_index, batch.uv_inner, batch.uv_outer if two else None,
-                batch.viewdir if cfg.uses_viewdir else None, batch.inner_from_outer if two else None)
+            batch = stack_rays([camera_rays(raycaster, cam)], [0]).to(device)
+            query = ray_query(batch, spec)
         pred_parts = []
-        for start in range(0, max(batch.num_rays, 1), chunk_size):
-            part = tuple(a[start:start + chunk_size] if a is not None else None for a in args)
+        for part in query.chunks(chunk_size):
             with timer.stage("sample"):
-                encoded, feats = model.gather_inputs(features, *part)
+                encoded, feats = model.gather_inputs(features, part)
             with timer.stage("mlp"):
                 pred_parts.append(model.mlp(encoded, feats))
-        pred = torch.cat(pred_parts) if pred_parts else torch.zeros(0, 3, device=device)
-        canvas = torch.zeros(cam.height * cam.width, 3, device=device)
-        canvas[batch.pixels] = pred
-        images.append(canvas.reshape(cam.height, cam.width, 3))
+        images.append(paint_images(torch.cat(pred_parts), batch, 1, cam.height, cam.width)[0])
     return torch.stack(images)
 
 
 def evaluate(cfg: EvalConfig) -> dict:
     """Evaluate a run on a split; returns the JSON-ready result (see ``deliffas eval --json``)."""
-    from deliffas.engine.data_bridge import evaluation_samples
-    from deliffas.geometry.raycast import UVRaycaster
-
     device = torch.device(cfg.device)
     model, record = load_run(cfg.run, device)
     shards = cfg.shards or record.get("train", {}).get("shards")

@@ -1,5 +1,9 @@
 """Per-camera ray sets of one frame: which pixels the light field shades and with which uvs.
 
+The engine's one way from rays to the model and back: :func:`ray_query` turns a :class:`RayBatch`
+into the model's :class:`~deliffas.models.ray_query.RayQuery` for a variant's spec, and
+:func:`paint_images` writes the shaded colours into images (train, evaluate and render use both).
+
 A pixel is shaded when its ray meets the outer surface (the offset shell encloses the inner
 surface, so this is the template silhouette dilated by the offset — DELIFFAS uses a 4-px dilated
 silhouette of the same role). Its inner sample is the inner hit, or the outer exit hit where the
@@ -14,11 +18,14 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from deliffas.io.cameras import Camera
+from deliffas.checks import check_shape
 from deliffas.geometry.atlas import UVAtlas
 from deliffas.geometry.raycast import UVRaycaster, uv_inner_or_exit
+from deliffas.io.cameras import Camera
+from deliffas.models.ray_query import RayQuery
+from deliffas.models.variants import VariantSpec
 
-__all__ = ["CameraRays", "camera_rays", "frame_rays", "RayBatch", "stack_rays"]
+__all__ = ["CameraRays", "camera_rays", "frame_rays", "RayBatch", "stack_rays", "ray_query", "paint_images"]
 
 
 @dataclass(frozen=True)
@@ -114,3 +121,31 @@ def stack_rays(rays: Sequence[CameraRays], frame_of_image: Sequence[int]) -> Ray
         inner_from_outer=cat("inner_from_outer"),
         viewdir=cat("viewdir"),
     )
+
+
+def ray_query(batch: RayBatch, spec: VariantSpec) -> RayQuery:
+    """The model's inputs for ``batch``: the per-ray fields ``spec`` reads, None for the others."""
+    return RayQuery(
+        batch_index=batch.batch_index,
+        uv_inner=batch.uv_inner,
+        uv_outer=batch.uv_outer if spec.uses_uv_outer else None,
+        viewdir=batch.viewdir if spec.viewdir else None,
+        inner_from_outer=batch.inner_from_outer if spec.inner_from_outer else None,
+    )
+
+
+def paint_images(colors: torch.Tensor, batch: RayBatch, num_images: int, height: int, width: int,
+                 background: float = 0.0) -> torch.Tensor:
+    """Images (num_images, H, W, 3) with each ray's colour at its pixel and ``background`` elsewhere.
+
+    Args:
+        colors: (N, 3) shaded colours of ``batch``'s rays (differentiable: the result is built
+            out of place, so gradients reach ``colors``).
+        batch: the rays (their ``image_index`` and flat ``pixels``).
+        num_images, height, width: the canvas.
+        background: value of the pixels no ray paints.
+    """
+    check_shape("colors", colors, f"{batch.num_rays} 3")
+    canvas = colors.new_full((num_images, height * width, 3), background)
+    canvas = canvas.index_put((batch.image_index, batch.pixels), colors)
+    return canvas.reshape(num_images, height, width, 3)

@@ -18,7 +18,8 @@ from deliffas.geometry.atlas import TexelTable, UVAtlas
 from deliffas.geometry.frame_geometry import FrameGeometryBuilder
 from deliffas.geometry.templates import build_template
 from deliffas.engine.evaluate import load_run
-from deliffas.engine.rays import camera_rays, stack_rays
+from deliffas.engine.rays import camera_rays, paint_images, ray_query, stack_rays
+from deliffas.geometry.raycast import UVRaycaster
 
 __all__ = ["RenderConfig", "render_video", "orbit_cameras", "render_images"]
 
@@ -66,21 +67,14 @@ def orbit_cameras(reference: Camera, centers: np.ndarray, radius: float, height:
 def render_images(model, normal_windows, geometry, faces, atlas, cameras: list[Camera], device: torch.device,
                   chunk_size: int = 262144, background: float = 0.0):
     """Yield one (H, W, 3) uint8 image per frame: frame i seen by ``cameras[i]``."""
-    from deliffas.geometry.raycast import UVRaycaster
-
-    cfg = model.config
     for i, cam in enumerate(cameras):
         ni, no = (w.float()[None].to(device) for w in normal_windows(i))
-        features = model.encode(ni, no if cfg.uses_outer_surface else None)
+        features = model.encode(ni, no)
         raycaster = UVRaycaster(geometry.inner[i], faces, geometry.outer[i], atlas)
         batch = stack_rays([camera_rays(raycaster, cam)], [0]).to(device)
-        two = cfg.uses_outer_surface
-        rgb = model.shade_chunked(features, batch.batch_index, batch.uv_inner, batch.uv_outer if two else None,
-                                  batch.viewdir if cfg.uses_viewdir else None, batch.inner_from_outer if two else None,
-                                  chunk_size=chunk_size)
-        canvas = torch.full((cam.height * cam.width, 3), background, device=device)
-        canvas[batch.pixels] = rgb
-        yield (canvas.reshape(cam.height, cam.width, 3).clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
+        rgb = model.shade_chunked(features, ray_query(batch, model.spec), chunk_size=chunk_size)
+        image = paint_images(rgb, batch, 1, cam.height, cam.width, background)[0]
+        yield (image.clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
 
 
 def _default_motion(subject: Path) -> Path:

@@ -51,6 +51,12 @@ class FrameSample:
     def num_cameras(self) -> int:
         return len(self.cameras)
 
+    def normal_maps(self, device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
+        """The U-Nets' inputs: inner and outer temporal normal maps, each (1, 3 (T + 1), S, S) on
+        ``device`` (``DeliffasModel.encode`` ignores the outer one when the variant has no outer U-Net)."""
+        return (torch.from_numpy(self.normal_inner)[None].to(device),
+                torch.from_numpy(self.normal_outer)[None].to(device))
+
 
 def composite_target(images: np.ndarray | torch.Tensor, masks: np.ndarray | torch.Tensor) -> torch.Tensor:
     """Training target: (K, H, W, 3) images in [0, 1] over a black background by the (K, H, W) masks.

@@ -5,8 +5,10 @@ from deliffas.models.encoding import PositionalEncoding, positional_encoding
 from deliffas.models.light_field import LightFieldMLP, LightFieldMLPConfig
 from deliffas.models.losses import PerceptualLoss, l1_foreground
 from deliffas.models.metrics import Evaluator, perceptual_metrics_status, psnr, ssim
+from deliffas.models.ray_query import RayQuery
 from deliffas.geometry.sampling import sample_uv
-from deliffas.models.unet import UNet, UNetConfig
+from deliffas.models.unet import UNet, UNetConfig, optimize_for_inference
+from deliffas.models.variants import VariantSpec, get_variant, register_variant, variant_names
 from deliffas.models.vgg import BackboneRecord, PerceptualWeightsUnavailable, load_vgg16_weights
 from deliffas.models.zoo import CheckpointError, get_config, list_models, load_checkpoint, save_checkpoint
 
@@ -23,17 +25,23 @@ __all__ = [
     "PerceptualLoss",
     "PerceptualWeightsUnavailable",
     "PositionalEncoding",
+    "RayQuery",
     "UNet",
     "UNetConfig",
+    "VariantSpec",
     "get_config",
+    "get_variant",
     "l1_foreground",
     "list_models",
     "load_checkpoint",
     "load_vgg16_weights",
+    "optimize_for_inference",
     "perceptual_metrics_status",
     "positional_encoding",
     "psnr",
+    "register_variant",
     "sample_uv",
     "save_checkpoint",
     "ssim",
+    "variant_names",
 ]

@@ -5,12 +5,14 @@ A frame is rendered in two stages (architecture.md):
 1. :meth:`DeliffasModel.encode`: U-Net(s) turn the frame's temporal normal maps into atlas-space
    feature maps (:class:`FrameFeatures`). This depends on the frame only: compute it once and
    reuse it for every camera of that frame.
-2. :meth:`DeliffasModel.shade`: per ray, sample the feature maps at the ray's surface uv
-   (:func:`deliffas.geometry.sampling.sample_uv`), encode the uv (and the view direction for one
-   variant) and evaluate the light-field MLP -> RGB. :meth:`DeliffasModel.shade_chunked` does
-   the same in chunks of rays for bounded memory.
+2. :meth:`DeliffasModel.shade`: per ray (a :class:`~deliffas.models.ray_query.RayQuery`), sample
+   the feature maps at the ray's surface uvs (:func:`deliffas.geometry.sampling.sample_uv`),
+   encode the uvs (and the view direction where the variant asks) and evaluate the light-field
+   MLP -> RGB. :meth:`DeliffasModel.shade_chunked` does the same in chunks of rays for bounded
+   memory.
 
-Variants (paper section 4.4 and appendix):
+What each variant's U-Nets and MLP take is its :class:`~deliffas.models.variants.VariantSpec`
+(``ModelConfig.variant`` names it; the paper's four are in :mod:`deliffas.models.variants`):
 
 =============================  ===========================================  ==================================
 variant                        MLP input (encoded)                          features (MLP, after feature_layer)
@@ -23,30 +25,32 @@ variant                        MLP input (encoded)                          feat
 
 Depth peeling (formats doc 3.4): for rays that miss the inner surface the caller passes the outer
 surface's exit-hit uv as ``uv_inner`` and sets ``inner_from_outer``; the "inner" feature of those
-rays is then read from the *outer* feature map at that uv. Only ``two_surface`` has an outer map.
+rays is then read from the *outer* feature map at that uv. Only variants whose spec allows it
+(``two_surface``) accept True entries.
 """
 
 from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import Literal
 
 import torch
 from torch import nn
 
 from deliffas.checks import check_shape
+from deliffas.geometry.sampling import sample_uv
 from deliffas.models.encoding import PositionalEncoding
 from deliffas.models.light_field import LightFieldMLP, LightFieldMLPConfig
-from deliffas.geometry.sampling import sample_uv
+from deliffas.models.ray_query import RayQuery
 from deliffas.models.unet import UNet, UNetConfig
+from deliffas.models.variants import PAPER_VARIANTS, VariantSpec, get_variant
 
-__all__ = ["Variant", "VARIANTS", "ModelConfig", "FrameFeatures", "DeliffasModel"]
+__all__ = ["VARIANTS", "ModelConfig", "FrameFeatures", "DeliffasModel"]
 
 logger = logging.getLogger(__name__)
 
-Variant = Literal["single_surface", "single_surface_viewdir", "single_surface_two_unet", "two_surface"]
-VARIANTS: tuple[str, ...] = ("single_surface", "single_surface_viewdir", "single_surface_two_unet", "two_surface")
+VARIANTS: tuple[str, ...] = tuple(spec.name for spec in PAPER_VARIANTS)
+"""Names of the paper's four variants (the registry may hold more: ``variants.variant_names()``)."""
 
 #: FLOPs of one bilinear lookup per channel: 4 taps x (multiply + add).
 _BILINEAR_FLOPS_PER_CHANNEL = 8
@@ -56,8 +60,10 @@ _BILINEAR_FLOPS_PER_CHANNEL = 8
 class ModelConfig:
     """Configuration of :class:`DeliffasModel` (all sizes; nothing here is a path)."""
 
-    variant: Variant = "two_surface"
-    """Which model: ``two_surface`` is DELIFFAS; the others are the paper's ablations."""
+    variant: str = "two_surface"
+    """Name of a registered :class:`~deliffas.models.variants.VariantSpec`: ``two_surface`` is
+    DELIFFAS; ``single_surface``, ``single_surface_viewdir``, ``single_surface_two_unet`` the paper's
+    ablations."""
     atlas_res: int = 1024
     """S: side of the square uv atlas, of the normal maps and of the feature maps."""
     temporal_window: int = 2
@@ -77,8 +83,10 @@ class ModelConfig:
     """C: channels of each U-Net's feature map."""
 
     def __post_init__(self) -> None:
-        if self.variant not in VARIANTS:
-            raise ValueError(f"ModelConfig: variant must be one of {VARIANTS}, got {self.variant!r}")
+        try:
+            get_variant(self.variant)
+        except ValueError as exc:
+            raise ValueError(f"ModelConfig: {exc}") from None
         if self.atlas_res < 2:
             raise ValueError(f"ModelConfig: atlas_res must be >= 2, got {self.atlas_res}")
         if self.temporal_window < 0:
@@ -106,14 +114,9 @@ class ModelConfig:
         return 3 * (self.temporal_window + 1)
 
     @property
-    def uses_outer_surface(self) -> bool:
-        """True for ``two_surface``: needs outer normal maps and ``uv_outer``."""
-        return self.variant == "two_surface"
-
-    @property
-    def uses_viewdir(self) -> bool:
-        """True for ``single_surface_viewdir``: needs per-ray view directions."""
-        return self.variant == "single_surface_viewdir"
+    def spec(self) -> VariantSpec:
+        """The registered spec of ``variant``: which U-Nets and per-ray inputs the model uses."""
+        return get_variant(self.variant)
 
 
 @dataclass(frozen=True)
@@ -121,10 +124,11 @@ class FrameFeatures:
     """Feature maps of one batch of frames; camera-independent (reuse for every camera).
 
     Attributes:
-        inner: (B, C_inner, S, S) float in [0, 1]: the inner U-Net's map (C_inner = C), or both
-            inner U-Nets' maps concatenated along channels for ``single_surface_two_unet``
-            (C_inner = 2C).
-        outer: (B, C, S, S) float in [0, 1], outer U-Net's map; None unless ``two_surface``.
+        inner: (B, C_inner, S, S) float in [0, 1]: the inner U-Net's map (C_inner = C), or the
+            maps of n inner U-Nets concatenated along channels (C_inner = n C, e.g.
+            ``single_surface_two_unet``).
+        outer: (B, C, S, S) float in [0, 1], outer U-Net's map; None unless the variant has an
+            outer U-Net (``two_surface``).
 
     :meth:`DeliffasModel.encode` stores both in channels_last memory format (texel channels
     adjacent), which makes the per-ray lookups several times faster on large maps.
@@ -140,42 +144,42 @@ class FrameFeatures:
 
 
 class DeliffasModel(nn.Module):
-    """DELIFFAS (``two_surface``) or one of its ablation variants.
+    """DELIFFAS (``two_surface``) or another registered variant.
 
     Args:
-        config: the model configuration; every submodule is built from it.
+        config: the model configuration; every submodule is built from it and its variant's spec.
 
     Attributes:
-        unet_inner: U-Net on the inner normal maps.
-        unet_inner_2: second U-Net on the inner maps (``single_surface_two_unet`` only, else None).
-        unet_outer: U-Net on the outer normal maps (``two_surface`` only, else None).
-        pe_uv: uv positional encoding; pe_viewdir: view-direction encoding (viewdir variant only).
+        spec: the variant's :class:`~deliffas.models.variants.VariantSpec`.
+        unet_inner: U-Net on the inner normal maps; ``unet_inner_2`` .. ``unet_inner_<n>`` the
+            further inner U-Nets of the spec (``unet_inner_2`` is None when it has one).
+        unet_outer: U-Net on the outer normal maps (None unless the spec has one).
+        pe_uv: uv positional encoding; pe_viewdir: view-direction encoding (None unless the spec
+            feeds the view direction).
         mlp: the light-field MLP.
     """
 
     def __init__(self, config: ModelConfig) -> None:
         super().__init__()
         self.config = config
+        self.spec = spec = config.spec
         unet_cfg = config.unet
         assert unet_cfg is not None  # filled by ModelConfig.__post_init__
         size = config.atlas_res
         self.unet_inner = UNet(unet_cfg, size)
-        self.unet_inner_2 = UNet(unet_cfg, size) if config.variant == "single_surface_two_unet" else None
-        self.unet_outer = UNet(unet_cfg, size) if config.variant == "two_surface" else None
+        # attribute names unet_inner_2, ... keep the state_dict keys of earlier checkpoints
+        self.unet_inner_2 = None
+        for i in range(2, spec.inner_unets + 1):
+            setattr(self, f"unet_inner_{i}", UNet(unet_cfg, size))
+        self.unet_outer = UNet(unet_cfg, size) if spec.outer_unet else None
         self.pe_uv = PositionalEncoding(2, config.pe_freqs)
-        self.pe_viewdir = PositionalEncoding(3, config.viewdir_pe_freqs) if config.uses_viewdir else None
+        self.pe_viewdir = PositionalEncoding(3, config.viewdir_pe_freqs) if spec.viewdir else None
+        in_dim = spec.encoded_dim(self.pe_uv.out_dim, self.pe_viewdir.out_dim if self.pe_viewdir else 0)
+        self.mlp = LightFieldMLP(config.mlp, in_dim, spec.feature_dim(config.feature_channels))
 
-        c = config.feature_channels
-        if config.variant == "single_surface":
-            in_dim, feature_dim = self.pe_uv.out_dim, c
-        elif config.variant == "single_surface_viewdir":
-            assert self.pe_viewdir is not None
-            in_dim, feature_dim = self.pe_uv.out_dim + self.pe_viewdir.out_dim, c
-        elif config.variant == "single_surface_two_unet":
-            in_dim, feature_dim = self.pe_uv.out_dim, 2 * c
-        else:  # two_surface
-            in_dim, feature_dim = 2 * self.pe_uv.out_dim, 2 * c
-        self.mlp = LightFieldMLP(config.mlp, in_dim, feature_dim)
+    def inner_unets(self) -> list[UNet]:
+        """The U-Nets on the inner normal maps, in the order their maps are concatenated."""
+        return [self.unet_inner] + [getattr(self, f"unet_inner_{i}") for i in range(2, self.spec.inner_unets + 1)]
 
     # ------------------------------------------------------------------ stage 1: per frame
     def encode(self, normal_inner: torch.Tensor, normal_outer: torch.Tensor | None = None) -> FrameFeatures:
@@ -184,98 +188,69 @@ class DeliffasModel(nn.Module):
         Args:
             normal_inner: (B, 3 (T + 1), S, S) float, inner-surface normals in [-1, 1], frames
                 f, f-1, ..., f-T stacked along channels.
-            normal_outer: (B, 3 (T + 1), S, S), outer-surface normals; required for
-                ``two_surface``, ignored by the single-surface variants.
+            normal_outer: (B, 3 (T + 1), S, S), outer-surface normals; required when the
+                variant has an outer U-Net, ignored otherwise.
 
         Returns:
             The frame's feature maps.
         """
         cfg = self.config
-        spec = f"B {cfg.input_channels} {cfg.atlas_res} {cfg.atlas_res}"
-        sizes = check_shape("normal_inner", normal_inner, spec)
-        inner = self.unet_inner(normal_inner)
-        if self.unet_inner_2 is not None:
-            inner = torch.cat([inner, self.unet_inner_2(normal_inner)], dim=1)  # (B, 2C, S, S)
+        shape = f"B {cfg.input_channels} {cfg.atlas_res} {cfg.atlas_res}"
+        sizes = check_shape("normal_inner", normal_inner, shape)
+        maps = [net(normal_inner) for net in self.inner_unets()]
+        inner = maps[0] if len(maps) == 1 else torch.cat(maps, dim=1)  # (B, n C, S, S)
         outer = None
         if self.unet_outer is not None:
             if normal_outer is None:
-                raise ValueError("encode: normal_outer is required for variant 'two_surface'")
-            check_shape("normal_outer", normal_outer, spec, sizes)
+                raise ValueError(f"encode: normal_outer is required for variant {cfg.variant!r}")
+            check_shape("normal_outer", normal_outer, shape, sizes)
             outer = self.unet_outer(normal_outer).contiguous(memory_format=torch.channels_last)
         return FrameFeatures(inner=inner.contiguous(memory_format=torch.channels_last), outer=outer)
 
     # ------------------------------------------------------------------ stage 2: per ray
-    def gather_inputs(
-        self,
-        features: FrameFeatures,
-        batch_index: torch.Tensor,
-        uv_inner: torch.Tensor,
-        uv_outer: torch.Tensor | None = None,
-        viewdir: torch.Tensor | None = None,
-        inner_from_outer: torch.Tensor | None = None,
-    ) -> torch.Tensor:
+    def gather_inputs(self, features: FrameFeatures, query: RayQuery) -> tuple[torch.Tensor, torch.Tensor]:
         """The light-field MLP's inputs for N rays: positional encodings and sampled features.
 
         Stage 'sample' of the paper's runtime breakdown; :meth:`shade` = ``mlp(*gather_inputs(...))``.
 
         Args:
             features: the frames' feature maps from :meth:`encode`.
-            batch_index: (N,) long, which frame of ``features`` each ray belongs to.
-            uv_inner: (N, 2) float in [0, 1]^2, inner-surface hit uv; for rays that miss the
-                inner surface, the outer surface's exit (second) hit uv.
-            uv_outer: (N, 2) float, outer-surface first-hit uv (``two_surface`` only).
-            viewdir: (N, 3) float, unit ray directions, world frame (``single_surface_viewdir`` only).
-            inner_from_outer: (N,) bool, True where ``uv_inner`` is an outer exit hit, so the
-                inner feature is read from the outer map. None = all False. Only
-                ``two_surface`` may have True entries.
+            query: the rays; the fields the variant's spec reads must be set.
 
         Returns:
             encoded (N, E) positional encodings and feats (N, C') sampled features.
-        """
-        cfg = self.config
-        sizes = check_shape("uv_inner", uv_inner, "N 2")
-        check_shape("batch_index", batch_index, "N", sizes)
-        if inner_from_outer is not None:
-            check_shape("inner_from_outer", inner_from_outer, "N", sizes)
-            if inner_from_outer.dtype != torch.bool:
-                raise ValueError(f"inner_from_outer: expected dtype bool, got {inner_from_outer.dtype}")
 
-        if cfg.variant == "two_surface":
-            if uv_outer is None:
-                raise ValueError("shade: uv_outer is required for variant 'two_surface'")
+        Raises:
+            ValueError: a field the variant needs is None, or ``inner_from_outer`` has True entries
+                for a variant without depth peeling.
+        """
+        spec, name = self.spec, self.config.variant
+        if spec.uses_uv_outer and query.uv_outer is None:
+            raise ValueError(f"shade: uv_outer is required for variant {name!r}")
+        if spec.viewdir and query.viewdir is None:
+            raise ValueError(f"shade: viewdir is required for variant {name!r}")
+        peel = query.inner_from_outer
+        if not spec.inner_from_outer and peel is not None and bool(peel.any()):
+            raise ValueError(f"shade: inner_from_outer has True entries but variant {name!r} has no outer feature map")
+        feats = []
+        if spec.outer_unet:
             if features.outer is None:
                 raise ValueError("shade: features.outer is None; encode() with normal_outer first")
-            check_shape("uv_outer", uv_outer, "N 2", sizes)
-            f_outer = sample_uv(features.outer, batch_index, uv_outer)  # (N, C)
-            f_inner = self._sample_inner(features, batch_index, uv_inner, inner_from_outer)  # (N, C)
-            encoded = torch.cat([self.pe_uv(uv_outer), self.pe_uv(uv_inner)], dim=-1)
-            feats = torch.cat([f_outer, f_inner], dim=-1)  # (N, 2C)
-            return encoded, feats
-
-        if inner_from_outer is not None and bool(inner_from_outer.any()):
-            raise ValueError(
-                f"shade: inner_from_outer has True entries but variant {cfg.variant!r} has no outer feature map"
-            )
-        feats = sample_uv(features.inner, batch_index, uv_inner)  # (N, C) or (N, 2C)
-        encoded = self.pe_uv(uv_inner)
+            feats.append(sample_uv(features.outer, query.batch_index, query.uv_outer))  # (N, C)
+        if spec.inner_from_outer:
+            feats.append(self._sample_inner(features, query.batch_index, query.uv_inner, peel))  # (N, C)
+        else:
+            feats.append(sample_uv(features.inner, query.batch_index, query.uv_inner))  # (N, n C)
+        uvs = {"inner": query.uv_inner, "outer": query.uv_outer}
+        encoded = [self.pe_uv(uvs[surface]) for surface in spec.encoded_uvs]
         if self.pe_viewdir is not None:
-            if viewdir is None:
-                raise ValueError("shade: viewdir is required for variant 'single_surface_viewdir'")
-            check_shape("viewdir", viewdir, "N 3", sizes)
-            encoded = torch.cat([encoded, self.pe_viewdir(viewdir.to(uv_inner.dtype))], dim=-1)
-        return encoded, feats
+            encoded.append(self.pe_viewdir(query.viewdir.to(query.uv_inner.dtype)))
+        cat = lambda parts: parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1)  # noqa: E731
+        return cat(encoded), cat(feats)
 
-    def shade(
-        self,
-        features: FrameFeatures,
-        batch_index: torch.Tensor,
-        uv_inner: torch.Tensor,
-        uv_outer: torch.Tensor | None = None,
-        viewdir: torch.Tensor | None = None,
-        inner_from_outer: torch.Tensor | None = None,
-    ) -> torch.Tensor:
+    def shade(self, features: FrameFeatures, query: RayQuery) -> torch.Tensor:
         """Colour of N rays: (N, 3) RGB in (0, 1). Arguments as :meth:`gather_inputs`."""
-        return self.mlp(*self.gather_inputs(features, batch_index, uv_inner, uv_outer, viewdir, inner_from_outer))
+        return self.mlp(*self.gather_inputs(features, query))
 
     @staticmethod
     def _sample_inner(
@@ -300,16 +275,7 @@ class DeliffasModel(nn.Module):
         out = vals_i.new_zeros(uv_inner.shape[0], vals_i.shape[1])
         return out.index_copy(0, idx_i, vals_i).index_copy(0, idx_o, vals_o)
 
-    def shade_chunked(
-        self,
-        features: FrameFeatures,
-        batch_index: torch.Tensor,
-        uv_inner: torch.Tensor,
-        uv_outer: torch.Tensor | None = None,
-        viewdir: torch.Tensor | None = None,
-        inner_from_outer: torch.Tensor | None = None,
-        chunk_size: int = 65536,
-    ) -> torch.Tensor:
+    def shade_chunked(self, features: FrameFeatures, query: RayQuery, chunk_size: int = 65536) -> torch.Tensor:
         """:meth:`shade` over chunks of ``chunk_size`` rays; same arguments and result.
 
         Peak activation memory is bounded by the chunk (e.g. a 940 x 1285 frame is ~1.2 M rays).
@@ -317,37 +283,13 @@ class DeliffasModel(nn.Module):
         """
         if chunk_size < 1:
             raise ValueError(f"shade_chunked: chunk_size must be >= 1, got {chunk_size}")
-        num_rays = uv_inner.shape[0]
-        if num_rays <= chunk_size:
-            return self.shade(features, batch_index, uv_inner, uv_outer, viewdir, inner_from_outer)
-        pieces = []
-        for start in range(0, num_rays, chunk_size):
-            sl = slice(start, start + chunk_size)
-            pieces.append(
-                self.shade(
-                    features,
-                    batch_index[sl],
-                    uv_inner[sl],
-                    None if uv_outer is None else uv_outer[sl],
-                    None if viewdir is None else viewdir[sl],
-                    None if inner_from_outer is None else inner_from_outer[sl],
-                )
-            )
-        return torch.cat(pieces, dim=0)
+        if query.num_rays <= chunk_size:
+            return self.shade(features, query)
+        return torch.cat([self.shade(features, part) for part in query.chunks(chunk_size)], dim=0)
 
-    def forward(
-        self,
-        normal_inner: torch.Tensor,
-        normal_outer: torch.Tensor | None,
-        batch_index: torch.Tensor,
-        uv_inner: torch.Tensor,
-        uv_outer: torch.Tensor | None = None,
-        viewdir: torch.Tensor | None = None,
-        inner_from_outer: torch.Tensor | None = None,
-    ) -> torch.Tensor:
-        """``shade(encode(normal_inner, normal_outer), ...)``: (N, 3) RGB; see both methods."""
-        features = self.encode(normal_inner, normal_outer)
-        return self.shade(features, batch_index, uv_inner, uv_outer, viewdir, inner_from_outer)
+    def forward(self, normal_inner: torch.Tensor, normal_outer: torch.Tensor | None, query: RayQuery) -> torch.Tensor:
+        """``shade(encode(normal_inner, normal_outer), query)``: (N, 3) RGB; see both methods."""
+        return self.shade(self.encode(normal_inner, normal_outer), query)
 
     # ------------------------------------------------------------------ accounting
     def num_parameters(self, trainable_only: bool = False) -> int:

@@ -1,4 +1,5 @@
-"""Training losses: foreground L1 and the VGG-16 perceptual loss (whole image or patches).
+"""Training losses: foreground L1, the VGG-16 perceptual loss (whole image or patches) and the
+step loss that combines them (:func:`step_loss`, used by the plain and the ray-chunked training step).
 
 Paper section 3.4: ``L = lambda_1 L_1 + lambda_perc L_perc`` with a VGG-16 perceptual loss
 (Johnson et al.) on the entire rendered image; the appendix ablates 32 x 32 patches instead.
@@ -11,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import os
+from dataclasses import dataclass
 from typing import Literal
 
 import torch
@@ -19,7 +21,8 @@ from torch import nn
 
 from deliffas.models.vgg import VGG16_LAYERS, BackboneName, BackboneRecord, VGG16Features, load_vgg16_weights
 
-__all__ = ["IMAGENET_MEAN", "IMAGENET_STD", "l1_foreground", "PerceptualLoss", "foreground_patches"]
+__all__ = ["IMAGENET_MEAN", "IMAGENET_STD", "l1_foreground", "PerceptualLoss", "foreground_patches", "StepLoss",
+           "step_loss"]
 
 logger = logging.getLogger(__name__)
 
@@ -216,3 +219,61 @@ class PerceptualLoss(nn.Module):
         for name in self.layers:
             loss = loss + F.mse_loss(feats_pred[name], feats_target[name])
         return loss / len(self.layers)
+
+
+@dataclass(frozen=True)
+class StepLoss:
+    """The loss of one training step and its terms (paper section 3.4: L = L1 + w L_perc)."""
+
+    loss: torch.Tensor
+    """() the value to differentiate: ``l1 + weight * perceptual``."""
+    l1: torch.Tensor
+    """() L1 over the shaded rays' values (or this chunk's share of it)."""
+    perceptual: torch.Tensor | None = None
+    """() perceptual distance of the images, or None when not computed."""
+
+    def terms(self) -> dict[str, float]:
+        """``{"loss", "l1"[, "perceptual"]}`` as floats (for logs)."""
+        out = {"loss": float(self.loss.detach()), "l1": float(self.l1.detach())}
+        if self.perceptual is not None:
+            out["perceptual"] = float(self.perceptual.detach())
+        return out
+
+
+def step_loss(
+    pred_rays: torch.Tensor,
+    target_rays: torch.Tensor,
+    *,
+    num_values: int | None = None,
+    perceptual: nn.Module | None = None,
+    weight: float = 0.0,
+    pred_images: torch.Tensor | None = None,
+    target_images: torch.Tensor | None = None,
+    masks: torch.Tensor | None = None,
+    generator: torch.Generator | None = None,
+) -> StepLoss:
+    """The training loss of shaded rays (L1) plus, when ``perceptual`` and ``weight > 0``, the
+    perceptual term on the images they were painted into.
+
+    Args:
+        pred_rays: (N, 3) shaded colours.
+        target_rays: (N, 3) their targets (images composited on black, at the rays' pixels).
+        num_values: denominator of the L1 sum; default ``pred_rays.numel()`` (the mean). A chunk
+            of a step's rays passes the step's 3 N_total, so the chunks' L1 terms add up to the
+            step's.
+        perceptual: a :class:`PerceptualLoss`, or None (L1 only).
+        weight: w of the perceptual term.
+        pred_images, target_images: (K, H, W, 3) in [0, 1] (needed with ``perceptual``).
+        masks: (K, H, W) foreground masks (patch placement in patch mode).
+        generator: CPU generator for the patch positions.
+    """
+    if pred_rays.shape != target_rays.shape:
+        raise ValueError(f"step_loss: pred_rays {tuple(pred_rays.shape)} and target_rays "
+                         f"{tuple(target_rays.shape)} differ")
+    l1 = (pred_rays - target_rays).abs().sum() / (pred_rays.numel() if num_values is None else num_values)
+    if perceptual is None or weight <= 0:
+        return StepLoss(l1, l1)
+    if pred_images is None or target_images is None:
+        raise ValueError("step_loss: the perceptual term needs pred_images and target_images")
+    p = perceptual(pred_images.permute(0, 3, 1, 2), target_images.permute(0, 3, 1, 2), masks, generator=generator)
+    return StepLoss(l1 + weight * p, l1, p)

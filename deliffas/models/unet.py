@@ -25,13 +25,16 @@ Normalisation (``UNetConfig.norm``):
 Weights are initialised N(0, 0.02) (conv and transposed conv); norm scales 1, shifts 0.
 
 Speed (CPU): the convolutions are :mod:`deliffas.models.unet_conv`'s layers (subclasses of
-``nn.Conv2d`` / ``nn.ConvTranspose2d``, same state_dict, same values up to float rounding). Outside
-autograd (``torch.no_grad`` / ``inference_mode``) on CPU, when every norm can be folded (affine,
-none, BatchNorm in eval mode; dropout inactive), :meth:`UNet.forward` calls each conv once with its
+``nn.Conv2d`` / ``nn.ConvTranspose2d``, same state_dict, same values up to float rounding). After
+:func:`optimize_for_inference`, outside autograd (``torch.no_grad`` / ``inference_mode``) on CPU,
+when every norm can be folded (affine, none, BatchNorm in eval mode; dropout inactive),
+:meth:`UNet.forward` calls each conv once with its
 block's norm and activation as an epilogue (one oneDNN call with prepacked weights), each up block
 writes into the first half of its skip concatenation's buffer, and the final ``(tanh + 1) / 2`` is
-the identical ``sigmoid(2 x)`` with the factor 2 folded into the weights. The conv modules are
-still called once per layer with their usual input and output, so forward hooks see them.
+the identical ``sigmoid(2 x)`` with the factor 2 folded into the weights, and each conv keeps its
+weights prepacked for oneDNN in the U-Net's own :class:`~deliffas.models.unet_conv.PrepackCache`.
+The conv modules are still called once per layer with their usual input and output, so forward
+hooks see them. Without that call (or with autograd on) the plain forward runs.
 """
 
 from __future__ import annotations
@@ -48,10 +51,11 @@ from deliffas.models.unet_conv import (
     Conv2d,
     ConvTranspose2d,
     Epilogue,
+    PrepackCache,
     new_map,
 )
 
-__all__ = ["UNetConfig", "UNet", "resolve_levels", "unet_channels"]
+__all__ = ["UNetConfig", "UNet", "resolve_levels", "unet_channels", "optimize_for_inference"]
 
 NormKind = Literal["batch", "affine", "none"]
 
@@ -189,7 +193,13 @@ class UNet(nn.Module):
             self.up.append(nn.Sequential(*layers))
             prev = 2 * ch  # after concatenation with the skip
         self.final = ConvTranspose2d(prev, config.out_channels, kernel_size=4, stride=2, padding=1, bias=True)
+        self._prepacked: PrepackCache | None = None  # set by optimize_for_inference: the fused forward
         self.reset_parameters()
+
+    @property
+    def inference_optimized(self) -> bool:
+        """Whether :func:`optimize_for_inference` switched this U-Net to its fused CPU inference forward."""
+        return self._prepacked is not None
 
     def reset_parameters(self) -> None:
         """Initialise conv weights N(0, 0.02), biases 0, norm scales 1 and shifts 0."""
@@ -220,7 +230,7 @@ class UNet(nn.Module):
         step = 2**self.levels
         if x.shape[-2] % step or x.shape[-1] % step:
             raise ValueError(f"UNet: x: H and W must be divisible by 2^levels = {step}, got {tuple(x.shape)}")
-        if not torch.is_grad_enabled() and x.device.type == "cpu":
+        if self._prepacked is not None and not torch.is_grad_enabled() and x.device.type == "cpu":
             epilogues = self._epilogues()
             if epilogues is not None:
                 return self._forward_fused(x, *epilogues)
@@ -264,9 +274,10 @@ class UNet(nn.Module):
         """Inference forward: every block is one conv call (the conv modules' forward hooks fire
         with their usual input and output) with its norm and activation fused in; each up block
         writes straight into the first half of its skip concatenation."""
+        packs = self._prepacked
         skips = []
         for block, epilogue in zip(self.down, down):
-            x = block[0](x, epilogue=epilogue)
+            x = block[0](x, epilogue=epilogue, prepacked=packs)
             skips.append(x)
         x = skips.pop()
         for block, epilogue in zip(self.up, up):
@@ -274,10 +285,25 @@ class UNet(nn.Module):
             c = block[0].out_channels
             h, w = skip.shape[-2:]
             cat = new_map(skip, c + skip.shape[1], h, w, h * w >= CONV_TRANSPOSE_CHANNELS_LAST_MIN_PIXELS)
-            block[0](x, epilogue=epilogue, out=cat[:, :c])
+            block[0](x, epilogue=epilogue, out=cat[:, :c], prepacked=packs)
             cat[:, c:].copy_(skip)
             x = cat
-        return self.final(x, epilogue=final)
+        return self.final(x, epilogue=final, prepacked=packs)
+
+
+def optimize_for_inference(model: nn.Module) -> nn.Module:
+    """Switch every :class:`UNet` in ``model`` to its fused CPU inference forward; returns ``model``.
+
+    Outside autograd on CPU, each U-Net then runs one oneDNN call per layer with its norm and
+    activation fused in and its weights prepacked once, in a cache the U-Net holds (the weights
+    are packed again when they, the norms or the input size change). Under autograd the plain
+    forward runs as before, so training such a model works and packs fresh weights on the next
+    inference call; the cache costs about one more copy of the U-Nets' weights.
+    """
+    for module in model.modules():
+        if isinstance(module, UNet) and module._prepacked is None:
+            module._prepacked = PrepackCache()
+    return model
 
 
 def _fold_norm(layers) -> tuple[torch.Tensor | None, torch.Tensor | None, tuple] | None:

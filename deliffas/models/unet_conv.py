@@ -5,8 +5,9 @@ parameters and state_dict, computing the same values up to float rounding, tuned
 maps in channels_last, small maps as plain matrix products. Outside autograd they also take an
 :class:`Epilogue` (the block's norm, folded into the weights, and its activation, fused into
 oneDNN's kernel) and, for transposed convolutions, an ``out`` buffer (the first half of a skip
-concatenation). :func:`_packed_conv` keeps each module's folded weights in oneDNN's blocked layout
-until they change. On other devices the layers are plain torch.
+concatenation), and with a :class:`PrepackCache` (held by the U-Net after
+``optimize_for_inference``) :func:`_packed_conv` keeps each module's folded weights in oneDNN's
+blocked layout until they change. On other devices the layers are plain torch.
 """
 
 from __future__ import annotations
@@ -391,9 +392,35 @@ class _PackedWeights:
         return _finish(y, None, out)
 
 
-_packed: "weakref.WeakKeyDictionary[nn.Module, _PackedWeights]" = weakref.WeakKeyDictionary()
-"""Per conv module, its last prepacked weights (outside the module: state_dict, deepcopy and
-pickling never see them). One entry per module: about the size of its weights."""
+class PrepackCache:
+    """Per conv module of one U-Net, its last prepacked weights; the U-Net holds it (see
+    ``deliffas.models.unet.optimize_for_inference``), so nothing is cached for the process. One
+    entry per module, about the size of its weights. It is state, not a parameter: state_dict
+    never sees it, and a copy (deepcopy, pickling) starts empty and packs again on first use."""
+
+    def __init__(self) -> None:
+        self._entries: "weakref.WeakKeyDictionary[nn.Module, _PackedWeights]" = weakref.WeakKeyDictionary()
+
+    def get(self, conv: nn.Module) -> "_PackedWeights | None":
+        return self._entries.get(conv)
+
+    def put(self, conv: nn.Module, entry: "_PackedWeights") -> None:
+        self._entries[conv] = entry
+
+    def clear(self) -> None:
+        self._entries.clear()
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    def __deepcopy__(self, memo: dict) -> "PrepackCache":
+        return PrepackCache()
+
+    def __getstate__(self) -> dict:
+        return {}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__()
 
 _prepack_ok = True
 
@@ -521,12 +548,12 @@ def _pack(conv: nn.Module, epilogue: Epilogue, x: torch.Tensor, items: tuple, st
 
 
 def _packed_conv(
-    conv: nn.Module, x: torch.Tensor, epilogue: Epilogue, out: torch.Tensor | None = None
+    conv: nn.Module, x: torch.Tensor, epilogue: Epilogue, cache: PrepackCache, out: torch.Tensor | None = None
 ) -> torch.Tensor | None:
     """``act(conv(x) * scale + shift)`` in one oneDNN call with prepacked weights (inference, CPU,
     float32), written into ``out`` when given (which is returned): the norm folded into the
     weights and the activation into the kernel, the weights reordered to oneDNN's blocked layout
-    once and kept per module (:data:`_packed`) until the weights, the norm or the input shape
+    once and kept per module in ``cache`` until the weights, the norm or the input shape
     change (:func:`_pack_key`). torch otherwise reorders them on every call, a full extra pass over
     the 8-34 MB weights of the deep layers (1.5-2x their time here); this is what torch.compile's
     weight freezing does for CPU convolutions. Narrow layers run in a lane-filling form
@@ -546,15 +573,15 @@ def _packed_conv(
     ):
         return None
     items, states = _pack_key(conv, epilogue, x)
-    entry = _packed.get(conv)
+    entry = cache.get(conv)
     try:
         if entry is None or not entry.matches(items, states):
             entry = _pack(conv, epilogue, x, items, states)
-            _packed[conv] = entry
+            cache.put(conv, entry)
         return entry(x, out)
     except (AttributeError, RuntimeError, NotImplementedError) as exc:
-        _prepack_ok = False
-        _packed.clear()
+        _prepack_ok = False  # the torch build cannot: true for every U-Net of the process
+        cache.clear()
         logger.info("unet: oneDNN prepacked convolution unavailable (%s); using the unpacked paths", exc)
         return None
 
@@ -564,14 +591,17 @@ class Conv2d(nn.Conv2d):
     in channels_last, small maps as one matrix product of the weights with the unfolded input.
 
     Outside autograd, ``forward(x, epilogue=...)`` also applies a per-channel scale, shift and
-    activation (the U-Net's norm and LeakyReLU) to the result."""
+    activation (the U-Net's norm and LeakyReLU) to the result, with weights prepacked into
+    ``prepacked`` when given."""
 
-    def forward(self, x: torch.Tensor, *, epilogue: Epilogue | None = None) -> torch.Tensor:
+    def forward(
+        self, x: torch.Tensor, *, epilogue: Epilogue | None = None, prepacked: PrepackCache | None = None
+    ) -> torch.Tensor:
         _check_fused(epilogue, None)
-        if epilogue is not None:
+        if epilogue is not None and prepacked is not None:
             # large NCHW maps (the U-Net's input) in channels_last; others as they come
             large = x.shape[-2] * x.shape[-1] >= CHANNELS_LAST_MIN_PIXELS
-            y = _packed_conv(self, channels_last(x) if large else _dense(x), epilogue)
+            y = _packed_conv(self, channels_last(x) if large else _dense(x), epilogue, prepacked)
             if y is not None:
                 return y
         if _gemm_ok(x, self):
@@ -605,7 +635,8 @@ class ConvTranspose2d(nn.ConvTranspose2d):
 
     Outside autograd, ``forward(x, epilogue=..., out=...)`` also applies a per-channel scale, shift
     and activation (the U-Net's norm and ReLU) and writes the result into ``out`` (e.g. the first
-    half of the skip concatenation's buffer), which it returns."""
+    half of the skip concatenation's buffer), which it returns; weights are prepacked into
+    ``prepacked`` when given."""
 
     def forward(
         self,
@@ -614,10 +645,11 @@ class ConvTranspose2d(nn.ConvTranspose2d):
         *,
         epilogue: Epilogue | None = None,
         out: torch.Tensor | None = None,
+        prepacked: PrepackCache | None = None,
     ) -> torch.Tensor:
         _check_fused(epilogue, out)
-        if epilogue is not None and output_size is None:
-            y = _packed_conv(self, _dense(x), epilogue, out)
+        if epilogue is not None and prepacked is not None and output_size is None:
+            y = _packed_conv(self, _dense(x), epilogue, prepacked, out)
             if y is not None:
                 return y
         if output_size is not None or self.output_padding != (0, 0):

@@ -11,6 +11,7 @@ import torch
 from deliffas.models.deliffas import VARIANTS, DeliffasModel, FrameFeatures, ModelConfig
 from deliffas.models.light_field import LightFieldMLPConfig
 from deliffas.models.losses import l1_foreground
+from deliffas.models.ray_query import RayQuery
 from deliffas.models.unet import UNetConfig
 
 S = 16
@@ -47,7 +48,7 @@ def test_variant_shapes_and_gradients(variant, device):
     normals = torch.randn(2, 9, S, S, generator=gen).to(device)
     features = model.encode(normals, normals.flip(-1))
     rays = {k: v.to(device) for k, v in make_rays(40, 2, gen).items()}
-    rgb = model.shade(features, **rays)
+    rgb = model.shade(features, RayQuery(**rays))
     assert rgb.shape == (40, 3) and rgb.min() > 0 and rgb.max() < 1
     rgb.sum().backward()
     used = [model.unet_inner] + [m for m in (model.unet_inner_2, model.unet_outer) if m is not None]
@@ -85,8 +86,8 @@ def test_viewdir_matters_only_for_viewdir_variant():
     for variant, should_change in [("single_surface_viewdir", True), ("single_surface", False)]:
         model = DeliffasModel(tiny_config(variant)).eval()
         f = model.encode(normals)
-        a = model.shade(f, **rays)
-        b = model.shade(f, **{**rays, "viewdir": -rays["viewdir"]})
+        a = model.shade(f, RayQuery(**rays))
+        b = model.shade(f, RayQuery(**{**rays, "viewdir": -rays["viewdir"]}))
         assert (not torch.allclose(a, b)) == should_change
 
 
@@ -97,13 +98,13 @@ def test_inner_from_outer_reads_outer_map():
     f = model.encode(normals, torch.randn(2, 9, S, S, generator=gen))
     rays = make_rays(64, 2, gen)
     mask = torch.rand(64, generator=gen) < 0.4
-    mixed = model.shade(f, **rays, inner_from_outer=mask)
-    plain = model.shade(f, **rays)
-    swapped = model.shade(FrameFeatures(inner=f.outer, outer=f.outer), **rays)
+    mixed = model.shade(f, RayQuery(**rays, inner_from_outer=mask))
+    plain = model.shade(f, RayQuery(**rays))
+    swapped = model.shade(FrameFeatures(inner=f.outer, outer=f.outer), RayQuery(**rays))
     torch.testing.assert_close(mixed[~mask], plain[~mask])
     torch.testing.assert_close(mixed[mask], swapped[mask])
     assert not torch.allclose(mixed[mask], plain[mask])
-    all_outer = model.shade(f, **rays, inner_from_outer=torch.ones(64, dtype=torch.bool))
+    all_outer = model.shade(f, RayQuery(**rays, inner_from_outer=torch.ones(64, dtype=torch.bool)))
     torch.testing.assert_close(all_outer, swapped)
 
 
@@ -112,12 +113,12 @@ def test_inner_from_outer_rejected_without_outer_map():
     f = model.encode(torch.randn(1, 9, S, S))
     rays = make_rays(5, 1, torch.Generator().manual_seed(0))
     mask = torch.zeros(5, dtype=torch.bool)
-    model.shade(f, **rays, inner_from_outer=mask)  # all False is fine
+    model.shade(f, RayQuery(**rays, inner_from_outer=mask))  # all False is fine
     mask[2] = True
     with pytest.raises(ValueError, match="no outer feature map"):
-        model.shade(f, **rays, inner_from_outer=mask)
+        model.shade(f, RayQuery(**rays, inner_from_outer=mask))
     with pytest.raises(ValueError, match="bool"):
-        model.shade(f, **rays, inner_from_outer=mask.float())
+        model.shade(f, RayQuery(**rays, inner_from_outer=mask.float()))
 
 
 def test_required_inputs():
@@ -129,10 +130,10 @@ def test_required_inputs():
         model.encode(torch.randn(1, 6, S, S), normals)
     f = model.encode(normals, normals)
     with pytest.raises(ValueError, match="uv_outer"):
-        model.shade(f, torch.zeros(3, dtype=torch.long), torch.rand(3, 2))
+        model.shade(f, RayQuery(torch.zeros(3, dtype=torch.long), torch.rand(3, 2)))
     viewdir_model = DeliffasModel(tiny_config("single_surface_viewdir"))
     with pytest.raises(ValueError, match="viewdir"):
-        viewdir_model.shade(viewdir_model.encode(normals), torch.zeros(3, dtype=torch.long), torch.rand(3, 2))
+        viewdir_model.shade(viewdir_model.encode(normals), RayQuery(torch.zeros(3, dtype=torch.long), torch.rand(3, 2)))
 
 
 def test_chunked_equals_full():
@@ -141,13 +142,13 @@ def test_chunked_equals_full():
     f = model.encode(torch.randn(2, 9, S, S, generator=gen), torch.randn(2, 9, S, S, generator=gen))
     rays = make_rays(103, 2, gen)
     mask = torch.rand(103, generator=gen) < 0.3
-    full = model.shade(f, **rays, inner_from_outer=mask)
+    full = model.shade(f, RayQuery(**rays, inner_from_outer=mask))
     with torch.no_grad():
-        chunked = model.shade_chunked(f, **rays, inner_from_outer=mask, chunk_size=10)
+        chunked = model.shade_chunked(f, RayQuery(**rays, inner_from_outer=mask), chunk_size=10)
     assert chunked.shape == (103, 3)
     torch.testing.assert_close(chunked, full)
     with pytest.raises(ValueError, match="chunk_size"):
-        model.shade_chunked(f, **rays, chunk_size=0)
+        model.shade_chunked(f, RayQuery(**rays), chunk_size=0)
 
 
 def test_forward_is_encode_then_shade():
@@ -155,7 +156,7 @@ def test_forward_is_encode_then_shade():
     model = DeliffasModel(tiny_config("two_surface")).eval()
     ni, no = torch.randn(1, 9, S, S, generator=gen), torch.randn(1, 9, S, S, generator=gen)
     rays = make_rays(12, 1, gen)
-    torch.testing.assert_close(model(ni, no, **rays), model.shade(model.encode(ni, no), **rays))
+    torch.testing.assert_close(model(ni, no, RayQuery(**rays)), model.shade(model.encode(ni, no), RayQuery(**rays)))
 
 
 def test_float64_inputs_flow_through():
@@ -163,7 +164,7 @@ def test_float64_inputs_flow_through():
     gen = torch.Generator().manual_seed(5)
     normals = torch.randn(1, 9, S, S, generator=gen, dtype=torch.float64)
     rays = {k: (v.double() if v.is_floating_point() else v) for k, v in make_rays(7, 1, gen).items()}
-    assert model(normals, normals, **rays).dtype == torch.float64
+    assert model(normals, normals, RayQuery(**rays)).dtype == torch.float64
 
 
 def test_config_defaults_and_validation():
@@ -216,7 +217,7 @@ def test_tiny_two_surface_overfits_one_frame():
     losses = []
     for _ in range(60):
         features = model.encode(normal_inner, normal_outer)
-        rgb = model.shade(features, batch_index, uv_inner, uv_outer, inner_from_outer=inner_from_outer)
+        rgb = model.shade(features, RayQuery(batch_index, uv_inner, uv_outer, inner_from_outer=inner_from_outer))
         loss = l1_foreground(rgb, target)
         opt.zero_grad()
         loss.backward()

@@ -6,7 +6,7 @@ import pytest
 import torch
 from torch import nn
 
-from deliffas.models.unet import UNet, UNetConfig, resolve_levels, unet_channels
+from deliffas.models.unet import UNet, UNetConfig, optimize_for_inference, resolve_levels, unet_channels
 
 
 def test_levels_follow_atlas_side():
@@ -178,7 +178,7 @@ def test_inference_matches_reference(norm, paths, monkeypatch):
     if paths == "plain_torch":
         monkeypatch.setattr(unet_conv, "_onednn_pointwise_ok", False)
     torch.manual_seed(0)
-    net = UNet(UNetConfig(in_channels=9, base_channels=4, max_channels=16, norm=norm), 64).eval()
+    net = optimize_for_inference(UNet(UNetConfig(in_channels=9, base_channels=4, max_channels=16, norm=norm), 64).eval())
     _randomise_norms(net)
     x = torch.randn(2, 9, 64, 64)
     with torch.no_grad():
@@ -196,7 +196,7 @@ def test_inference_unfusable_blocks_use_module_path():
     """BatchNorm with batch statistics and active dropout are not folded: no_grad in training mode
     gives the same values as the reference (batch statistics; dropout off when p = 0)."""
     torch.manual_seed(0)
-    net = UNet(UNetConfig(in_channels=3, base_channels=4, max_channels=8, dropout=True), 32).train()
+    net = optimize_for_inference(UNet(UNetConfig(in_channels=3, base_channels=4, max_channels=8, dropout=True), 32).train())
     for m in net.modules():
         if isinstance(m, nn.Dropout):
             m.p = 0.0
@@ -211,7 +211,7 @@ def test_inference_unfusable_blocks_use_module_path():
 def test_conv_hooks_see_original_layers():
     """Every conv module is called once per forward with its usual input and output shapes, fused
     or not (benchmarks count FLOPs with forward hooks)."""
-    net = UNet(UNetConfig(in_channels=9, base_channels=4, max_channels=16, norm="affine"), 64).eval()
+    net = optimize_for_inference(UNet(UNetConfig(in_channels=9, base_channels=4, max_channels=16, norm="affine"), 64).eval())
     x = torch.randn(1, 9, 64, 64)
     calls: dict[str, list] = {}
 
@@ -242,7 +242,7 @@ def test_prepacked_weights_follow_changes():
     import deliffas.models.unet_conv as unet_conv
 
     torch.manual_seed(0)
-    net = UNet(UNetConfig(in_channels=9, base_channels=4, max_channels=16, norm="batch"), 32).eval()
+    net = optimize_for_inference(UNet(UNetConfig(in_channels=9, base_channels=4, max_channels=16, norm="batch"), 32).eval())
     _randomise_norms(net)
     x = torch.randn(1, 9, 32, 32)
     keys = set(net.state_dict())
@@ -254,7 +254,7 @@ def test_prepacked_weights_follow_changes():
     check()
     if not unet_conv._prepack_ok:
         pytest.skip("oneDNN prepacked convolutions unavailable in this torch build")
-    assert len(unet_conv._packed) == 2 * net.levels  # every conv
+    assert len(net._prepacked) == 2 * net.levels  # every conv, in the U-Net's own cache
     opt = torch.optim.SGD(net.parameters(), lr=0.5)
     net.train()
     net(x).square().mean().backward()  # also moves the BatchNorm running statistics
@@ -304,6 +304,7 @@ def test_narrow_layer_forms_match_torch(lanes, monkeypatch):
     monkeypatch.setattr(unet_conv, "simd_lanes", lambda: lanes)
     torch.manual_seed(0)
     forms = []
+    packs = unet_conv.PrepackCache()
     for c_out in (4, 8):
         conv = unet_conv.Conv2d(9, c_out, 4, 2, 1, bias=False)
         up = unet_conv.ConvTranspose2d(12, c_out, 4, 2, 1, bias=True)
@@ -314,7 +315,7 @@ def test_narrow_layer_forms_match_torch(lanes, monkeypatch):
             ep = _epilogue(c_out, "leaky_relu", 0.3)
             with torch.no_grad():
                 ref = _apply_reference(F.conv2d(x, conv.weight, None, 2, 1), ep)
-                got = conv(x, epilogue=ep)
+                got = conv(x, epilogue=ep, prepacked=packs)
             forms.append((c_out, "conv", unet_conv._narrow_form(conv, x)))
             torch.testing.assert_close(got, ref, rtol=1e-5, atol=1e-5)
         for shape in ((2, 12, 16, 16), (1, 12, 16, 24), (1, 12, 8, 8)):  # the last has 256 output pixels
@@ -324,8 +325,8 @@ def test_narrow_layer_forms_match_torch(lanes, monkeypatch):
             cat = torch.full((shape[0], 2 * c_out, h, w), 7.0).contiguous(memory_format=torch.channels_last)
             with torch.no_grad():
                 ref = _apply_reference(F.conv_transpose2d(x, up.weight, up.bias, 2, 1), ep)
-                got = up(x, epilogue=ep, out=cat[:, :c_out])
-                fresh = up(x, epilogue=ep)
+                got = up(x, epilogue=ep, out=cat[:, :c_out], prepacked=packs)
+                fresh = up(x, epilogue=ep, prepacked=packs)
             forms.append((c_out, "up", unet_conv._narrow_form(up, x)))
             assert got.data_ptr() == cat.data_ptr()
             torch.testing.assert_close(cat[:, :c_out], ref, rtol=1e-5, atol=1e-5)
@@ -365,7 +366,7 @@ def test_prepacked_weights_follow_affine_norm_changes():
     from deliffas.models.unet import _ChannelAffine
 
     torch.manual_seed(0)
-    net = UNet(UNetConfig(in_channels=9, base_channels=4, max_channels=16, norm="affine"), 64).eval()
+    net = optimize_for_inference(UNet(UNetConfig(in_channels=9, base_channels=4, max_channels=16, norm="affine"), 64).eval())
     _randomise_norms(net)
     x = torch.randn(1, 9, 64, 64)
 
@@ -419,7 +420,7 @@ def test_prepacked_weights_follow_data_assignment():
     """``param.data = ...`` keeps the parameter's identity and version counter; the prepacked
     weights are rebuilt all the same (keyed by the data pointer too)."""
     torch.manual_seed(0)
-    net = UNet(UNetConfig(in_channels=9, base_channels=4, max_channels=16, norm="affine"), 64).eval()
+    net = optimize_for_inference(UNet(UNetConfig(in_channels=9, base_channels=4, max_channels=16, norm="affine"), 64).eval())
     x = torch.randn(1, 9, 64, 64)
     with torch.no_grad():
         before = net(x)
@@ -430,3 +431,51 @@ def test_prepacked_weights_follow_data_assignment():
         after = net(x)
         torch.testing.assert_close(after, _reference_forward(net, x), rtol=1e-5, atol=2e-6)
     assert not torch.allclose(after, before)
+
+
+def test_fused_forward_only_after_optimize_for_inference(monkeypatch):
+    """no_grad alone runs the plain forward; optimize_for_inference switches to the fused one, whose
+    prepacked weights live in the U-Net (a deepcopy starts with an empty cache)."""
+    import copy
+
+    calls = []
+    original = UNet._forward_fused
+    monkeypatch.setattr(UNet, "_forward_fused", lambda self, *a: calls.append(self) or original(self, *a))
+    torch.manual_seed(0)
+    net = UNet(UNetConfig(in_channels=9, base_channels=4, max_channels=16, norm="affine"), 32).eval()
+    x = torch.randn(1, 9, 32, 32)
+    with torch.no_grad():
+        plain = net(x)
+    assert calls == [] and not net.inference_optimized
+    assert optimize_for_inference(net) is net and net.inference_optimized
+    with torch.no_grad():
+        fused = net(x)
+    assert calls == [net]
+    torch.testing.assert_close(fused, plain, rtol=1e-5, atol=2e-6)
+    twin = copy.deepcopy(net)
+    assert twin.inference_optimized and len(twin._prepacked) == 0
+    assert set(twin.state_dict()) == set(net.state_dict())
+
+
+def test_training_after_optimize_for_inference_matches_plain():
+    """Training an optimized model: autograd takes the plain forward (same gradients as an
+    unoptimized twin), and inference after the optimizer step uses the new weights."""
+    import copy
+
+    torch.manual_seed(0)
+    cfg = UNetConfig(in_channels=9, base_channels=4, max_channels=16, norm="batch")
+    plain = UNet(cfg, 32)
+    net = optimize_for_inference(copy.deepcopy(plain))
+    x = torch.randn(2, 9, 32, 32)
+    with torch.no_grad():
+        net.eval()(x)  # packs the weights
+    for m in (plain, net):
+        m.train()
+        opt = torch.optim.SGD(m.parameters(), lr=0.5)
+        m(x).square().mean().backward()
+        opt.step()
+    for a, b in zip(plain.parameters(), net.parameters()):
+        torch.testing.assert_close(a, b)
+    net.eval()
+    with torch.no_grad():
+        torch.testing.assert_close(net(x), _reference_forward(net, x), rtol=1e-5, atol=2e-6)

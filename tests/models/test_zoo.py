@@ -10,6 +10,7 @@ import torch
 
 from deliffas.models import zoo
 from deliffas.models.deliffas import VARIANTS, DeliffasModel, ModelConfig
+from deliffas.models.ray_query import RayQuery
 from deliffas.models.light_field import LightFieldMLPConfig
 from deliffas.models.unet import UNetConfig, resolve_levels
 from deliffas.models.zoo import (
@@ -107,7 +108,8 @@ def test_checkpoint_round_trip_is_bit_exact(tmp_path):
     gen = torch.Generator().manual_seed(1)
     normals = torch.randn(1, 9, 32, 32, generator=gen)
     bi, uv, uo = torch.zeros(20, dtype=torch.long), torch.rand(20, 2, generator=gen), torch.rand(20, 2, generator=gen)
-    assert torch.equal(model(normals, normals, bi, uv, uo), loaded.model(normals, normals, bi, uv, uo))
+    query = RayQuery(bi, uv, uo)
+    assert torch.equal(model(normals, normals, query), loaded.model(normals, normals, query))
 
 
 def test_channels_last_model_saves(tmp_path):

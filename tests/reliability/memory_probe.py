@@ -26,6 +26,8 @@ import numpy as np
 import torch
 
 from deliffas.engine.memory import peak_rss_growth as measure
+from deliffas.models.ray_query import RayQuery
+from deliffas.models.unet import optimize_for_inference
 
 
 def _paper_model(S: int):
@@ -46,7 +48,7 @@ def render(shards: str, width: int, height: int, zoom: float, chunks: list[str])
 
     S = 256
     torch.set_num_threads(1)
-    model = _paper_model(S).eval()
+    model = optimize_for_inference(_paper_model(S).eval())  # as evaluate/render (load_run) run it
     frame, info = _frame(shards, width, height, zoom, S, model.config.input_channels)
     cam = frame.cameras[0]
     raycaster = UVRaycaster(frame.inner_verts, info["faces"], frame.outer_verts, info["atlas"])
@@ -61,13 +63,12 @@ def render(shards: str, width: int, height: int, zoom: float, chunks: list[str])
         out["encode"], features = measure(lambda: model.encode(ni, ni))
         out["features_bytes"] = sum(t.numel() * t.element_size() for t in (features.inner, features.outer))
         rays = frame.rays[0]
-        args = [torch.from_numpy(a) for a in (rays.uv_inner, rays.uv_outer, rays.inner_from_outer)]
-        bi = torch.zeros(rays.num_rays, dtype=torch.long)
+        query = RayQuery(torch.zeros(rays.num_rays, dtype=torch.long), torch.from_numpy(rays.uv_inner),
+                         torch.from_numpy(rays.uv_outer), inner_from_outer=torch.from_numpy(rays.inner_from_outer))
         out["shade"] = {}
         for chunk in chunks:  # the shading stage alone: chunk-bounded activations + (N, 3) output
             c = rays.num_rays if chunk == "all" else int(chunk)
-            out["shade"][chunk], _ = measure(lambda: model.shade_chunked(
-                features, bi, args[0], args[1], inner_from_outer=args[2], chunk_size=c))
+            out["shade"][chunk], _ = measure(lambda: model.shade_chunked(features, query, chunk_size=c))
     del features
     chunk = int(chunks[0])
     out["render_chunk"] = chunk

@@ -1,0 +1,118 @@
+"""What a training run is asked to do (:class:`TrainConfig`) and the model config it resolves to.
+
+The model config is resolved once per run, in a fixed order, each step logged:
+the zoo preset, then ``TrainConfig.model_overrides``, then what the shards impose (their atlas side,
+and a temporal window no larger than the one they store). The data stream and the model are both
+built from the result, so they agree on T.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+from deliffas.models.deliffas import DeliffasModel, ModelConfig
+from deliffas.models.zoo import config_from_dict, config_to_dict, get_config
+
+__all__ = ["TrainConfig", "TrainResult", "resolve_model_config"]
+
+logger = logging.getLogger(__name__)
+
+PerceptualChoice = Literal["none", "vgg16-imagenet", "vgg16-random"]
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Everything a training run needs; written to ``RUN/train_config.json``."""
+
+    shards: str
+    """Directory of converted HDF5 shards (``deliffas convert``)."""
+    out: str
+    """Run directory (checkpoints, log.jsonl, previews)."""
+    model: str = "two_surface"
+    """Zoo name (``deliffas zoo list``)."""
+    preset: str = "small"
+    """Size preset of the zoo entry (``paper``, ``small``, ``tiny``)."""
+    model_overrides: dict = field(default_factory=dict)
+    """ModelConfig fields replacing the preset's (nested dicts for ``unet``/``mlp``)."""
+    iters: int = 1000
+    """Training iterations (one frame with ``cameras_per_frame`` images each)."""
+    lr: float = 2e-4
+    """Adam learning rate (paper)."""
+    lr_decay_steps: int = 800_000
+    """lr = lr · 0.1^(step / lr_decay_steps), as the official code."""
+    cameras_per_frame: int = 4
+    """K training cameras per iteration; the U-Nets run once for all K."""
+    protocol: Literal["paper", "all"] = "paper"
+    """Frames used: ``paper`` = every 10th frame (DELIFFAS), ``all`` = every converted frame."""
+    perceptual: PerceptualChoice = "none"
+    """Stage-2 perceptual backbone: ``vgg16-imagenet`` (weights must exist), ``vgg16-random``
+    (the explicit offline option, seeded), or ``none`` (L1 only)."""
+    perceptual_mode: Literal["image", "patch"] = "image"
+    """Perceptual loss on whole images (paper) or on 32x32 patches (appendix ablation)."""
+    perceptual_start: float = 0.6
+    """Fraction of ``iters`` after which stage 2 (L1 + perceptual) starts."""
+    perceptual_weight: float | None = None
+    """Fixed weight of the perceptual term; None = balance it with L1 at the start of stage 2."""
+    vgg16_path: str | None = None
+    """ImageNet VGG-16 weight file for ``vgg16-imagenet`` (else env / torch hub cache)."""
+    seed: int = 0
+    device: str = "cpu"
+    num_workers: int = 1
+    """DataLoader workers (they also ray-cast the uv maps)."""
+    ray_chunk: int | None = None
+    """Rays per backward pass (single process): bounds the light-field activations of a step to
+    this many rays; None = every ray of the step's K images in one graph (docs/reliability.md)."""
+    checkpoint_every: int = 250
+    preview_every: int = 250
+    log_every: int = 10
+    progress: bool = True
+
+
+@dataclass(frozen=True)
+class TrainResult:
+    """What a finished run reports."""
+
+    run_dir: Path
+    iterations: int
+    seconds: float
+    last_loss: float
+    iters_per_second: float
+    stage_ms: dict[str, float]
+    backbone: dict | None
+    model: DeliffasModel | None = None
+
+
+def resolve_model_config(cfg: TrainConfig, atlas_res: int | None = None, data_window: int | None = None) -> ModelConfig:
+    """The run's model config: the zoo preset, then the overrides, then what the shards impose.
+
+    Args:
+        cfg: the run (``model``, ``preset``, ``model_overrides``).
+        atlas_res: the shards' normal-map side S (replaces the preset's); None = keep it.
+        data_window: the largest temporal window the shards store; a larger requested T is
+            reduced to it. None = keep the requested T.
+    """
+    base = config_to_dict(get_config(cfg.model, cfg.preset))
+    logger.info("model config: zoo %r preset %r (atlas_res %s, temporal_window %s)", cfg.model, cfg.preset,
+                base["atlas_res"], base["temporal_window"])
+    for key, value in cfg.model_overrides.items():
+        if isinstance(value, dict) and isinstance(base.get(key), dict):
+            value = {**base[key], **value}
+        logger.info("model config: override %s %r -> %r", key, base.get(key), value)
+        base[key] = value
+    if atlas_res is not None and base.get("atlas_res") != atlas_res:
+        logger.info("model config: atlas_res %s -> %s (the shards' normal-map side)", base.get("atlas_res"), atlas_res)
+        base["atlas_res"] = atlas_res
+    if data_window is not None and base["temporal_window"] > data_window:
+        logger.info("model config: temporal_window %s -> %s (the shards store no more)", base["temporal_window"],
+                    data_window)
+        base["temporal_window"] = data_window
+    if isinstance(base.get("unet"), dict):
+        unet = base["unet"]
+        unet["in_channels"] = 3 * (base["temporal_window"] + 1)
+        if unet.get("levels") is not None:
+            unet["levels"] = min(unet["levels"], int(math.log2(base["atlas_res"])))
+    return config_from_dict(ModelConfig, base)

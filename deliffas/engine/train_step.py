@@ -1,0 +1,167 @@
+"""One optimisation step on one frame: U-Nets once, every shaded ray of the K images, one loss.
+
+The loss is :func:`deliffas.models.losses.step_loss` on the shaded rays (and, in stage 2, on the
+images they are painted into). With ``ray_chunk`` the light field is differentiated chunk by chunk
+(same gradient, bounded memory; docs/reliability.md).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from deliffas.engine.rays import RayBatch, paint_images, ray_query, stack_rays
+from deliffas.engine.samples import FrameSample, composite_target
+from deliffas.engine.timing import StageTimer
+from deliffas.models.deliffas import DeliffasModel, FrameFeatures
+from deliffas.models.losses import l1_foreground, step_loss
+from deliffas.models.ray_query import RayQuery
+
+__all__ = ["train_step", "render_sample_images", "balance_weight"]
+
+
+def _rays(model: DeliffasModel, sample: FrameSample, device: torch.device) -> tuple[RayBatch, RayQuery]:
+    """The sample's rays of all K cameras (one frame: batch row 0) and the model's query of them."""
+    batch = stack_rays(sample.rays, [0] * sample.num_cameras).to(device)
+    return batch, ray_query(batch, model.spec)
+
+
+def _psnr(mse: float) -> float:
+    return 10 * math.log10(1.0 / mse) if mse > 0 else float("inf")
+
+
+def render_sample_images(model: DeliffasModel, sample: FrameSample, device: torch.device,
+                         net: torch.nn.Module | None = None, timer: StageTimer | None = None,
+                         chunk_size: int | None = None) -> torch.Tensor:
+    """Images (K, H, W, 3) of the sample's cameras, background black; differentiable unless no_grad.
+
+    ``net`` is the module called for the forward pass (the DDP wrapper during distributed
+    training), by default the model itself. With a ``timer`` the stages are timed separately
+    (``cnn`` encode, ``shade`` the light field, in chunks of ``chunk_size`` rays).
+    """
+    H, W = sample.images.shape[1:3]
+    batch, query = _rays(model, sample, device)
+    normals = sample.normal_maps(device)
+    if timer is None and chunk_size is None:
+        pred = (net or model)(*normals, query)
+    else:
+        timer = timer or StageTimer(device)
+        with timer.stage("cnn"):
+            features = model.encode(*normals)
+        with timer.stage("shade"):
+            pred = model.shade_chunked(features, query, chunk_size=chunk_size or 262144)
+    return paint_images(pred, batch, sample.num_cameras, H, W)
+
+
+def _chunked_backward(model: DeliffasModel, sample: FrameSample, device: torch.device,
+                      perceptual: torch.nn.Module | None, perceptual_weight: float,
+                      generator: torch.Generator | None, ray_chunk: int) -> tuple[dict[str, float], float]:
+    """Gradients of one step's loss, shading at most ``ray_chunk`` rays per graph (same gradient).
+
+    The U-Nets run once and keep their graph; the light field's gradient w.r.t. the feature maps is
+    accumulated chunk by chunk on detached copies and then pushed through the U-Nets in one
+    backward. With a perceptual term, the step loss is differentiated once w.r.t. the rays'
+    colours (rendered without a graph), and that gradient enters each chunk's backward. Returns
+    the loss terms and the mean squared error over the shaded values.
+    """
+    K = sample.num_cameras
+    H, W = sample.images.shape[1:3]
+    batch, query = _rays(model, sample, device)
+    features = model.encode(*sample.normal_maps(device))  # (1, C, S, S) maps with the U-Net graph
+    leaves = FrameFeatures(inner=features.inner.detach().requires_grad_(),
+                           outer=None if features.outer is None else features.outer.detach().requires_grad_())
+    target = composite_target(sample.images, sample.masks).to(device)  # (K, H, W, 3)
+    target_rays = target.reshape(K, H * W, 3)[batch.image_index, batch.pixels]  # (N, 3)
+    n = batch.num_rays
+    ray_grad = terms = None
+    if perceptual is not None and perceptual_weight > 0:
+        with torch.no_grad():
+            pred_all = model.shade_chunked(leaves, query, chunk_size=ray_chunk).requires_grad_()
+        loss = step_loss(pred_all, target_rays, perceptual=perceptual, weight=perceptual_weight,
+                         pred_images=paint_images(pred_all, batch, K, H, W), target_images=target,
+                         masks=torch.from_numpy(sample.masks).to(device), generator=generator)
+        loss.loss.backward()
+        ray_grad, terms = pred_all.grad, loss.terms()  # (N, 3): d loss / d colour of every ray
+        del pred_all, loss
+    l1_sum = sq_sum = 0.0
+    for start in range(0, n, ray_chunk):
+        sl = slice(start, start + ray_chunk)
+        pred = model.shade(leaves, query[sl])
+        if ray_grad is None:
+            chunk = step_loss(pred, target_rays[sl], num_values=3 * n)
+            chunk.loss.backward()
+            l1_sum += float(chunk.l1.detach())
+        else:
+            pred.backward(ray_grad[sl])
+        sq_sum += float((pred.detach() - target_rays[sl]).square().sum())
+    roots = [(f, leaf.grad) for f, leaf in ((features.inner, leaves.inner), (features.outer, leaves.outer))
+             if f is not None and leaf.grad is not None]
+    if roots:
+        torch.autograd.backward([f for f, _ in roots], [g for _, g in roots])
+    return terms or {"loss": l1_sum, "l1": l1_sum}, sq_sum / (3 * n)
+
+
+def train_step(model: DeliffasModel, sample: FrameSample, optimizer: torch.optim.Optimizer, device: torch.device,
+               perceptual: torch.nn.Module | None = None, perceptual_weight: float = 0.0,
+               net: torch.nn.Module | None = None, generator: torch.Generator | None = None,
+               ray_chunk: int | None = None) -> dict[str, float]:
+    """One optimisation step on one frame; returns the loss terms and the step's PSNR (on shaded rays).
+
+    ``ray_chunk`` bounds the rays shaded in one graph (single process only): the U-Nets run once,
+    the light field chunk by chunk, and the gradient equals the unchunked one up to float
+    summation order. Peak memory is then U-Nets + ``ray_chunk`` rays instead of every ray of the K
+    images (docs/reliability.md).
+
+    A sample whose cameras shade no ray at all (every camera looks away from the subject, or the
+    outer shell lies outside every image) has no pixel that depends on a parameter, and the mean L1
+    over zero rays would be NaN: the step is skipped (no optimizer step; ``skipped`` = 1, losses 0,
+    ``psnr_rays`` NaN). Under DistributedDataParallel the rank still runs a zero-loss backward and
+    steps with the other ranks' averaged gradients, so no collective hangs and the replicas stay equal.
+    """
+    ddp = isinstance(net, torch.nn.parallel.DistributedDataParallel)
+    if ray_chunk is not None and (ray_chunk < 1 or ddp):
+        raise ValueError(f"ray_chunk must be >= 1 and needs a single process (got {ray_chunk}, DDP {ddp})")
+    num_rays = sum(r.num_rays for r in sample.rays)
+    if num_rays == 0 and not ddp:
+        optimizer.zero_grad(set_to_none=True)
+        return {"l1": 0.0, "loss": 0.0, "psnr_rays": float("nan"), "skipped": 1.0}
+    model.train()
+    optimizer.zero_grad(set_to_none=True)
+    if ray_chunk is not None and num_rays > ray_chunk:
+        out, mse = _chunked_backward(model, sample, device, perceptual, perceptual_weight, generator, ray_chunk)
+        optimizer.step()
+        return {**out, "skipped": 0.0, "psnr_rays": _psnr(mse)}
+    K = sample.num_cameras
+    H, W = sample.images.shape[1:3]
+    batch, query = _rays(model, sample, device)
+    pred = (net or model)(*sample.normal_maps(device), query)  # (N, 3)
+    target = composite_target(sample.images, sample.masks).to(device)  # (K, H, W, 3)
+    target_rays = target.reshape(K, H * W, 3)[batch.image_index, batch.pixels]  # (N, 3)
+    if num_rays:
+        # L1 over the rays the model paints (pixels outside the shell are background in both images,
+        # up to person pixels the shell misses, which no parameter can change)
+        pred_images = paint_images(pred, batch, K, H, W) if perceptual is not None and perceptual_weight > 0 else None
+        loss = step_loss(pred, target_rays, perceptual=perceptual, weight=perceptual_weight, pred_images=pred_images,
+                         target_images=target, masks=torch.from_numpy(sample.masks).to(device), generator=generator)
+        loss.loss.backward()
+        out = loss.terms()
+    else:  # DDP only: a zero loss that reaches every parameter, so every gradient hook (all-reduce) fires
+        zero = pred.sum() * 0.0 + sum(p.sum() for p in model.parameters() if p.requires_grad) * 0.0
+        zero.backward()
+        out = {"loss": 0.0, "l1": 0.0}
+    optimizer.step()
+    mse = float((pred.detach() - target_rays).square().mean()) if num_rays else float("nan")
+    return {**out, "skipped": 0.0 if num_rays else 1.0, "psnr_rays": _psnr(mse) if num_rays else float("nan")}
+
+
+def balance_weight(model: DeliffasModel, sample: FrameSample, device: torch.device,
+                   perceptual: torch.nn.Module) -> float:
+    """Perceptual weight making both loss terms equally large on this frame (paper: 'roughly the same')."""
+    with torch.no_grad():
+        model.eval()
+        pred = render_sample_images(model, sample, device)
+        target = composite_target(sample.images, sample.masks).to(device)
+        p = perceptual(pred.permute(0, 3, 1, 2), target.permute(0, 3, 1, 2), torch.from_numpy(sample.masks).to(device),
+                       generator=torch.Generator().manual_seed(0))
+        return float(l1_foreground(pred, target) / p.clamp_min(1e-12))
