@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import logging
-import shutil
 import time
 import dataclasses
 from dataclasses import dataclass
@@ -17,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from deliffas.data.convert import ConvertConfig, convert
+from deliffas.data.synth import SynthConfig, synthesize_capture
 from deliffas.engine.evaluate import EvalConfig, evaluate
 from deliffas.engine.render import RenderConfig, render_video
 from deliffas.engine.report import results_table, speed_accuracy_chart
@@ -48,9 +49,6 @@ def _stage(name: str) -> None:
 
 def run_demo(cfg: DemoConfig = DemoConfig()) -> Path:
     """Run the whole path and return the path of ``report.md``."""
-    from deliffas.data.convert import ConvertConfig, convert
-    from deliffas.data.synth import SynthConfig, synthesize_capture
-
     if cfg.quick:
         cfg = dataclasses.replace(cfg, sizes=RunSizes.quick(), jobs=1)
     sz = cfg.sizes

@@ -6,7 +6,6 @@ from deliffas.models.light_field import LightFieldMLP, LightFieldMLPConfig
 from deliffas.models.losses import PerceptualLoss, l1_foreground
 from deliffas.models.metrics import Evaluator, perceptual_metrics_status, psnr, ssim
 from deliffas.models.ray_query import RayQuery
-from deliffas.geometry.sampling import sample_uv
 from deliffas.models.unet import UNet, UNetConfig, optimize_for_inference
 from deliffas.models.variants import VariantSpec, get_variant, register_variant, variant_names
 from deliffas.models.vgg import BackboneRecord, PerceptualWeightsUnavailable, load_vgg16_weights
@@ -40,7 +39,6 @@ __all__ = [
     "positional_encoding",
     "psnr",
     "register_variant",
-    "sample_uv",
     "save_checkpoint",
     "ssim",
     "variant_names",

@@ -1,4 +1,9 @@
-"""The ``deliffas`` command line: a thin layer of argument parsing over the Python API."""
+"""The ``deliffas`` command line: a thin layer of argument parsing over the Python API.
+
+This module only parses (``deliffas --help`` imports no torch); the handlers that call the API are
+:mod:`deliffas.cli.handlers`, imported when a command runs. Bad input ends in one ``error:`` line on
+stderr and exit code 2 (``-v`` also logs the traceback).
+"""
 
 from __future__ import annotations
 
@@ -9,18 +14,9 @@ from pathlib import Path
 
 __all__ = ["main", "build_parser"]
 
-
-def _cmd_pose(args: argparse.Namespace) -> int:
-    from deliffas.geometry.posing import pose_frames, write_posed_mesh
-
-    verts, character = pose_frames(args.character, args.motion, [args.frame], args.skinning)
-    write_posed_mesh(args.out, verts[0], character)
-    print(f"wrote {args.out}: {verts.shape[1]} vertices, {character.mesh.num_faces} faces "
-          f"(frame {args.frame}, {args.skinning})")
-    return 0
+log = logging.getLogger(__name__)
 
 
-# --------------------------------------------------------------------------------------------- data commands
 def _size(text: str) -> tuple[int, int]:
     try:
         w, h = (int(v) for v in text.lower().split("x"))
@@ -48,69 +44,6 @@ def _test_cameras(text: str) -> int | tuple[int, ...]:
         raise argparse.ArgumentTypeError(f"expected a count N or a list a,b,..., got {text!r}") from None
 
 
-def _cmd_synth(args: argparse.Namespace) -> int:
-    from deliffas.data.synth import SynthConfig, synthesize_capture
-
-    w, h = args.size
-    cfg = SynthConfig(num_frames=args.frames, num_test_frames=args.test_frames, num_cameras=args.cameras,
-                      width=w, height=h, test_cameras=args.test_cameras, seed=args.seed,
-                      character=str(args.character) if args.character else None,
-                      motion=str(args.motion) if args.motion else None, videos=args.videos, jobs=args.jobs,
-                      supersample=args.supersample)
-    res = synthesize_capture(args.out_dir, cfg)
-    n = sum(len(f) for f in res.frames.values())
-    print(f"wrote {res.out_dir}: {len(res.cameras)} cameras (test {res.test_cameras}), "
-          f"{len(res.frames['training'])} training + {len(res.frames['testing'])} testing frames at {w}x{h} "
-          f"in {res.seconds['total']:.1f} s ({res.seconds['render'] / max(n, 1):.2f} s/frame rendering)")
-    return 0
-
-
-def _cmd_convert(args: argparse.Namespace) -> int:
-    from deliffas.data.convert import ConvertConfig, convert
-
-    cfg = ConvertConfig(frames=args.frames, cameras=args.cameras, shard_frames=args.shard_frames, jobs=args.jobs,
-                        resume=args.resume, overwrite=args.overwrite, meshes=tuple(args.meshes or ()),
-                        template=str(args.template) if args.template else None, atlas_res=args.atlas_res,
-                        offset_mm=args.offset, codec=args.codec, window=args.window, layout=args.layout,
-                        test_cameras=args.test_cameras, masks=args.masks, progress=not args.no_progress)
-    try:
-        res = convert(args.subject, args.out, cfg)
-    except (FileExistsError, ValueError) as err:
-        print(f"deliffas convert: error: {err}", file=sys.stderr)
-        return 2
-    work = res.seconds - res.seconds_setup
-    rate = res.frames_converted / work if work > 0 else 0.0
-    print(f"wrote {res.out_dir}: {res.shards_total} shards ({res.shards_skipped} kept from before), "
-          f"{res.frames_converted} frames / {res.images_converted} images in {res.seconds:.1f} s "
-          f"(setup {res.seconds_setup:.1f} s, then {rate:.2f} frames/s), {res.bytes_total / 1e6:.1f} MB")
-    return 0
-
-
-def _cmd_verify(args: argparse.Namespace) -> int:
-    from deliffas.data.shards import verify_shards
-
-    problems = verify_shards(args.out, deep=not args.quick)
-    for p in problems:
-        print(f"BROKEN {p}", file=sys.stderr)
-    if problems:
-        print(f"deliffas verify: {len(problems)} problem(s) in {args.out}", file=sys.stderr)
-        return 1
-    print(f"{args.out}: every shard matches the manifest")
-    return 0
-
-
-def _cmd_cameras(args: argparse.Namespace) -> int:
-    from deliffas.io.colmap import calibration_from_colmap, calibration_to_colmap
-
-    if args.to_colmap:
-        n = calibration_to_colmap(args.calibration, args.to_colmap, text=args.text)
-        print(f"wrote a COLMAP model of {n} cameras to {args.to_colmap}")
-    else:
-        n = calibration_from_colmap(args.from_colmap, args.calibration)
-        print(f"wrote {args.calibration} with {n} cameras from {args.from_colmap}")
-    return 0
-
-
 def _add_data_commands(sub) -> None:
     p = sub.add_parser("synth", help="render a synthetic DynaCap capture with a loose garment",
                        description="Write a synthetic subject folder in DynaCap layout (cameras, character, "
@@ -130,7 +63,7 @@ def _add_data_commands(sub) -> None:
     p.add_argument("--videos", action="store_true", help="also write FFV1 videos img/c_<cam>.avi + fg/c_<cam>.avi")
     p.add_argument("--supersample", type=int, default=1, help="s x s rays per pixel (default 1)")
     p.add_argument("--jobs", type=int, default=1, help="rendering processes (default 1)")
-    p.set_defaults(func=_cmd_synth)
+    p.set_defaults(handler="synth")
 
     p = sub.add_parser("convert", help="convert a DynaCap subject into sharded HDF5",
                        description="Convert SUBJECT (image folders or videos) into HDF5 shards + meta.h5 + "
@@ -156,14 +89,14 @@ def _add_data_commands(sub) -> None:
     p.add_argument("--masks", metavar="SUBDIR", help="DDC mask folder in each sequence folder "
                                                      "(<cam>/image_c_<cam>_f_<frame>.png|jpg) replacing alpha/fg")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(func=_cmd_convert)
+    p.set_defaults(handler="convert")
 
     p = sub.add_parser("verify", help="check converted shards against their manifest",
                        description="Check every shard of OUT against manifest.json (presence, size, sha256, "
                                    "readability, completeness); exit 1 naming each broken shard.")
     p.add_argument("out", type=Path, help="folder written by 'deliffas convert'")
     p.add_argument("--quick", action="store_true", help="checksums only, do not read every dataset")
-    p.set_defaults(func=_cmd_verify)
+    p.set_defaults(handler="verify")
 
     p = sub.add_parser("cameras", help="convert a cameras.calibration to or from a COLMAP model",
                        description="COLMAP's pixel convention equals DynaCap's (pixel centres at +0.5): "
@@ -173,42 +106,7 @@ def _add_data_commands(sub) -> None:
     g.add_argument("--to-colmap", type=Path, metavar="DIR", help="write cameras/images/points3D to DIR")
     g.add_argument("--from-colmap", type=Path, metavar="DIR", help="read a COLMAP model from DIR")
     p.add_argument("--text", action="store_true", help="write the .txt model instead of .bin")
-    p.set_defaults(func=_cmd_cameras)
-
-
-# --------------------------------------------------------------------------------------------- geometry commands
-def _cmd_character_procedural(args: argparse.Namespace) -> int:
-    from deliffas.io.dynacap import read_character
-    from deliffas.geometry.procedural import make_procedural_character
-
-    try:
-        path = make_procedural_character(args.out_dir, seed=args.seed, target_faces=args.faces, name=args.name,
-                                         texture_size=args.texture_size)
-    except ValueError as err:
-        print(f"deliffas character procedural: error: {err}", file=sys.stderr)
-        return 2
-    c = read_character(path)
-    print(f"wrote {path}: {c.mesh.num_verts} vertices, {c.mesh.num_faces} faces, {c.skeleton.num_dofs} DOFs, "
-          f"{c.graph.num_verts if c.graph is not None else 0} graph nodes, height {c.mesh.verts[:, 1].max():.0f} mm")
-    return 0
-
-
-def _cmd_template(args: argparse.Namespace) -> int:
-    from deliffas.data.template_build import build_templates
-
-    try:
-        report = build_templates(args.character, args.out, smooth_iters=args.smooth, coarse_faces=args.coarse,
-                                 offset_mm=args.offset, safe=args.safe, atlas_res=args.atlas_res)
-    except ValueError as err:  # bad arguments or files (DynaCapFormatError is a ValueError)
-        print(f"deliffas template: error: {err}", file=sys.stderr)
-        return 2
-    for name, v in report["variants"].items():
-        sh = v["shell"]
-        print(f"{name:>8}: {v['num_verts']} vertices, {v['num_faces']} faces, watertight {v['watertight']}, "
-              f"shell self-intersecting faces {sh['num_self_intersecting_faces']}"
-              + (f", {sh['num_clamped']} offsets clamped" if args.safe else ""))
-    print(f"wrote {args.out}/{{{','.join(report['variants'])}}}/ and {args.out}/report.json")
-    return 0
+    p.set_defaults(handler="cameras")
 
 
 def _add_geometry_commands(sub) -> None:
@@ -224,7 +122,7 @@ def _add_geometry_commands(sub) -> None:
     q.add_argument("--faces", type=int, default=8000, help="template face budget (default 8000)")
     q.add_argument("--name", default="procedural", help="file stem (default procedural)")
     q.add_argument("--texture-size", type=int, default=1024, help="texture atlas side in texels (default 1024)")
-    q.set_defaults(func=_cmd_character_procedural)
+    q.set_defaults(handler="character_procedural")
 
     p = sub.add_parser("template", help="write template variants (original/smooth/coarse) with outer shells",
                        description="Write OUT/<variant>/ (a complete DynaCap character + outer.obj, the offset "
@@ -238,11 +136,74 @@ def _add_geometry_commands(sub) -> None:
     p.add_argument("--safe", action="store_true", help="limit d per vertex where the shell would cross another part")
     p.add_argument("--atlas-res", type=int, default=512, metavar="R",
                    help="xatlas packing resolution of new atlases and texel grid of the report (default 512)")
-    p.set_defaults(func=_cmd_template)
+    p.set_defaults(handler="template")
+
+
+def _add_engine_commands(sub) -> None:
+    p = sub.add_parser("zoo", help="list the model zoo (named configurations and presets)")
+    p.add_argument("action", choices=["list"], help="what to do")
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.add_argument("--count-paper", action="store_true", help="also build the paper-size models to count parameters")
+    p.set_defaults(handler="zoo")
+
+    p = sub.add_parser("train", help="train a model of the zoo on converted shards",
+                       description="Train on SHARDS (from `deliffas convert`). L1 first, then L1 + perceptual "
+                                   "when --perceptual is given. Distributed with `torchrun --nproc_per_node N -m deliffas train ...`.")
+    p.add_argument("shards", type=Path)
+    p.add_argument("--model", default=None, help="zoo name (default two_surface)")
+    p.add_argument("--out", type=Path, required=True, help="run directory")
+    p.add_argument("--preset", default=None, help="paper | small (default) | tiny")
+    p.add_argument("--iters", type=int, default=None)
+    p.add_argument("--config", type=Path, default=None, help="JSON file of TrainConfig fields (incl. model_overrides)")
+    p.add_argument("--resume", action="store_true", help="continue from the run directory's last checkpoint")
+    p.add_argument("--perceptual", choices=["none", "vgg16-imagenet", "vgg16-random"], default=None,
+                   help="stage-2 perceptual backbone; vgg16-random is the explicit offline option")
+    p.add_argument("--perceptual-mode", choices=["image", "patch"], default=None)
+    p.add_argument("--vgg16-path", default=None, help="ImageNet VGG-16 weights (.pth/.safetensors)")
+    p.add_argument("--cameras-per-frame", type=int, default=None)
+    p.add_argument("--device", default=None, help="cpu | cuda | cuda:N")
+    p.add_argument("--workers", dest="num_workers", type=int, default=None, help="DataLoader workers")
+    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--ray-chunk", type=int, default=None,
+                   help="rays per backward pass (bounds training memory; single process)")
+    p.add_argument("--checkpoint-every", type=int, default=None)
+    p.add_argument("--preview-every", type=int, default=None)
+    p.add_argument("--auto-capacity", action="store_true",
+                   help="search model capacities and keep the cheapest within --tolerance-db of the best")
+    p.add_argument("--tolerance-db", type=float, default=0.5)
+    p.set_defaults(handler="train")
+
+    p = sub.add_parser("eval", help="evaluate a run: PSNR/SSIM (+LPIPS when weights exist) and per-stage timing")
+    p.add_argument("run", type=Path)
+    p.add_argument("--split", choices=["novel_view", "novel_pose", "train"], default="novel_view")
+    p.add_argument("--shards", default=None, help="shard directory (default: the run's)")
+    p.add_argument("--max-frames", type=int, default=None)
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--save-images", default=None, help="folder for predicted images (white background)")
+    p.add_argument("--vgg16-path", default=None)
+    p.add_argument("--lpips-path", default=None)
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(handler="eval")
+
+    p = sub.add_parser("render", help="free-viewpoint video of a trained avatar driven by a motion")
+    p.add_argument("run", type=Path)
+    p.add_argument("--out", type=Path, required=True, help="video file (.mp4 or .avi)")
+    p.add_argument("--orbit", action="store_true", help="camera orbits the avatar (default: capture camera 0)")
+    p.add_argument("--motion", type=Path, default=None, help=".motion file (default: the capture's test motion)")
+    p.add_argument("--frames", type=int, default=None, help="number of frames (default: all of the motion, max 300)")
+    p.add_argument("--size", type=_size, default=None, help="WxH (default: the capture's)")
+    p.add_argument("--fps", type=float, default=25.0)
+    p.add_argument("--device", default="cpu")
+    p.set_defaults(handler="render")
+
+    p = sub.add_parser("demo", help="the whole path on the embedded procedural character, with a report")
+    p.add_argument("--out", type=Path, default=Path("demo_out"))
+    p.add_argument("--quick", action="store_true", help="a smaller run (used by tests)")
+    p.set_defaults(handler="demo")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="deliffas", description=__doc__.splitlines()[0] if __doc__ else None)
+    parser = argparse.ArgumentParser(prog="deliffas", description="deliffas: deformable light-field human avatars (DELIFFAS) - templates, captures, shards, training, evaluation and rendering. `deliffas COMMAND --help` explains each command.")
     parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
@@ -255,12 +216,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--skinning", choices=["dqs", "lbs"], default="dqs",
                    help="dual-quaternion (the original tools' default) or linear blend skinning")
     p.add_argument("--out", type=Path, required=True, help="output mesh, .ply or .obj (.obj keeps the UVs)")
-    p.set_defaults(func=_cmd_pose)
+    p.set_defaults(handler="pose")
     _add_data_commands(sub)
     _add_geometry_commands(sub)
-    from deliffas.engine.commands import add_engine_commands
-
-    add_engine_commands(sub)
+    _add_engine_commands(sub)
     return parser
 
 
@@ -269,17 +228,13 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
-    from deliffas.io.text_lines import DynaCapFormatError
+    from deliffas.cli import handlers  # start-up time: parsing and --help must not import torch
 
+    handler = getattr(handlers, f"cmd_{args.handler}")
     try:
-        return int(args.func(args) or 0)
-    except (DynaCapFormatError, FileNotFoundError) as err:
-        print(f"deliffas {args.command}: error: {err}", file=sys.stderr)
-        return 2
-    except ValueError as err:
-        zoo = sys.modules.get("deliffas.models.zoo")  # a CheckpointError can only come from a loaded zoo
-        if zoo is None or not isinstance(err, zoo.CheckpointError):
-            raise
+        return int(handler(args) or 0)
+    except (ValueError, OSError) as err:  # bad input: every deliffas format/config error is a ValueError
+        log.debug("traceback of the error below", exc_info=True)
         print(f"deliffas {args.command}: error: {err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -1,0 +1,188 @@
+"""The handlers of the ``deliffas`` commands: each turns parsed arguments into one Python API call.
+
+Imported by :func:`deliffas.cli.main` only when a command runs, so ``deliffas --help`` stays light.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from pathlib import Path
+
+from deliffas.io.colmap import calibration_from_colmap, calibration_to_colmap
+from deliffas.io.dynacap import read_character
+from deliffas.geometry.posing import pose_frames, write_posed_mesh
+from deliffas.geometry.procedural import make_procedural_character
+from deliffas.data.convert import ConvertConfig, convert
+from deliffas.data.shards import verify_shards
+from deliffas.data.synth import SynthConfig, synthesize_capture
+from deliffas.data.template_build import build_templates
+from deliffas.models.deliffas import DeliffasModel
+from deliffas.models.zoo import get_config, list_models, list_presets
+from deliffas.engine.auto_capacity import AutoCapacityConfig, auto_capacity
+from deliffas.engine.demo import DemoConfig, run_demo
+from deliffas.engine.evaluate import EvalConfig, evaluate
+from deliffas.engine.memory import retain_freed_memory
+from deliffas.engine.render import RenderConfig, render_video
+from deliffas.engine.train import TrainConfig, train
+
+
+def cmd_pose(args: argparse.Namespace) -> int:
+    verts, character = pose_frames(args.character, args.motion, [args.frame], args.skinning)
+    write_posed_mesh(args.out, verts[0], character)
+    print(f"wrote {args.out}: {verts.shape[1]} vertices, {character.mesh.num_faces} faces "
+          f"(frame {args.frame}, {args.skinning})")
+    return 0
+
+
+def cmd_synth(args: argparse.Namespace) -> int:
+    w, h = args.size
+    cfg = SynthConfig(num_frames=args.frames, num_test_frames=args.test_frames, num_cameras=args.cameras,
+                      width=w, height=h, test_cameras=args.test_cameras, seed=args.seed,
+                      character=str(args.character) if args.character else None,
+                      motion=str(args.motion) if args.motion else None, videos=args.videos, jobs=args.jobs,
+                      supersample=args.supersample)
+    res = synthesize_capture(args.out_dir, cfg)
+    n = sum(len(f) for f in res.frames.values())
+    print(f"wrote {res.out_dir}: {len(res.cameras)} cameras (test {res.test_cameras}), "
+          f"{len(res.frames['training'])} training + {len(res.frames['testing'])} testing frames at {w}x{h} "
+          f"in {res.seconds['total']:.1f} s ({res.seconds['render'] / max(n, 1):.2f} s/frame rendering)")
+    return 0
+
+
+def cmd_convert(args: argparse.Namespace) -> int:
+    cfg = ConvertConfig(frames=args.frames, cameras=args.cameras, shard_frames=args.shard_frames, jobs=args.jobs,
+                        resume=args.resume, overwrite=args.overwrite, meshes=tuple(args.meshes or ()),
+                        template=str(args.template) if args.template else None, atlas_res=args.atlas_res,
+                        offset_mm=args.offset, codec=args.codec, window=args.window, layout=args.layout,
+                        test_cameras=args.test_cameras, masks=args.masks, progress=not args.no_progress)
+    res = convert(args.subject, args.out, cfg)
+    work = res.seconds - res.seconds_setup
+    rate = res.frames_converted / work if work > 0 else 0.0
+    print(f"wrote {res.out_dir}: {res.shards_total} shards ({res.shards_skipped} kept from before), "
+          f"{res.frames_converted} frames / {res.images_converted} images in {res.seconds:.1f} s "
+          f"(setup {res.seconds_setup:.1f} s, then {rate:.2f} frames/s), {res.bytes_total / 1e6:.1f} MB")
+    return 0
+
+
+def cmd_verify(args: argparse.Namespace) -> int:
+    problems = verify_shards(args.out, deep=not args.quick)
+    for p in problems:
+        print(f"BROKEN {p}", file=sys.stderr)
+    if problems:
+        print(f"deliffas verify: {len(problems)} problem(s) in {args.out}", file=sys.stderr)
+        return 1
+    print(f"{args.out}: every shard matches the manifest")
+    return 0
+
+
+def cmd_cameras(args: argparse.Namespace) -> int:
+    if args.to_colmap:
+        n = calibration_to_colmap(args.calibration, args.to_colmap, text=args.text)
+        print(f"wrote a COLMAP model of {n} cameras to {args.to_colmap}")
+    else:
+        n = calibration_from_colmap(args.from_colmap, args.calibration)
+        print(f"wrote {args.calibration} with {n} cameras from {args.from_colmap}")
+    return 0
+
+
+def cmd_character_procedural(args: argparse.Namespace) -> int:
+    path = make_procedural_character(args.out_dir, seed=args.seed, target_faces=args.faces, name=args.name,
+                                     texture_size=args.texture_size)
+    c = read_character(path)
+    print(f"wrote {path}: {c.mesh.num_verts} vertices, {c.mesh.num_faces} faces, {c.skeleton.num_dofs} DOFs, "
+          f"{c.graph.num_verts if c.graph is not None else 0} graph nodes, height {c.mesh.verts[:, 1].max():.0f} mm")
+    return 0
+
+
+def cmd_template(args: argparse.Namespace) -> int:
+    report = build_templates(args.character, args.out, smooth_iters=args.smooth, coarse_faces=args.coarse,
+                             offset_mm=args.offset, safe=args.safe, atlas_res=args.atlas_res)
+    for name, v in report["variants"].items():
+        sh = v["shell"]
+        print(f"{name:>8}: {v['num_verts']} vertices, {v['num_faces']} faces, watertight {v['watertight']}, "
+              f"shell self-intersecting faces {sh['num_self_intersecting_faces']}"
+              + (f", {sh['num_clamped']} offsets clamped" if args.safe else ""))
+    print(f"wrote {args.out}/{{{','.join(report['variants'])}}}/ and {args.out}/report.json")
+    return 0
+
+
+def cmd_zoo(args: argparse.Namespace) -> int:
+    rows = []
+    for name in list_models():
+        for preset in list_presets(name):
+            cfg = get_config(name, preset)
+            params = DeliffasModel(cfg).num_parameters() if preset != "paper" or args.count_paper else None
+            rows.append({"model": name, "preset": preset, "atlas_res": cfg.atlas_res,
+                         "mlp": f"{cfg.mlp.depth}x{cfg.mlp.width}", "features": cfg.feature_channels,
+                         "parameters": params})
+    if args.json:
+        print(json.dumps(rows, indent=2))
+        return 0
+    print(f"{'model':<26} {'preset':<7} {'S':>5} {'mlp':>7} {'feat':>5} {'params':>12}")
+    for r in rows:
+        p = f"{r['parameters']:,}" if r["parameters"] is not None else "(--count-paper)"
+        print(f"{r['model']:<26} {r['preset']:<7} {r['atlas_res']:>5} {r['mlp']:>7} {r['features']:>5} {p:>12}")
+    return 0
+
+
+def _train_config(args: argparse.Namespace):
+    values: dict = {}
+    if args.config:
+        values.update(json.loads(Path(args.config).read_text()))
+    values.update(shards=str(args.shards), out=str(args.out))
+    for key in ("model", "preset", "iters", "perceptual", "perceptual_mode", "cameras_per_frame", "device",
+                "num_workers", "seed", "vgg16_path", "checkpoint_every", "preview_every", "ray_chunk"):
+        v = getattr(args, key, None)
+        if v is not None:
+            values[key] = v
+    known = {f.name for f in dataclasses.fields(TrainConfig)}
+    unknown = sorted(set(values) - known)
+    if unknown:
+        raise ValueError(f"unknown config keys {unknown} (known: {sorted(known)})")
+    return TrainConfig(**values)
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    retain_freed_memory()
+    cfg = _train_config(args)
+    if args.auto_capacity:
+        result = auto_capacity(cfg, AutoCapacityConfig(tolerance_db=args.tolerance_db))
+        print(json.dumps(result, indent=2))
+        return 0
+    result = train(cfg, resume=args.resume)
+    print(f"trained {cfg.model} ({cfg.preset}) for {result.iterations} iterations in {result.seconds:.0f} s "
+          f"({result.iters_per_second:.2f} it/s); run in {result.run_dir}")
+    return 0
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    retain_freed_memory()
+    result = evaluate(EvalConfig(run=str(args.run), split=args.split, shards=args.shards, max_frames=args.max_frames,
+                                 device=args.device, save_images=args.save_images, vgg16_path=args.vgg16_path,
+                                 lpips_path=args.lpips_path))
+    if args.json:
+        print(json.dumps(result))
+    else:
+        print(f"{args.split}: PSNR {result['psnr']:.2f} dB, SSIM {result['ssim']:.4f}, "
+              f"LPIPS {result['lpips'] if result['lpips'] is not None else 'n/a (' + result['lpips_reason'] + ')'}, "
+              f"{result['fps']:.2f} fps; stage ms " + ", ".join(f"{k} {v:.1f}" for k, v in result["stage_ms"].items()))
+    return 0
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    retain_freed_memory()
+    out = render_video(RenderConfig(run=str(args.run), out=str(args.out), orbit=args.orbit,
+                                    motion=str(args.motion) if args.motion else None, frames=args.frames,
+                                    size=args.size, device=args.device, fps=args.fps))
+    print(f"wrote {out}")
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    retain_freed_memory()
+    report = run_demo(DemoConfig(out=str(args.out), quick=args.quick))
+    print(f"demo report: {report}")
+    return 0
