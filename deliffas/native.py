@@ -1,7 +1,7 @@
 """Small C kernels compiled at first use with the system C compiler and loaded through ctypes.
 
 The fused normal-map gather (``geometry/normal_maps.py``) and the U-Net's input conversion
-(``models/unet_conv.py``) use one each. Each is built once per
+(``models/unet_cpu.py``) use one each. Each is built once per
 process, with ``-march=native`` first (the build machine is the run machine) and portable flags
 if that fails, from ``$CC`` or the first of ``cc``, ``gcc``, ``clang`` on PATH, in a temporary
 directory that is removed after loading (the library stays mapped). Nothing is cached on disk.

@@ -32,7 +32,7 @@ when every norm can be folded (affine, none, BatchNorm in eval mode; dropout ina
 block's norm and activation as an epilogue (one oneDNN call with prepacked weights), each up block
 writes into the first half of its skip concatenation's buffer, and the final ``(tanh + 1) / 2`` is
 the identical ``sigmoid(2 x)`` with the factor 2 folded into the weights, and each conv keeps its
-weights prepacked for oneDNN in the U-Net's own :class:`~deliffas.models.unet_conv.PrepackCache`.
+weights prepacked for oneDNN in the U-Net's own :class:`~deliffas.models.unet_prepack.PrepackCache`.
 The conv modules are still called once per layer with their usual input and output, so forward
 hooks see them. Without that call (or with autograd on) the plain forward runs.
 """
@@ -46,14 +46,9 @@ from typing import Literal
 import torch
 from torch import nn
 
-from deliffas.models.unet_conv import (
-    CONV_TRANSPOSE_CHANNELS_LAST_MIN_PIXELS,
-    Conv2d,
-    ConvTranspose2d,
-    Epilogue,
-    PrepackCache,
-    new_map,
-)
+from deliffas.models.unet_conv import Conv2d, ConvTranspose2d
+from deliffas.models.unet_cpu import CONV_TRANSPOSE_CHANNELS_LAST_MIN_PIXELS, Epilogue, new_map
+from deliffas.models.unet_prepack import PrepackCache
 
 __all__ = ["UNetConfig", "UNet", "resolve_levels", "unet_channels", "optimize_for_inference"]
 
@@ -221,7 +216,7 @@ class UNet(nn.Module):
 
         Returns:
             (B, out_channels, H, W) features in [0, 1]; in channels_last memory format when
-            computed on CPU with H W >= ``unet_conv.CHANNELS_LAST_MIN_PIXELS``.
+            computed on CPU with H W >= ``unet_cpu.CHANNELS_LAST_MIN_PIXELS``.
         """
         if x.dim() != 4 or x.shape[1] != self.config.in_channels:
             raise ValueError(
@@ -310,7 +305,7 @@ def _fold_norm(layers) -> tuple[torch.Tensor | None, torch.Tensor | None, tuple]
     """(scale, shift, sources) of the norm among ``layers`` (norm, optional dropout) in inference,
     (None, None, ()) without a norm, None when it depends on the batch (BatchNorm in training mode
     or without running statistics) or dropout is active. ``sources`` are what scale and shift are
-    computed from (see :class:`~deliffas.models.unet_conv.Epilogue`)."""
+    computed from (see :class:`~deliffas.models.unet_cpu.Epilogue`)."""
     scale = shift = None
     sources: tuple = ()
     for m in layers:

@@ -171,12 +171,12 @@ def test_inference_matches_reference(norm, paths, monkeypatch):
     """The fused inference forward (norms folded into the convs, up blocks written into the skip
     concatenation) computes the U-Net, with prepacked oneDNN weights, with per-call weights, and
     with torch's public ops only."""
-    import deliffas.models.unet_conv as unet_conv
+    import deliffas.models.unet_prepack as unet_prepack
 
     if paths != "all":
-        monkeypatch.setattr(unet_conv, "_prepack_ok", False)
+        monkeypatch.setattr(unet_prepack, "_prepack_ok", False)
     if paths == "plain_torch":
-        monkeypatch.setattr(unet_conv, "_onednn_pointwise_ok", False)
+        monkeypatch.setattr(unet_prepack, "_onednn_pointwise_ok", False)
     torch.manual_seed(0)
     net = optimize_for_inference(UNet(UNetConfig(in_channels=9, base_channels=4, max_channels=16, norm=norm), 64).eval())
     _randomise_norms(net)
@@ -239,7 +239,7 @@ def test_prepacked_weights_follow_changes():
     they stay out of the state_dict and deepcopy."""
     import copy
 
-    import deliffas.models.unet_conv as unet_conv
+    import deliffas.models.unet_prepack as unet_prepack
 
     torch.manual_seed(0)
     net = optimize_for_inference(UNet(UNetConfig(in_channels=9, base_channels=4, max_channels=16, norm="batch"), 32).eval())
@@ -252,7 +252,7 @@ def test_prepacked_weights_follow_changes():
             torch.testing.assert_close(net(inp), _reference_forward(net, inp), rtol=1e-5, atol=2e-6)
 
     check()
-    if not unet_conv._prepack_ok:
+    if not unet_prepack._prepack_ok:
         pytest.skip("oneDNN prepacked convolutions unavailable in this torch build")
     assert len(net._prepacked) == 2 * net.levels  # every conv, in the U-Net's own cache
     opt = torch.optim.SGD(net.parameters(), lr=0.5)
@@ -275,7 +275,7 @@ def test_prepacked_weights_follow_changes():
 
 
 def _epilogue(channels: int, act: str, slope: float = 0.0):
-    from deliffas.models.unet_conv import Epilogue
+    from deliffas.models.unet_cpu import Epilogue
 
     g = torch.Generator().manual_seed(2)
     scale = torch.rand(channels, generator=g) + 0.5
@@ -298,13 +298,14 @@ def test_narrow_layer_forms_match_torch(lanes, monkeypatch):
     import torch.nn.functional as F
 
     import deliffas.models.unet_conv as unet_conv
+    import deliffas.models.unet_prepack as unet_prepack
 
-    if not unet_conv._prepack_ok or not torch.backends.mkldnn.is_available():
+    if not unet_prepack._prepack_ok or not torch.backends.mkldnn.is_available():
         pytest.skip("oneDNN prepacked convolutions unavailable in this torch build")
-    monkeypatch.setattr(unet_conv, "simd_lanes", lambda: lanes)
+    monkeypatch.setattr(unet_prepack, "simd_lanes", lambda: lanes)
     torch.manual_seed(0)
     forms = []
-    packs = unet_conv.PrepackCache()
+    packs = unet_prepack.PrepackCache()
     for c_out in (4, 8):
         conv = unet_conv.Conv2d(9, c_out, 4, 2, 1, bias=False)
         up = unet_conv.ConvTranspose2d(12, c_out, 4, 2, 1, bias=True)
@@ -316,7 +317,7 @@ def test_narrow_layer_forms_match_torch(lanes, monkeypatch):
             with torch.no_grad():
                 ref = _apply_reference(F.conv2d(x, conv.weight, None, 2, 1), ep)
                 got = conv(x, epilogue=ep, prepacked=packs)
-            forms.append((c_out, "conv", unet_conv._narrow_form(conv, x)))
+            forms.append((c_out, "conv", unet_prepack._narrow_form(conv, x)))
             torch.testing.assert_close(got, ref, rtol=1e-5, atol=1e-5)
         for shape in ((2, 12, 16, 16), (1, 12, 16, 24), (1, 12, 8, 8)):  # the last has 256 output pixels
             x = torch.randn(shape).contiguous(memory_format=torch.channels_last)
@@ -327,7 +328,7 @@ def test_narrow_layer_forms_match_torch(lanes, monkeypatch):
                 ref = _apply_reference(F.conv_transpose2d(x, up.weight, up.bias, 2, 1), ep)
                 got = up(x, epilogue=ep, out=cat[:, :c_out], prepacked=packs)
                 fresh = up(x, epilogue=ep, prepacked=packs)
-            forms.append((c_out, "up", unet_conv._narrow_form(up, x)))
+            forms.append((c_out, "up", unet_prepack._narrow_form(up, x)))
             assert got.data_ptr() == cat.data_ptr()
             torch.testing.assert_close(cat[:, :c_out], ref, rtol=1e-5, atol=1e-5)
             torch.testing.assert_close(fresh, ref, rtol=1e-5, atol=1e-5)
@@ -344,20 +345,20 @@ def test_narrow_layer_forms_match_torch(lanes, monkeypatch):
 
 
 def test_simd_lanes_follow_the_isa(monkeypatch):
-    import deliffas.models.unet_conv as unet_conv
+    import deliffas.models.unet_prepack as unet_prepack
 
     for var in ("ONEDNN_MAX_CPU_ISA", "DNNL_MAX_CPU_ISA"):
         monkeypatch.delenv(var, raising=False)
     monkeypatch.setattr(torch.backends.cpu, "get_cpu_capability", lambda: "AVX512")
-    assert unet_conv.simd_lanes() == 16
+    assert unet_prepack.simd_lanes() == 16
     monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "avx2")
-    assert unet_conv.simd_lanes() == 8
+    assert unet_prepack.simd_lanes() == 8
     monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "AVX512_CORE_AMX")
-    assert unet_conv.simd_lanes() == 16
+    assert unet_prepack.simd_lanes() == 16
     monkeypatch.setattr(torch.backends.cpu, "get_cpu_capability", lambda: "AVX2")
-    assert unet_conv.simd_lanes() == 8
+    assert unet_prepack.simd_lanes() == 8
     monkeypatch.setattr(torch.backends.cpu, "get_cpu_capability", lambda: "DEFAULT")
-    assert unet_conv.simd_lanes() == 0
+    assert unet_prepack.simd_lanes() == 0
 
 
 def test_prepacked_weights_follow_affine_norm_changes():
@@ -388,29 +389,29 @@ def test_prepacked_weights_follow_affine_norm_changes():
 def test_channels_last_copy(channels, monkeypatch):
     """The U-Net's input conversion (a compiled loop when a C compiler exists) equals torch's
     channels_last copy, without the compiled loop too, and keeps autograd."""
-    import deliffas.models.unet_conv as unet_conv
+    import deliffas.models.unet_cpu as unet_cpu
     from deliffas.native import NativeLibrary
 
     x = torch.randn(2, channels, 40, 24)
     ref = x.contiguous(memory_format=torch.channels_last)
-    got = unet_conv.channels_last(x)
+    got = unet_cpu.channels_last(x)
     assert got.is_contiguous(memory_format=torch.channels_last) and got.data_ptr() != x.data_ptr()
     assert torch.equal(got, ref)
-    assert unet_conv.channels_last(ref) is ref
+    assert unet_cpu.channels_last(ref) is ref
     with monkeypatch.context() as m:  # the kernel unavailable, as without a compiler
-        m.setattr(unet_conv._LAYOUT_KERNEL, "_built", NativeLibrary(None, "test: no compiler"))
-        m.setattr(unet_conv._LAYOUT_KERNEL, "_logged", False)
-        assert torch.equal(unet_conv.channels_last(x), ref)
+        m.setattr(unet_cpu._LAYOUT_KERNEL, "_built", NativeLibrary(None, "test: no compiler"))
+        m.setattr(unet_cpu._LAYOUT_KERNEL, "_logged", False)
+        assert torch.equal(unet_cpu.channels_last(x), ref)
     xg = x.clone().requires_grad_()
-    unet_conv.channels_last(xg).square().sum().backward()
+    unet_cpu.channels_last(xg).square().sum().backward()
     torch.testing.assert_close(xg.grad, 2 * x)
 
 
 def test_channels_last_copy_is_compiled_here():
     """On a machine with a C compiler (this project's), the conversion runs the compiled loop."""
-    import deliffas.models.unet_conv as unet_conv
+    import deliffas.models.unet_cpu as unet_cpu
 
-    built = unet_conv._LAYOUT_KERNEL.load()
+    built = unet_cpu._LAYOUT_KERNEL.load()
     if built.lib is None and built.reason.startswith(("disabled", "no C compiler")):
         pytest.skip(built.reason)
     assert built.lib is not None, built.reason
