@@ -204,7 +204,8 @@ def read_thuman4_smplx(path: PathLike) -> Thuman4Smplx:
     go = require_array(p, "global_orient", arrays["global_orient"], (-1, 3))
     n = go.shape[0]
     transl = require_array(p, "transl", arrays["transl"], (n, 3))
-    body = require_array(p, "body_pose", arrays["body_pose"].reshape(len(arrays["body_pose"]), -1), (n, 63))
+    bp = arrays["body_pose"]
+    body = require_array(p, "body_pose", bp.reshape(bp.shape[0], -1) if bp.ndim >= 2 else bp, (n, 63))  # (N, 21, 3) too
     betas = require_array(p, "betas", np.atleast_2d(arrays["betas"]), (-1, -1))
     others = {}
     for key in _SMPLX_OPTIONAL:
