@@ -1,0 +1,301 @@
+"""DNA-Rendering ``.smc`` files (HDF5): calibration, frame counts, JPEG images and masks, SMPL-X, read and written.
+
+Conventions, worked out from the dataset's own reader (DNA-Rendering/DNA-Rendering @2691286:
+``scripts/3DGS/SMCReader.py`` and ``scripts/3DGS/dataset_readers.py``):
+
+- An ``.smc`` is an HDF5 file. A capture comes as a main file (images) and an ``_annots.smc``
+  (calibration, masks, keypoints, SMPL-X); the groups below may sit in either, and every function here
+  reads whichever groups the given file has.
+- ``Camera_Parameter/<id:02d>/{K, D, RT, Color_Calibration}``: ``K`` (3, 3) pixels, ``D`` OpenCV
+  (k1, k2, p1, p2, k3) ("D = cam_params['D'] # k1, k2, p1, p2, k3"), ``RT`` (4, 4) **camera-to-world**
+  (``dataset_readers.py``: ``c2w = RT; w2c = inv(c2w)``), OpenCV camera axes.
+- Units: **metres** (SMPL-X vertices, in metres, are rendered with these cameras); deliffas x 1000.
+- Pixels: images and masks go through ``cv2.undistort(image, K, D)``: OpenCV pixel centres on integers,
+  cx_deliffas = cx + 0.5.
+- Images: ``<group>/<id>/color/<frame>`` (group ``Camera_5mp``, ids "0".."47", or ``Camera_12mp``,
+  "48".."59"), each a 1-D uint8 array holding a JPEG (``cv2.imdecode``, BGR); the group's attributes
+  ``num_device``, ``num_frame``, ``resolution``. Masks: ``Mask/<id>/mask/<frame>``, JPEG, reduced to
+  one channel with the max over channels. Camera ids in image groups are not zero-padded; in
+  ``Camera_Parameter`` they are (``f'{int(Camera_id):02d}'``). Frames are 0-based.
+- ``SMPLx/{betas, expression, fullpose (N, 55, 3), transl (N, 3), scale}``.
+- Image size: from the camera's first decoded image or mask (the ``resolution`` attribute's axis order
+  is not documented), else a required ``size=``.
+
+The writer produces the same layout (one file holding all groups), with ``Color_Calibration`` = I when
+none is given (``SMCReader.get_Calibration`` reads all four keys) and a ``name`` attribute per camera
+when the deliffas name is not its id. Images are stored as JPEG (quality 95) like the dataset's; tests
+that need exact pixels can pass ``jpeg_quality=100`` and compare with a tolerance.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from deliffas.io.cameras import Camera
+from deliffas.io.camera_conventions import from_camera, invert_rigid, require_distortion_fits, to_camera
+from deliffas.io.capture_format import CaptureFormatError, require_array, require_rotation
+from deliffas.io.files import durable_replace, temp_path
+
+__all__ = [
+    "SmcCalibration",
+    "SmcSmplx",
+    "SmcFile",
+    "read_smc_calibration",
+    "write_smc",
+    "smc_to_cameras",
+    "cameras_to_smc",
+]
+
+PathLike = str | os.PathLike
+
+
+@dataclass(frozen=True)
+class SmcCalibration:
+    """One camera of ``Camera_Parameter``, in the file's conventions.
+
+    Attributes:
+        camera_id: the group key, two digits (``"05"``).
+        K: (3, 3) float64 intrinsics, pixels, OpenCV pixel centres.
+        D: (5,) float64 OpenCV distortion (k1, k2, p1, p2, k3).
+        RT: (4, 4) float64 camera -> world, metres.
+        color_calibration: (3, 3) float64 colour correction matrix (identity when absent).
+        name: the camera's name (the ``name`` attribute deliffas writes, else ``camera_id``).
+    """
+
+    camera_id: str
+    K: np.ndarray
+    D: np.ndarray
+    RT: np.ndarray
+    color_calibration: np.ndarray = field(default_factory=lambda: np.eye(3))
+    name: str = ""
+
+
+@dataclass(frozen=True)
+class SmcSmplx:
+    """``SMPLx``: SMPL-X parameters per frame (no SMPL maths here).
+
+    Attributes:
+        betas: (N, B) or (1, B) float64 shape.
+        expression: (N, E) float64.
+        fullpose: (N, 55, 3) float64 axis-angle radians (global, 21 body, jaw, eyes, 2 x 15 hand joints).
+        transl: (N, 3) float64 metres.
+        scale: float, the fit's scale.
+    """
+
+    betas: np.ndarray
+    expression: np.ndarray
+    fullpose: np.ndarray
+    transl: np.ndarray
+    scale: float = 1.0
+
+
+class SmcFile:
+    """An open ``.smc`` file: calibration, frame counts, images and masks decoded by (camera, frame).
+
+    Use as a context manager (``with SmcFile(path) as smc: ...``); it holds the HDF5 file open.
+
+    Raises:
+        CaptureFormatError: the file is missing, truncated or not HDF5.
+    """
+
+    def __init__(self, path: PathLike):
+        import h5py  # h5py is a dependency; imported here to keep `import deliffas.io` light
+
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise CaptureFormatError(self.path, "file", "not found")
+        try:
+            self._h5 = h5py.File(self.path, "r")
+        except OSError as err:
+            raise CaptureFormatError(self.path, "HDF5", f"expected a complete HDF5 (.smc) file ({err})") from None
+
+    def __enter__(self) -> "SmcFile":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._h5.close()
+
+    def _node(self, key: str):
+        try:
+            return self._h5[key]
+        except KeyError:
+            raise CaptureFormatError(self.path, key, "missing") from None
+        except (OSError, RuntimeError) as err:  # truncated data inside a readable header
+            raise CaptureFormatError(self.path, key, f"unreadable (truncated file?): {err}") from None
+
+    def _data(self, key: str):
+        try:
+            return self._node(key)[()]
+        except (OSError, RuntimeError) as err:
+            raise CaptureFormatError(self.path, key, f"unreadable (truncated file?): {err}") from None
+
+    def calibration(self) -> list[SmcCalibration]:
+        """Every camera of ``Camera_Parameter``, ordered by id."""
+        group = self._node("Camera_Parameter")
+        out = []
+        for cid in sorted(group.keys(), key=lambda k: (len(k), k)):
+            base = f"Camera_Parameter/{cid}"
+            K = require_array(self.path, f"{base}/K", self._data(f"{base}/K"), (3, 3))
+            D = require_array(self.path, f"{base}/D", np.ravel(self._data(f"{base}/D")), (-1,))
+            if D.size not in (4, 5):
+                raise CaptureFormatError(self.path, f"{base}/D", f"expected 4 or 5 OpenCV coefficients, got {D.size}")
+            D5 = np.zeros(5)
+            D5[: D.size] = D
+            RT = require_array(self.path, f"{base}/RT", self._data(f"{base}/RT"), (4, 4))
+            require_rotation(self.path, f"{base}/RT", RT[:3, :3])
+            if np.abs(RT[3] - [0, 0, 0, 1]).max() > 1e-9:
+                raise CaptureFormatError(self.path, f"{base}/RT", "expected a last row 0 0 0 1")
+            cc = np.eye(3)
+            if "Color_Calibration" in group[cid]:
+                cc = require_array(self.path, f"{base}/Color_Calibration", self._data(f"{base}/Color_Calibration"), (3, 3))
+            name = group[cid].attrs.get("name", cid)
+            out.append(SmcCalibration(cid, K, D5, RT, cc, name.decode() if isinstance(name, bytes) else str(name)))
+        if not out:
+            raise CaptureFormatError(self.path, "Camera_Parameter", "expected at least one camera, got none")
+        return out
+
+    def frame_count(self, camera: str | int, group: str = "Camera_5mp", kind: str = "color") -> int:
+        """Number of frames stored for ``camera`` (``kind`` "color" in ``group``, or "mask")."""
+        key = f"Mask/{int(camera)}/mask" if kind == "mask" else f"{group}/{int(camera)}/{kind}"
+        return len(self._node(key).keys())
+
+    def _jpeg(self, key: str) -> np.ndarray:
+        import cv2
+
+        buf = np.asarray(self._data(key))
+        if buf.dtype != np.uint8 or buf.ndim != 1:
+            raise CaptureFormatError(self.path, key, f"expected a 1-D uint8 JPEG buffer, got {buf.dtype} {buf.shape}")
+        img = cv2.imdecode(buf, cv2.IMREAD_COLOR)
+        if img is None:
+            raise CaptureFormatError(self.path, key, "expected a decodable JPEG, got corrupt or truncated bytes")
+        return img
+
+    def image(self, camera: str | int, frame: int, group: str = "Camera_5mp") -> np.ndarray:
+        """(H, W, 3) uint8 **RGB** colour image of ``camera`` at ``frame`` (the file holds BGR JPEGs)."""
+        return self._jpeg(f"{group}/{int(camera)}/color/{int(frame)}")[:, :, ::-1].copy()
+
+    def mask(self, camera: str | int, frame: int) -> np.ndarray:
+        """(H, W) uint8 mask of ``camera`` at ``frame`` (max over the JPEG's channels, as SMCReader)."""
+        return self._jpeg(f"Mask/{int(camera)}/mask/{int(frame)}").max(axis=2)
+
+    def image_size(self, camera: str | int, group: str = "Camera_5mp") -> tuple[int, int] | None:
+        """(width, height) of ``camera``'s first colour image or mask, or None when the file has neither."""
+        for key in (f"{group}/{int(camera)}/color", f"Mask/{int(camera)}/mask"):
+            if key in self._h5 and len(self._h5[key]):
+                first = min(self._h5[key].keys(), key=int)
+                h, w = self._jpeg(f"{key}/{first}").shape[:2]
+                return w, h
+        return None
+
+    def smplx(self) -> SmcSmplx:
+        """The ``SMPLx`` group."""
+        for key in ("betas", "expression", "fullpose", "transl"):
+            self._node(f"SMPLx/{key}")
+        fullpose = require_array(self.path, "SMPLx/fullpose", self._data("SMPLx/fullpose"), (-1, 55, 3))
+        n = fullpose.shape[0]
+        transl = require_array(self.path, "SMPLx/transl", self._data("SMPLx/transl"), (n, 3))
+        betas = require_array(self.path, "SMPLx/betas", np.atleast_2d(self._data("SMPLx/betas")), (-1, -1))
+        expr = require_array(self.path, "SMPLx/expression", np.atleast_2d(self._data("SMPLx/expression")), (n, -1))
+        scale = float(self._data("SMPLx/scale")) if "SMPLx/scale" in self._h5 else 1.0
+        return SmcSmplx(betas, expr, fullpose, transl, scale)
+
+
+def read_smc_calibration(path: PathLike) -> list[SmcCalibration]:
+    """``Camera_Parameter`` of an ``.smc`` file (see ``SmcFile.calibration``)."""
+    with SmcFile(path) as smc:
+        return smc.calibration()
+
+
+def smc_to_cameras(path: PathLike, size: tuple[int, int] | None = None, group: str = "Camera_5mp") -> list[Camera]:
+    """deliffas Cameras (world -> camera, mm, +0.5 pixel centres, D in ``extra``) of an ``.smc`` file.
+
+    Args:
+        size: (width, height) for cameras without an image or mask in the file.
+
+    Raises:
+        ValueError: a camera without images in the file and no ``size``.
+    """
+    out = []
+    with SmcFile(path) as smc:
+        for c in smc.calibration():
+            wh = smc.image_size(c.camera_id, group) or size
+            if wh is None:
+                raise ValueError(f"{path}: camera {c.camera_id} has no image or mask to take its size from; pass size=(w, h)")
+            out.append(to_camera(c.name or c.camera_id, c.K, invert_rigid(c.RT), wh[0], wh[1], units="m",
+                                 pixel_centre="integer", distortion=c.D))
+    return out
+
+
+def cameras_to_smc(cameras: Sequence[Camera], drop_distortion: bool = False) -> list[SmcCalibration]:
+    """``Camera_Parameter`` records of deliffas Cameras, ids "00", "01", ... in order."""
+    out = []
+    for i, cam in enumerate(cameras):
+        cam = require_distortion_fits(cam, "DNA-Rendering .smc", ("k1", "k2", "p1", "p2", "k3"), drop_distortion)
+        K, E, D = from_camera(cam, units="m", pixel_centre="integer")
+        out.append(SmcCalibration(f"{i:02d}", K, D, invert_rigid(E), np.eye(3), cam.name))
+    return out
+
+
+def write_smc(path: PathLike, calibration: Sequence[SmcCalibration],
+              images: Mapping[str, Sequence[np.ndarray]] | None = None,
+              masks: Mapping[str, Sequence[np.ndarray]] | None = None,
+              smplx: SmcSmplx | None = None, group: str = "Camera_5mp", jpeg_quality: int = 95) -> None:
+    """Write an ``.smc`` file (atomically) in the DNA-Rendering layout.
+
+    Args:
+        calibration: cameras for ``Camera_Parameter``.
+        images: camera id -> frames, each (H, W, 3) uint8 **RGB**; stored as BGR JPEGs under ``group``.
+        masks: camera id -> frames, each (H, W) uint8; stored as JPEGs under ``Mask``.
+        smplx: the ``SMPLx`` group, or None.
+    """
+    import cv2
+    import h5py
+
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    tmp = temp_path(p)
+
+    def jpeg(img: np.ndarray) -> np.ndarray:
+        ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
+        if not ok:
+            raise ValueError(f"{p}: JPEG encoding failed for an image of shape {img.shape}")
+        return buf.ravel()
+
+    with h5py.File(tmp, "w") as h5:
+        cp = h5.create_group("Camera_Parameter")
+        for c in calibration:
+            g = cp.create_group(f"{int(c.camera_id):02d}")
+            g["K"], g["D"], g["RT"] = np.asarray(c.K, np.float64), np.asarray(c.D, np.float64), np.asarray(c.RT, np.float64)
+            g["Color_Calibration"] = np.asarray(c.color_calibration, np.float64)
+            if c.name and c.name != c.camera_id:
+                g.attrs["name"] = c.name
+        if images:
+            gi = h5.create_group(group)
+            first = next(iter(images.values()))[0]
+            gi.attrs["num_device"] = len(images)
+            gi.attrs["num_frame"] = max(len(v) for v in images.values())
+            gi.attrs["resolution"] = np.array(first.shape[:2])  # (H, W) as the arrays are; readers decode instead
+            for cid, frames in images.items():
+                gc = gi.create_group(f"{int(cid)}/color")
+                for f, img in enumerate(frames):
+                    gc[str(f)] = jpeg(np.ascontiguousarray(np.asarray(img, np.uint8)[:, :, ::-1]))
+        if masks:
+            gm = h5.create_group("Mask")
+            for cid, frames in masks.items():
+                gc = gm.create_group(f"{int(cid)}/mask")
+                for f, m in enumerate(frames):
+                    gc[str(f)] = jpeg(np.asarray(m, np.uint8))
+        if smplx is not None:
+            gs = h5.create_group("SMPLx")
+            for key in ("betas", "expression", "fullpose", "transl"):
+                gs[key] = np.asarray(getattr(smplx, key), np.float64)
+            gs["scale"] = float(smplx.scale)
+    durable_replace(tmp, p)

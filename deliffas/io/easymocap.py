@@ -1,0 +1,328 @@
+"""EasyMocap cameras (``intri.yml`` / ``extri.yml``) and SMPL results (``output*/smpl/<frame>.json``) as plain records.
+
+Conventions, worked out from EasyMocap itself (zju3dv/EasyMocap @d2a0a2d):
+
+- Files: OpenCV FileStorage YAML. ``easymocap/mytools/camera_utils.py`` (``read_camera``,
+  ``write_camera``) reads ``names`` (a list, in both files), per camera ``K_<cam>`` (3, 3) and
+  ``dist_<cam>`` (1, 5) (``D_<cam>`` as a fallback), optional ``H_<cam>``/``W_<cam>`` image size in
+  ``intri.yml``; ``R_<cam>`` (3, 1) Rodrigues vector, ``Rot_<cam>`` (3, 3) matrix and ``T_<cam>``
+  (3, 1) in ``extri.yml``. EasyMocap's reader uses ``R_`` (``cv2.Rodrigues``) and ignores ``Rot_``;
+  so do we, and a ``Rot_`` that disagrees with it is an error. A camera name that is a number may be
+  stored unquoted (EasyMocap turns it back into ``str(int(...))``; so do we).
+- Pose: world -> camera, x_cam = R X + T (``RT = hstack(R, T)``, ``P = K RT``), OpenCV camera axes.
+- Units: metres (the calibration tutorial ``apps/calibration/Readme.md`` measures the chessboard
+  with ``--grid 0.1``, 10 cm squares). deliffas multiplies T by 1000.
+- Pixels: OpenCV (``cv2.undistort``/``cv2.projectPoints`` on these K), i.e. pixel centres on integer
+  coordinates: cx_deliffas = cx + 0.5 (``camera_conventions.to_camera``).
+- Distortion: OpenCV (k1, k2, p1, p2, k3), kept in ``Camera.extra["distortion"]``.
+- SMPL: ``doc/02_output.md``: a list (or ``{"annots": [...]}``) of people, each ``id``, ``Rh``
+  (1, 3) axis-angle global rotation, ``Th`` (1, 3) metres, ``poses`` (1, 72/78/87) with the first three
+  zero, ``shapes`` (1, 10), optional ``expression``; vertices = R(Rh) X(poses, shapes) + Th.
+  Read as records only; file ``<frame:06d>.json`` is frame ``frame``.
+
+Our writer puts full float64 precision in the files (EasyMocap's own writes six decimals) and the
+header EasyMocap writes (``%YAML:1.0``), which every OpenCV version parses.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from deliffas.io.cameras import Camera
+from deliffas.io.camera_conventions import from_camera, require_distortion_fits, to_camera
+from deliffas.io.capture_format import (CaptureFormatError, read_json, require_array, require_rotation, require_size,
+                                        write_json_atomic)
+from deliffas.io.files import durable_replace, temp_path
+
+__all__ = [
+    "EasyMocapCamera",
+    "EasyMocapSmpl",
+    "read_easymocap_cameras",
+    "write_easymocap_cameras",
+    "read_easymocap_smpl",
+    "write_easymocap_smpl",
+    "easymocap_to_camera",
+    "camera_to_easymocap",
+    "RVEC_TOL",
+]
+
+PathLike = str | os.PathLike
+
+RVEC_TOL = 1e-5
+"""How far ``Rot_<cam>`` may differ from ``Rodrigues(R_<cam>)`` (max abs): EasyMocap writes both
+with six decimals."""
+
+
+@dataclass(frozen=True)
+class EasyMocapCamera:
+    """One camera of ``intri.yml`` + ``extri.yml``, in the files' own conventions.
+
+    Attributes:
+        name: the entry of ``names`` (``K_<name>`` etc.).
+        K: (3, 3) float64 intrinsics, pixels, OpenCV pixel centres (integers).
+        dist: (5,) float64 OpenCV distortion (k1, k2, p1, p2, k3).
+        R: (3, 3) float64 world -> camera rotation.
+        T: (3,) float64 world -> camera translation, metres.
+        width: ``W_<name>`` in pixels, or None when the file has none.
+        height: ``H_<name>`` in pixels, or None when the file has none.
+    """
+
+    name: str
+    K: np.ndarray
+    dist: np.ndarray
+    R: np.ndarray
+    T: np.ndarray
+    width: int | None = None
+    height: int | None = None
+
+
+@dataclass(frozen=True)
+class EasyMocapSmpl:
+    """One person's SMPL/SMPL-H/SMPL-X parameters in EasyMocap's Rh/Th form (no SMPL maths here).
+
+    Attributes:
+        id: the person id (0 for single-person files and ZJU-MoCap).
+        Rh: (1, 3) float64 global rotation, axis-angle radians.
+        Th: (1, 3) float64 global translation, metres.
+        poses: (1, P) float64 pose parameters (P = 72, 78 or 87; the first three are zero).
+        shapes: (1, S) float64 shape coefficients.
+        expression: (1, E) float64 SMPL-X expression, or None.
+    """
+
+    id: int
+    Rh: np.ndarray
+    Th: np.ndarray
+    poses: np.ndarray
+    shapes: np.ndarray
+    expression: np.ndarray | None = None
+
+
+def _open_storage(path: Path):
+    import cv2  # opencv is a dependency; imported at call time like the other image/video readers
+
+    if not path.is_file():
+        raise CaptureFormatError(path, "file", "not found")
+    if path.stat().st_size == 0:
+        raise CaptureFormatError(path, "YAML", "expected an OpenCV FileStorage file, got an empty file")
+    try:
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except (cv2.error, SystemError) as err:  # OpenCV raises SystemError wrapping its parse error
+        cause = err.__cause__ if err.__cause__ is not None else err
+        detail = str(cause).strip().splitlines()[-1] if str(cause).strip() else type(cause).__name__
+        raise CaptureFormatError(path, "YAML", f"expected an OpenCV FileStorage file; OpenCV: {detail[-200:]}") from None
+    if not fs.isOpened():
+        raise CaptureFormatError(path, "YAML", "OpenCV could not open the file")
+    return fs
+
+
+def _mat(fs, path: Path, key: str, shape: tuple[int, ...], required: bool = True) -> np.ndarray | None:
+    node = fs.getNode(key)
+    if node.isNone():
+        if required:
+            raise CaptureFormatError(path, key, f"expected an !!opencv-matrix of shape {shape}, got no such key")
+        return None
+    if not node.isMap():
+        raise CaptureFormatError(path, key, "expected an !!opencv-matrix (rows, cols, dt, data)")
+    try:
+        m = node.mat()
+    except Exception as err:  # cv2.error on a malformed matrix map
+        raise CaptureFormatError(path, key, f"expected an !!opencv-matrix; OpenCV: {str(err).strip()[-150:]}") from None
+    if m is None:
+        raise CaptureFormatError(path, key, "expected an !!opencv-matrix whose data has rows x cols numbers")
+    return require_array(path, key, m, shape, reshape=True)
+
+
+def _names(fs, path: Path) -> list[str]:
+    node = fs.getNode("names")
+    if node.isNone() or not node.isSeq():
+        raise CaptureFormatError(path, "names", "expected a list of camera names")
+    out = []
+    for i in range(node.size()):
+        item = node.at(i)
+        if item.isString():
+            out.append(item.string())
+        elif item.isInt() or item.isReal():
+            out.append(str(int(item.real())))  # EasyMocap: unquoted numbers are camera names too
+        else:
+            raise CaptureFormatError(path, f"names[{i}]", "expected a camera name (string or number)")
+    if not out:
+        raise CaptureFormatError(path, "names", "expected at least one camera name, got an empty list")
+    if len(set(out)) != len(out):
+        raise CaptureFormatError(path, "names", "expected distinct camera names, got duplicates")
+    return out
+
+
+def _int(fs, path: Path, key: str) -> float | None:
+    node = fs.getNode(key)
+    if node.isNone():
+        return None
+    if not (node.isInt() or node.isReal()):
+        raise CaptureFormatError(path, key, "expected an integer image size")
+    return node.real()
+
+
+def read_easymocap_cameras(intri: PathLike, extri: PathLike | None = None) -> list[EasyMocapCamera]:
+    """Read EasyMocap ``intri.yml`` and ``extri.yml`` (``extri`` defaults to the sibling of ``intri``;
+    ``intri`` may also be their folder). Cameras come in the order of ``intri.yml``'s ``names``.
+
+    Raises:
+        CaptureFormatError: a missing file or key, a truncated or unparsable file, a wrong shape, NaN/inf,
+            a non-rotation, or ``R_``/``Rot_`` that disagree.
+    """
+    import cv2
+
+    intri_p = Path(intri)
+    if intri_p.is_dir():
+        intri_p = intri_p / "intri.yml"
+    extri_p = Path(extri) if extri is not None else intri_p.with_name("extri.yml")
+    fi, fe = _open_storage(intri_p), _open_storage(extri_p)
+    names = _names(fi, intri_p)
+    missing = sorted(set(names) - set(_names(fe, extri_p)))
+    if missing:
+        raise CaptureFormatError(extri_p, "names", f"expected every camera of {intri_p.name}, missing {missing[:5]}")
+    cams = []
+    for n in names:
+        K = _mat(fi, intri_p, f"K_{n}", (3, 3))
+        dist = _mat(fi, intri_p, f"dist_{n}", (-1, -1), required=False)
+        key = f"dist_{n}"
+        if dist is None:
+            dist, key = _mat(fi, intri_p, f"D_{n}", (-1, -1)), f"D_{n}"
+        if dist.size not in (4, 5):
+            raise CaptureFormatError(intri_p, key, f"expected 4 or 5 OpenCV distortion coefficients, got {dist.size}")
+        d5 = np.zeros(5)
+        d5[: dist.size] = dist.ravel()
+        w, h = _int(fi, intri_p, f"W_{n}"), _int(fi, intri_p, f"H_{n}")
+        size = (None, None)
+        if w is not None and h is not None and (w, h) != (-1, -1):  # EasyMocap writes -1 for "unknown"
+            size = require_size(intri_p, f"W_{n}/H_{n}", w, h)
+        rvec = _mat(fe, extri_p, f"R_{n}", (3, 1), required=False)
+        rot = _mat(fe, extri_p, f"Rot_{n}", (3, 3), required=False)
+        if rvec is None and rot is None:
+            raise CaptureFormatError(extri_p, f"R_{n}", "expected a Rodrigues vector R_ (or a matrix Rot_), got neither")
+        if rvec is not None:
+            R = require_rotation(extri_p, f"R_{n}", cv2.Rodrigues(rvec)[0])
+            if rot is not None and np.abs(rot - R).max() > RVEC_TOL:
+                raise CaptureFormatError(extri_p, f"Rot_{n}", f"expected Rodrigues(R_{n}) within {RVEC_TOL:g}, "
+                                                              f"got max difference {np.abs(rot - R).max():.3g}")
+        else:
+            R = require_rotation(extri_p, f"Rot_{n}", rot)
+        T = _mat(fe, extri_p, f"T_{n}", (3, 1)).ravel()
+        cams.append(EasyMocapCamera(n, K, d5, R, T, *size))
+    return cams
+
+
+def _yaml_matrix(key: str, m: np.ndarray) -> str:
+    m = np.asarray(m, np.float64)
+    m = m.reshape(m.shape[0], -1)
+    data = ", ".join(repr(float(v)) for v in m.ravel())  # repr: the shortest text that reads back bit-exact
+    return f"{key}: !!opencv-matrix\n  rows: {m.shape[0]}\n  cols: {m.shape[1]}\n  dt: d\n  data: [{data}]\n"
+
+
+def _yaml_names(names: Sequence[str]) -> str:
+    for n in names:
+        if not n or any(c in n for c in "\"\\\n:#") or n != n.strip():
+            raise ValueError(f"camera name {n!r} cannot be an EasyMocap key (K_<name>)")
+    return "names:\n" + "".join(f'  - "{n}"\n' for n in names)
+
+
+def _write_yaml(path: Path, body: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = temp_path(path)
+    with open(tmp, "w", encoding="utf-8", newline="\n") as fh:
+        fh.write("%YAML:1.0\n---\n" + body)
+    durable_replace(tmp, path)
+
+
+def write_easymocap_cameras(out_dir: PathLike, cameras: Sequence[EasyMocapCamera]) -> tuple[Path, Path]:
+    """Write ``out_dir/intri.yml`` and ``out_dir/extri.yml`` (atomically each); returns their paths.
+
+    Both ``R_`` (Rodrigues) and ``Rot_`` are written, as EasyMocap does; ``H_``/``W_`` when known.
+    """
+    import cv2
+
+    out = Path(out_dir)
+    names = [c.name for c in cameras]
+    intri, extri = _yaml_names(names), _yaml_names(names)
+    for c in cameras:
+        intri += _yaml_matrix(f"K_{c.name}", c.K) + _yaml_matrix(f"dist_{c.name}", np.reshape(c.dist, (1, -1)))
+        if c.width is not None and c.height is not None:
+            intri += f"H_{c.name}: {int(c.height)}\nW_{c.name}: {int(c.width)}\n"
+        rvec = cv2.Rodrigues(np.asarray(c.R, np.float64))[0]
+        extri += (_yaml_matrix(f"R_{c.name}", rvec) + _yaml_matrix(f"Rot_{c.name}", c.R)
+                  + _yaml_matrix(f"T_{c.name}", np.reshape(c.T, (3, 1))))
+    _write_yaml(out / "intri.yml", intri)
+    _write_yaml(out / "extri.yml", extri)
+    return out / "intri.yml", out / "extri.yml"
+
+
+def easymocap_to_camera(cam: EasyMocapCamera, size: tuple[int, int] | None = None) -> Camera:
+    """The deliffas Camera (mm, +0.5 pixel centres, distortion in ``extra``).
+
+    Args:
+        size: (width, height) used when the file has no ``W_``/``H_``.
+
+    Raises:
+        ValueError: no image size in the file and none given.
+    """
+    if cam.width is not None and cam.height is not None:
+        w, h = cam.width, cam.height
+    elif size is not None:
+        w, h = size
+    else:
+        raise ValueError(f"EasyMocap camera {cam.name}: intri.yml has no W_/H_; pass size=(width, height)")
+    E = np.eye(4)
+    E[:3, :3], E[:3, 3] = cam.R, cam.T
+    return to_camera(cam.name, cam.K, E, w, h, units="m", pixel_centre="integer", distortion=cam.dist)
+
+
+def camera_to_easymocap(camera: Camera, drop_distortion: bool = False) -> EasyMocapCamera:
+    """The EasyMocap record of a deliffas Camera (metres, OpenCV pixel centres, with its size)."""
+    camera = require_distortion_fits(camera, "EasyMocap", ("k1", "k2", "p1", "p2", "k3"), drop_distortion)
+    K, E, dist = from_camera(camera, units="m", pixel_centre="integer")
+    return EasyMocapCamera(camera.name, K, dist, E[:3, :3].copy(), E[:3, 3].copy(), camera.width, camera.height)
+
+
+def read_easymocap_smpl(path: PathLike) -> list[EasyMocapSmpl]:
+    """Read ``output*/smpl/<frame>.json``: a list of people (or ``{"annots": [...]}``).
+
+    Raises:
+        CaptureFormatError: unreadable JSON, a missing key, a wrong shape or NaN/inf.
+    """
+    p = Path(path)
+    data = read_json(p)
+    if isinstance(data, dict) and "annots" in data:
+        data = data["annots"]
+    if not isinstance(data, list):
+        raise CaptureFormatError(p, "(top level)", f"expected a list of people, got {type(data).__name__}")
+    out = []
+    for i, person in enumerate(data):
+        if not isinstance(person, dict):
+            raise CaptureFormatError(p, f"[{i}]", "expected an object with id, Rh, Th, poses, shapes")
+        for key in ("Rh", "Th", "poses", "shapes"):
+            if key not in person:
+                raise CaptureFormatError(p, f"[{i}].{key}", "missing")
+        Rh = require_array(p, f"[{i}].Rh", person["Rh"], (1, 3), reshape=True)
+        Th = require_array(p, f"[{i}].Th", person["Th"], (1, 3), reshape=True)
+        poses = require_array(p, f"[{i}].poses", np.atleast_2d(person["poses"]), (1, -1))
+        shapes = require_array(p, f"[{i}].shapes", np.atleast_2d(person["shapes"]), (1, -1))
+        expr = person.get("expression")
+        expr = None if expr is None else require_array(p, f"[{i}].expression", np.atleast_2d(expr), (1, -1))
+        out.append(EasyMocapSmpl(int(person.get("id", i)), Rh, Th, poses, shapes, expr))
+    return out
+
+
+def write_easymocap_smpl(path: PathLike, people: Sequence[EasyMocapSmpl]) -> None:
+    """Write one ``smpl/<frame>.json`` (a list of people, full precision, atomically)."""
+    rows = []
+    for s in people:
+        row = {"id": int(s.id), "Rh": np.asarray(s.Rh).tolist(), "Th": np.asarray(s.Th).tolist(),
+               "poses": np.asarray(s.poses).tolist(), "shapes": np.asarray(s.shapes).tolist()}
+        if s.expression is not None:
+            row["expression"] = np.asarray(s.expression).tolist()
+        rows.append(row)
+    write_json_atomic(path, rows)

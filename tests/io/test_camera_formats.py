@@ -1,0 +1,95 @@
+"""read_cameras / write_cameras: every format pair round-trips a DynaCap rig exactly; distortion is never lost silently."""
+
+from __future__ import annotations
+
+import itertools
+import logging
+
+import numpy as np
+import pytest
+
+from capture_cameras import HEIGHT, WIDTH, assert_same_cameras, rig
+from deliffas.io.calibration import write_calibration
+from deliffas.io.camera_conventions import DISTORTION, LossyConversionError
+from deliffas.io.camera_formats import CAMERA_FORMATS, detect_camera_format, read_cameras, write_cameras
+
+SIZE = (WIDTH, HEIGHT)
+FULL = ("easymocap", "zju", "nerfstudio", "dna")  # hold OpenCV's five coefficients
+
+
+def _target(tmp_path, fmt: str, tag: str):
+    return {"dynacap": tmp_path / f"{tag}.calibration", "colmap": tmp_path / f"{tag}_colmap",
+            "easymocap": tmp_path / f"{tag}_easymocap", "zju": tmp_path / f"{tag}_zju" / "annots.npy",
+            "nerfstudio": tmp_path / f"{tag}_ns" / "transforms.json", "thuman4": tmp_path / f"{tag}_th" / "calibration.json",
+            "actorshq": tmp_path / f"{tag}_ahq" / "calibration.csv", "dna": tmp_path / f"{tag}.smc"}[fmt]
+
+
+@pytest.mark.parametrize("src,dst", list(itertools.product(CAMERA_FORMATS, CAMERA_FORMATS)))
+def test_every_pair_round_trips(tmp_path, src, dst):
+    """DynaCap rig -> src -> dst -> src -> read: equal to the original (float64 files: 1e-9)."""
+    original = rig()
+    write_calibration(tmp_path / "orig.calibration", original)
+    start = read_cameras(tmp_path / "orig.calibration")
+    a = write_cameras(start, _target(tmp_path, src, "a"), src)
+    b = write_cameras(read_cameras(a, size=SIZE), _target(tmp_path, dst, "b"), dst)
+    assert detect_camera_format(b) == dst
+    c = write_cameras(read_cameras(b, size=SIZE), _target(tmp_path, src, "c"), src)
+    assert_same_cameras(original, read_cameras(c, size=SIZE))
+
+
+@pytest.mark.parametrize("src,dst", list(itertools.product(FULL, FULL)) + [("actorshq", f) for f in FULL])
+def test_distortion_round_trips(tmp_path, src, dst):
+    original = rig("radial" if src == "actorshq" else "full")
+    a = write_cameras(original, _target(tmp_path, src, "a"), src)
+    b = write_cameras(read_cameras(a, size=SIZE), _target(tmp_path, dst, "b"), dst)
+    back = read_cameras(write_cameras(read_cameras(b, size=SIZE), _target(tmp_path, src, "c"), src), size=SIZE)
+    assert_same_cameras(original, back)
+    assert np.any(back[1].extra[DISTORTION] != 0)
+
+
+@pytest.mark.parametrize("fmt", ["dynacap", "colmap", "thuman4", "actorshq"])
+def test_distortion_is_never_dropped_silently(tmp_path, fmt, caplog):
+    cams = rig("full")
+    with pytest.raises(LossyConversionError, match=r"camera cam0: .* cannot store lens distortion .*p1"):
+        write_cameras(cams, _target(tmp_path, fmt, "x"), fmt)
+    with caplog.at_level(logging.WARNING):
+        out = write_cameras(cams, _target(tmp_path, fmt, "y"), fmt, drop_distortion=True)
+    assert "dropped as asked" in caplog.text
+    back = read_cameras(out, size=SIZE)
+    kept = back[1].extra.get(DISTORTION, np.zeros(5))
+    assert kept[2] == 0 and kept[3] == 0  # no format of these holds tangential terms
+    if fmt == "actorshq":  # radial terms survive
+        assert np.allclose(kept[[0, 1, 4]], cams[1].extra[DISTORTION][[0, 1, 4]], rtol=1e-12)
+
+
+def test_dynacap_radial_is_not_an_opencv_coefficient(tmp_path):
+    from dataclasses import replace
+
+    cams = [replace(c, radial=0.01) for c in rig()]
+    write_cameras(cams, tmp_path / "r.calibration", "dynacap")  # DynaCap keeps its own coefficient
+    assert read_cameras(tmp_path / "r.calibration")[0].radial == 0.01
+    with pytest.raises(LossyConversionError, match="DynaCap radial=0.01"):
+        write_cameras(cams, tmp_path / "n.json", "nerfstudio")
+
+
+def test_size_is_required_where_the_format_has_none(tmp_path):
+    out = write_cameras(rig(), tmp_path / "z", "zju")
+    with pytest.raises(ValueError, match=r"zju .*pass size=\(width, height\)"):
+        read_cameras(out)
+    smc = write_cameras(rig(), tmp_path / "d.smc", "dna")
+    with pytest.raises(ValueError, match=r"camera 00 has no image or mask .*size="):
+        read_cameras(smc)
+    assert read_cameras(out, size=(64, 48))[0].width == 64
+
+
+def test_detection_and_unknown_formats(tmp_path):
+    (tmp_path / "x.json").write_text('{"frames": []}')
+    assert detect_camera_format(tmp_path / "x.json") == "nerfstudio"
+    (tmp_path / "y.json").write_text('{"cam00": {}}')
+    assert detect_camera_format(tmp_path / "y.json") == "thuman4"
+    with pytest.raises(ValueError, match="cannot tell the camera format"):
+        detect_camera_format(tmp_path / "cams.txt")
+    with pytest.raises(ValueError, match="no camera file found"):
+        detect_camera_format(tmp_path)
+    with pytest.raises(ValueError, match="unknown camera format 'blender'"):
+        write_cameras(rig(), tmp_path / "o", "blender")
