@@ -14,16 +14,14 @@ from typing import Any
 
 import numpy as np
 
+from deliffas.io.cameras import ROTATION_TOLERANCE
 from deliffas.io.files import durable_replace, temp_path
 
 __all__ = [
-    "CaptureFormatError", "ROTATION_TOL", "require_array", "require_rotation", "require_size", "read_json",
+    "CaptureFormatError", "require_array", "require_rotation", "require_size", "read_json",
     "write_json_atomic",
 ]
 
-ROTATION_TOL = 1e-6
-"""How far a file's rotation may be from one: max |R R^T - I| and |det R - 1|. Files written at
-full float64 precision are ~1e-15 off; a scaled, mirrored or garbled R is orders beyond this."""
 
 
 class CaptureFormatError(ValueError):
@@ -76,7 +74,8 @@ def require_array(path: str | os.PathLike, key: str, value: Any, shape: tuple[in
 
 
 def require_rotation(path: str | os.PathLike, key: str, R: np.ndarray) -> np.ndarray:
-    """``R`` (3, 3) checked to be a rotation within ``ROTATION_TOL`` (orthonormal, det +1).
+    """``R`` (3, 3) checked to be a rotation within ``ROTATION_TOLERANCE`` (orthonormal, det +1): the
+    tolerance every ``Camera`` is held to, so a file accepted here makes a valid camera.
 
     Raises:
         CaptureFormatError: naming the deviation found (a mirrored R has det -1, a scaled one
@@ -85,8 +84,8 @@ def require_rotation(path: str | os.PathLike, key: str, R: np.ndarray) -> np.nda
     R = require_array(path, key, R, (3, 3), reshape=True)
     orth = float(np.abs(R @ R.T - np.eye(3)).max())
     det = float(np.linalg.det(R))
-    if orth > ROTATION_TOL or abs(det - 1.0) > ROTATION_TOL:
-        raise CaptureFormatError(path, key, f"expected a rotation (R R^T = I and det R = +1 within {ROTATION_TOL:g}), "
+    if orth > ROTATION_TOLERANCE or abs(det - 1.0) > ROTATION_TOLERANCE:
+        raise CaptureFormatError(path, key, f"expected a rotation (R R^T = I and det R = +1 within {ROTATION_TOLERANCE:g}), "
                                             f"got max |R R^T - I| = {orth:.3g}, det R = {det:.9g}")
     return R
 
