@@ -16,6 +16,10 @@ __all__ = ["main", "build_parser"]
 
 log = logging.getLogger(__name__)
 
+_CAMERA_FORMATS = ("dynacap", "colmap", "easymocap", "zju", "nerfstudio", "thuman4", "actorshq", "dna")
+"""``deliffas.io.camera_formats.CAMERA_FORMATS``, repeated so that parsing imports nothing (a test keeps
+the two equal)."""
+
 
 def _size(text: str) -> tuple[int, int]:
     try:
@@ -98,14 +102,27 @@ def _add_data_commands(sub) -> None:
     p.add_argument("--quick", action="store_true", help="checksums only, do not read every dataset")
     p.set_defaults(handler="verify")
 
-    p = sub.add_parser("cameras", help="convert a cameras.calibration to or from a COLMAP model",
-                       description="COLMAP's pixel convention equals DynaCap's (pixel centres at +0.5): "
-                                   "intrinsics are copied unchanged (docs/data.md).")
-    p.add_argument("calibration", type=Path, help="cameras.calibration (read with --to-colmap, written with --from-colmap)")
-    g = p.add_mutually_exclusive_group(required=True)
-    g.add_argument("--to-colmap", type=Path, metavar="DIR", help="write cameras/images/points3D to DIR")
-    g.add_argument("--from-colmap", type=Path, metavar="DIR", help="read a COLMAP model from DIR")
-    p.add_argument("--text", action="store_true", help="write the .txt model instead of .bin")
+    p = sub.add_parser("cameras", help="convert cameras between capture formats (DynaCap, COLMAP, EasyMocap, ZJU, ...)",
+                       description="Read the cameras of SRC (a camera file or a capture folder; format detected "
+                                   "unless --from) and write them to OUT in the format --to, converting units, "
+                                   "directions, axes and the pixel-centre convention (docs/data.md section 6). "
+                                   "Lens distortion the target cannot hold is an error unless --drop-distortion. "
+                                   "Shorthands kept from earlier releases: CALIBRATION --to-colmap DIR and "
+                                   "CALIBRATION --from-colmap DIR (writes CALIBRATION).")
+    p.add_argument("src", type=Path, help="camera file or folder to read (for --from-colmap: the .calibration to write)")
+    p.add_argument("out", type=Path, nargs="?", help="file or folder to write (dynacap: a .calibration file; "
+                                                      "colmap, easymocap: a folder; others: a file or a folder)")
+    p.add_argument("--to", dest="to_format", choices=_CAMERA_FORMATS, help="format to write")
+    p.add_argument("--from", dest="from_format", choices=("auto",) + _CAMERA_FORMATS, default="auto",
+                   help="format of SRC (default: detected from its name)")
+    p.add_argument("--size", type=_size, default=None,
+                   help="image size WxH, for formats that do not store it (ZJU-MoCap; EasyMocap without W_/H_)")
+    p.add_argument("--drop-distortion", action="store_true",
+                   help="write cameras whose distortion the target cannot hold without it (logged per camera)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing OUT")
+    p.add_argument("--to-colmap", type=Path, metavar="DIR", help="shorthand: SRC --to colmap DIR")
+    p.add_argument("--from-colmap", type=Path, metavar="DIR", help="shorthand: DIR --to dynacap SRC")
+    p.add_argument("--text", action="store_true", help="COLMAP: write the .txt model instead of .bin")
     p.set_defaults(handler="cameras")
 
 

@@ -11,7 +11,7 @@ import json
 import sys
 from pathlib import Path
 
-from deliffas.io.colmap import calibration_from_colmap, calibration_to_colmap
+from deliffas.io.camera_formats import read_cameras, write_cameras
 from deliffas.io.dynacap import read_character
 from deliffas.geometry.posing import pose_frames, write_posed_mesh
 from deliffas.geometry.procedural import make_procedural_character
@@ -79,12 +79,23 @@ def cmd_verify(args: argparse.Namespace) -> int:
 
 
 def cmd_cameras(args: argparse.Namespace) -> int:
-    if args.to_colmap:
-        n = calibration_to_colmap(args.calibration, args.to_colmap, text=args.text)
-        print(f"wrote a COLMAP model of {n} cameras to {args.to_colmap}")
-    else:
-        n = calibration_from_colmap(args.from_colmap, args.calibration)
-        print(f"wrote {args.calibration} with {n} cameras from {args.from_colmap}")
+    src, out, to = args.src, args.out, args.to_format
+    if args.to_colmap is not None or args.from_colmap is not None:
+        if args.to_colmap is not None and args.from_colmap is not None:
+            raise ValueError("give --to-colmap or --from-colmap, not both")
+        if out is not None or to is not None:
+            raise ValueError("--to-colmap/--from-colmap take no OUT and no --to")
+        if args.to_colmap is not None:
+            out, to = args.to_colmap, "colmap"
+        else:
+            src, out, to = args.from_colmap, args.src, "dynacap"
+    elif out is None or to is None:
+        raise ValueError("give OUT and --to FORMAT (or --to-colmap DIR / --from-colmap DIR)")
+    if out.exists() and not args.overwrite and not (out.is_dir() and not any(out.iterdir())):
+        raise FileExistsError(f"{out} exists; pass --overwrite to replace it")
+    cameras = read_cameras(src, "colmap" if args.from_colmap is not None else args.from_format, args.size)
+    written = write_cameras(cameras, out, to, drop_distortion=args.drop_distortion, text=args.text)
+    print(f"wrote {len(cameras)} cameras as {to} to {written}")
     return 0
 
 

@@ -123,12 +123,14 @@ def read_cameras(path: PathLike, fmt: str = "auto", size: tuple[int, int] | None
     raise ValueError(f"unknown camera format {fmt!r}; expected one of {', '.join(CAMERA_FORMATS)} or 'auto'")
 
 
-def write_cameras(cameras: Sequence[Camera], out: PathLike, fmt: str, drop_distortion: bool = False) -> Path:
+def write_cameras(cameras: Sequence[Camera], out: PathLike, fmt: str, drop_distortion: bool = False,
+                  text: bool = False) -> Path:
     """Write ``cameras`` in ``fmt``; returns the file (or folder, for colmap/easymocap) written.
 
     ``out`` is the file to write, or a folder that gets the format's usual file name (``annots.npy``,
     ``transforms.json``, ``calibration.json``, ``calibration.csv``); colmap and easymocap write into
-    the folder ``out``; dynacap and dna write the file ``out``.
+    the folder ``out``; dynacap and dna write the file ``out``. ``text``: COLMAP's .txt model instead
+    of .bin.
 
     Raises:
         LossyConversionError: distortion the format cannot hold (unless ``drop_distortion``).
@@ -145,7 +147,7 @@ def write_cameras(cameras: Sequence[Camera], out: PathLike, fmt: str, drop_disto
         return out_p
     if fmt == "colmap":
         cams = [require_distortion_fits(c, "COLMAP PINHOLE", (), drop_distortion) for c in cameras]
-        cameras_to_colmap(cams, out_p)
+        cameras_to_colmap(cams, out_p, text)
         return out_p
     if fmt == "easymocap":
         write_easymocap_cameras(out_p, [camera_to_easymocap(c, drop_distortion) for c in cameras])

@@ -61,7 +61,10 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, 1.0, 0.0
 
 @dataclass(frozen=True)
 class Camera:
-    """One calibrated pinhole camera (no lens distortion is modelled, as in DELIFFAS).
+    """One calibrated pinhole camera. The projection is pinhole (as in DELIFFAS); a capture's lens
+    distortion is carried, not applied: ``extra["distortion"]`` holds OpenCV's (k1, k2, p1, p2, k3)
+    when the source format has them (``deliffas.io.camera_conventions``), and writers refuse to drop
+    it silently.
 
     Attributes:
         name: the calibration's ``name`` token.
@@ -70,7 +73,8 @@ class Camera:
         width: image width in pixels.
         height: image height in pixels.
         sensor: sensor size (w, h) in mm as the file states it, or None.
-        radial: the single radial coefficient of the file (unused by the projection).
+        radial: the single radial coefficient of a DynaCap file (unused by the projection).
+        extra: format-specific values (e.g. ``distortion``), not compared by ``==``.
     """
 
     name: str

@@ -29,13 +29,10 @@ from typing import Sequence
 import numpy as np
 
 from deliffas.io.cameras import Camera
-from deliffas.io.calibration import read_calibration, write_calibration
 
 __all__ = [
     "cameras_to_colmap",
     "cameras_from_colmap",
-    "calibration_to_colmap",
-    "calibration_from_colmap",
     "opencv_principal_point",
 ]
 
@@ -88,7 +85,12 @@ def cameras_from_colmap(model_dir: str | os.PathLike) -> list[Camera]:
     d = Path(model_dir)
     if not d.is_dir():
         raise FileNotFoundError(f"{d}: COLMAP model folder not found")
-    rec = pycolmap.Reconstruction(str(d))
+    if not any((d / f"cameras{ext}").is_file() for ext in (".bin", ".txt")):
+        raise ValueError(f"{d}: not a COLMAP model (no cameras.bin or cameras.txt)")
+    try:
+        rec = pycolmap.Reconstruction(str(d))
+    except Exception as err:  # pycolmap raises its own (C++) exception types on unreadable files
+        raise ValueError(f"{d}: unreadable COLMAP model ({type(err).__name__}: {str(err).splitlines()[0][:200] if str(err) else ''})") from None
     out = []
     for image_id in sorted(rec.images):
         img = rec.images[image_id]
@@ -111,17 +113,3 @@ def cameras_from_colmap(model_dir: str | os.PathLike) -> list[Camera]:
     if not out:
         raise ValueError(f"{d}: the COLMAP model has no images")
     return out
-
-
-def calibration_to_colmap(calibration: str | os.PathLike, out_dir: str | os.PathLike, text: bool = False) -> int:
-    """``cameras.calibration`` -> COLMAP model in ``out_dir``; returns the number of cameras."""
-    cams = read_calibration(calibration)
-    cameras_to_colmap(cams, out_dir, text)
-    return len(cams)
-
-
-def calibration_from_colmap(model_dir: str | os.PathLike, calibration: str | os.PathLike) -> int:
-    """COLMAP model -> ``cameras.calibration``; returns the number of cameras."""
-    cams = cameras_from_colmap(model_dir)
-    write_calibration(calibration, cams)
-    return len(cams)

@@ -1,0 +1,79 @@
+"""``deliffas cameras``: every format and back through the CLI, and every bad input one error line (exit 2)."""
+
+from __future__ import annotations
+
+import hashlib
+
+import numpy as np
+import pytest
+
+from capture_cameras import HEIGHT, WIDTH, assert_same_cameras, rig
+from deliffas.cli import _CAMERA_FORMATS, main
+from deliffas.io.calibration import read_calibration, write_calibration
+from deliffas.io.camera_formats import CAMERA_FORMATS
+from deliffas.io.cameras import Camera
+
+_OUT = {"dynacap": "c.calibration", "colmap": "model", "easymocap": "emc", "zju": "annots.npy",
+        "nerfstudio": "transforms.json", "thuman4": "calibration.json", "actorshq": "calibration.csv", "dna": "c.smc"}
+
+
+def test_the_parser_knows_every_format():
+    assert _CAMERA_FORMATS == CAMERA_FORMATS
+
+
+@pytest.mark.parametrize("fmt", CAMERA_FORMATS)
+def test_dynacap_to_every_format_and_back(tmp_path, fmt, capsys):
+    cams = rig()
+    write_calibration(tmp_path / "src.calibration", cams)
+    out = tmp_path / _OUT[fmt]
+    assert main(["cameras", str(tmp_path / "src.calibration"), str(out), "--to", fmt]) == 0
+    size = ["--size", f"{WIDTH}x{HEIGHT}"]
+    assert main(["cameras", str(out), str(tmp_path / "back.calibration"), "--to", "dynacap", "--from", fmt, *size]) == 0
+    assert_same_cameras(read_calibration(tmp_path / "back.calibration"), cams)
+    assert "wrote 5 cameras" in capsys.readouterr().out
+
+
+def test_colmap_shorthands(tmp_path):
+    cams = rig()
+    write_calibration(tmp_path / "src.calibration", cams)
+    assert main(["cameras", str(tmp_path / "src.calibration"), "--to-colmap", str(tmp_path / "m"), "--text"]) == 0
+    assert (tmp_path / "m" / "cameras.txt").is_file()
+    assert main(["cameras", str(tmp_path / "back.calibration"), "--from-colmap", str(tmp_path / "m")]) == 0
+    assert_same_cameras(read_calibration(tmp_path / "back.calibration"), cams)
+
+
+def _digest(folder):
+    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def _fails(capsys, argv, match):
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("deliffas cameras: error:") and match in err[0], err
+
+
+def test_bad_inputs_are_one_error_line(tmp_path, capsys):
+    cams = rig()
+    write_calibration(tmp_path / "src.calibration", cams)
+    skew = Camera("s", np.array([[100.0, 2.0, 32], [0, 100, 24], [0, 0, 1]]), np.eye(4), 64, 48)
+    write_calibration(tmp_path / "skew.calibration", [skew])
+    _fails(capsys, ["cameras", str(tmp_path / "skew.calibration"), str(tmp_path / "m"), "--to", "colmap"], "skew")
+    (tmp_path / "empty").mkdir()
+    _fails(capsys, ["cameras", str(tmp_path / "x.calibration"), "--from-colmap", str(tmp_path / "empty")],
+           "not a COLMAP model")
+    (tmp_path / "garbage").mkdir()
+    (tmp_path / "garbage" / "cameras.bin").write_bytes(b"\x00garbage" * 10)
+    _fails(capsys, ["cameras", str(tmp_path / "x.calibration"), "--from-colmap", str(tmp_path / "garbage")],
+           "unreadable COLMAP model")
+    assert main(["cameras", str(tmp_path / "src.calibration"), str(tmp_path / "a.npy"), "--to", "zju"]) == 0
+    capsys.readouterr()
+    _fails(capsys, ["cameras", str(tmp_path / "a.npy"), str(tmp_path / "b.calibration"), "--to", "dynacap"],
+           "size")
+    _fails(capsys, ["cameras", str(tmp_path / "src.calibration")], "--to FORMAT")
+    before = _digest(tmp_path)
+    _fails(capsys, ["cameras", str(tmp_path / "src.calibration"), str(tmp_path / "skew.calibration"), "--to",
+                    "dynacap"], "--overwrite")
+    assert _digest(tmp_path) == before
+    with pytest.raises(SystemExit) as info:
+        main(["cameras", str(tmp_path / "src.calibration"), str(tmp_path / "o"), "--to", "blender"])
+    assert info.value.code == 2
