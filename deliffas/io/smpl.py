@@ -5,6 +5,8 @@ The model file layout is the official one: ``v_template`` (V, 3), ``shapedirs`` 
 ``kintree_table`` (2, 24), ``f`` (F, 3). ``.pkl`` files are read with a restricted unpickler that only
 constructs numpy arrays and scipy sparse matrices (never arbitrary code); the official chumpy pickles
 are refused with a hint to convert them to ``.npz``. Units stay the file's (metres for SMPL).
+:func:`write_smpl_model` writes the same layout as ``.npz`` (atomically), so a model deliffas makes
+loads through the same reader as a user's file.
 """
 
 from __future__ import annotations
@@ -17,7 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["SMPL_NOT_SHIPPED", "SMPLModelError", "SMPLModelData", "load_smpl_model", "NUM_JOINTS", "NUM_POSE_BASIS"]
+from deliffas.io.files import durable_replace, temp_path
+
+__all__ = ["SMPL_NOT_SHIPPED", "SMPLModelError", "SMPLModelData", "load_smpl_model", "write_smpl_model", "NUM_JOINTS",
+           "NUM_POSE_BASIS"]
 
 NUM_JOINTS = 24
 NUM_POSE_BASIS = 9 * (NUM_JOINTS - 1)  # 207
@@ -161,3 +166,34 @@ def load_smpl_model(path: str | os.PathLike) -> SMPLModelData:
         if not np.isfinite(a).all():
             raise SMPLModelError(f"{p}: '{k}' holds NaN or inf")
     return SMPLModelData(v, sd, pd, arrays["J_regressor"], arrays["weights"], parents, faces)
+
+
+ROOT_PARENT = 4294967295
+"""``kintree_table[0, 0]`` in the official files (uint32 -1)."""
+
+
+def write_smpl_model(path: str | os.PathLike, data: SMPLModelData) -> None:
+    """Write ``data`` as an official-layout SMPL ``.npz`` that :func:`load_smpl_model` reads back equal.
+
+    Keys: ``v_template`` (V, 3), ``shapedirs`` (V, 3, NB), ``posedirs`` (V, 3, 207), ``J_regressor``
+    (24, V) dense, ``weights`` (V, 24) (all float64), ``kintree_table`` (2, 24) int64 (parents with the
+    root's as 4294967295, then the joint ids), ``f`` (F, 3) uint32. Written under a temporary name
+    and renamed into place.
+
+    Raises:
+        SMPLModelError: ``path`` does not end in ``.npz``.
+    """
+    p = Path(path)
+    if p.suffix.lower() != ".npz":
+        raise SMPLModelError(f"{p}: write_smpl_model writes .npz files, got '{p.suffix}'")
+    parents = np.asarray(data.parents, np.int64)
+    kintree = np.stack([np.where(parents < 0, ROOT_PARENT, parents), np.arange(len(parents))]).astype(np.int64)
+    arrays = {"v_template": data.v_template, "shapedirs": data.shapedirs, "posedirs": data.posedirs,
+              "J_regressor": data.J_regressor, "weights": data.weights}
+    arrays = {k: np.asarray(v, np.float64) for k, v in arrays.items()}
+    arrays["kintree_table"] = kintree
+    arrays["f"] = np.asarray(data.faces).astype(np.uint32)
+    tmp = temp_path(p)
+    with open(tmp, "wb") as fh:  # a file object: np.savez_compressed would append .npz to a name
+        np.savez_compressed(fh, **arrays)
+    durable_replace(tmp, p)
