@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import logging
 import os
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +25,7 @@ from deliffas.io.skeleton import Dof, Joint, Skeleton
 from deliffas.geometry.variants import decimate_mesh, remesh_isotropic, sparsify_weights
 from deliffas.geometry.atlas import UVAtlas, uv_texel_table
 from deliffas.geometry.skeleton import SkeletonFK
+from deliffas.geometry.implicit_body import Primitive, sdf_grid
 from deliffas.geometry.marching_tets import CUBE_CORNERS, marching_tetrahedra
 from deliffas.geometry.mesh_ops import vertex_normals
 
@@ -174,60 +174,21 @@ def procedural_skeleton(height_mm: float = HEIGHT_MM) -> tuple[Skeleton, np.ndar
 
 
 # --------------------------------------------------------------------------------------------- implicit body
-@dataclass(frozen=True)
-class _Prim:
-    """One SDF primitive: a round cone (a, b, ra, rb) or an oriented ellipsoid (c, R, radii)."""
-    part: str
-    kind: str
-    a: np.ndarray
-    b: np.ndarray | None = None
-    ra: float = 0.0
-    rb: float = 0.0
-    rot: np.ndarray | None = None  # (3, 3) columns = ellipsoid axes
-    radii: np.ndarray | None = None
-
-    def sdf(self, p: np.ndarray) -> np.ndarray:
-        """(N,) approximate signed distance of points p (N, 3), mm (negative inside)."""
-        if self.kind == "cone":
-            ab = self.b - self.a
-            t = np.clip(((p - self.a) @ ab) / (ab @ ab), 0.0, 1.0)
-            q = p - (self.a + t[:, None] * ab)
-            return np.linalg.norm(q, axis=1) - (self.ra + t * (self.rb - self.ra))
-        loc = (p - self.a) @ self.rot  # coordinates along the ellipsoid axes
-        k0 = np.linalg.norm(loc / self.radii, axis=1)
-        k1 = np.linalg.norm(loc / self.radii ** 2, axis=1)
-        return k0 * (k0 - 1.0) / np.maximum(k1, 1e-12)
-
-    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        if self.kind == "cone":
-            lo = np.minimum(self.a - self.ra, self.b - self.rb)
-            hi = np.maximum(self.a + self.ra, self.b + self.rb)
-            return lo, hi
-        ext = np.abs(self.rot) @ self.radii
-        return self.a - ext, self.a + ext
-
-
-def _smin(a: np.ndarray, b: np.ndarray, k: float) -> np.ndarray:
-    """Polynomial smooth minimum (blend radius k)."""
-    h = np.clip(0.5 + 0.5 * (b - a) / k, 0.0, 1.0)
-    return b + (a - b) * h - k * h * (1.0 - h)
-
-
-def _body_primitives(P: dict[str, np.ndarray], R: dict[str, np.ndarray], H: float, girth: float) -> list[_Prim]:
+def _body_primitives(P: dict[str, np.ndarray], R: dict[str, np.ndarray], H: float, girth: float) -> list[Primitive]:
     """Primitives of the A-pose body from rest joint positions P and rotations R (mm)."""
     g = girth * H / HEIGHT_MM
     s = H / HEIGHT_MM
     up = Y
     prims = [
-        _Prim("pelvis", "ell", P["Root_rx"] + (0, 5 * s, 5 * s), rot=np.eye(3), radii=np.array([150, 118, 102]) * g),
-        _Prim("belly", "ell", P["Lumbar_rx"] + (0, 35 * s, 0), rot=np.eye(3), radii=np.array([132, 120, 94]) * g),
-        _Prim("chest", "ell", P["Thorax_rx"] + (0, 85 * s, 0), rot=np.eye(3), radii=np.array([160, 160, 104]) * g),
-        _Prim("chest", "cone", P["LeftArm_rx"] + (30 * s, -22 * s, 0), P["RightArm_rx"] + (-30 * s, -22 * s, 0),
+        Primitive("pelvis", "ell", P["Root_rx"] + (0, 5 * s, 5 * s), rot=np.eye(3), radii=np.array([150, 118, 102]) * g),
+        Primitive("belly", "ell", P["Lumbar_rx"] + (0, 35 * s, 0), rot=np.eye(3), radii=np.array([132, 120, 94]) * g),
+        Primitive("chest", "ell", P["Thorax_rx"] + (0, 85 * s, 0), rot=np.eye(3), radii=np.array([160, 160, 104]) * g),
+        Primitive("chest", "cone", P["LeftArm_rx"] + (30 * s, -22 * s, 0), P["RightArm_rx"] + (-30 * s, -22 * s, 0),
               58 * g, 58 * g),
-        _Prim("neck", "cone", P["Neck_rx"] - 30 * s * up, P["Head_rx"] + 30 * s * up, 50 * g, 46 * g),
-        _Prim("head", "ell", P["Head_rx"] + (0, 80 * s, -8 * s), rot=np.eye(3), radii=np.array([76, 100, 92]) * s),
-        _Prim("head", "ell", P["Head_rx"] + (0, 62 * s, -92 * s), rot=np.eye(3), radii=np.array([13, 24, 17]) * s),
-        _Prim("head", "ell", P["Head_rx"] + (0, 20 * s, -50 * s), rot=np.eye(3), radii=np.array([52, 42, 52]) * s),
+        Primitive("neck", "cone", P["Neck_rx"] - 30 * s * up, P["Head_rx"] + 30 * s * up, 50 * g, 46 * g),
+        Primitive("head", "ell", P["Head_rx"] + (0, 80 * s, -8 * s), rot=np.eye(3), radii=np.array([76, 100, 92]) * s),
+        Primitive("head", "ell", P["Head_rx"] + (0, 62 * s, -92 * s), rot=np.eye(3), radii=np.array([13, 24, 17]) * s),
+        Primitive("head", "ell", P["Head_rx"] + (0, 20 * s, -50 * s), rot=np.eye(3), radii=np.array([52, 42, 52]) * s),
     ]
     for S in ("Left", "Right"):
         sh, el, wr, tip = P[f"{S}Arm_rx"], P[f"{S}ForeArmRoll"], P[f"{S}Hand_rz"], P[f"{S}Fingertips"]
@@ -242,43 +203,18 @@ def _body_primitives(P: dict[str, np.ndarray], R: dict[str, np.ndarray], H: floa
         foot_axis /= np.linalg.norm(foot_axis)
         foot_rot = np.stack([np.cross(up, foot_axis), up, foot_axis], axis=1)
         prims += [
-            _Prim(f"{S}_shoulder", "ell", sh + (0, -8 * s, 0), rot=np.eye(3), radii=np.array([58, 55, 55]) * g),
-            _Prim(f"{S}_upperarm", "cone", sh, el, 54 * g, 43 * g),
-            _Prim(f"{S}_forearm", "cone", el, wr, 41 * g, 30 * g),
-            _Prim(f"{S}_hand", "ell", wr + 0.45 * (tip - wr), rot=hand_rot,
+            Primitive(f"{S}_shoulder", "ell", sh + (0, -8 * s, 0), rot=np.eye(3), radii=np.array([58, 55, 55]) * g),
+            Primitive(f"{S}_upperarm", "cone", sh, el, 54 * g, 43 * g),
+            Primitive(f"{S}_forearm", "cone", el, wr, 41 * g, 30 * g),
+            Primitive(f"{S}_hand", "ell", wr + 0.45 * (tip - wr), rot=hand_rot,
                   radii=np.array([0.58 * np.linalg.norm(tip - wr), 48 * s, 24 * s])),
-            _Prim(f"{S}_thigh", "cone", hip + (0, 20 * s, 0), kn, 86 * g, 54 * g),
-            _Prim(f"{S}_shin", "cone", kn, an, 51 * g, 36 * g),
-            _Prim(f"{S}_shin", "ell", kn + 0.3 * (an - kn) + (0, 0, 22 * s), rot=np.eye(3),
+            Primitive(f"{S}_thigh", "cone", hip + (0, 20 * s, 0), kn, 86 * g, 54 * g),
+            Primitive(f"{S}_shin", "cone", kn, an, 51 * g, 36 * g),
+            Primitive(f"{S}_shin", "ell", kn + 0.3 * (an - kn) + (0, 0, 22 * s), rot=np.eye(3),
                   radii=np.array([46, 110, 46]) * g),
-            _Prim(f"{S}_foot", "ell", an + (0, -42 * s, -58 * s), rot=foot_rot, radii=np.array([46, 42, 128]) * s),
+            Primitive(f"{S}_foot", "ell", an + (0, -42 * s, -58 * s), rot=foot_rot, radii=np.array([46, 42, 128]) * s),
         ]
     return prims
-
-
-def _sdf_grid(prims: list[_Prim], spacing: float, k: float) -> tuple[np.ndarray, np.ndarray]:
-    """Smooth-union SDF sampled on a regular grid covering all primitives.
-
-    Returns:
-        values (nx, ny, nz) float64 and origin (3,) of grid point (0, 0, 0).
-    """
-    lows, highs = zip(*(p.bounds() for p in prims))
-    margin = k + 3 * spacing
-    lo = np.min(lows, axis=0) - margin
-    hi = np.max(highs, axis=0) + margin
-    n = np.ceil((hi - lo) / spacing).astype(int) + 1
-    values = np.full(tuple(n), 1e6)
-    axes = [lo[d] + spacing * np.arange(n[d]) for d in range(3)]
-    for prim in prims:  # each primitive only touches its own bounding box (+ blend margin)
-        plo, phi = prim.bounds()
-        i0 = np.clip(np.floor((plo - k - lo) / spacing).astype(int), 0, n - 1)
-        i1 = np.clip(np.ceil((phi + k - lo) / spacing).astype(int) + 1, 1, n)
-        gx, gy, gz = np.meshgrid(axes[0][i0[0]:i1[0]], axes[1][i0[1]:i1[1]], axes[2][i0[2]:i1[2]], indexing="ij")
-        pts = np.stack([gx.ravel(), gy.ravel(), gz.ravel()], axis=1)
-        block = values[i0[0]:i1[0], i0[1]:i1[1], i0[2]:i1[2]]
-        d = prim.sdf(pts).reshape(block.shape)
-        values[i0[0]:i1[0], i0[1]:i1[1], i0[2]:i1[2]] = _smin(block, d, k)
-    return values, lo
 
 
 # --------------------------------------------------------------------------------------------- skinning, labels
@@ -323,7 +259,7 @@ def _skin_weights(verts: np.ndarray, segs) -> Skin:
     return Skin(tuple(name for name, *_ in segs), idx, w)
 
 
-def _labels(verts: np.ndarray, prims: list[_Prim], P: dict[str, np.ndarray], H: float) -> tuple[np.ndarray, np.ndarray]:
+def _labels(verts: np.ndarray, prims: list[Primitive], P: dict[str, np.ndarray], H: float) -> tuple[np.ndarray, np.ndarray]:
     """LIP segmentation (V,) and hand segmentation (V,) (0 none, 1 left hand, 2 right hand)."""
     s = H / HEIGHT_MM
     d = np.stack([p.sdf(verts) for p in prims], axis=1)
@@ -509,7 +445,7 @@ def procedural_character(seed: int = 0, target_faces: int = 8000, name: str = "p
     skel, rest = procedural_skeleton(H)
     P, R = _rest_frames(skel, rest)
     prims = _body_primitives(P, R, H, girth)
-    values, origin = _sdf_grid(prims, GRID_MM, SMOOTH_K_MM)
+    values, origin = sdf_grid(prims, GRID_MM, SMOOTH_K_MM)
     verts, faces = marching_tetrahedra(values, origin, GRID_MM)
     log.info("procedural: marching tetrahedra %d faces, decimating to %d", len(faces), target_faces)
     verts, faces = decimate_mesh(verts, faces, target_faces)

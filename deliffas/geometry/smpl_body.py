@@ -37,7 +37,7 @@ from deliffas.geometry.marching_tets import marching_tetrahedra
 from deliffas.geometry.mesh_ops import vertex_normals
 from deliffas.geometry.variants import decimate_mesh, remesh_isotropic
 # the implicit-body primitives are procedural.py's private helpers; shared here rather than copied
-from deliffas.geometry.procedural import _Prim, _sdf_grid
+from deliffas.geometry.implicit_body import Primitive, sdf_grid
 
 __all__ = [
     "SMPL_JOINT_NAMES",
@@ -110,32 +110,32 @@ def _j(joints: np.ndarray, name: str) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------------------- implicit body
-def _primitives(joints: np.ndarray) -> list[_Prim]:
+def _primitives(joints: np.ndarray) -> list[Primitive]:
     """Primitives of the T-pose body, in mm (the procedural SDF helpers work in mm)."""
     J = {n: _j(joints, n) * 1000.0 for n in SMPL_JOINT_NAMES}
     eye = np.eye(3)
     prims = [
-        _Prim("pelvis", "ell", J["pelvis"] + (0, -25, 5), rot=eye, radii=np.array([150, 110, 100])),
-        _Prim("belly", "ell", J["spine1"] + (0, 40, 15), rot=eye, radii=np.array([135, 120, 95])),
-        _Prim("chest", "ell", J["spine3"] + (0, 40, 0), rot=eye, radii=np.array([160, 150, 105])),
-        _Prim("chest", "cone", J["l_shoulder"] + (-25, -25, 0), J["r_shoulder"] + (25, -25, 0), 60, 60),
-        _Prim("neck", "cone", J["neck"] - (0, 40, 0), J["head"] + (0, 30, 0), 52, 46),
-        _Prim("head", "ell", J["head"] + (0, 95, 5), rot=eye, radii=np.array([78, 108, 95])),
-        _Prim("head", "ell", J["head"] + (0, 75, 100), rot=eye, radii=np.array([14, 25, 18])),  # nose
+        Primitive("pelvis", "ell", J["pelvis"] + (0, -25, 5), rot=eye, radii=np.array([150, 110, 100])),
+        Primitive("belly", "ell", J["spine1"] + (0, 40, 15), rot=eye, radii=np.array([135, 120, 95])),
+        Primitive("chest", "ell", J["spine3"] + (0, 40, 0), rot=eye, radii=np.array([160, 150, 105])),
+        Primitive("chest", "cone", J["l_shoulder"] + (-25, -25, 0), J["r_shoulder"] + (25, -25, 0), 60, 60),
+        Primitive("neck", "cone", J["neck"] - (0, 40, 0), J["head"] + (0, 30, 0), 52, 46),
+        Primitive("head", "ell", J["head"] + (0, 95, 5), rot=eye, radii=np.array([78, 108, 95])),
+        Primitive("head", "ell", J["head"] + (0, 75, 100), rot=eye, radii=np.array([14, 25, 18])),  # nose
     ]
     for s in ("l", "r"):
         sh, el, wr, hand = J[f"{s}_shoulder"], J[f"{s}_elbow"], J[f"{s}_wrist"], J[f"{s}_hand"]
         hip, kn, an, foot = J[f"{s}_hip"], J[f"{s}_knee"], J[f"{s}_ankle"], J[f"{s}_foot"]
         side = 1.0 if s == "l" else -1.0
         prims += [
-            _Prim("shoulder", "ell", sh + (0, -8, 0), rot=eye, radii=np.array([58, 56, 56])),
-            _Prim("arm", "cone", sh, el, 52, 42),
-            _Prim("arm", "cone", el, wr, 40, 30),
-            _Prim("hand", "ell", wr + (hand - wr) * 1.2, rot=eye, radii=np.array([100, 22, 46])),
-            _Prim("leg", "cone", hip + (0, 25, 0), kn, 88, 55),
-            _Prim("leg", "cone", kn, an, 52, 38),
-            _Prim("leg", "ell", kn + 0.3 * (an - kn) + (0, 0, -20), rot=eye, radii=np.array([46, 110, 46])),
-            _Prim("foot", "ell", np.array([foot[0] - side * 5, an[1] - 45, 0.5 * (an[2] + foot[2]) + 10]), rot=eye,
+            Primitive("shoulder", "ell", sh + (0, -8, 0), rot=eye, radii=np.array([58, 56, 56])),
+            Primitive("arm", "cone", sh, el, 52, 42),
+            Primitive("arm", "cone", el, wr, 40, 30),
+            Primitive("hand", "ell", wr + (hand - wr) * 1.2, rot=eye, radii=np.array([100, 22, 46])),
+            Primitive("leg", "cone", hip + (0, 25, 0), kn, 88, 55),
+            Primitive("leg", "cone", kn, an, 52, 38),
+            Primitive("leg", "ell", kn + 0.3 * (an - kn) + (0, 0, -20), rot=eye, radii=np.array([46, 110, 46])),
+            Primitive("foot", "ell", np.array([foot[0] - side * 5, an[1] - 45, 0.5 * (an[2] + foot[2]) + 10]), rot=eye,
                   radii=np.array([45, 40, 125])),
         ]
     return prims
@@ -143,7 +143,7 @@ def _primitives(joints: np.ndarray) -> list[_Prim]:
 
 def _mesh(joints: np.ndarray, target_verts: int) -> tuple[np.ndarray, np.ndarray]:
     """Closed T-pose mesh (metres) with about ``target_verts`` vertices."""
-    values, origin = _sdf_grid(_primitives(joints), GRID_M * 1000.0, SMOOTH_K_M * 1000.0)
+    values, origin = sdf_grid(_primitives(joints), GRID_M * 1000.0, SMOOTH_K_M * 1000.0)
     verts, faces = marching_tetrahedra(values, origin, GRID_M * 1000.0)
     target_faces = 2 * target_verts - 4  # a closed genus-0 mesh: F = 2 V - 4
     log.info("procedural_smpl: marching tetrahedra %d faces, decimating to %d", len(faces), target_faces)
