@@ -31,6 +31,36 @@ def _size(text: str) -> tuple[int, int]:
     return w, h
 
 
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a number >= 1, got {value}")
+    return value
+
+
+def _non_negative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {value}")
+    return value
+
+
+def _path_with_suffix(*suffixes: str):
+    """An argparse type: a path ending in one of ``suffixes`` (checked before any work starts)."""
+    def parse(text: str) -> Path:
+        p = Path(text)
+        if p.suffix.lower() not in suffixes:
+            raise argparse.ArgumentTypeError(f"expected a file ending in {' or '.join(suffixes)}, got {text!r}")
+        return p
+    return parse
+
+
 def _int_list(text: str) -> tuple[int, ...]:
     try:
         return tuple(int(v) for v in text.replace(",", " ").split())
@@ -50,44 +80,57 @@ def _test_cameras(text: str) -> int | tuple[int, ...]:
 
 def _add_data_commands(sub) -> None:
     p = sub.add_parser("synth", help="render a synthetic DynaCap capture with a loose garment",
-                       description="Write a synthetic subject folder in DynaCap layout (cameras, character, "
-                                   "training + novel-pose motions, RGBA images, optional videos, ground-truth "
-                                   ".meshes). See docs/data.md.")
+                       description="Write a synthetic subject folder in DynaCap layout (cameras, the body: a DDC "
+                                   "character or an SMPL model, training + novel-pose motions, RGBA images, "
+                                   "optional videos, ground-truth .meshes). See docs/data.md.")
     p.add_argument("out_dir", type=Path, help="subject folder to write")
     p.add_argument("--character", type=Path, help=".character to use (default: the procedural character, "
                                                   "built into OUT_DIR/character)")
-    p.add_argument("--motion", type=Path, help="training .motion (default: procedural motion)")
-    p.add_argument("--frames", type=int, default=20, help="training frames (default 20)")
-    p.add_argument("--test-frames", type=int, default=None, help="novel-pose frames (default frames // 2)")
-    p.add_argument("--cameras", type=int, default=8, help="cameras of the dome (default 8)")
+    p.add_argument("--body-model", metavar="MODEL|procedural",
+                   help="render an SMPL body instead of a DDC character: an SMPL model file (.npz/.pkl, official "
+                        "layout; not shipped, license) or 'procedural' (the license-free body in SMPL layout)")
+    p.add_argument("--body-uv", type=Path, help="OBJ with the SMPL model's uv layout (default: an xatlas atlas)")
+    p.add_argument("--motion", type=Path, help="training motion: .motion (DDC) or AMASS-style .npz (SMPL) "
+                                               "(default: a procedural motion)")
+    p.add_argument("--test-motion", type=Path, help="novel-pose motion, as --motion (default: procedural, another seed)")
+    p.add_argument("--frames", type=_positive_int, default=20, help="training frames (default 20)")
+    p.add_argument("--test-frames", type=_positive_int, default=None, help="novel-pose frames (default frames // 2)")
+    p.add_argument("--cameras", type=_positive_int, default=8, help="cameras of the dome (default 8, at least 2)")
     p.add_argument("--size", type=_size, default=(256, 256), help="image size WxH (default 256x256)")
     p.add_argument("--test-cameras", type=_test_cameras, default=None,
                    help="held-out cameras: a count N or a list a,b,... (default max(1, cameras // 8))")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--videos", action="store_true", help="also write FFV1 videos img/c_<cam>.avi + fg/c_<cam>.avi")
-    p.add_argument("--supersample", type=int, default=1, help="s x s rays per pixel (default 1)")
-    p.add_argument("--jobs", type=int, default=1, help="rendering processes (default 1)")
+    p.add_argument("--supersample", type=_positive_int, default=1, help="s x s rays per pixel (default 1)")
+    p.add_argument("--jobs", type=_positive_int, default=1, help="rendering processes (default 1)")
     p.set_defaults(handler="synth")
 
-    p = sub.add_parser("convert", help="convert a DynaCap subject into sharded HDF5",
+    p = sub.add_parser("convert", help="convert a capture into sharded HDF5",
                        description="Convert SUBJECT (image folders or videos) into HDF5 shards + meta.h5 + "
-                                   "manifest.json under OUT (schema: docs/shards.md). SUBJECT is only read.")
-    p.add_argument("subject", type=Path, help="subject folder (cameras.calibration, character/, training/, testing/)")
+                                   "manifest.json under OUT (schema: docs/shards.md). SUBJECT is only read. "
+                                   "The template (DDC character or SMPL model) is recorded in meta.h5.")
+    p.add_argument("subject", type=Path, help="subject folder (cameras.calibration, character/ or body/, "
+                                              "training/, testing/)")
     p.add_argument("out", type=Path, help="output folder")
     p.add_argument("--frames", default=None, help="A:B:STEP capture frames (default: all)")
     p.add_argument("--cameras", type=_int_list, default=None, help="calibration indices a,b,... (default: all)")
     p.add_argument("--test-cameras", type=_int_list, default=None,
                    help="held-out cameras a,b,... (default: SUBJECT/split.json or test_cameras.txt)")
-    p.add_argument("--shard-frames", type=int, default=10, help="frames per shard (default 10)")
-    p.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
+    p.add_argument("--shard-frames", type=_positive_int, default=10, help="frames per shard (default 10)")
+    p.add_argument("--jobs", type=_positive_int, default=1, help="worker processes (default 1)")
     p.add_argument("--resume", action="store_true", help="keep complete shards of an interrupted run")
     p.add_argument("--overwrite", action="store_true", help="replace an existing conversion in OUT")
     p.add_argument("--meshes", action="append", metavar="[SEQ=]FILE",
                    help="tracked .meshes instead of the skinned template (SEQ default training; repeatable)")
-    p.add_argument("--template", type=Path, help="template variant folder (its .character + outer.obj)")
+    p.add_argument("--template", type=Path, help="template variant folder (its .character + outer.obj), a "
+                                                 ".character, or an SMPL model .npz/.pkl (with --motions fitted "
+                                                 "to a DDC capture, or the capture's own SMPL poses)")
+    p.add_argument("--motions", action="append", metavar="[SEQ=]FILE",
+                   help="pose parameters instead of the sequence's own: .motion (DDC) or AMASS .npz (SMPL) "
+                        "(SEQ default training; repeatable)")
     p.add_argument("--atlas-res", type=int, default=256, help="normal-map side S (default 256; paper 1024)")
     p.add_argument("--offset", type=float, default=30.0, help="outer-surface offset d in mm (default 30)")
-    p.add_argument("--window", type=int, default=2, help="temporal window T stored per frame (default 2)")
+    p.add_argument("--window", type=_non_negative_int, default=2, help="temporal window T stored per frame (default 2)")
     p.add_argument("--codec", default="raw", help="raw (lossless, default) | png | jpeg:Q")
     p.add_argument("--layout", choices=["auto", "images", "videos"], default="auto", help="frame layout")
     p.add_argument("--masks", metavar="SUBDIR", help="DDC mask folder in each sequence folder "
@@ -206,7 +249,8 @@ def _add_engine_commands(sub) -> None:
     p.add_argument("run", type=Path)
     p.add_argument("--out", type=Path, required=True, help="video file (.mp4 or .avi)")
     p.add_argument("--orbit", action="store_true", help="camera orbits the avatar (default: capture camera 0)")
-    p.add_argument("--motion", type=Path, default=None, help=".motion file (default: the capture's test motion)")
+    p.add_argument("--motion", type=Path, default=None,
+                   help=".motion (DDC template) or AMASS .npz (SMPL template) (default: the capture's test motion)")
     p.add_argument("--frames", type=int, default=None, help="number of frames (default: all of the motion, max 300)")
     p.add_argument("--size", type=_size, default=None, help="WxH (default: the capture's)")
     p.add_argument("--fps", type=float, default=25.0)
@@ -224,15 +268,21 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    p = sub.add_parser("pose", help="write a DynaCap character posed by one frame of a motion",
-                       description="Pose CHARACTER with frame N of MOTION (DOF skeleton + skinning) and "
-                                   "write the mesh in the template's vertex order and the files' units (mm).")
-    p.add_argument("character", type=Path, help=".character file")
-    p.add_argument("motion", type=Path, help=".motion file (its DOF count must match the skeleton)")
-    p.add_argument("--frame", type=int, default=0, help="frame index as written in the motion file (default 0)")
+    p = sub.add_parser("pose", help="write a template (DDC character or SMPL model) posed by one frame of a motion",
+                       description="Pose TEMPLATE with frame N of MOTION and write the mesh in the template's "
+                                   "vertex order, in mm. TEMPLATE is a .character (DDC: MOTION a .motion, DOF "
+                                   "skeleton + skinning) or an SMPL model file .npz/.pkl (MOTION an AMASS-style "
+                                   ".npz with poses, trans, betas; SMPL metres become mm).")
+    p.add_argument("template", type=Path, help=".character file, or SMPL model .npz/.pkl (official layout)")
+    p.add_argument("motion", type=Path, help=".motion (DDC; its DOF count must match the skeleton) or AMASS .npz (SMPL)")
+    p.add_argument("--frame", type=_non_negative_int, default=0,
+                   help="frame number as written in the motion file (AMASS: the row) (default 0)")
     p.add_argument("--skinning", choices=["dqs", "lbs"], default="dqs",
-                   help="dual-quaternion (the original tools' default) or linear blend skinning")
-    p.add_argument("--out", type=Path, required=True, help="output mesh, .ply or .obj (.obj keeps the UVs)")
+                   help="DDC: dual-quaternion (the original tools' default) or linear blend skinning")
+    p.add_argument("--uv", type=Path, default=None,
+                   help="SMPL: OBJ with the model's uv layout (default MODEL_uv.obj next to it, else none needed)")
+    p.add_argument("--out", type=_path_with_suffix(".ply", ".obj"), required=True,
+                   help="output mesh, .ply or .obj (.obj keeps the uvs)")
     p.set_defaults(handler="pose")
     _add_data_commands(sub)
     _add_geometry_commands(sub)

@@ -13,9 +13,10 @@ from pathlib import Path
 
 from deliffas.io.camera_formats import read_cameras, write_cameras
 from deliffas.io.dynacap import read_character
-from deliffas.geometry.posing import pose_frames, write_posed_mesh
+from deliffas.geometry.templates import spec_from_file
 from deliffas.geometry.procedural import make_procedural_character
 from deliffas.data.convert import ConvertConfig, convert
+from deliffas.data.posing import pose_frames, write_posed_mesh
 from deliffas.data.shards import verify_shards
 from deliffas.data.synth import SynthConfig, synthesize_capture
 from deliffas.data.template_build import build_templates
@@ -30,10 +31,11 @@ from deliffas.engine.train import TrainConfig, train
 
 
 def cmd_pose(args: argparse.Namespace) -> int:
-    verts, character = pose_frames(args.character, args.motion, [args.frame], args.skinning)
-    write_posed_mesh(args.out, verts[0], character)
-    print(f"wrote {args.out}: {verts.shape[1]} vertices, {character.mesh.num_faces} faces "
-          f"(frame {args.frame}, {args.skinning})")
+    spec = spec_from_file(args.template, args.skinning, uv_obj=args.uv)
+    verts, template = pose_frames(spec, args.motion, [args.frame], args.skinning)
+    write_posed_mesh(args.out, verts[0], template)
+    print(f"wrote {args.out}: {verts.shape[1]} vertices, {int(template.faces.shape[0])} faces "
+          f"(frame {args.frame}, {spec.kind}{', ' + args.skinning if spec.kind != 'smpl' else ''})")
     return 0
 
 
@@ -41,8 +43,10 @@ def cmd_synth(args: argparse.Namespace) -> int:
     w, h = args.size
     cfg = SynthConfig(num_frames=args.frames, num_test_frames=args.test_frames, num_cameras=args.cameras,
                       width=w, height=h, test_cameras=args.test_cameras, seed=args.seed,
-                      character=str(args.character) if args.character else None,
-                      motion=str(args.motion) if args.motion else None, videos=args.videos, jobs=args.jobs,
+                      character=str(args.character) if args.character else None, body_model=args.body_model,
+                      body_uv=str(args.body_uv) if args.body_uv else None,
+                      motion=str(args.motion) if args.motion else None,
+                      test_motion=str(args.test_motion) if args.test_motion else None, videos=args.videos, jobs=args.jobs,
                       supersample=args.supersample)
     res = synthesize_capture(args.out_dir, cfg)
     n = sum(len(f) for f in res.frames.values())
@@ -55,6 +59,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
 def cmd_convert(args: argparse.Namespace) -> int:
     cfg = ConvertConfig(frames=args.frames, cameras=args.cameras, shard_frames=args.shard_frames, jobs=args.jobs,
                         resume=args.resume, overwrite=args.overwrite, meshes=tuple(args.meshes or ()),
+                        motions=tuple(args.motions or ()),
                         template=str(args.template) if args.template else None, atlas_res=args.atlas_res,
                         offset_mm=args.offset, codec=args.codec, window=args.window, layout=args.layout,
                         test_cameras=args.test_cameras, masks=args.masks, progress=not args.no_progress)

@@ -67,6 +67,8 @@ class ConvertConfig:
     """Keep complete shards of an earlier run with the same configuration."""
     overwrite: bool = False
     """Delete an existing conversion in ``out_dir`` first."""
+    motions: tuple[str, ...] = ()
+    """Pose parameters ``[SEQUENCE=]FILE`` instead of the sequence's own (e.g. SMPL fitted to a DDC capture)."""
     meshes: tuple[str, ...] = ()
     """Tracked surfaces ``[SEQUENCE=]FILE.meshes`` (default sequence: training) instead of the skinned template."""
     template: str | None = None
@@ -96,6 +98,7 @@ class ConvertConfig:
         """How to read the capture when ``convert`` is given a folder."""
         return SubjectOptions(template=self.template, skinning=self.skinning, sequences=self.sequences,
                               layout=self.layout, masks=self.masks, meshes=tuple(self.meshes),
+                              motions=tuple(self.motions),
                               test_cameras=self.test_cameras)
 
 

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from deliffas.io.cameras import Camera, look_at
-from deliffas.io.dynacap import read_motion
+from deliffas.data.pose_motions import MOTION_SUFFIXES, read_pose_motion
 from deliffas.data.shards import ShardSet
 from deliffas.geometry.atlas import TexelTable, UVAtlas
 from deliffas.geometry.frame_geometry import FrameGeometryBuilder
@@ -77,11 +77,11 @@ def render_images(model, normal_windows, geometry, faces, atlas, cameras: list[C
         yield (image.clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
 
 
-def _default_motion(subject: Path) -> Path:
+def _default_motion(subject: Path, suffix: str) -> Path:
     for seq in ("testing", "training"):
-        for p in sorted((subject / seq).glob("*.motion")):
+        for p in sorted((subject / seq).glob(f"*{suffix}")):
             return p
-    raise FileNotFoundError(f"no motion under {subject}/testing or {subject}/training; pass --motion")
+    raise FileNotFoundError(f"no *{suffix} motion under {subject}/testing or {subject}/training; pass --motion")
 
 
 def render_video(cfg: RenderConfig) -> Path:
@@ -96,9 +96,11 @@ def render_video(cfg: RenderConfig) -> Path:
     if not shards:
         raise ValueError(f"{cfg.run}: train_config.json names no shards")
     meta = ShardSet(shards).meta
-    template = build_template(meta.template_spec(), dtype=torch.float64)
-    motion_path = Path(cfg.motion) if cfg.motion else _default_motion(Path(meta.attrs["subject"]))
-    motion = read_motion(motion_path, template.num_dofs)
+    spec = meta.template_spec()
+    template = build_template(spec, dtype=torch.float64)
+    motion_path = Path(cfg.motion) if cfg.motion else _default_motion(Path(meta.attrs["subject"]),
+                                                                      MOTION_SUFFIXES[spec.kind])
+    motion = read_pose_motion(motion_path, spec, template.num_dofs)
     n = min(motion.num_frames, cfg.frames or 300)
     inner = template.pose(torch.as_tensor(motion.dofs[:n], dtype=torch.float64)).numpy()
     table = TexelTable(meta.texel_face.astype(np.int64), meta.texel_bary, meta.texel_valid, meta.texel_valid)

@@ -14,14 +14,8 @@ from deliffas.io.calibration import read_calibration
 from deliffas.io.meshes import read_meshes
 from deliffas.io.frames import ImageFolderSource, VideoSource, open_frame_source
 from deliffas.data.render_gt import ShadingConfig, render_views
-from deliffas.data.synth import (
-    GARMENT_LABEL,
-    SynthConfig,
-    choose_test_cameras,
-    dome_cameras,
-    garment_weights,
-    synthesize_capture,
-)
+from deliffas.data.garment import GARMENT_LABEL, garment_weights
+from deliffas.data.synth import SynthConfig, choose_test_cameras, dome_cameras, synthesize_capture
 from deliffas.geometry.templates import DDCTemplate
 
 

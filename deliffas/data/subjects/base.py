@@ -113,7 +113,8 @@ class SubjectOptions:
     """Choices a user makes about how a capture is read (each format uses those it has)."""
 
     template: str | None = None
-    """A template variant folder (its ``.character`` + optional ``outer.obj``) or ``.character`` file."""
+    """A template variant folder (its ``.character`` + optional ``outer.obj``), a ``.character`` file, or
+    an SMPL model file (``.npz``/``.pkl``; ``<stem>_uv.obj`` next to it is its uv layout)."""
     skinning: Skinning = "dqs"
     """Skinning of a DDC template."""
     sequences: tuple[str, ...] | None = None
@@ -122,6 +123,9 @@ class SubjectOptions:
     """Frame layout (auto: images when present, else videos)."""
     masks: str | None = None
     """Mask folder inside each sequence folder replacing the images' alpha / fg videos."""
+    motions: tuple[str, ...] = ()
+    """Pose parameters ``[SEQUENCE=]FILE`` (default sequence: training) instead of the sequence's own,
+    e.g. SMPL parameters fitted to a DDC capture (``.npz``) with an SMPL ``template``."""
     meshes: tuple[str, ...] = ()
     """Tracked surfaces ``[SEQUENCE=]FILE.meshes`` (default sequence: training) instead of the posed template."""
     test_cameras: tuple[int, ...] | None = None

@@ -1,8 +1,10 @@
 """The ``dynacap`` capture format: a DynaCap / DELIFFAS subject folder (layout in docs/data.md).
 
-``<subject>/cameras.calibration``, ``character/<name>.character`` (or ``--template``), and per
-sequence (``training``, ``testing``) the frames (``rgb_<W>_<H>/`` image folders or ``img/`` + ``fg/``
-videos) and ``poses.motion`` (or ``motions/*.motion``, or a tracked ``.meshes`` given by the user).
+``<subject>/cameras.calibration``, the template: ``character/<name>.character`` (DDC) or
+``body/<model>.npz`` with ``body/<model>_uv.obj`` (SMPL), or ``--template``; and per sequence
+(``training``, ``testing``) the frames (``rgb_<W>_<H>/`` image folders or ``img/`` + ``fg/`` videos)
+and the pose parameters: ``poses.motion`` for a DDC template, AMASS-style ``poses.npz`` for SMPL
+(or ``motions/*``, or ``--motions [SEQ=]FILE``), or a tracked ``.meshes`` given by the user.
 The test cameras come from ``split.json`` (``test_cameras``) or ``test_cameras.txt``. DynaCap is
 already in the deliffas convention (mm, y-up, world -> camera, pixel centres at +0.5).
 """
@@ -15,11 +17,11 @@ from typing import Sequence
 
 import numpy as np
 
-from deliffas.io.dynacap import read_motion
 from deliffas.io.calibration import read_calibration
 from deliffas.io.meshes import read_meshes
 from deliffas.io.frames import image_size
-from deliffas.geometry.templates import ddc_spec
+from deliffas.geometry.templates import SMPL_MODEL_SUFFIXES, Skinning, TemplateSpec, ddc_spec, spec_from_file
+from deliffas.data.pose_motions import MOTION_SUFFIXES, read_pose_motion
 from deliffas.data.subjects.base import (
     FrameSourceSpec,
     Subject,
@@ -29,7 +31,7 @@ from deliffas.data.subjects.base import (
     register_subject_format,
 )
 
-__all__ = ["SEQUENCES", "find_character", "parse_dynacap"]
+__all__ = ["SEQUENCES", "find_character", "find_template", "parse_dynacap"]
 
 SEQUENCES = ("training", "testing")
 
@@ -55,22 +57,39 @@ def find_character(subject: Path, template: str | None) -> tuple[Path, Path | No
     raise FileNotFoundError(f"{subject}: no character/<name>.character; pass --template")
 
 
-def _find_motion(seq_dir: Path) -> Path | None:
-    p = seq_dir / "poses.motion"
+def find_template(subject: Path, template: str | None, skinning: Skinning = "dqs",
+                  num_betas: int = 10) -> TemplateSpec:
+    """The subject's template: ``template`` (a DDC variant folder or ``.character``, or an SMPL model
+    file), else ``character/<name>.character``, else the one SMPL model in ``body/``."""
+    if template is not None and Path(template).suffix in SMPL_MODEL_SUFFIXES:
+        return spec_from_file(template, num_betas=num_betas)
+    body = subject / "body"
+    models = sorted(p for p in body.iterdir() if p.suffix in SMPL_MODEL_SUFFIXES) if body.is_dir() else []
+    if template is None and not (subject / "character").is_dir() and models:
+        if len(models) > 1:
+            raise FileNotFoundError(f"{body}: several SMPL model files {[p.name for p in models]}; pass --template")
+        return spec_from_file(models[0], num_betas=num_betas)
+    character, outer_obj = find_character(subject, template)
+    return ddc_spec(character, skinning, outer_obj)
+
+
+def _find_motion(seq_dir: Path, suffix: str) -> Path | None:
+    p = seq_dir / f"poses{suffix}"
     if p.is_file():
         return p
-    found = sorted((seq_dir / "motions").glob("*.motion")) if (seq_dir / "motions").is_dir() else []
+    found = sorted((seq_dir / "motions").glob(f"*{suffix}")) if (seq_dir / "motions").is_dir() else []
     return found[0] if found else None
 
 
-def _parse_meshes(specs: Sequence[str]) -> dict[str, Path]:
+def _per_sequence(specs: Sequence[str], option: str) -> dict[str, Path]:
+    """``[SEQUENCE=]FILE`` values (default sequence: training) by sequence."""
     out = {}
     for s in specs:
         seq, sep, path = s.partition("=")
         if not sep:
             seq, path = "training", s
         if seq in out:
-            raise ValueError(f"--meshes given twice for sequence {seq}")
+            raise ValueError(f"--{option} given twice for sequence {seq}")
         out[seq] = Path(path).resolve()
     return out
 
@@ -92,8 +111,9 @@ def parse_dynacap(subject: Path, options: SubjectOptions = SubjectOptions()) -> 
     subject = Path(subject)
     cameras = tuple(read_calibration(subject / "cameras.calibration"))
     names = tuple(c.name for c in cameras)
-    character, outer_obj = find_character(subject, options.template)
-    meshes = _parse_meshes(options.meshes)
+    template = find_template(subject, options.template, options.skinning)
+    meshes = _per_sequence(options.meshes, "meshes")
+    motions = _per_sequence(options.motions, "motions")
     seq_names = options.sequences or tuple(s for s in SEQUENCES if (subject / s).is_dir())
     if not seq_names:
         raise FileNotFoundError(f"{subject}: no training/ or testing/ sequence folder")
@@ -107,21 +127,21 @@ def parse_dynacap(subject: Path, options: SubjectOptions = SubjectOptions()) -> 
         if size is not None and size != (w, h):
             raise ValueError(f"{seq}: images are {w}x{h}, other sequences {size[0]}x{size[1]}")
         size = (w, h)
-        motion_path = _find_motion(seq_dir)
-        motion = read_motion(motion_path) if motion_path is not None else None
+        motion_path = motions.get(seq) or _find_motion(seq_dir, MOTION_SUFFIXES[template.kind])
+        motion = read_pose_motion(motion_path, template) if motion_path is not None else None
         mesh_path = meshes.get(seq)
         if mesh_path is not None:
             avail = read_meshes(mesh_path).frames
         elif motion is not None:
             avail = motion.frames
         else:
-            raise FileNotFoundError(f"{seq_dir}: no poses.motion (and no --meshes {seq}=FILE)")
+            raise FileNotFoundError(f"{seq_dir}: no poses{MOTION_SUFFIXES[template.kind]} (and no --motions or "
+                                    f"--meshes {seq}=FILE)")
         avail = np.unique(np.asarray(avail, np.int64))
         first = int(avail.min())
         mask_dir = seq_dir / options.masks if options.masks else None
         images = FrameSourceSpec(seq_dir, names, layout, first, mask_dir)
         sequences[seq] = SubjectSequence(seq, avail, first, w, h, images, motion, mesh_path)
-    template = ddc_spec(character, options.skinning, outer_obj)
     return Subject(subject, "dynacap", cameras, template, sequences, _test_cameras(subject, options.test_cameras))
 
 

@@ -19,11 +19,12 @@ from deliffas.geometry.templates.base import (
 from deliffas.geometry.templates.ddc import DDCTemplate, Skinning, ddc_sources, ddc_spec
 from deliffas.geometry.templates.ddc_graph import Deformation, EmbeddedGraphTemplate, ddc_graph_spec
 from deliffas.geometry.templates.smpl import SMPLTemplate, smpl_spec
+from deliffas.geometry.templates.from_file import SMPL_MODEL_SUFFIXES, spec_from_file
 
 __all__ = [
     "Template", "TemplateBuilder", "TemplateSourceError", "TemplateSpec", "build_template", "make_spec",
     "register_template_kind", "template_kinds",
     "DDCTemplate", "Skinning", "ddc_sources", "ddc_spec",
     "EmbeddedGraphTemplate", "Deformation", "ddc_graph_spec",
-    "SMPLTemplate", "smpl_spec",
+    "SMPLTemplate", "smpl_spec", "SMPL_MODEL_SUFFIXES", "spec_from_file",
 ]

@@ -1,0 +1,64 @@
+"""Posing a template by a motion file: the API behind ``deliffas pose``.
+
+The template is a ``.character`` (DDC, with a ``.motion``) or an SMPL model file (with an AMASS-style
+``.npz`` motion); frames are the frame numbers the motion file gives (row ``i`` of an AMASS file is
+frame ``i``).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from deliffas.io.dynacap import Motion
+from deliffas.io.mesh_files import write_mesh
+from deliffas.geometry.templates import Skinning, Template, TemplateSpec, build_template, spec_from_file
+from deliffas.data.pose_motions import read_pose_motion
+
+__all__ = ["pose_frames", "write_posed_mesh"]
+
+
+def pose_frames(template: TemplateSpec | str | os.PathLike, motion: Motion | str | os.PathLike,
+                frames: list[int] | None = None, skinning: Skinning = "dqs",
+                dtype: torch.dtype = torch.float64) -> tuple[np.ndarray, Template]:
+    """Posed vertices of ``template`` for the given frame numbers of ``motion``.
+
+    Args:
+        template: a spec, or a template file (``.character`` or SMPL model, :func:`spec_from_file`).
+        motion: pose parameters, or a motion file of the template's kind.
+        frames: frame numbers as written in the motion file (not row numbers); None = all frames.
+
+    Returns:
+        verts (N, V, 3) float64 mm in template vertex order, and the template.
+
+    Raises:
+        ValueError: a frame the motion lacks, a motion of another kind or size, or non-finite output.
+    """
+    spec = template if isinstance(template, TemplateSpec) else spec_from_file(template, skinning)
+    posable = build_template(spec, dtype=dtype)
+    if not isinstance(motion, Motion):
+        motion = read_pose_motion(motion, spec, posable.num_dofs)
+    elif motion.dofs.shape[1] != posable.num_dofs:
+        raise ValueError(f"motion has {motion.dofs.shape[1]} values per frame, the template takes {posable.num_dofs}")
+    if frames is None:
+        rows = np.arange(motion.num_frames)
+    else:
+        try:
+            rows = np.array([motion.row_of(f) for f in frames])
+        except KeyError as err:
+            raise ValueError(str(err.args[0])) from None
+    with torch.no_grad():
+        verts = posable.pose(torch.as_tensor(motion.dofs[rows], dtype=dtype)).cpu().numpy().astype(np.float64)
+    if not np.isfinite(verts).all():
+        raise ValueError(f"posing gave non-finite vertices (frames {[int(f) for f in motion.frames[rows]][:5]}); "
+                         "check the motion's values")
+    return verts, posable
+
+
+def write_posed_mesh(path: str | os.PathLike, verts: np.ndarray, template: Template) -> Path:
+    """Write one posed mesh as ``.obj`` (with the template's per-corner uvs) or ``.ply``, template order."""
+    return write_mesh(path, verts, template.faces.cpu().numpy(), template.uvs.cpu().numpy(),
+                      template.face_uvs.cpu().numpy())

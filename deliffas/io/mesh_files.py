@@ -1,0 +1,42 @@
+"""Writing one mesh as ``.obj`` (with per-corner uvs) or ``.ply``, in the given vertex order, atomically."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from deliffas.io.files import durable_replace, temp_path
+from deliffas.io.obj import ObjData, write_obj
+
+__all__ = ["MESH_SUFFIXES", "write_mesh"]
+
+MESH_SUFFIXES = (".obj", ".ply")
+
+
+def write_mesh(path: str | os.PathLike, verts: np.ndarray, faces: np.ndarray, uvs: np.ndarray | None = None,
+               face_uvs: np.ndarray | None = None) -> Path:
+    """Write ``verts`` (V, 3) and ``faces`` (F, 3); ``.obj`` keeps ``uvs`` (T, 2) / ``face_uvs`` (F, 3).
+
+    Raises:
+        ValueError: another suffix, or non-finite vertices (a mesh nobody can open).
+    """
+    p = Path(path)
+    suffix = p.suffix.lower()
+    if suffix not in MESH_SUFFIXES:
+        raise ValueError(f"output must end in .obj or .ply, got '{p.name}'")
+    verts = np.asarray(verts, np.float64)
+    bad = ~np.isfinite(verts).all(axis=1)
+    if bad.any():
+        raise ValueError(f"{p}: {int(bad.sum())} of {len(verts)} vertices are not finite (first {int(np.argmax(bad))}); "
+                         "not written")
+    if suffix == ".obj":
+        write_obj(p, ObjData(verts, np.asarray(faces), uvs, face_uvs))
+        return p
+    import trimesh  # heavy: only the .ply path needs it
+
+    tmp = temp_path(p, keep_suffix=True)
+    trimesh.Trimesh(verts, np.asarray(faces), process=False).export(tmp)
+    durable_replace(tmp, p)
+    return p
