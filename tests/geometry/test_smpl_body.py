@@ -130,3 +130,64 @@ def test_smpl_template_equals_smplx(body_files, body, tmp_path):
     # smplx stores its buffers in float32 (to_np) even with dtype=float64: compare to that rounding
     err = (out.vertices * 1000 - verts).abs().max().item()
     assert err < 1e-3, f"max |smplx - SMPLTemplate| = {err:.2e} mm"
+
+
+def test_pose_cli_equals_smplx(body_files, tmp_path):
+    """``deliffas pose MODEL.npz MOTION.npz --frame N --out F.ply`` gives smplx's SMPL vertices x 1000."""
+    smplx = pytest.importorskip(
+        "smplx", reason="smplx (test-only) is not installed: pip install smplx==0.1.28 --no-deps")
+    import trimesh
+    from smplx.vertex_ids import vertex_ids
+
+    from deliffas.cli import main
+    from deliffas.io.amass import SMPLMotion, write_smpl_motion
+
+    with np.load(body_files[0]) as z:
+        arrays = {k: z[k] for k in z.files}
+    pkl = tmp_path / "SMPL_NEUTRAL.pkl"
+    with open(pkl, "wb") as fh:
+        pickle.dump(arrays, fh, protocol=2)
+    layer = smplx.SMPL(str(pkl), num_betas=10, dtype=torch.float64, vertex_ids={k: 0 for k in vertex_ids["smplh"]})
+    params = _random_params(np.random.default_rng(5), 3)
+    params[:, 75:] = params[0, 75:]  # one shape per motion
+    motion = tmp_path / "m.npz"
+    write_smpl_motion(motion, SMPLMotion(params[:, 3:75], params[:, :3], params[0, 75:], fps=30.0))
+    for frame in range(3):
+        out = tmp_path / f"f{frame}.ply"
+        assert main(["pose", str(body_files[0]), str(motion), "--frame", str(frame), "--out", str(out)]) == 0
+        ours = np.asarray(trimesh.load(out, process=False).vertices)
+        p = torch.tensor(params[frame:frame + 1])
+        with torch.no_grad():
+            ref = layer(betas=p[:, 75:], global_orient=p[:, 3:6], body_pose=p[:, 6:75], transl=p[:, :3]).vertices
+        err = np.abs(ref[0].numpy() * 1000 - ours).max()
+        assert err < 1e-3, f"frame {frame}: max |smplx - deliffas pose| = {err:.2e} mm"
+
+
+@pytest.mark.parametrize("case, match", [
+    ("missing_key", "missing arrays ['posedirs']"),
+    ("wrong_shape", "'weights' expected shape"),
+    ("pose_length", "poses"),
+    ("nan", "trans"),
+])
+def test_bad_smpl_inputs_are_one_error_line(body_files, tmp_path, capsys, case, match):
+    from deliffas.cli import main
+
+    with np.load(body_files[0]) as z:
+        arrays = {k: z[k] for k in z.files}
+    poses, trans = np.zeros((2, 72)), np.zeros((2, 3))
+    if case == "missing_key":
+        del arrays["posedirs"]
+    elif case == "wrong_shape":
+        arrays["weights"] = arrays["weights"][:, :20]
+    elif case == "pose_length":
+        poses = np.zeros((2, 70))
+    elif case == "nan":
+        trans[1, 2] = np.nan
+    model, motion = tmp_path / "model.npz", tmp_path / "motion.npz"
+    np.savez(model, **arrays)
+    np.savez(motion, poses=poses, trans=trans, betas=np.zeros(10))
+    assert main(["pose", str(model), str(motion), "--out", str(tmp_path / "o.ply")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "error:" in err[0] and match in err[0], err
+    assert str(model if case in ("missing_key", "wrong_shape") else motion) in err[0]
+    assert not (tmp_path / "o.ply").exists()
