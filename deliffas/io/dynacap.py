@@ -31,6 +31,8 @@ PathLike = str | os.PathLike
 
 MOTION_HEADERS = ("Skeletool Motion File V1.0", "Skeletool Motion File V0.1")
 SKIN_HEADER = "Skeletool character skinning file V1.0"
+SKIN_WEIGHT_SUM_TOLERANCE = 1e-3
+"""How far a vertex's skin weights may sum from 1 (the DDC sample: within 2e-6 after un-gluing)."""
 CHARACTER_HEADERS = ("skeletool character file v1.0", "skeletool character file v0.3", "skeletool character file v0.1")
 
 
@@ -198,7 +200,12 @@ def read_skin(path: PathLike, num_verts: int | None = None) -> Skin:
                 raise err(f"bone index {b} out of range 0..{len(bones) - 1}")
             if not np.isfinite(w):
                 raise err("expected a finite weight, got NaN/inf")
+            if w < 0:
+                raise err(f"expected a weight >= 0, got {w!r} (bone {b})")
             indices[row, k], weights[row, k] = b, w
+        total = float(weights[row].sum())
+        if abs(total - 1.0) > SKIN_WEIGHT_SUM_TOLERANCE:
+            raise err(f"expected the vertex's weights to sum to 1 (within {SKIN_WEIGHT_SUM_TOLERANCE}), got {total:.6g}")
     if num_verts is not None and V != num_verts:
         raise DynaCapFormatError(path, lines[-1][0], f"expected {num_verts} vertex lines (mesh vertices), got {V}")
     return Skin(bones, indices, weights)

@@ -122,12 +122,17 @@ def read_obj(path: str | os.PathLike) -> ObjData:
                 if any(abs(i) >= 2**31 for i in idx):
                     raise DynaCapFormatError(p, line_no, f"face index out of range in corner '{c[:30]}'")
                 corners.append(idx)
-            # OBJ indices are 1-based; negative ones count back from the current end.
-            def resolve(i: int, n: int) -> int:
-                return i - 1 if i > 0 else (n + i if i < 0 else -1)
-            faces.append(tuple(resolve(c[0], len(verts)) for c in corners))
-            fuv.append(tuple(resolve(c[1], len(uvs)) for c in corners))
-            fvn.append(tuple(resolve(c[2], len(normals)) for c in corners))
+            # OBJ indices are 1-based; negative ones count back from the current end; 0 = absent (-1 here).
+            def resolve(i: int, n: int, what: str) -> int:
+                if i > 0:
+                    return i - 1
+                if i < 0 and n + i < 0:
+                    raise DynaCapFormatError(p, line_no, f"relative {what} index {i} counts back past the first of "
+                                                         f"the {n} {what} lines so far")
+                return n + i if i < 0 else -1
+            faces.append(tuple(resolve(c[0], len(verts), "v") for c in corners))
+            fuv.append(tuple(resolve(c[1], len(uvs), "vt") for c in corners))
+            fvn.append(tuple(resolve(c[2], len(normals), "vn") for c in corners))
             face_lines.append(line_no)
         elif key == "mtllib":
             mtllib = " ".join(rest)
@@ -148,6 +153,10 @@ def read_obj(path: str | os.PathLike) -> ObjData:
         bad = np.nonzero((ft >= len(uvs)).any(1))[0]
         if len(bad):
             raise DynaCapFormatError(p, face_lines[bad[0]], f"face uv index out of range 1..{len(uvs)}")
+        bad = np.nonzero((ft < 0).any(1))[0]
+        if len(bad):  # a template's atlas needs every corner's uv: a partial one must not pass as complete
+            raise DynaCapFormatError(p, face_lines[bad[0]], f"face without a uv index in a file with {len(uvs)} "
+                                                            "'vt' lines (expected 'f v/vt ...' on every face)")
     fn = np.asarray(fvn, dtype=np.int64)
     if normals:
         bad = np.nonzero((fn >= len(normals)).any(1))[0]

@@ -142,7 +142,7 @@ def _save_npy_dict(path: Path, data: dict) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = temp_path(path)
     with open(tmp, "wb") as fh:
-        np.save(fh, np.array(data, dtype=object), allow_pickle=True)
+        np.save(fh, np.array(data, dtype=object))  # ZJU's layout is a pickled dict; writing one is safe (np.save pickles object arrays)
     durable_replace(tmp, path)
 
 

@@ -317,3 +317,36 @@ def test_extrinsic_must_be_a_rotation(tmp_path, R, what):
     p = tmp_path / f"{what}.calibration"
     p.write_text(text + f"extrinsic   {R} 3000 0 0 0 1\n")
     _expect_error(read_calibration, p, 2, r"R must be a rotation")
+
+
+_SKIN = "Skeletool character skinning file V1.0\nbones:\n a b\nvertex weights:\n0 0 1.0\n1 0 0.5 1 0.5\n{row2}\n"
+
+
+@pytest.mark.parametrize("row2, match", [
+    ("2 0 0.0 1 0.0", "sum to 1 .*got 0"),
+    ("2 0 -0.5 1 1.5", "weight >= 0, got -0.5"),
+    ("2 0 2.5 1 2.5", "sum to 1 .*got 5"),
+])
+def test_skin_weights_must_be_a_partition_of_one(tmp_path, row2, match):
+    p = tmp_path / "bad.skin"
+    p.write_text(_SKIN.format(row2=row2))
+    _expect_error(dc.read_skin, p, 7, match)
+    p.write_text(_SKIN.format(row2="2 0 0.25 1 0.7505"))  # rounding within 1e-3 is accepted
+    assert dc.read_skin(p).weights[2].sum() == pytest.approx(1.0005)
+
+
+_OBJ = "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 0 1\n{face}\n"
+
+
+@pytest.mark.parametrize("face, line, match", [
+    ("f 1/-1 2/-2 3/-4", 7, r"relative vt index -4 counts back past the first of the 3"),
+    ("f -1/1 -2/2 -5/3", 7, r"relative v index -5"),
+    ("f 1/1 2 3/3", 7, "face without a uv index in a file with 3 'vt' lines"),
+])
+def test_obj_relative_and_missing_uv_indices(tmp_path, face, line, match):
+    p = tmp_path / "bad.obj"
+    p.write_text(_OBJ.format(face=face))
+    _expect_error(dc.read_obj, p, line, match)
+    p.write_text(_OBJ.format(face="f -3/-3 -2/-2 -1/-1"))  # relative indices resolve to the last three
+    obj = dc.read_obj(p)
+    assert obj.faces.tolist() == [[0, 1, 2]] and obj.face_uvs.tolist() == [[0, 1, 2]]
