@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset, Sampler
 
-from deliffas.data.shards import ShardSet
+from deliffas.data.shards import ShardReadError, ShardSet
 
 __all__ = ["ShardDataset", "FrameItem", "RandomCameraSampler", "protocol_frames", "PAPER_FRAME_STEP", "SPLITS"]
 
@@ -160,6 +160,13 @@ class ShardDataset(Dataset):
         pos, cams = self._resolve(index)
         frame = self.frames[pos]
         shard, row = self.shards.locate(self.sequence, frame)
+        try:
+            return self._read(shard, row, frame, cams)
+        except (OSError, KeyError, ValueError, IndexError, TypeError) as err:  # h5py's errors on damaged files
+            raise ShardReadError(f"{shard.path}: cannot read frame {frame} ({type(err).__name__}: "
+                                 f"{str(err)[:160]}); run `deliffas verify {self.shards.out_dir}`") from err
+
+    def _read(self, shard, row: int, frame: int, cams: list[int]) -> FrameItem:
         col_of = {int(c): j for j, c in enumerate(shard.camera_ids)}
         rgba = torch.from_numpy(shard.rgba_many(row, [col_of[c] for c in cams]))  # (K, H, W, 4) uint8
         T = self.temporal_window

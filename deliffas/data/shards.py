@@ -27,8 +27,10 @@ import numpy as np
 
 from deliffas.io.files import durable_replace, sha256_file, temp_path
 from deliffas.data.shard_meta import SCHEMA_VERSION, ShardMeta, read_meta
+from deliffas.data.shard_schema import SHARD_FORMAT, inside, shard_problems
 
 __all__ = [
+    "ShardReadError",
     "SCHEMA_VERSION",
     "MANIFEST_NAME",
     "META_NAME",
@@ -48,7 +50,6 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-SHARD_FORMAT = "deliffas-shard"
 MANIFEST_FORMAT = "deliffas-shards"
 MANIFEST_NAME = "manifest.json"
 META_NAME = "meta.h5"
@@ -63,6 +64,10 @@ NORMAL_MAP_COMPRESSION = None
 KiB per float16 map at S = 256) but cost 1.4 ms to decode per map against 0.04 ms, and a training
 item reads 2 (T + 1) maps, which made decoding them the largest part of loading an item
 (docs/shards.md). Shards written with gzip maps are read as before."""
+
+class ShardReadError(ValueError):
+    """A shard that cannot be read as its schema says (corrupt, truncated or of another layout)."""
+
 
 # --------------------------------------------------------------------------------------------- codec
 @dataclass(frozen=True)
@@ -391,6 +396,12 @@ class ShardSet:
     def refresh(self) -> None:
         """Re-read the manifest (new complete shards become visible)."""
         m = read_manifest(self.out_dir)
+        structure = _manifest_structure_problems(m)
+        if structure:
+            raise ValueError(f"{self.out_dir / MANIFEST_NAME}: {structure[0]}")
+        outside = [s["name"] for s in [m["meta"]] + m["shards"] if not inside(self.out_dir, s["name"])]
+        if outside:
+            raise ValueError(f"{self.out_dir / MANIFEST_NAME}: names a file outside the output folder: {outside[0]!r}")
         self.manifest = m
         self.complete = bool(m.get("complete", False))
         self.shards = [ShardInfo(s["name"], self.out_dir / s["name"], s["sequence"], tuple(s["frames"]),
@@ -440,10 +451,14 @@ class ShardSet:
 def verify_shards(out_dir: str | os.PathLike, deep: bool = True) -> list[str]:
     """Check an output folder against its manifest; returns one message per problem (empty = all good).
 
-    Checks: manifest readable; ``meta.h5`` and every listed shard present, of the recorded size and
-    sha256, and readable as HDF5 (``deep``: every dataset read once); every planned shard listed as
-    complete (otherwise the conversion is unfinished).
+    Checks: manifest readable and of the documented structure; every name inside the output folder;
+    ``meta.h5`` and every listed shard present, of the recorded size and sha256; every shard of the
+    schema of docs/shards.md (datasets, shapes, dtypes, frames equal to the manifest's, index ranges:
+    :func:`deliffas.data.shard_schema.shard_problems`); ``deep``: every dataset read once; every
+    planned shard listed as complete (otherwise the conversion is unfinished).
     """
+    import h5py
+
     out = Path(out_dir)
     try:
         m = read_manifest(out)
@@ -451,9 +466,16 @@ def verify_shards(out_dir: str | os.PathLike, deep: bool = True) -> list[str]:
         return [f"{out / MANIFEST_NAME}: missing (no conversion here, or it never started)"]
     except ValueError as err:
         return [str(err)]
+    structure = _manifest_structure_problems(m)
+    if structure:
+        return [f"{MANIFEST_NAME}: {p}" for p in structure]
     problems: list[str] = []
-    entries = [dict(m["meta"], kind="meta")] + [dict(s, kind="shard") for s in m.get("shards", [])]
+    meta = None
+    entries = [dict(m["meta"], kind="meta")] + [dict(s, kind="shard") for s in m["shards"]]
     for e in entries:
+        if not inside(out, e["name"]):
+            problems.append(f"{e['name']}: outside the output folder; refused")
+            continue
         p = out / e["name"]
         if not p.is_file():
             problems.append(f"{e['name']}: missing {e['kind']} file")
@@ -464,23 +486,43 @@ def verify_shards(out_dir: str | os.PathLike, deep: bool = True) -> list[str]:
             problems.append(f"{e['name']}: checksum mismatch (sha256 {sha[:12]}…, {size} bytes; manifest "
                             f"{e['sha256'][:12]}…, {e['bytes']} bytes)")
         try:
-            if e["kind"] == "shard":
+            if e["kind"] == "meta":
+                meta = read_meta(p)
+                continue
+            with h5py.File(p, "r") as f:
+                problems += [f"{e['name']}: {q}" for q in shard_problems(f, e["frames"], meta)]
+            if deep:
                 reader = ShardFile(p)
                 try:
-                    if deep:
-                        reader.check()
-                    else:
-                        reader.frames
+                    reader.check()
                 finally:
                     reader.close()
-            else:
-                read_meta(p)
         except Exception as err:  # any HDF5/IO failure is "unreadable"
             problems.append(f"{e['name']}: unreadable ({type(err).__name__}: {str(err)[:120]})")
-    done = {s["name"] for s in m.get("shards", [])}
+    done = {s["name"] for s in m["shards"]}
     missing = [s["name"] for s in m.get("planned", []) if s["name"] not in done]
     for name in missing:
         problems.append(f"{name}: planned but not converted (conversion incomplete; rerun with --resume)")
     if not missing and not m.get("complete", False):
         problems.append(f"{MANIFEST_NAME}: not marked complete")
+    return problems
+
+
+def _manifest_structure_problems(m: dict) -> list[str]:
+    """What a manifest lacks of its documented structure (docs/shards.md, manifest.json)."""
+    problems = []
+    meta = m.get("meta")
+    if not isinstance(meta, dict) or not {"name", "sha256", "bytes"} <= set(meta):
+        problems.append("'meta' must be an object with name, sha256 and bytes")
+    shards = m.get("shards")
+    if not isinstance(shards, list):
+        return problems + ["'shards' must be a list"]
+    for i, s in enumerate(shards):
+        if not isinstance(s, dict) or not {"name", "sequence", "frames", "sha256", "bytes"} <= set(s):
+            problems.append(f"shards[{i}] must be an object with name, sequence, frames, sha256 and bytes")
+        elif not isinstance(s["frames"], list) or not all(isinstance(x, int) for x in s["frames"]):
+            problems.append(f"shards[{i}].frames must be a list of frame numbers")
+    planned = m.get("planned", [])
+    if not isinstance(planned, list) or not all(isinstance(s, dict) and "name" in s for s in planned):
+        problems.append("'planned' must be a list of objects with a name")
     return problems

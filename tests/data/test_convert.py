@@ -264,3 +264,64 @@ def test_mask_folder_replaces_alpha(subject, tmp_path):
         rgb, mask = shard.image(row, 3)
         assert np.array_equal(mask, np.roll(pattern, 5, axis=1))
         assert np.array_equal(rgb, ImageFolderSource(subject / "training").read(2, 3)[0])
+
+
+def _edit_shard(out, name, edit):
+    """Apply ``edit(h5py.File)`` to a shard and record its new checksum, so only the schema is wrong."""
+    import h5py
+
+    from deliffas.io.files import sha256_file
+
+    p = out / name
+    with h5py.File(p, "r+") as f:
+        edit(f)
+    m = read_manifest(out)
+    for s in m["shards"]:
+        if s["name"] == name:
+            s["sha256"], s["bytes"] = sha256_file(p), p.stat().st_size
+    write_manifest(out, m)
+
+
+def _replace(f, key, data):
+    del f[key]
+    f.create_dataset(key, data=data)
+
+
+@pytest.mark.parametrize("edit, match", [
+    (lambda f: f["geometry"].__delitem__("outer_verts"), "dataset 'outer_verts' missing"),
+    (lambda f: _replace(f, "geometry/inner_verts", f["geometry/inner_verts"][()][:, :5]), "'geometry/inner_verts' has shape"),
+    (lambda f: _replace(f, "rgba", f["rgba"][()].astype(np.float32)), "'rgba' has dtype float32, expected uint8"),
+    (lambda f: _replace(f, "window_rows", f["window_rows"][()] + 50), "'window_rows' points outside"),
+    (lambda f: _replace(f, "frames", f["frames"][()] + 1), "differ from the manifest"),
+])
+def test_verify_checks_the_shard_schema(converted_copy, edit, match):
+    _edit_shard(converted_copy, "shards/training-00000.h5", edit)
+    problems = verify_shards(converted_copy)
+    assert any(p.startswith("shards/training-00000.h5: ") and match in p for p in problems), problems
+    assert not any("checksum" in p for p in problems)
+
+
+def test_verify_refuses_names_outside_and_broken_manifests(converted_copy, capsys):
+    import json
+
+    out = converted_copy
+    m = read_manifest(out)
+    m["shards"][0]["name"] = "../../etc/passwd"
+    write_manifest(out, m)
+    assert any("outside the output folder; refused" in p for p in verify_shards(out))
+    with pytest.raises(ValueError, match="outside the output folder"):
+        ShardSet(out)
+    m["shards"] = {"not": "a list"}
+    (out / "manifest.json").write_text(json.dumps(m))
+    assert cli_main(["verify", str(out)]) == 1
+    assert "'shards' must be a list" in capsys.readouterr().err
+
+
+def test_dataset_names_a_corrupt_shard(converted_copy):
+    from deliffas.data.dataset import ShardDataset
+    from deliffas.data.shards import ShardReadError
+
+    _edit_shard(converted_copy, "shards/training-00000.h5", lambda f: f["geometry"].__delitem__("normal_maps_inner"))
+    ds = ShardDataset(converted_copy, split="train", temporal_window=2, protocol="all")
+    with pytest.raises(ShardReadError, match=r"training-00000\.h5: cannot read frame"):
+        ds[0]
