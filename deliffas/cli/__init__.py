@@ -103,6 +103,8 @@ def _add_data_commands(sub) -> None:
     p.add_argument("--videos", action="store_true", help="also write FFV1 videos img/c_<cam>.avi + fg/c_<cam>.avi")
     p.add_argument("--supersample", type=_positive_int, default=1, help="s x s rays per pixel (default 1)")
     p.add_argument("--jobs", type=_positive_int, default=1, help="rendering processes (default 1)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an earlier synthetic capture in OUT_DIR (a non-empty folder is refused otherwise)")
     p.set_defaults(handler="synth")
 
     p = sub.add_parser("convert", help="convert a capture into sharded HDF5",
@@ -119,7 +121,8 @@ def _add_data_commands(sub) -> None:
     p.add_argument("--shard-frames", type=_positive_int, default=10, help="frames per shard (default 10)")
     p.add_argument("--jobs", type=_positive_int, default=1, help="worker processes (default 1)")
     p.add_argument("--resume", action="store_true", help="keep complete shards of an interrupted run")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing conversion in OUT")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing conversion in OUT (or convert into a non-empty folder that holds none)")
     p.add_argument("--meshes", action="append", metavar="[SEQ=]FILE",
                    help="tracked .meshes instead of the skinned template (SEQ default training; repeatable)")
     p.add_argument("--template", type=Path, help="template variant folder (its .character + outer.obj), a "
@@ -182,6 +185,7 @@ def _add_geometry_commands(sub) -> None:
     q.add_argument("--faces", type=int, default=8000, help="template face budget (default 8000)")
     q.add_argument("--name", default="procedural", help="file stem (default procedural)")
     q.add_argument("--texture-size", type=int, default=1024, help="texture atlas side in texels (default 1024)")
+    q.add_argument("--overwrite", action="store_true", help="replace an earlier procedural character in OUT_DIR")
     q.set_defaults(handler="character_procedural")
 
     p = sub.add_parser("template", help="write template variants (original/smooth/coarse) with outer shells",
@@ -196,6 +200,7 @@ def _add_geometry_commands(sub) -> None:
     p.add_argument("--safe", action="store_true", help="limit d per vertex where the shell would cross another part")
     p.add_argument("--atlas-res", type=int, default=512, metavar="R",
                    help="xatlas packing resolution of new atlases and texel grid of the report (default 512)")
+    p.add_argument("--overwrite", action="store_true", help="replace an earlier 'deliffas template' output in --out")
     p.set_defaults(handler="template")
 
 
@@ -283,6 +288,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="SMPL: OBJ with the model's uv layout (default MODEL_uv.obj next to it, else none needed)")
     p.add_argument("--out", type=_path_with_suffix(".ply", ".obj"), required=True,
                    help="output mesh, .ply or .obj (.obj keeps the uvs)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     p.set_defaults(handler="pose")
     _add_data_commands(sub)
     _add_geometry_commands(sub)

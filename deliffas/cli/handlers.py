@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 from deliffas.io.camera_formats import read_cameras, write_cameras
+from deliffas.io.files import claim_output_file
 from deliffas.io.dynacap import read_character
 from deliffas.geometry.templates import spec_from_file
 from deliffas.geometry.procedural import make_procedural_character
@@ -31,6 +32,7 @@ from deliffas.engine.train import TrainConfig, train
 
 
 def cmd_pose(args: argparse.Namespace) -> int:
+    claim_output_file(args.out, args.overwrite)
     spec = spec_from_file(args.template, args.skinning, uv_obj=args.uv)
     verts, template = pose_frames(spec, args.motion, [args.frame], args.skinning)
     write_posed_mesh(args.out, verts[0], template)
@@ -47,7 +49,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
                       body_uv=str(args.body_uv) if args.body_uv else None,
                       motion=str(args.motion) if args.motion else None,
                       test_motion=str(args.test_motion) if args.test_motion else None, videos=args.videos, jobs=args.jobs,
-                      supersample=args.supersample)
+                      supersample=args.supersample, overwrite=args.overwrite)
     res = synthesize_capture(args.out_dir, cfg)
     n = sum(len(f) for f in res.frames.values())
     print(f"wrote {res.out_dir}: {len(res.cameras)} cameras (test {res.test_cameras}), "
@@ -106,7 +108,7 @@ def cmd_cameras(args: argparse.Namespace) -> int:
 
 def cmd_character_procedural(args: argparse.Namespace) -> int:
     path = make_procedural_character(args.out_dir, seed=args.seed, target_faces=args.faces, name=args.name,
-                                     texture_size=args.texture_size)
+                                     texture_size=args.texture_size, overwrite=args.overwrite)
     c = read_character(path)
     print(f"wrote {path}: {c.mesh.num_verts} vertices, {c.mesh.num_faces} faces, {c.skeleton.num_dofs} DOFs, "
           f"{c.graph.num_verts if c.graph is not None else 0} graph nodes, height {c.mesh.verts[:, 1].max():.0f} mm")
@@ -115,7 +117,7 @@ def cmd_character_procedural(args: argparse.Namespace) -> int:
 
 def cmd_template(args: argparse.Namespace) -> int:
     report = build_templates(args.character, args.out, smooth_iters=args.smooth, coarse_faces=args.coarse,
-                             offset_mm=args.offset, safe=args.safe, atlas_res=args.atlas_res)
+                             offset_mm=args.offset, safe=args.safe, atlas_res=args.atlas_res, overwrite=args.overwrite)
     for name, v in report["variants"].items():
         sh = v["shell"]
         print(f"{name:>8}: {v['num_verts']} vertices, {v['num_faces']} faces, watertight {v['watertight']}, "

@@ -258,6 +258,8 @@ def convert(subject: Subject | str | os.PathLike, out_dir: str | os.PathLike,
     if config.shard_frames < 1 or config.window < 0 or config.atlas_res < 4:
         raise ValueError("shard_frames >= 1, window >= 0 and atlas_res >= 4 are required")
     Codec.parse(config.codec)
+    if not (out / MANIFEST_NAME).is_file() and out.is_dir() and any(out.iterdir()) and not config.overwrite:
+        raise FileExistsError(f"{out}: not empty and holds no conversion; pass --overwrite to convert into it")
     if not isinstance(subject, Subject):
         root = Path(subject).resolve()
         if out == root or root in out.parents:

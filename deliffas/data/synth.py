@@ -29,6 +29,7 @@ import numpy as np
 from deliffas.io.cameras import Camera, look_at
 from deliffas.io.meshes import MeshSequence, write_meshes
 from deliffas.io.calibration import write_calibration
+from deliffas.io.files import claim_output
 from deliffas.io.frames import ImageFolderSource, VideoWriterSet, write_image
 from deliffas.io.text_lines import write_text_atomic
 from deliffas.geometry.mesh_ops import vertex_normals
@@ -104,6 +105,8 @@ class SynthConfig:
     """Hemisphere rays per vertex of the ambient-occlusion proxy."""
     shading: ShadingConfig = field(default_factory=ShadingConfig)
     """Light and material."""
+    overwrite: bool = False
+    """Replace an existing synthetic capture in ``out_dir`` (a non-empty folder is refused otherwise)."""
 
 
 @dataclass(frozen=True)
@@ -208,8 +211,7 @@ def synthesize_capture(out_dir: str | os.PathLike, config: SynthConfig = SynthCo
 
     if config.num_frames < 1 or config.num_cameras < 2:
         raise ValueError(f"synth needs >= 1 frame and >= 2 cameras, got {config.num_frames} and {config.num_cameras}")
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = claim_output(out_dir, config.overwrite, "synth.json", "a synthetic capture")
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
     body = make_synth_body(out, config.seed, config.character, config.body_model, config.body_uv, config.skinning)
@@ -303,7 +305,7 @@ def synthesize_capture(out_dir: str | os.PathLike, config: SynthConfig = SynthCo
                                 "spread_mm": [round(float(x), 3) for x in g.spread_mm],
                                 "speed_mm_s": [round(float(x), 3) for x in g.speed_mm_s]}
                           for seq, g in garment.items()}}
-    write_text_atomic(out / "synth.json", json.dumps(record, indent=2) + "\n")
+    write_text_atomic(out / "synth.json", json.dumps(record, indent=2) + "\n")  # last: marks a finished capture
     seconds["total"] = time.perf_counter() - t0
     log.info("synth %s: %s", out, {k: round(v, 2) for k, v in seconds.items()})
     return SynthResult(out, body.path, calib, cameras, train_cams, test_cams, frames, seconds)

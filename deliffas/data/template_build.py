@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from deliffas.io.files import claim_output
+from deliffas.io.text_lines import write_text_atomic
 from deliffas.io.dynacap import Character, ObjData, read_character, write_obj
 from deliffas.geometry.atlas import UVAtlas, uv_texel_table
 from deliffas.geometry.shell import ShellConfig, offset_shell, shell_offsets, shell_report
@@ -63,7 +65,7 @@ def _ensure_uvs(character: Character, atlas_res: int) -> tuple[Character, str]:
 
 def build_templates(character_path: str | os.PathLike, out_dir: str | os.PathLike, smooth_iters: int | None = None,
                     coarse_faces: int | None = None, offset_mm: float = 30.0, safe: bool = False,
-                    atlas_res: int = 512) -> dict:
+                    atlas_res: int = 512, overwrite: bool = False) -> dict:
     """Write the template variants of a character with their outer shells and a report.
 
     Args:
@@ -74,6 +76,7 @@ def build_templates(character_path: str | os.PathLike, out_dir: str | os.PathLik
         offset_mm: nominal outer-shell offset d (DELIFFAS: 30 mm).
         safe: limit d per vertex where the shell would cross another body part (``safe_offsets``).
         atlas_res: xatlas packing resolution for new atlases and the texel grid of the atlas statistics.
+        overwrite: replace an earlier ``build_templates`` output in ``out_dir`` (else a non-empty folder is refused).
 
     Returns:
         The report (also written as ``report.json``): ``{"character", "offset_mm", "safe", "variants":
@@ -86,8 +89,7 @@ def build_templates(character_path: str | os.PathLike, out_dir: str | os.PathLik
         raise ValueError(f"coarse_faces: expected >= 4, got {coarse_faces}")
     if offset_mm <= 0:
         raise ValueError(f"offset_mm: expected > 0, got {offset_mm}")
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = claim_output(out_dir, overwrite, "report.json", "template variants")
     original, uv_source = _ensure_uvs(read_character(character_path), atlas_res)
     jobs = [("original", lambda: original)]
     if smooth_iters is not None:
@@ -120,5 +122,5 @@ def build_templates(character_path: str | os.PathLike, out_dir: str | os.PathLik
         }
         log.info("template %s: %d verts, %d faces, watertight %s, shell self-intersections %d", name,
                  mesh.num_verts, mesh.num_faces, shell.watertight, shell.num_self_intersecting_faces)
-    (out / "report.json").write_text(json.dumps(report, indent=2) + "\n")
+    write_text_atomic(out / "report.json", json.dumps(report, indent=2) + "\n")  # last: marks a finished build
     return report

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from deliffas.io.dynacap import Character, CharacterFiles, ObjData, Skin, write_character
+from deliffas.io.files import claim_output
 from deliffas.io.skeleton import Dof, Joint, Skeleton
 from deliffas.geometry.variants import decimate_mesh, remesh_isotropic, sparsify_weights
 from deliffas.geometry.atlas import UVAtlas, uv_texel_table
@@ -481,14 +482,16 @@ def procedural_character(seed: int = 0, target_faces: int = 8000, name: str = "p
 
 
 def make_procedural_character(out_dir: str | os.PathLike, seed: int = 0, target_faces: int = 8000,
-                              name: str = "procedural", texture_size: int = 1024) -> Path:
+                              name: str = "procedural", texture_size: int = 1024, overwrite: bool = False) -> Path:
     """Build the procedural character and write it as a DynaCap character folder.
 
     Writes ``<name>.character/.skeleton/.obj/.obj.mtl/.png/.skin/.motion``, ``segmentation.txt``,
-    ``hand_segmentation.txt`` and ``<name>_graph.obj`` into ``out_dir``.
+    ``hand_segmentation.txt`` and ``<name>_graph.obj`` into ``out_dir`` (a non-empty ``out_dir`` is
+    refused unless ``overwrite`` and it holds an earlier ``<name>.character``).
 
     Returns:
         Path of the ``.character`` file.
     """
+    out = claim_output(out_dir, overwrite, f"{name}.character", "a procedural character")
     c = procedural_character(seed, target_faces, name, texture_size)
-    return write_character(out_dir, c, name, texture_png=c.extra["texture_png"])
+    return write_character(out, c, name, texture_png=c.extra["texture_png"])

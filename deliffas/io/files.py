@@ -9,9 +9,10 @@ from __future__ import annotations
 
 import hashlib
 import os
+import shutil
 from pathlib import Path
 
-__all__ = ["sha256_file", "temp_path", "durable_replace", "TMP_MARK"]
+__all__ = ["sha256_file", "temp_path", "durable_replace", "claim_output", "claim_output_file", "TMP_MARK"]
 
 TMP_MARK = ".tmp-"
 """Part of every temporary file name (``.<name>.tmp-<pid>``)."""
@@ -45,3 +46,38 @@ def durable_replace(tmp: str | os.PathLike, final: str | os.PathLike) -> None:
     finally:
         os.close(fd)
     os.replace(tmp, final)
+
+
+def claim_output(path: str | os.PathLike, overwrite: bool, marker: str, what: str) -> Path:
+    """Make ``path`` ready to be written as a folder by a command, never replacing a user's work unasked.
+
+    A missing or empty folder is created. A non-empty one is refused unless ``overwrite``; with it, it is
+    removed first only when it holds ``marker`` (the file the command writes last, so the folder is
+    recognisably its own output), and refused otherwise: deliffas never deletes a folder it did not write.
+
+    Raises:
+        FileExistsError: naming the folder and what to do.
+    """
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise FileExistsError(f"{p}: exists and is not a folder")
+    if p.is_dir() and any(p.iterdir()):
+        if not overwrite:
+            raise FileExistsError(f"{p}: not empty; pass --overwrite to replace {what} there")
+        if not (p / marker).is_file():
+            raise FileExistsError(f"{p}: not empty and not {what} (no {marker}); deliffas only replaces its own "
+                                  "output: remove or empty the folder yourself")
+        shutil.rmtree(p)
+    p.mkdir(parents=True, exist_ok=True)
+    return p
+
+
+def claim_output_file(path: str | os.PathLike, overwrite: bool) -> Path:
+    """Refuse to replace an existing file unless ``overwrite`` (the write itself stays atomic)."""
+    p = Path(path)
+    if p.exists() and not overwrite:
+        raise FileExistsError(f"{p}: exists; pass --overwrite to replace it")
+    if p.is_dir():
+        raise FileExistsError(f"{p}: is a folder, expected a file name")
+    p.parent.mkdir(parents=True, exist_ok=True)
+    return p
