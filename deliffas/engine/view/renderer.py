@@ -28,7 +28,7 @@ from deliffas.io.cameras import Camera
 from deliffas.models.deliffas import FrameFeatures
 
 __all__ = ["VIEW_MODES", "ViewRequest", "ViewResult", "ViewRenderer", "RenderWorker", "fit_camera", "heat_map",
-           "scaled_request"]
+           "scaled_request", "panel_grid", "compose_panels"]
 
 logger = logging.getLogger(__name__)
 
@@ -72,7 +72,7 @@ class ViewResult:
 
     Attributes:
         request: what was asked.
-        image: (H, W, 3) uint8 RGB, the panels letterboxed to the canvas aspect on black.
+        image: (H, W, 3) uint8 RGB, the panels on a grid (``panel_grid``) letterboxed to the canvas aspect on black.
         panels: the panels' titles, left to right.
         stage_ms: milliseconds per stage (uv, cnn, sample, mlp; cnn 0 when the frame's features were cached).
         wall_ms: wall time of the whole request.
@@ -102,19 +102,34 @@ def heat_map(error: np.ndarray, vmax: float = 0.25) -> np.ndarray:
     return np.stack([np.clip(3 * x, 0, 1), np.clip(3 * x - 1, 0, 1), np.clip(3 * x - 2, 0, 1)], -1).astype(np.float32)
 
 
-def _letterbox(image: np.ndarray, canvas: tuple[int, int] | None) -> np.ndarray:
-    """``image`` (H, W, 3) centred on black padding with the aspect of ``canvas`` (W, H)."""
+def panel_grid(n: int, panel: tuple[int, int], canvas: tuple[int, int] | None) -> tuple[int, int]:
+    """(columns, rows) of ``n`` panels of size ``panel`` (W, H) that show them largest on ``canvas`` (W, H)."""
     if canvas is None:
-        return image
-    h, w = image.shape[:2]
+        return n, 1
+    pw, ph = panel
+    cols = max(range(1, n + 1), key=lambda c: (min(canvas[0] / (c * pw), canvas[1] / (-(-n // c) * ph)), -c))
+    return cols, -(-n // cols)
+
+
+def compose_panels(panels: list[np.ndarray], canvas: tuple[int, int] | None) -> np.ndarray:
+    """Equal-size (H, W, 3) panels on a grid (``panel_grid``), centred on black with the aspect of ``canvas``."""
+    h, w = panels[0].shape[:2]
+    cols, rows = panel_grid(len(panels), (w, h), canvas)
+    grid = np.zeros((rows * h, cols * w, 3), panels[0].dtype)
+    for i, p in enumerate(panels):
+        r, c = divmod(i, cols)
+        grid[r * h:(r + 1) * h, c * w:(c + 1) * w] = p
+    if canvas is None:
+        return grid
+    gh, gw = grid.shape[:2]
     cw, ch = canvas
-    if w * ch >= h * cw:  # wider than the canvas: pad rows
-        out_w, out_h = w, max(h, round(w * ch / cw))
+    if gw * ch >= gh * cw:  # wider than the canvas: pad rows
+        out_w, out_h = gw, max(gh, round(gw * ch / cw))
     else:
-        out_w, out_h = max(w, round(h * cw / ch)), h
-    out = np.zeros((out_h, out_w, 3), image.dtype)
-    y0, x0 = (out_h - h) // 2, (out_w - w) // 2
-    out[y0:y0 + h, x0:x0 + w] = image
+        out_w, out_h = max(gw, round(gh * cw / ch)), gh
+    out = np.zeros((out_h, out_w, 3), grid.dtype)
+    y0, x0 = (out_h - gh) // 2, (out_w - gw) // 2
+    out[y0:y0 + gh, x0:x0 + gw] = grid
     return out
 
 
@@ -151,8 +166,9 @@ class ViewRenderer:
             gt = self.scene.ground_truth(frame.index, request.capture_camera)
         n_panels = len(request.runs) + (2 if gt is not None else 0)
         cam = request.camera
-        if request.canvas is not None:  # the panels side by side fill the canvas, never above the request's size
-            cam = fit_camera(cam, min(cam.width, request.canvas[0] // n_panels), min(cam.height, request.canvas[1]))
+        if request.canvas is not None:  # the panels' grid fills the canvas, never above the request's size
+            cols, rows = panel_grid(n_panels, (cam.width, cam.height), request.canvas)
+            cam = fit_camera(cam, min(cam.width, request.canvas[0] // cols), min(cam.height, request.canvas[1] // rows))
         panels, titles = [], []
         for run in request.runs:
             panels.append(self._paint(run, frame, cam, request.mode, timer))
@@ -164,8 +180,7 @@ class ViewRenderer:
             image = cv2.resize(image, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
             panels += [image, heat_map(np.abs(panels[0] - image).mean(-1))]
             titles += ["ground truth", "|error| (0..0.25)"]
-        strip = np.concatenate(panels, axis=1)
-        image = (np.clip(_letterbox(strip, request.canvas), 0, 1) * 255 + 0.5).astype(np.uint8)
+        image = (np.clip(compose_panels(panels, request.canvas), 0, 1) * 255 + 0.5).astype(np.uint8)
         stage_ms = {s: timer.total_ms.get(s, 0.0) for s in STAGES}
         return ViewResult(request, image, tuple(titles), stage_ms, (time.perf_counter() - t0) * 1000,
                           (cam.width, cam.height))
