@@ -20,6 +20,7 @@ MODULES = [
     "benchmarks.bench_posing",
     "benchmarks.bench_data",
     "benchmarks.bench_engine",
+    "benchmarks.bench_view",
     "benchmarks.bench_uv",
     "benchmarks.bench_mlp",
     "benchmarks.bench_unet",

@@ -78,6 +78,26 @@ def _test_cameras(text: str) -> int | tuple[int, ...]:
         raise argparse.ArgumentTypeError(f"expected a count N or a list a,b,..., got {text!r}") from None
 
 
+def _port(text: str) -> int:
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a port number, got {text!r}") from None
+    if not 0 < port < 65536:
+        raise argparse.ArgumentTypeError(f"port must be in 1..65535, got {port}")
+    return port
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+    return value
+
+
 def _add_data_commands(sub) -> None:
     p = sub.add_parser("synth", help="render a synthetic DynaCap capture with a loose garment",
                        description="Write a synthetic subject folder in DynaCap layout (cameras, the body: a DDC "
@@ -261,6 +281,25 @@ def _add_engine_commands(sub) -> None:
     p.add_argument("--fps", type=float, default=25.0)
     p.add_argument("--device", default="cpu")
     p.set_defaults(handler="render")
+
+    p = sub.add_parser("view", help="interactive free-viewpoint viewer in the browser (viser)",
+                       description="Serve a browser viewer of a trained run: free camera (orbit, pan, zoom), "
+                                   "the capture's cameras as frustums and a menu, a motion timeline, RGB / uv / "
+                                   "normal / U-Net feature views, the inner and outer meshes, ground truth and "
+                                   "error at capture cameras, per-stage timing. Open the printed URL; over SSH "
+                                   "forward the port (ssh -L 8080:127.0.0.1:8080 HOST). No authentication.")
+    p.add_argument("run", type=Path, help="run directory written by 'deliffas train'")
+    p.add_argument("--compare", type=Path, default=None, help="a second run on the same shards, side by side")
+    p.add_argument("--motion", type=Path, default=None,
+                   help="driving motion: DynaCap .motion or SMPL .npz (default: the capture's own frames)")
+    p.add_argument("--shards", type=Path, default=None, help="shard directory (default: the run's)")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="interface to bind (default 127.0.0.1; 0.0.0.0 exposes the viewer and warns)")
+    p.add_argument("--port", type=_port, default=8080, help="port (default 8080)")
+    p.add_argument("--resolution", type=_positive_int, default=512,
+                   help="longest side of the still image in pixels (default 512; halved while moving)")
+    p.add_argument("--device", default="cpu", help="cpu | cuda | cuda:N")
+    p.set_defaults(handler="view")
 
     p = sub.add_parser("demo", help="the whole path on the embedded procedural character, with a report")
     p.add_argument("--out", type=Path, default=Path("demo_out"))

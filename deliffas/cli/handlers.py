@@ -29,6 +29,7 @@ from deliffas.engine.evaluate import EvalConfig, evaluate
 from deliffas.engine.memory import retain_freed_memory
 from deliffas.engine.render import RenderConfig, render_video
 from deliffas.engine.train import TrainConfig, train
+from deliffas.engine.view import ViewConfig, view
 
 
 def cmd_pose(args: argparse.Namespace) -> int:
@@ -203,4 +204,14 @@ def cmd_demo(args: argparse.Namespace) -> int:
     retain_freed_memory()
     report = run_demo(DemoConfig(out=str(args.out), quick=args.quick))
     print(f"demo report: {report}")
+    return 0
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    cfg = ViewConfig(run=str(args.run), compare=str(args.compare) if args.compare else None,
+                     motion=str(args.motion) if args.motion else None, shards=str(args.shards) if args.shards else None,
+                     host=args.host, port=args.port, device=args.device, max_resolution=args.resolution)
+    print(f"deliffas view: open http://{'127.0.0.1' if cfg.host in ('0.0.0.0', '::') else cfg.host}:{cfg.port} "
+          "(Ctrl+C stops)", flush=True)
+    view(cfg)
     return 0

@@ -24,12 +24,13 @@ from deliffas.engine.rays import camera_rays, paint_images, ray_query, stack_ray
 from deliffas.engine.samples import FrameSample, composite_target
 from deliffas.engine.timing import StageTimer
 from deliffas.geometry.raycast import UVRaycaster
-from deliffas.models.deliffas import DeliffasModel
+from deliffas.io.cameras import Camera
+from deliffas.models.deliffas import DeliffasModel, FrameFeatures
 from deliffas.models.metrics import Evaluator
 from deliffas.models.unet import optimize_for_inference
 from deliffas.models.zoo import load_checkpoint
 
-__all__ = ["EvalConfig", "evaluate", "render_frame", "load_run"]
+__all__ = ["EvalConfig", "evaluate", "render_frame", "render_camera", "load_run"]
 
 logger = logging.getLogger(__name__)
 
@@ -74,22 +75,26 @@ def render_frame(model: DeliffasModel, sample: FrameSample, raycaster, device: t
 
     ``sample.rays`` is ignored: the rays are cast here so the ``uv`` stage is timed.
     """
-    spec = model.spec
     with timer.stage("cnn"):
         features = model.encode(*sample.normal_maps(device))
-    images = []
-    for cam in sample.cameras:
-        with timer.stage("uv"):
-            batch = stack_rays([camera_rays(raycaster, cam)], [0]).to(device)
-            query = ray_query(batch, spec)
-        pred_parts = []
-        for part in query.chunks(chunk_size):
-            with timer.stage("sample"):
-                encoded, feats = model.gather_inputs(features, part)
-            with timer.stage("mlp"):
-                pred_parts.append(model.mlp(encoded, feats))
-        images.append(paint_images(torch.cat(pred_parts), batch, 1, cam.height, cam.width)[0])
-    return torch.stack(images)
+    return torch.stack([render_camera(model, features, raycaster, cam, device, timer, chunk_size)
+                        for cam in sample.cameras])
+
+
+@torch.no_grad()
+def render_camera(model: DeliffasModel, features: FrameFeatures, raycaster, camera: Camera, device: torch.device,
+                  timer: StageTimer, chunk_size: int = 262144) -> torch.Tensor:
+    """One camera's (H, W, 3) image on black from the frame's encoded ``features`` (stages uv, sample, mlp)."""
+    with timer.stage("uv"):
+        batch = stack_rays([camera_rays(raycaster, camera)], [0]).to(device)
+        query = ray_query(batch, model.spec)
+    pred_parts = []
+    for part in query.chunks(chunk_size):
+        with timer.stage("sample"):
+            encoded, feats = model.gather_inputs(features, part)
+        with timer.stage("mlp"):
+            pred_parts.append(model.mlp(encoded, feats))
+    return paint_images(torch.cat(pred_parts), batch, 1, camera.height, camera.width)[0]
 
 
 def evaluate(cfg: EvalConfig) -> dict:

@@ -21,7 +21,7 @@ from deliffas.engine.evaluate import load_run
 from deliffas.engine.rays import camera_rays, paint_images, ray_query, stack_rays
 from deliffas.geometry.raycast import UVRaycaster
 
-__all__ = ["RenderConfig", "render_video", "orbit_cameras", "render_images"]
+__all__ = ["RenderConfig", "render_video", "orbit_cameras", "render_images", "motion_geometry_builder"]
 
 logger = logging.getLogger(__name__)
 
@@ -77,6 +77,14 @@ def render_images(model, normal_windows, geometry, faces, atlas, cameras: list[C
         yield (image.clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
 
 
+def motion_geometry_builder(meta) -> tuple:
+    """The capture's template (float64) and the builder of its per-frame geometry (the shards' own
+    atlas, texel table and outer offsets), so posed frames match the converted ones."""
+    template = build_template(meta.template_spec(), dtype=torch.float64)
+    table = TexelTable(meta.texel_face.astype(np.int64), meta.texel_bary, meta.texel_valid, meta.texel_valid)
+    return template, FrameGeometryBuilder(meta.faces, meta.outer_offsets, table)
+
+
 def _default_motion(subject: Path, suffix: str) -> Path:
     for seq in ("testing", "training"):
         for p in sorted((subject / seq).glob(f"*{suffix}")):
@@ -97,14 +105,12 @@ def render_video(cfg: RenderConfig) -> Path:
         raise ValueError(f"{cfg.run}: train_config.json names no shards")
     meta = ShardSet(shards).meta
     spec = meta.template_spec()
-    template = build_template(spec, dtype=torch.float64)
+    template, builder = motion_geometry_builder(meta)
     motion_path = Path(cfg.motion) if cfg.motion else _default_motion(Path(meta.attrs["subject"]),
                                                                       MOTION_SUFFIXES[spec.kind])
     motion = read_pose_motion(motion_path, spec, template.num_dofs)
     n = min(motion.num_frames, cfg.frames or 300)
     inner = template.pose(torch.as_tensor(motion.dofs[:n], dtype=torch.float64)).numpy()
-    table = TexelTable(meta.texel_face.astype(np.int64), meta.texel_bary, meta.texel_valid, meta.texel_valid)
-    builder = FrameGeometryBuilder(meta.faces, meta.outer_offsets, table)
     geometry = builder.build(inner)
     T = model.config.temporal_window
     cams_all = meta.cameras()

@@ -1,0 +1,103 @@
+"""The viewer's frame rate at 512^2 (small preset) against the engine's renderer alone."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import torch
+
+from benchmarks._capture import bench_capture
+from benchmarks.bench_engine import _model, _sample
+from benchmarks.common import Result
+
+SIDE, VIEWS = 512, 8
+
+
+def _run_dir(model, shards) -> Path:
+    """A run directory holding ``model`` (untrained weights time the same) on ``shards``."""
+    from deliffas.models.zoo import save_checkpoint
+
+    run = Path(tempfile.mkdtemp(prefix="deliffas-bench-view-")) / "run"
+    save_checkpoint(run / "checkpoint", model)
+    (run / "train_config.json").write_text(json.dumps({"train": {"shards": str(shards)}}))
+    return run
+
+
+def _orbit(sample, info) -> list:
+    from deliffas.engine.render import orbit_cameras
+
+    centre = sample.inner_verts.mean(0)
+    ref = sample.cameras[0]
+    radius = float(((ref.center - centre)[[0, 2]] ** 2).sum() ** 0.5)
+    return orbit_cameras(ref, [centre] * VIEWS, radius, float(ref.center[1]), (SIDE, SIDE))
+
+
+def run() -> list[Result]:
+    import cv2
+
+    from deliffas.engine.evaluate import load_run, render_camera, render_frame
+    from deliffas.engine.timing import StageTimer
+    from deliffas.engine.view.renderer import RenderWorker, ViewRenderer, ViewRequest
+    from deliffas.engine.view.scene import ViewScene
+    from deliffas.geometry.raycast import UVRaycaster
+
+    _, shards, _ = bench_capture()
+    sample, info = _sample(shards, K=1)
+    run_dir = _run_dir(_model(info), shards)
+    model, _ = load_run(run_dir)
+    cams = _orbit(sample, info)
+    device = torch.device("cpu")
+    rc = UVRaycaster(sample.inner_verts, info["faces"], sample.outer_verts, info["atlas"])
+
+    def direct(with_cnn: bool) -> float:
+        features = model.encode(*sample.normal_maps(device))
+        t0 = time.perf_counter()
+        for cam in cams:
+            if with_cnn:
+                render_frame(model, dataclasses.replace(sample, cameras=[cam]), rc, device, StageTimer())
+            else:
+                render_camera(model, features, rc, cam, device, StageTimer())
+        return (time.perf_counter() - t0) / len(cams)
+
+    scene = ViewScene([str(run_dir)])
+    renderer = ViewRenderer(scene)
+    done = threading.Semaphore(0)
+
+    def encode(result) -> None:  # what the server does with each result before sending it
+        cv2.imencode(".png", result.image)
+        done.release()
+
+    worker = RenderWorker(renderer, encode)
+    frame = scene.frame_labels.index(sample.frame) if sample.frame in scene.frame_labels else 0
+
+    def viewer() -> float:
+        t0 = time.perf_counter()
+        for i, cam in enumerate(cams):
+            worker.submit(ViewRequest(cam, frame, "rgb", canvas=(SIDE, SIDE), serial=i))
+            done.acquire()
+        return (time.perf_counter() - t0) / len(cams)
+
+    try:
+        with torch.no_grad():
+            direct(True), viewer()  # warm-up: open3d, kernels, the frame's features
+            alone = min(direct(True) for _ in range(2))
+            cached = min(direct(False) for _ in range(2))
+            served = min(viewer() for _ in range(2))
+    finally:
+        worker.stop()
+    fps = 1.0 / served
+    return [
+        Result("view", f"viewer {SIDE}^2 small two_surface, camera orbit (frame fixed): fps", fps, "fps",
+               target=">= 10", passed=fps >= 10, note=f"{served * 1000:.1f} ms per image incl. PNG encoding"),
+        Result("view", f"viewer {SIDE}^2: time per image / render_frame alone", served / alone, "ratio",
+               baseline=f"render_frame {alone * 1000:.1f} ms (U-Net every call)", ratio=served / alone,
+               target="<= 1.2", passed=served / alone <= 1.2),
+        Result("view", f"viewer {SIDE}^2: time per image / render_camera, features cached", served / cached, "ratio",
+               baseline=f"render_camera {cached * 1000:.1f} ms", ratio=served / cached,
+               note="the viewer's own overhead: worker thread, panel composition, PNG encoding"),
+    ]

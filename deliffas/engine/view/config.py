@@ -1,0 +1,56 @@
+"""The settings of ``deliffas view``, checked once when built."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+__all__ = ["ViewConfig"]
+
+
+@dataclass(frozen=True)
+class ViewConfig:
+    """What the free-viewpoint viewer shows and where it listens."""
+
+    run: str
+    """Run directory written by ``deliffas train``."""
+    compare: str | None = None
+    """A second run on the same shards, shown side by side or toggled (e.g. single- vs two-surface)."""
+    motion: str | None = None
+    """Driving motion (DynaCap ``.motion`` or SMPL ``.npz``); None = the capture's own frames."""
+    shards: str | None = None
+    """Shard directory (default: the one the run was trained on)."""
+    host: str = "127.0.0.1"
+    """Interface to bind; anything but localhost exposes the viewer (no authentication)."""
+    port: int = 8080
+    device: str = "cpu"
+    max_resolution: int = 512
+    """Longest side, in pixels, of the image rendered while the camera is still."""
+    moving_scale: float = 0.5
+    """Resolution factor while the camera moves (full resolution once it stops)."""
+    still_after_s: float = 0.25
+    """The camera counts as still this long after its last move."""
+    jpeg_quality: int = 90
+    """Quality of the frames sent while moving (still frames are sent as PNG)."""
+    chunk_size: int = 262144
+    """Rays shaded at once (bounds peak memory)."""
+    max_frames: int = 300
+    """At most this many frames of ``motion`` on the timeline."""
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.port <= 65535:
+            raise ValueError(f"port must be in 0..65535, got {self.port}")
+        if self.max_resolution < 16:
+            raise ValueError(f"max_resolution must be >= 16 pixels, got {self.max_resolution}")
+        if not 0 < self.moving_scale <= 1:
+            raise ValueError(f"moving_scale must be in (0, 1], got {self.moving_scale}")
+        if self.still_after_s < 0:
+            raise ValueError(f"still_after_s must be >= 0, got {self.still_after_s}")
+        if not 1 <= self.jpeg_quality <= 100:
+            raise ValueError(f"jpeg_quality must be in 1..100, got {self.jpeg_quality}")
+        if self.chunk_size < 1 or self.max_frames < 1:
+            raise ValueError(f"chunk_size and max_frames must be >= 1, got {self.chunk_size}, {self.max_frames}")
+
+    @property
+    def exposed(self) -> bool:
+        """True when the viewer listens on more than the loopback interface."""
+        return self.host not in ("127.0.0.1", "localhost", "::1")

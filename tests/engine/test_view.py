@@ -1,0 +1,224 @@
+"""deliffas view: the GUI-free renderer core, its worker, the CLI, and the served page in headless Chromium."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from deliffas.engine.data_bridge import evaluation_samples
+from deliffas.engine.evaluate import load_run, render_frame
+from deliffas.engine.timing import StageTimer
+from deliffas.engine.train import TrainConfig, train
+from deliffas.engine.view import ViewConfig
+from deliffas.engine.view.renderer import (VIEW_MODES, RenderWorker, ViewRenderer, ViewRequest, ViewResult,
+                                           compose_panels, panel_grid)
+from deliffas.engine.view.scene import ViewScene
+from deliffas.geometry.raycast import UVRaycaster
+
+REPO = Path(__file__).resolve().parents[2]
+CHROMIUM = shutil.which("chromium") or ("/usr/bin/chromium" if Path("/usr/bin/chromium").exists() else None)
+CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                 "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+TEST_CAMERA = 3  # the tiny capture's held-out camera, where the viewer opens
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tiny_shards, tmp_path_factory):
+    run = tmp_path_factory.mktemp("view") / "run"
+    train(TrainConfig(shards=str(tiny_shards), out=str(run), model="two_surface", preset="tiny", iters=4,
+                      cameras_per_frame=2, protocol="all", num_workers=0, checkpoint_every=4, preview_every=0,
+                      log_every=1, progress=False))
+    return run
+
+
+def _reference(run, shards, camera: int = TEST_CAMERA) -> np.ndarray:
+    """render_frame of the capture's first training frame at ``camera``: (H, W, 3) float in [0, 1]."""
+    model, _ = load_run(run)
+    samples, info = evaluation_samples(str(shards), "all", max_frames=None, protocol="all",
+                                       temporal_window=model.config.temporal_window)
+    s = next(samples)
+    k = list(s.camera_ids).index(camera)
+    s = dataclasses.replace(s, cameras=[s.cameras[k]], images=s.images[k:k + 1], masks=s.masks[k:k + 1])
+    rc = UVRaycaster(s.inner_verts, info["faces"], s.outer_verts, info["atlas"])
+    return render_frame(model, s, rc, torch.device("cpu"), StageTimer())[0].clamp(0, 1).numpy()
+
+
+def test_renderer_matches_render_frame_and_paints_every_view(tiny_run, tiny_shards):
+    scene = ViewScene([str(tiny_run)])
+    renderer = ViewRenderer(scene)
+    cam = scene.cameras[TEST_CAMERA]
+    res = renderer.render(ViewRequest(cam, 0, "rgb", capture_camera=TEST_CAMERA, show_ground_truth=False))
+    ref = (_reference(tiny_run, tiny_shards) * 255 + 0.5).astype(np.uint8)
+    assert res.image.shape == ref.shape
+    assert np.abs(res.image.astype(int) - ref).max() <= 1
+    assert set(res.stage_ms) == {"uv", "cnn", "sample", "mlp"} and res.stage_ms["cnn"] > 0
+    again = renderer.render(ViewRequest(cam, 0, "rgb"))
+    assert again.stage_ms["cnn"] == 0  # the frame's U-Net features are cached
+    with_gt = renderer.render(ViewRequest(cam, 0, "rgb", capture_camera=TEST_CAMERA, canvas=(300, 100)))
+    assert with_gt.panels[1:] == ("ground truth", "|error| (0..0.25)")
+    assert with_gt.image.shape[1] * 100 == with_gt.image.shape[0] * 300  # letterboxed to the canvas aspect
+    fg = res.image.sum(-1) > 0
+    for mode in VIEW_MODES[1:]:
+        img = renderer.render(ViewRequest(cam, 1, mode)).image
+        assert img.shape == res.image.shape and img[fg].mean() > 0 and not img[~(img.sum(-1) > 0)].any(), mode
+
+
+def test_panel_grid_and_compose():
+    assert panel_grid(3, (48, 48), (800, 200)) == (3, 1)
+    assert panel_grid(4, (48, 48), (500, 500)) == (2, 2)
+    out = compose_panels([np.ones((2, 2, 3))] * 3, (12, 2))
+    assert out.shape == (2, 12, 3) and out[:, 3:9].all() and not out[:, :3].any()
+
+
+def test_worker_drops_stale_requests():
+    started, release = threading.Event(), threading.Event()
+    seen: list[int] = []
+
+    class Slow:
+        def render(self, request):
+            started.set()
+            release.wait(5)
+            return ViewResult(request, np.zeros((1, 1, 3), np.uint8), ())
+
+    worker = RenderWorker(Slow(), lambda r: seen.append(r.request.serial))
+    try:
+        cam = object()
+        worker.submit(ViewRequest(cam, 0, serial=1))
+        assert started.wait(5)
+        for serial in (2, 3, 4):  # the first is rendering: 2 and 3 become stale, 4 is the newest
+            worker.submit(ViewRequest(cam, 0, serial=serial))
+        release.set()
+        deadline = time.time() + 5
+        while len(seen) < 2 and time.time() < deadline:
+            time.sleep(0.01)
+    finally:
+        worker.stop()
+    assert seen == [1, 4] and worker.dropped == 2
+
+
+def test_config_and_cli_errors(tmp_path):
+    with pytest.raises(ValueError, match="moving_scale"):
+        ViewConfig(run="r", moving_scale=0)
+    assert ViewConfig(run="r", host="0.0.0.0").exposed and not ViewConfig(run="r").exposed
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    for argv, needle in ((["--port", "70000"], "port must be in"), ([], str(tmp_path / "missing"))):
+        res = subprocess.run([sys.executable, "-m", "deliffas", "view", str(tmp_path / "missing"), *argv],
+                             capture_output=True, text=True, env=env, timeout=120)
+        assert res.returncode == 2, res.stderr
+        errors = [line for line in res.stderr.splitlines() if "error:" in line]
+        assert len(errors) == 1 and needle in errors[0], res.stderr
+
+
+def test_viewer_camera_round_trip(tiny_shards):
+    pytest.importorskip("viser")
+    from deliffas.engine.view.server import capture_camera_pose, viewer_camera
+    from deliffas.data.shards import ShardSet
+
+    cam = ShardSet(tiny_shards).meta.cameras()[TEST_CAMERA]
+    wxyz, position, fov = capture_camera_pose(cam)
+    back = viewer_camera(wxyz, position, fov, cam.width, cam.height, 4096)
+    np.testing.assert_allclose(back.world_to_cam, cam.world_to_cam, atol=1e-6)
+    np.testing.assert_allclose(back.K[1, 1], cam.K[1, 1], rtol=1e-9)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _wait_port(port: int, proc, timeout: float) -> None:
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        if proc.poll() is not None:
+            raise AssertionError(f"deliffas view exited with {proc.returncode}")
+        with socket.socket() as s:
+            if s.connect_ex(("127.0.0.1", port)) == 0:
+                return
+        time.sleep(0.2)
+    raise AssertionError(f"deliffas view did not listen on {port} within {timeout} s")
+
+
+def _first_panel(shot: np.ndarray, panel: tuple[int, int], n_panels: int) -> np.ndarray:
+    """The first panel of the viewer's grid in a canvas screenshot, resampled to ``panel`` (W, H)."""
+    import cv2
+
+    H, W = shot.shape[:2]
+    cols, rows = panel_grid(n_panels, panel, (W, H))
+    s = min(W / (cols * panel[0]), H / (rows * panel[1]))
+    x0, y0 = (W - cols * panel[0] * s) / 2, (H - rows * panel[1] * s) / 2
+    crop = shot[round(y0):round(y0 + panel[1] * s), round(x0):round(x0 + panel[0] * s)]
+    return cv2.resize(crop, panel, interpolation=cv2.INTER_AREA).astype(np.float32) / 255
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="no Chromium (Debian package 'chromium', scripts/system_deps.sh installs it)")
+def test_browser_shows_the_avatar_and_the_timeline_moves_it(tiny_run, tiny_shards, tmp_path):
+    pytest.importorskip("viser")
+    pw = pytest.importorskip("playwright.sync_api")
+    import cv2
+
+    ref = _reference(tiny_run, tiny_shards)  # (48, 48, 3)
+    fg = ref.max(-1) > 0.02
+    port = _free_port()
+    log = open(tmp_path / "view.log", "w")
+    proc = subprocess.Popen([sys.executable, "-m", "deliffas", "view", str(tiny_run), "--port", str(port)],
+                            stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ, PYTHONPATH=str(REPO)))
+    ctx = None
+    try:
+        _wait_port(port, proc, 90)
+        with pw.sync_playwright() as p:
+            ctx = p.chromium.launch_persistent_context(str(tmp_path / "chromium-profile"), executable_path=CHROMIUM,
+                                                       args=CHROMIUM_ARGS, headless=True,
+                                                       viewport={"width": 800, "height": 500})
+            page = ctx.new_page()
+            page.set_default_timeout(30_000)
+            page.goto(f"http://127.0.0.1:{port}")
+            canvas = page.locator("canvas").first
+
+            def panel_after(predicate, timeout: float):
+                deadline, last = time.time() + timeout, None
+                while time.time() < deadline:
+                    shot = cv2.cvtColor(cv2.imdecode(np.frombuffer(canvas.screenshot(), np.uint8), cv2.IMREAD_COLOR),
+                                        cv2.COLOR_BGR2RGB)
+                    last = _first_panel(shot, (ref.shape[1], ref.shape[0]), 3)  # prediction | ground truth | error
+                    if predicate(last):
+                        return shot, last
+                    time.sleep(0.5)
+                return shot, last
+
+            def matches(panel):  # the software-WebGL notice (top left) and bilinear display blur: robust checks
+                err = np.abs(panel - ref).max(-1)
+                return float(np.median(err[fg])) < 0.06 and float((err[fg] < 0.15).mean()) > 0.8
+
+            shot, first = panel_after(matches, 60)
+            cv2.imwrite(str(tmp_path / "viewer.png"), cv2.cvtColor(shot, cv2.COLOR_RGB2BGR))
+            err = np.abs(first - ref).max(-1)
+            assert matches(first), (f"avatar pixels differ from render_frame: median {np.median(err[fg]):.3f}, "
+                                    f"within 0.15: {(err[fg] < 0.15).mean():.2f}; screenshot {tmp_path / 'viewer.png'}")
+            slider = page.locator('[role="slider"]').first  # the timeline's frame slider
+            slider.focus()
+            page.keyboard.press("ArrowRight")
+            _, moved = panel_after(lambda p: float(np.abs(p - first).mean()) > 0.003 and not matches(p), 30)
+            assert float(np.abs(moved - first).mean()) > 0.003, "the image did not change with the timeline"
+            ctx.close()
+            ctx = None
+    finally:
+        if ctx is not None:
+            ctx.close()
+        proc.terminate()
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+        log.close()
