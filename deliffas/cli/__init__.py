@@ -31,24 +31,21 @@ def _size(text: str) -> tuple[int, int]:
     return w, h
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a number >= 1, got {value}")
-    return value
+def _int_at_least(minimum: int):
+    """An argparse type: a whole number >= ``minimum``."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"expected a number >= {minimum}, got {value}")
+        return value
+    return parse
 
 
-def _non_negative_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {value}")
-    return value
+_positive_int = _int_at_least(1)
+_non_negative_int = _int_at_least(0)
 
 
 def _path_with_suffix(*suffixes: str):
@@ -86,16 +83,6 @@ def _port(text: str) -> int:
     if not 0 < port < 65536:
         raise argparse.ArgumentTypeError(f"port must be in 1..65535, got {port}")
     return port
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
-    return value
 
 
 def _add_data_commands(sub) -> None:
@@ -160,6 +147,22 @@ def _add_data_commands(sub) -> None:
                                                      "(<cam>/image_c_<cam>_f_<frame>.png|jpg) replacing alpha/fg")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(handler="convert")
+
+    p = sub.add_parser("fit-smpl", help="fit SMPL to every frame of a capture (for converting it with SMPL)",
+                       description="Fit an SMPL model (one shape, per-frame pose and translation) to the surface "
+                                   "of every frame of SUBJECT (its posed template, or tracked .meshes), by "
+                                   "symmetric closest-point distance. Writes OUT/<sequence>.npz (AMASS-style, "
+                                   "with the capture's frame numbers) and OUT/fit.json (residuals in mm); then "
+                                   "`deliffas convert SUBJECT SHARDS --template MODEL --motions training=OUT/"
+                                   "training.npz --motions testing=OUT/testing.npz` converts it with SMPL.")
+    p.add_argument("subject", type=Path, help="capture folder")
+    p.add_argument("--model", type=Path, required=True, help="SMPL model .npz/.pkl (official layout; not shipped)")
+    p.add_argument("--uv", type=Path, default=None, help="OBJ with the model's uv layout (default MODEL_uv.obj if present)")
+    p.add_argument("--out", type=Path, required=True, help="folder for the fitted motions")
+    p.add_argument("--first-iters", type=_positive_int, default=300, help="Adam steps on the first frame (default 300)")
+    p.add_argument("--frame-iters", type=_positive_int, default=40, help="Adam steps per later frame (default 40)")
+    p.add_argument("--overwrite", action="store_true", help="replace an earlier fit in --out")
+    p.set_defaults(handler="fit_smpl")
 
     p = sub.add_parser("verify", help="check converted shards against their manifest",
                        description="Check every shard of OUT against manifest.json (presence, size, sha256, "

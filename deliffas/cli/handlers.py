@@ -14,10 +14,13 @@ from pathlib import Path
 from deliffas.io.camera_formats import read_cameras, write_cameras
 from deliffas.io.files import claim_output_file
 from deliffas.io.dynacap import read_character
+from deliffas.geometry.smpl_surface_fit import SurfaceFitConfig
 from deliffas.geometry.templates import spec_from_file
 from deliffas.geometry.procedural import make_procedural_character
 from deliffas.data.convert import ConvertConfig, convert
 from deliffas.data.posing import pose_frames, write_posed_mesh
+from deliffas.data.smpl_capture_fit import fit_smpl_to_subject, write_fit
+from deliffas.data.subjects import parse_subject
 from deliffas.data.shards import verify_shards
 from deliffas.data.synth import SynthConfig, synthesize_capture
 from deliffas.data.template_build import build_templates
@@ -72,6 +75,19 @@ def cmd_convert(args: argparse.Namespace) -> int:
     print(f"wrote {res.out_dir}: {res.shards_total} shards ({res.shards_skipped} kept from before), "
           f"{res.frames_converted} frames / {res.images_converted} images in {res.seconds:.1f} s "
           f"(setup {res.seconds_setup:.1f} s, then {rate:.2f} frames/s), {res.bytes_total / 1e6:.1f} MB")
+    return 0
+
+
+def cmd_fit_smpl(args: argparse.Namespace) -> int:
+    if args.out.is_dir() and any(args.out.iterdir()) and not args.overwrite:
+        raise FileExistsError(f"{args.out}: not empty; pass --overwrite to replace an earlier fit there")
+    fit = fit_smpl_to_subject(parse_subject(args.subject), args.model, args.uv,
+                              config=SurfaceFitConfig(first_iters=args.first_iters, frame_iters=args.frame_iters,
+                                                      progress=True))
+    out = write_fit(args.out, fit, overwrite=args.overwrite)
+    for name, r in fit.residual_mm.items():
+        print(f"{name}: {len(r)} frames, mean surface distance {r.mean():.1f} mm (max {r.max():.1f})")
+    print(f"wrote {out}")
     return 0
 
 

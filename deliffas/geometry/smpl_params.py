@@ -61,7 +61,9 @@ def params_to_motion(params: np.ndarray, fps: float | None = None, gender: str |
 
 
 def motion_to_dynacap(motion: SMPLMotion, num_betas: int = 10, first_frame: int = 0) -> Motion:
-    """The motion as deliffas's per-frame pose parameters: frames ``first_frame .. first_frame + N - 1``
-    (int64) and ``dofs`` = :func:`motion_to_params` rows (N, 3 + 72 + num_betas)."""
+    """The motion as deliffas's per-frame pose parameters: the motion's ``frames`` when it has them,
+    else ``first_frame .. first_frame + N - 1`` (int64), and ``dofs`` = :func:`motion_to_params` rows
+    (N, 3 + 72 + num_betas)."""
     params = motion_to_params(motion, num_betas)
-    return Motion(np.arange(first_frame, first_frame + len(params), dtype=np.int64), params)
+    frames = motion.frames if motion.frames is not None else np.arange(first_frame, first_frame + len(params))
+    return Motion(np.asarray(frames, np.int64), params)
