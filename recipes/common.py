@@ -188,7 +188,8 @@ def train_and_eval(name: str, shards: Path, run_dir: Path, sizes: RecipeSizes, m
         row["novel_pose"] = evaluate(EvalConfig(run=str(run_dir), split="novel_pose",
                                                 max_frames=min(sizes.eval_frames or POSE_EVAL_FRAMES, POSE_EVAL_FRAMES),
                                                 device=device, grid=str(Path(run_dir) / "grid_novel_pose.png")))
-        row["train_fit"] = evaluate(EvalConfig(run=str(run_dir), split="train", max_frames=3, device=device))
+        row["train_fit"] = evaluate(EvalConfig(run=str(run_dir), split="train", max_frames=min(3, sizes.eval_frames or 3),
+                                               device=device))
     fg = row["foreground"]
     print(f"  {name} (seed {seed}): fg PSNR {fg['psnr']:.2f} dB, fg SSIM {fg['ssim']:.4f}, fg FLIP "
           f"{fg['flip'] if fg['flip'] is None else format(fg['flip'], '.4f')} (official PSNR {row['psnr']:.2f} dB), "

@@ -142,6 +142,7 @@ def train_seeds(name: str, seeds: Sequence[int], run_dir: Path, one_seed: Callab
         per_seed.append({"seed": seed, "run": nv.get("run"), **compact(nv, np_, fit)})
     row = dict(first)
     row.update(name=name, seeds=list(seeds), per_seed=per_seed, stats=aggregate(per_seed))
+    row.update({f"{k}_mean": v["mean"] for k, v in row["stats"].items()})  # flat keys for charts
     return row
 
 
