@@ -25,7 +25,7 @@ import torch.nn.functional as F
 
 from deliffas.models.image_metrics import mse, psnr, ssim
 
-__all__ = ["FG_PAD_FRAC", "FG_MIN_PAD", "FG_MIN_SIDE", "foreground_box", "foreground_pair", "fg_psnr", "fg_ssim",
+__all__ = ["FG_PAD_FRAC", "FG_MIN_PAD", "FG_MIN_SIDE", "align_prediction", "foreground_box", "foreground_pair", "fg_psnr", "fg_ssim",
            "masked_psnr"]
 
 FG_PAD_FRAC = 0.1
@@ -36,7 +36,8 @@ FG_MIN_SIDE = 16
 """Least side of the foreground box (SSIM needs 11 x 11), when the image is that large."""
 
 
-def _check(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+def align_prediction(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Check pred, gt (3, H, W) and mask (H, W); the prediction resized to the GT size (bilinear) in its dtype."""
     if pred.dim() != 3 or pred.shape[0] != 3 or gt.dim() != 3 or gt.shape[0] != 3:
         raise ValueError(f"expected pred and gt of shape (3, H, W), got {tuple(pred.shape)}, {tuple(gt.shape)}")
     if tuple(mask.shape) != tuple(gt.shape[1:]):
@@ -83,7 +84,7 @@ def foreground_box(mask: torch.Tensor, pad_frac: float = FG_PAD_FRAC, min_pad: i
 
 def foreground_pair(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Prediction (as rendered) and ground truth (over black) cropped to the foreground box: (3, h, w) each."""
-    pred = _check(pred, gt, mask)
+    pred = align_prediction(pred, gt, mask)
     top, left, h, w = foreground_box(mask)
     return pred[:, top : top + h, left : left + w], gt[:, top : top + h, left : left + w]
 
@@ -100,7 +101,7 @@ def fg_ssim(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> float:
 
 def masked_psnr(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> float:
     """PSNR (dB) over the pixels with ``mask > 0.5`` (all channels); None-free: an empty mask gives ``nan``."""
-    pred = _check(pred, gt, mask)
+    pred = align_prediction(pred, gt, mask)
     fg = mask.to(gt.device, torch.float32) > 0.5
     if not fg.any():
         return math.nan

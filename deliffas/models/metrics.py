@@ -31,7 +31,6 @@ import logging
 import math
 import os
 from dataclasses import asdict, dataclass
-from pathlib import Path
 from typing import Callable
 
 import numpy as np
@@ -40,7 +39,7 @@ import torch.nn.functional as F
 
 from deliffas.models.fid import FIDInceptionV3, fid_from_features, inception_candidates, load_fid_inception
 from deliffas.models.flip import FLIP_PROTOCOL, flip_error, flip_status
-from deliffas.models.foreground import fg_psnr, fg_ssim, foreground_pair, masked_psnr
+from deliffas.models.foreground import align_prediction, fg_psnr, fg_ssim, foreground_pair, masked_psnr
 from deliffas.models.image_metrics import mae, mse, psnr, ssim
 from deliffas.models.lpips import ENV_LPIPS_WEIGHTS, LPIPS, load_lpips_linear_weights, lpips_candidates
 from deliffas.models.vgg import PerceptualWeightsUnavailable, load_vgg16_weights, vgg16_weight_candidates
@@ -159,35 +158,27 @@ def prepare_pair(
     Returns:
         (pred_crop, gt_crop), each (3, h, w) float.
     """
-    _check_image("pred", pred)
-    _check_image("gt", gt)
-    if tuple(mask.shape) != tuple(gt.shape[1:]):
-        raise ValueError(f"mask: expected shape {tuple(gt.shape[1:])}, got {tuple(mask.shape)}")
-    if pred.shape != gt.shape:
-        pred = F.interpolate(pred[None], size=gt.shape[1:], mode="bilinear", align_corners=False)[0]
-    pred = pred.to(gt.dtype)
+    pred = align_prediction(pred, gt, mask)
     m = eval_mask(mask).to(gt.device)
     pred_c, gt_c = composite_on_white(pred, m), composite_on_white(gt, m)
     top, left, h, w = crop_window(gt_c, crop_hw)
     return pred_c[:, top : top + h, left : left + w], gt_c[:, top : top + h, left : left + w]
 
 
-def official_psnr(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> float:
-    """PSNR (dB) under the official protocol (:func:`prepare_pair`)."""
-    return psnr(*prepare_pair(pred, gt, mask))
+def _on_pairs(pair: Callable, metric: Callable, doc: str) -> Callable[[torch.Tensor, torch.Tensor, torch.Tensor], float]:
+    """``(pred, gt, mask) -> metric(*pair(pred, gt, mask))``: a metric under a protocol's crop."""
+
+    def scored(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> float:
+        return metric(*pair(pred, gt, mask))
+
+    scored.__doc__ = doc
+    return scored
 
 
-def official_ssim(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> float:
-    """SSIM under the official protocol (:func:`prepare_pair`)."""
-    return ssim(*prepare_pair(pred, gt, mask))
-
-
-def _fg_flip(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> float:
-    return flip_error(*foreground_pair(pred, gt, mask))
-
-
-def _official_flip(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> float:
-    return flip_error(*prepare_pair(pred, gt, mask))
+official_psnr = _on_pairs(prepare_pair, psnr, "PSNR (dB) under the official protocol (:func:`prepare_pair`).")
+official_ssim = _on_pairs(prepare_pair, ssim, "SSIM under the official protocol (:func:`prepare_pair`).")
+_official_flip = _on_pairs(prepare_pair, flip_error, "Mean LDR-FLIP under the official protocol.")
+_fg_flip = _on_pairs(foreground_pair, flip_error, "Mean LDR-FLIP inside the padded foreground box.")
 
 
 @dataclass(frozen=True)
