@@ -48,3 +48,11 @@ def test_ablation_single_surface_quick(tiny_recipe_capture, tmp_path):
     assert payload["title"] == data["title"]
     with pytest.raises(SystemExit):
         ablation_single_surface.main(["--quick", "--out", str(tmp_path / "x"), "--seeds", "0"])
+
+
+def test_coarse_mesh_variants_checked(tmp_path):
+    from recipes import ablation_coarse_mesh
+
+    for bad in ("original", "smooth,coarse", "original,smooth,fine"):
+        with pytest.raises(SystemExit):
+            ablation_coarse_mesh.main(["--quick", "--out", str(tmp_path), "--variants", bad])
