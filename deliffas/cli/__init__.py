@@ -256,20 +256,39 @@ def _add_engine_commands(sub) -> None:
                    help="rays per backward pass (bounds training memory; single process)")
     p.add_argument("--checkpoint-every", type=int, default=None)
     p.add_argument("--preview-every", type=int, default=None)
+    p.add_argument("--protocol", choices=["auto", "paper", "all"], default=None,
+                   help="frames used: paper = every 10th (DELIFFAS), all = every frame, auto (default) = paper "
+                        "from 100 training frames on, else all; stated at start")
+    p.add_argument("--val-cameras", dest="validation_cameras", type=_test_cameras, default=None, metavar="N|a,b,...",
+                   help="training cameras held out as the validation split: a count N or calibration indices "
+                        "(default 0; --auto-capacity holds out at least 1)")
     p.add_argument("--auto-capacity", action="store_true",
-                   help="search model capacities and keep the cheapest within --tolerance-db of the best")
-    p.add_argument("--tolerance-db", type=float, default=0.5)
+                   help="search model capacities on the validation split and keep the cheapest within "
+                        "--tolerance-db of the best foreground PSNR; the test split scores the chosen one only")
+    p.add_argument("--tolerance-db", type=float, default=0.5, help="auto-capacity tolerance in dB (default 0.5)")
     p.set_defaults(handler="train")
 
-    p = sub.add_parser("eval", help="evaluate a run: PSNR/SSIM (+LPIPS when weights exist) and per-stage timing")
-    p.add_argument("run", type=Path)
-    p.add_argument("--split", choices=["novel_view", "novel_pose", "train"], default="novel_view")
+    p = sub.add_parser("eval", help="evaluate a run: foreground and official PSNR/SSIM, FLIP (+LPIPS/FID when "
+                                    "weights exist) and per-stage timing",
+                       description="Score RUN on a split. Every number names its protocol: the official one (white "
+                                   "composite, 600x496 crop: at small images mostly background) and the foreground "
+                                   "block (padded mask box, masked PSNR), the headline.")
+    p.add_argument("run", type=Path, help="run directory written by `deliffas train`")
+    p.add_argument("--split", choices=["novel_view", "novel_pose", "validation", "train"], default="novel_view",
+                   help="novel_view / novel_pose: test splits; validation: the run's held-out training cameras "
+                        "(--val-cameras at training); train: the fitted cameras (default novel_view)")
+    p.add_argument("--protocol", choices=["paper", "all"], default=None,
+                   help="frames: paper = every 10th, all = every frame (default: the run's)")
     p.add_argument("--shards", default=None, help="shard directory (default: the run's)")
-    p.add_argument("--max-frames", type=int, default=None)
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--max-frames", type=int, default=None, help="at most this many frames, evenly spaced")
+    p.add_argument("--device", default="cpu", help="cpu | cuda | cuda:N (default cpu)")
     p.add_argument("--save-images", default=None, help="folder for predicted images (white background)")
-    p.add_argument("--vgg16-path", default=None)
-    p.add_argument("--lpips-path", default=None)
+    p.add_argument("--grid", default=None, metavar="PNG",
+                   help="write a comparison grid (GT | prediction | error heat map, >= 256 px panels)")
+    p.add_argument("--vgg16-path", default=None, help="ImageNet VGG-16 weights for LPIPS (.pth/.safetensors)")
+    p.add_argument("--lpips-path", default=None, help="LPIPS v0.1 VGG linear layers (lpips' weights/v0.1/vgg.pth)")
+    p.add_argument("--inception-path", default=None,
+                   help="pytorch-fid's pt_inception-2015-12-05-6726825d.pth for FID (else env / torch hub cache)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(handler="eval")
 

@@ -169,7 +169,8 @@ def _train_config(args: argparse.Namespace):
         values.update(json.loads(Path(args.config).read_text()))
     values.update(shards=str(args.shards), out=str(args.out))
     for key in ("model", "preset", "iters", "perceptual", "perceptual_mode", "cameras_per_frame", "device",
-                "num_workers", "seed", "vgg16_path", "checkpoint_every", "preview_every", "ray_chunk"):
+                "num_workers", "seed", "vgg16_path", "checkpoint_every", "preview_every", "ray_chunk", "protocol",
+                "validation_cameras"):
         v = getattr(args, key, None)
         if v is not None:
             values[key] = v
@@ -195,15 +196,27 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 def cmd_eval(args: argparse.Namespace) -> int:
     retain_freed_memory()
-    result = evaluate(EvalConfig(run=str(args.run), split=args.split, shards=args.shards, max_frames=args.max_frames,
-                                 device=args.device, save_images=args.save_images, vgg16_path=args.vgg16_path,
-                                 lpips_path=args.lpips_path))
+    result = evaluate(EvalConfig(run=str(args.run), split=args.split, protocol=args.protocol, shards=args.shards,
+                                 max_frames=args.max_frames, device=args.device, save_images=args.save_images,
+                                 vgg16_path=args.vgg16_path, lpips_path=args.lpips_path,
+                                 inception_path=args.inception_path, grid=args.grid))
     if args.json:
         print(json.dumps(result))
-    else:
-        print(f"{args.split}: PSNR {result['psnr']:.2f} dB, SSIM {result['ssim']:.4f}, "
-              f"LPIPS {result['lpips'] if result['lpips'] is not None else 'n/a (' + result['lpips_reason'] + ')'}, "
-              f"{result['fps']:.2f} fps; stage ms " + ", ".join(f"{k} {v:.1f}" for k, v in result["stage_ms"].items()))
+        return 0
+    fg = result["foreground"]
+
+    def na(value, spec, reason):
+        return format(value, spec) if value is not None else f"n/a ({reason})"
+
+    print(f"{args.split} ({result['images']} images, frames protocol {result['protocol']})")
+    print(f"  foreground (padded mask box): PSNR {fg['psnr']:.2f} dB, SSIM {fg['ssim']:.4f}, masked PSNR "
+          f"{fg['masked_psnr']:.2f} dB, FLIP {na(fg['flip'], '.4f', fg['flip_reason'])}, "
+          f"LPIPS {na(fg['lpips'], '.4f', fg['lpips_reason'])}")
+    print(f"  official (white composite, 600x496 crop): PSNR {result['psnr']:.2f} dB, SSIM {result['ssim']:.4f}, "
+          f"FID {na(result['fid'], '.2f', result['fid_reason'])}")
+    print(f"  {result['fps']:.2f} fps; stage ms " + ", ".join(f"{k} {v:.1f}" for k, v in result["stage_ms"].items()))
+    for warning in result["warnings"]:
+        print(f"  warning: {warning}")
     return 0
 
 
