@@ -15,7 +15,10 @@ from deliffas.io.camera_formats import read_cameras, write_cameras
 from deliffas.io.dynacap import read_character
 from deliffas.geometry.templates import spec_from_file
 from deliffas.geometry.procedural import make_procedural_character
+from deliffas.data.check import CheckConfig, check_subject
+from deliffas.data.check_report import write_check_report
 from deliffas.data.convert import ConvertConfig, convert
+from deliffas.data.subjects import SubjectOptions, parse_subject
 from deliffas.data.posing import pose_frames, write_posed_mesh
 from deliffas.data.shards import verify_shards
 from deliffas.data.synth import SynthConfig, synthesize_capture
@@ -62,7 +65,8 @@ def cmd_convert(args: argparse.Namespace) -> int:
                         motions=tuple(args.motions or ()),
                         template=str(args.template) if args.template else None, atlas_res=args.atlas_res,
                         offset_mm=args.offset, codec=args.codec, window=args.window, layout=args.layout,
-                        test_cameras=args.test_cameras, masks=args.masks, progress=not args.no_progress)
+                        test_cameras=args.test_cameras, masks=args.masks, progress=not args.no_progress,
+                        format=args.format, check=not args.no_check)
     res = convert(args.subject, args.out, cfg)
     work = res.seconds - res.seconds_setup
     rate = res.frames_converted / work if work > 0 else 0.0
@@ -70,6 +74,15 @@ def cmd_convert(args: argparse.Namespace) -> int:
           f"{res.frames_converted} frames / {res.images_converted} images in {res.seconds:.1f} s "
           f"(setup {res.seconds_setup:.1f} s, then {rate:.2f} frames/s), {res.bytes_total / 1e6:.1f} MB")
     return 0
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    options = SubjectOptions(template=str(args.template) if args.template else None, motions=tuple(args.motions or ()))
+    subject = parse_subject(args.subject, args.format, options)
+    result = check_subject(subject, CheckConfig(frames=args.frames, min_iou=args.min_iou))
+    report = write_check_report(result, args.out)
+    print(f"{'PASS' if result.ok else 'FAIL'}: {result.reason}\nwrote {report}")
+    return 0 if result.ok else 1
 
 
 def cmd_verify(args: argparse.Namespace) -> int:
