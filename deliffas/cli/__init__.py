@@ -146,6 +146,9 @@ def _add_data_commands(sub) -> None:
     p.add_argument("--masks", metavar="SUBDIR", help="DDC mask folder in each sequence folder "
                                                      "(<cam>/image_c_<cam>_f_<frame>.png|jpg) replacing alpha/fg")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--format", default="auto", help="capture format: dynacap, zju, easymocap, thuman4, dna, actorshq "
+                                                    "(default: detected)")
+    p.add_argument("--no-check", action="store_true", help="convert even when the silhouette check fails")
     p.set_defaults(handler="convert")
 
     p = sub.add_parser("fit-smpl", help="fit SMPL to every frame of a capture (for converting it with SMPL)",
@@ -163,6 +166,20 @@ def _add_data_commands(sub) -> None:
     p.add_argument("--frame-iters", type=_positive_int, default=40, help="Adam steps per later frame (default 40)")
     p.add_argument("--overwrite", action="store_true", help="replace an earlier fit in --out")
     p.set_defaults(handler="fit_smpl")
+
+    p = sub.add_parser("check", help="score the posed template's silhouette against the masks, per camera",
+                       description="Parse SUBJECT, pose its template on a sample of frames, compare its silhouette "
+                                   "with every camera's mask (IoU) and name likely causes of failures (pose "
+                                   "direction, transposed R, OpenGL axes, m vs mm, frame offset, camera order). "
+                                   "Writes OUT/report.md, overlays and summary.json; exit 1 when a camera fails.")
+    p.add_argument("subject", type=Path, help="capture folder (any supported format)")
+    p.add_argument("--out", type=Path, required=True, help="report folder")
+    p.add_argument("--format", default="auto", help="capture format (default: detected)")
+    p.add_argument("--frames", type=_positive_int, default=4, help="frames sampled per sequence (default 4)")
+    p.add_argument("--template", type=Path, help="template: SMPL model .npz/.pkl (SMPL captures), or a DDC variant")
+    p.add_argument("--motions", action="append", metavar="[SEQ=]FILE", help="pose parameters instead of the capture's")
+    p.add_argument("--min-iou", type=float, default=0.8, help="a camera fails below this IoU (default 0.8)")
+    p.set_defaults(handler="check")
 
     p = sub.add_parser("verify", help="check converted shards against their manifest",
                        description="Check every shard of OUT against manifest.json (presence, size, sha256, "

@@ -17,10 +17,12 @@ from deliffas.io.dynacap import read_character
 from deliffas.geometry.smpl_surface_fit import SurfaceFitConfig
 from deliffas.geometry.templates import spec_from_file
 from deliffas.geometry.procedural import make_procedural_character
+from deliffas.data.check import CheckConfig, check_subject
+from deliffas.data.check_report import write_check_report
 from deliffas.data.convert import ConvertConfig, convert
+from deliffas.data.subjects import SubjectOptions, parse_subject
 from deliffas.data.posing import pose_frames, write_posed_mesh
 from deliffas.data.smpl_capture_fit import fit_smpl_to_subject, write_fit
-from deliffas.data.subjects import parse_subject
 from deliffas.data.shards import verify_shards
 from deliffas.data.synth import SynthConfig, synthesize_capture
 from deliffas.data.template_build import build_templates
@@ -68,7 +70,8 @@ def cmd_convert(args: argparse.Namespace) -> int:
                         motions=tuple(args.motions or ()),
                         template=str(args.template) if args.template else None, atlas_res=args.atlas_res,
                         offset_mm=args.offset, codec=args.codec, window=args.window, layout=args.layout,
-                        test_cameras=args.test_cameras, masks=args.masks, progress=not args.no_progress)
+                        test_cameras=args.test_cameras, masks=args.masks, progress=not args.no_progress,
+                        format=args.format, check=not args.no_check)
     res = convert(args.subject, args.out, cfg)
     work = res.seconds - res.seconds_setup
     rate = res.frames_converted / work if work > 0 else 0.0
@@ -89,6 +92,15 @@ def cmd_fit_smpl(args: argparse.Namespace) -> int:
         print(f"{name}: {len(r)} frames, mean surface distance {r.mean():.1f} mm (max {r.max():.1f})")
     print(f"wrote {out}")
     return 0
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    options = SubjectOptions(template=str(args.template) if args.template else None, motions=tuple(args.motions or ()))
+    subject = parse_subject(args.subject, args.format, options)
+    result = check_subject(subject, CheckConfig(frames=args.frames, min_iou=args.min_iou))
+    report = write_check_report(result, args.out)
+    print(f"{'PASS' if result.ok else 'FAIL'}: {result.reason}\nwrote {report}")
+    return 0 if result.ok else 1
 
 
 def cmd_verify(args: argparse.Namespace) -> int:

@@ -29,7 +29,8 @@ def test_fit_smpl_then_convert_with_smpl(subject, body, tmp_path, capsys, tiny):
     motion = read_smpl_motion(fit / "training.npz")
     assert motion.frames.tolist() == list(range(tiny["num_frames"]))
     shards = tmp_path / "shards"
-    assert main(["convert", str(subject), str(shards), "--atlas-res", "32", "--no-progress", "--template", str(body),
+    # --no-check: a 40-step fit is crude on purpose (the silhouette check rightly flags it)
+    assert main(["convert", str(subject), str(shards), "--atlas-res", "32", "--no-progress", "--no-check", "--template", str(body),
                  "--motions", f"training={fit / 'training.npz'}", "--motions", f"testing={fit / 'testing.npz'}"]) == 0
     meta = ShardSet(shards).meta
     assert meta.template_spec().kind == "smpl"
