@@ -12,6 +12,8 @@ import logging
 import sys
 from pathlib import Path
 
+from deliffas import __version__
+
 __all__ = ["main", "build_parser"]
 
 log = logging.getLogger(__name__)
@@ -349,6 +351,7 @@ def _add_engine_commands(sub) -> None:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="deliffas", description="deliffas: deformable light-field human avatars (DELIFFAS) - templates, captures, shards, training, evaluation and rendering. `deliffas COMMAND --help` explains each command.")
     parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
+    parser.add_argument("--version", action="version", version=f"deliffas {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("pose", help="write a template (DDC character or SMPL model) posed by one frame of a motion",
