@@ -280,6 +280,9 @@ def _add_engine_commands(sub) -> None:
     p.add_argument("--size", type=_size, default=None, help="WxH (default: the capture's)")
     p.add_argument("--fps", type=float, default=25.0)
     p.add_argument("--device", default="cpu")
+    p.add_argument("--plain", action="store_true",
+                   help="render as 'deliffas eval' does (ray-cast uvs, fp32 MLP) instead of the CPU fast path "
+                        "(rasterised uvs, fused inputs, bf16 MLP where the CPU has native bf16)")
     p.set_defaults(handler="render")
 
     p = sub.add_parser("view", help="interactive free-viewpoint viewer in the browser (viser)",
@@ -299,6 +302,9 @@ def _add_engine_commands(sub) -> None:
     p.add_argument("--resolution", type=_positive_int, default=512,
                    help="longest side of the still image in pixels (default 512; halved while moving)")
     p.add_argument("--device", default="cpu", help="cpu | cuda | cuda:N")
+    p.add_argument("--plain", action="store_true",
+                   help="render as 'deliffas eval' does (ray-cast uvs, fp32 MLP) instead of the CPU fast path "
+                        "(rasterised uvs, fused inputs, bf16 MLP where the CPU has native bf16)")
     p.set_defaults(handler="view")
 
     p = sub.add_parser("demo", help="the whole path on the embedded procedural character, with a report")

@@ -21,6 +21,7 @@ import torch
 
 from deliffas.engine.data_bridge import evaluation_samples
 from deliffas.engine.rays import camera_rays, paint_images, ray_query, stack_rays
+from deliffas.engine.realtime import FastRender, fast_render_camera
 from deliffas.engine.samples import FrameSample, composite_target
 from deliffas.engine.timing import StageTimer
 from deliffas.geometry.raycast import UVRaycaster
@@ -83,8 +84,11 @@ def render_frame(model: DeliffasModel, sample: FrameSample, raycaster, device: t
 
 @torch.no_grad()
 def render_camera(model: DeliffasModel, features: FrameFeatures, raycaster, camera: Camera, device: torch.device,
-                  timer: StageTimer, chunk_size: int = 262144) -> torch.Tensor:
-    """One camera's (H, W, 3) image on black from the frame's encoded ``features`` (stages uv, sample, mlp)."""
+                  timer: StageTimer, chunk_size: int = 262144, fast: FastRender | None = None) -> torch.Tensor:
+    """One camera's (H, W, 3) image on black from the frame's encoded ``features`` (stages uv, sample, mlp);
+    with ``fast`` on CPU, by ``engine.realtime`` (rasterised uvs, fused inputs, bf16 MLP where native)."""
+    if fast is not None and torch.device(device).type == "cpu":
+        return fast_render_camera(model, features, raycaster, camera, timer, fast)
     with timer.stage("uv"):
         batch = stack_rays([camera_rays(raycaster, camera)], [0]).to(device)
         query = ray_query(batch, model.spec)
