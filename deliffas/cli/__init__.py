@@ -237,7 +237,7 @@ def _add_engine_commands(sub) -> None:
     p.add_argument("shards", type=Path)
     p.add_argument("--model", default=None, help="zoo name (default two_surface)")
     p.add_argument("--out", type=Path, required=True, help="run directory")
-    p.add_argument("--preset", default=None, help="paper | small (default) | tiny")
+    p.add_argument("--preset", default=None, help="paper | small (default) | realtime | tiny")
     p.add_argument("--iters", type=int, default=None)
     p.add_argument("--config", type=Path, default=None, help="JSON file of TrainConfig fields (incl. model_overrides)")
     p.add_argument("--resume", action="store_true", help="continue from the run directory's last checkpoint")

@@ -106,6 +106,13 @@ static void raster(const double *P, const int32_t *faces, int64_t F, int64_t c0,
     }
 }
 
+/* One plain z-buffer pass (nearest fragment per window pixel): the benchmarks' irreducible raster work. */
+void deliffas_raster_depth(const double *P, const int32_t *faces, int64_t F, int64_t c0, int64_t r0, int64_t w,
+                           int64_t h, float *z, int32_t *face) {
+    for (int64_t i = 0; i < w * h; i++) face[i] = -1;
+    raster(P, faces, F, c0, r0, w, h, z, face, 1);
+}
+
 /* uv at pixel centre (x, y) of face f: perspective-correct barycentrics of the hit point. */
 static void face_uv(const double *P, const int32_t *faces, const float *corner_uvs, int64_t f, double x, double y,
                     float *uv) {
@@ -174,6 +181,8 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.deliffas_raster_uv.argtypes = [p, p, p, i64, p, i64, i64, i64, i64, i64, p, ctypes.c_double,
                                        p, p, p, p, p, p, p, p, p]
     lib.deliffas_raster_uv.restype = i64
+    lib.deliffas_raster_depth.argtypes = [p, p, i64, i64, i64, i64, i64, p, p]
+    lib.deliffas_raster_depth.restype = None
 
 
 _KERNEL = LazyLibrary("rasterize", _SOURCE, ("-fno-fast-math", "-ffp-contract=off"), setup=_declare,
@@ -255,6 +264,21 @@ class UVRasterizer:
         if buf is None or buf.size < size:
             buf = self._scratch[name] = np.empty(max(size, 1), dtype)
         return buf[:size]
+
+    def depth_pass(self, camera: Camera) -> np.ndarray | None:
+        """Face index (h, w) int32 (-1 = none) of the outer surface's nearest fragment per pixel of the
+        projected window: one plain z-buffer pass, no peeling and no uvs (C kernel only; the benchmarks'
+        baseline). None when a vertex is behind the camera."""
+        window = projected_pixel_window(camera, self.hull_points)
+        lib = _KERNEL.get()
+        if window is None or lib is None:
+            return None
+        c0, r0, c1, r1 = window
+        pout = _project(camera, self.outer)
+        z, face = self._buffer("zi", (c1 - c0) * (r1 - r0), np.float32), self._buffer("fi", (c1 - c0) * (r1 - r0), np.int32)
+        lib.deliffas_raster_depth(pout.ctypes.data, self.faces.ctypes.data, len(self.faces), c0, r0,
+                                  c1 - c0, r1 - r0, z.ctypes.data, face.ctypes.data)
+        return face.reshape(r1 - r0, c1 - c0)
 
     def shaded_pixels(self, camera: Camera) -> ShadedPixels | None:
         """The shaded pixels of ``camera``, or None when a vertex is not in front of it (ray-cast then)."""

@@ -37,8 +37,9 @@ __all__ = ["FastShader", "supports", "native_bf16", "ROW_CHUNK"]
 
 logger = logging.getLogger(__name__)
 
-ROW_CHUNK = 4096
-"""Rays per MLP chunk: a chunk's activations stay in the core's L2 cache."""
+ROW_CHUNK = 16384
+"""Rays per MLP chunk (realtime preset, bf16, 197 k rays, CPU time under load: 2048 / 4096 / 8192 /
+16384 / 65536 rows took 37.5 / 31.8 / 28.4 / 26.3 / 26.7 ms)."""
 
 _SOURCE = r"""
 #include <math.h>

@@ -7,8 +7,13 @@ preset    S      U-Net (levels, base -> max channels)       MLP depth x w   feat
 ========  =====  =========================================  ==============  =========  ====
 paper     1024   log2 S = 10, 16 -> 512 (paper appendix)    8 x 256, @4     32         10
 small     128    log2 S = 7, 8 -> 64                        4 x 64, @2      16         10
+realtime  128    log2 S = 7, 8 -> 32                        3 x 32, @1      8          10
 tiny      32     log2 S = 5, 4 -> 16 (tests)                2 x 32, @0      8          4
 ========  =====  =========================================  ==============  =========  ====
+
+``realtime`` is ``small`` with a quarter of its per-ray MLP work (5.3 k against 19.9 k multiply-adds
+per ray) and half its feature channels, for CPU rendering at 940 x 1285 (docs/performance.md,
+"Real-time on two cores": its timing is measured, its PSNR against ``small`` is still to be run).
 
 for each of the four variants (``single_surface``, ``single_surface_viewdir``,
 ``single_surface_two_unet``, ``two_surface``); the registered model names are the variant names.
@@ -141,6 +146,14 @@ def _preset(variant: str, preset: str) -> ModelConfig:
             unet=UNetConfig(in_channels=9, out_channels=16, base_channels=8, max_channels=64, norm="affine"),
             mlp=LightFieldMLPConfig(depth=4, width=64, feature_layer=2),
         )
+    if preset == "realtime":
+        return ModelConfig(
+            variant=variant,  # type: ignore[arg-type]
+            atlas_res=128,
+            feature_channels=8,
+            unet=UNetConfig(in_channels=9, out_channels=8, base_channels=8, max_channels=32, norm="affine"),
+            mlp=LightFieldMLPConfig(depth=3, width=32, feature_layer=1),
+        )
     if preset == "tiny":
         return ModelConfig(
             variant=variant,  # type: ignore[arg-type]
@@ -155,7 +168,7 @@ def _preset(variant: str, preset: str) -> ModelConfig:
 
 
 for _variant in VARIANTS:
-    register(_variant, {p: _preset(_variant, p) for p in ("paper", "small", "tiny")})
+    register(_variant, {p: _preset(_variant, p) for p in ("paper", "small", "realtime", "tiny")})
 
 
 # ---------------------------------------------------------------------------------------- config <-> dict

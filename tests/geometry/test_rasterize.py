@@ -130,3 +130,13 @@ def test_rasterizer_checks(blob):
         UVRasterizer(v, f, outer, atlas, method="gpu")
     with pytest.raises(ValueError, match="outer_verts"):
         UVRasterizer(v, f, outer[:-1], atlas)
+
+
+def test_depth_pass_covers_the_outer_silhouette(blob):
+    if not raster_kernel_available():
+        pytest.skip("no C compiler")
+    v, f, outer, atlas = blob
+    cam = ref.look_at([0, 0, 2500.0], [0.0, 0.0, 0.0], 96, 80, focal=110.0)
+    rz = UVRasterizer(v, f, outer, atlas)
+    faces = rz.depth_pass(cam)
+    assert (faces >= 0).sum() == rz.shaded_pixels(cam).num_rays  # every outer-covered pixel is shaded here
