@@ -268,6 +268,8 @@ def _add_engine_commands(sub) -> None:
     p.add_argument("--vgg16-path", default=None)
     p.add_argument("--lpips-path", default=None)
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--fast", action="store_true",
+                   help="render by the CPU fast path of 'deliffas render'/'view' (to measure what it changes)")
     p.set_defaults(handler="eval")
 
     p = sub.add_parser("render", help="free-viewpoint video of a trained avatar driven by a motion")

@@ -181,7 +181,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     retain_freed_memory()
     result = evaluate(EvalConfig(run=str(args.run), split=args.split, shards=args.shards, max_frames=args.max_frames,
                                  device=args.device, save_images=args.save_images, vgg16_path=args.vgg16_path,
-                                 lpips_path=args.lpips_path))
+                                 lpips_path=args.lpips_path, fast=args.fast))
     if args.json:
         print(json.dumps(result))
     else:

@@ -58,6 +58,9 @@ class EvalConfig:
     """Folder for predicted images ``<cam:03d>/<frame:06d>.png`` (white background), or None."""
     vgg16_path: str | None = None
     lpips_path: str | None = None
+    fast: bool = False
+    """Render by ``engine.realtime``'s CPU fast path (rasterised uvs, bf16 MLP where native) instead
+    of the reference path, to measure what it changes."""
 
 
 def load_run(run: str | Path, device: str | torch.device = "cpu") -> tuple[DeliffasModel, dict]:
@@ -71,14 +74,14 @@ def load_run(run: str | Path, device: str | torch.device = "cpu") -> tuple[Delif
 
 @torch.no_grad()
 def render_frame(model: DeliffasModel, sample: FrameSample, raycaster, device: torch.device,
-                 timer: StageTimer, chunk_size: int = 262144) -> torch.Tensor:
+                 timer: StageTimer, chunk_size: int = 262144, fast: FastRender | None = None) -> torch.Tensor:
     """Render every camera of ``sample`` with per-stage timing; (K, H, W, 3) on black.
 
     ``sample.rays`` is ignored: the rays are cast here so the ``uv`` stage is timed.
     """
     with timer.stage("cnn"):
         features = model.encode(*sample.normal_maps(device))
-    return torch.stack([render_camera(model, features, raycaster, cam, device, timer, chunk_size)
+    return torch.stack([render_camera(model, features, raycaster, cam, device, timer, chunk_size, fast)
                         for cam in sample.cameras])
 
 
@@ -113,6 +116,7 @@ def evaluate(cfg: EvalConfig) -> dict:
                                        protocol=protocol, temporal_window=model.config.temporal_window)
     evaluator = Evaluator(vgg16_path=cfg.vgg16_path, lpips_path=cfg.lpips_path, device=device)
     timer = StageTimer(device)
+    fast = FastRender() if cfg.fast else None
     n_images = n_frames = 0
     cameras_seen: set[int] = set()
     t_wall = 0.0
@@ -120,12 +124,12 @@ def evaluate(cfg: EvalConfig) -> dict:
     for sample in samples:
         if not warmed:  # first use of open3d and of the model's kernels is slow; keep it out of the timing
             render_frame(model, sample, UVRaycaster(sample.inner_verts, info["faces"], sample.outer_verts, info["atlas"]),
-                         device, StageTimer(device), cfg.chunk_size)
+                         device, StageTimer(device), cfg.chunk_size, fast)
             warmed = True
         t0 = time.perf_counter()
         with timer.stage("scene"):
             raycaster = UVRaycaster(sample.inner_verts, info["faces"], sample.outer_verts, info["atlas"])
-        preds = render_frame(model, sample, raycaster, device, timer, cfg.chunk_size)
+        preds = render_frame(model, sample, raycaster, device, timer, cfg.chunk_size, fast)
         t_wall += time.perf_counter() - t0
         gt = composite_target(sample.images, sample.masks)  # black background
         for k in range(sample.num_cameras):
@@ -161,6 +165,7 @@ def evaluate(cfg: EvalConfig) -> dict:
         "fps": 1000.0 / total_single if total_single > 0 else None,
         "fps_shared_cnn": n_images / t_wall if t_wall > 0 else None,
         "device": str(device),
+        "render_path": f"fast ({fast.torch_dtype()})" if fast else "plain",
         "perceptual_backbone": record.get("perceptual_backbone"),
     }
     return result
