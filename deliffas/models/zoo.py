@@ -138,21 +138,16 @@ def _preset(variant: str, preset: str) -> ModelConfig:
     if preset == "paper":
         return ModelConfig(variant=variant, atlas_res=1024,  # type: ignore[arg-type]
                            unet=UNetConfig(in_channels=9, out_channels=32, norm="affine"))
-    if preset == "small":
+    # (atlas side, channels per map, U-Net base / max channels, MLP depth / width / feature layer)
+    compact = {"small": (128, 16, 8, 64, 4, 64, 2), "realtime": (128, 8, 8, 32, 3, 32, 1)}
+    if preset in compact:
+        side, channels, base, top, depth, width, feature_layer = compact[preset]
         return ModelConfig(
             variant=variant,  # type: ignore[arg-type]
-            atlas_res=128,
-            feature_channels=16,
-            unet=UNetConfig(in_channels=9, out_channels=16, base_channels=8, max_channels=64, norm="affine"),
-            mlp=LightFieldMLPConfig(depth=4, width=64, feature_layer=2),
-        )
-    if preset == "realtime":
-        return ModelConfig(
-            variant=variant,  # type: ignore[arg-type]
-            atlas_res=128,
-            feature_channels=8,
-            unet=UNetConfig(in_channels=9, out_channels=8, base_channels=8, max_channels=32, norm="affine"),
-            mlp=LightFieldMLPConfig(depth=3, width=32, feature_layer=1),
+            atlas_res=side,
+            feature_channels=channels,
+            unet=UNetConfig(in_channels=9, out_channels=channels, base_channels=base, max_channels=top, norm="affine"),
+            mlp=LightFieldMLPConfig(depth=depth, width=width, feature_layer=feature_layer),
         )
     if preset == "tiny":
         return ModelConfig(
