@@ -259,7 +259,7 @@ def _add_engine_commands(sub) -> None:
     p.add_argument("shards", type=Path)
     p.add_argument("--model", default=None, help="zoo name (default two_surface)")
     p.add_argument("--out", type=Path, required=True, help="run directory")
-    p.add_argument("--preset", default=None, help="paper | small (default) | tiny")
+    p.add_argument("--preset", default=None, help="paper | small (default) | realtime | tiny")
     p.add_argument("--iters", type=int, default=None)
     p.add_argument("--config", type=Path, default=None, help="JSON file of TrainConfig fields (incl. model_overrides)")
     p.add_argument("--resume", action="store_true", help="continue from the run directory's last checkpoint")
@@ -309,6 +309,8 @@ def _add_engine_commands(sub) -> None:
     p.add_argument("--inception-path", default=None,
                    help="pytorch-fid's pt_inception-2015-12-05-6726825d.pth for FID (else env / torch hub cache)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--fast", action="store_true",
+                   help="render by the CPU fast path of 'deliffas render'/'view' (to measure what it changes)")
     p.set_defaults(handler="eval")
 
     p = sub.add_parser("render", help="free-viewpoint video of a trained avatar driven by a motion")
@@ -321,6 +323,9 @@ def _add_engine_commands(sub) -> None:
     p.add_argument("--size", type=_size, default=None, help="WxH (default: the capture's)")
     p.add_argument("--fps", type=float, default=25.0)
     p.add_argument("--device", default="cpu")
+    p.add_argument("--plain", action="store_true",
+                   help="render as 'deliffas eval' does (ray-cast uvs, fp32 MLP) instead of the CPU fast path "
+                        "(rasterised uvs, fused inputs, bf16 MLP where the CPU has native bf16)")
     p.set_defaults(handler="render")
 
     p = sub.add_parser("view", help="interactive free-viewpoint viewer in the browser (viser)",
@@ -340,6 +345,9 @@ def _add_engine_commands(sub) -> None:
     p.add_argument("--resolution", type=_positive_int, default=512,
                    help="longest side of the still image in pixels (default 512; halved while moving)")
     p.add_argument("--device", default="cpu", help="cpu | cuda | cuda:N")
+    p.add_argument("--plain", action="store_true",
+                   help="render as 'deliffas eval' does (ray-cast uvs, fp32 MLP) instead of the CPU fast path "
+                        "(rasterised uvs, fused inputs, bf16 MLP where the CPU has native bf16)")
     p.set_defaults(handler="view")
 
     p = sub.add_parser("demo", help="the whole path on the embedded procedural character, with a report")

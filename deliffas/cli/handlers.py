@@ -211,7 +211,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     result = evaluate(EvalConfig(run=str(args.run), split=args.split, protocol=args.protocol, shards=args.shards,
                                  max_frames=args.max_frames, device=args.device, save_images=args.save_images,
                                  vgg16_path=args.vgg16_path, lpips_path=args.lpips_path,
-                                 inception_path=args.inception_path, grid=args.grid))
+                                 inception_path=args.inception_path, grid=args.grid, fast=args.fast))
     if args.json:
         print(json.dumps(result))
         return 0
@@ -236,7 +236,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     retain_freed_memory()
     out = render_video(RenderConfig(run=str(args.run), out=str(args.out), orbit=args.orbit,
                                     motion=str(args.motion) if args.motion else None, frames=args.frames,
-                                    size=args.size, device=args.device, fps=args.fps))
+                                    size=args.size, device=args.device, fps=args.fps, fast=not args.plain))
     print(f"wrote {out}")
     return 0
 
@@ -251,7 +251,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
 def cmd_view(args: argparse.Namespace) -> int:
     cfg = ViewConfig(run=str(args.run), compare=str(args.compare) if args.compare else None,
                      motion=str(args.motion) if args.motion else None, shards=str(args.shards) if args.shards else None,
-                     host=args.host, port=args.port, device=args.device, max_resolution=args.resolution)
+                     host=args.host, port=args.port, device=args.device, max_resolution=args.resolution,
+                     fast=not args.plain)
     print(f"deliffas view: open http://{'127.0.0.1' if cfg.host in ('0.0.0.0', '::') else cfg.host}:{cfg.port} "
           "(Ctrl+C stops)", flush=True)
     view(cfg)

@@ -27,6 +27,7 @@ import torch
 from deliffas.engine.data_bridge import EVAL_SPLITS, evaluation_samples, resolve_protocol
 from deliffas.engine.figures import GridImage, comparison_grid
 from deliffas.engine.rays import camera_rays, paint_images, ray_query, stack_rays
+from deliffas.engine.realtime import FastRender, fast_render_camera
 from deliffas.engine.samples import FrameSample, composite_target
 from deliffas.engine.timing import StageTimer
 from deliffas.geometry.raycast import UVRaycaster
@@ -79,6 +80,9 @@ class EvalConfig:
     """PNG path of a comparison grid (GT | prediction | error heat map) of the first images, or None."""
     grid_images: int = 3
     """Rows of that grid (one image per frame, the first camera)."""
+    fast: bool = False
+    """Render by ``engine.realtime``'s CPU fast path (rasterised uvs, bf16 MLP where native) instead
+    of the reference path, to measure what it changes."""
 
 
 def load_run(run: str | Path, device: str | torch.device = "cpu") -> tuple[DeliffasModel, dict]:
@@ -92,21 +96,24 @@ def load_run(run: str | Path, device: str | torch.device = "cpu") -> tuple[Delif
 
 @torch.no_grad()
 def render_frame(model: DeliffasModel, sample: FrameSample, raycaster, device: torch.device,
-                 timer: StageTimer, chunk_size: int = 262144) -> torch.Tensor:
+                 timer: StageTimer, chunk_size: int = 262144, fast: FastRender | None = None) -> torch.Tensor:
     """Render every camera of ``sample`` with per-stage timing; (K, H, W, 3) on black.
 
     ``sample.rays`` is ignored: the rays are cast here so the ``uv`` stage is timed.
     """
     with timer.stage("cnn"):
         features = model.encode(*sample.normal_maps(device))
-    return torch.stack([render_camera(model, features, raycaster, cam, device, timer, chunk_size)
+    return torch.stack([render_camera(model, features, raycaster, cam, device, timer, chunk_size, fast)
                         for cam in sample.cameras])
 
 
 @torch.no_grad()
 def render_camera(model: DeliffasModel, features: FrameFeatures, raycaster, camera: Camera, device: torch.device,
-                  timer: StageTimer, chunk_size: int = 262144) -> torch.Tensor:
-    """One camera's (H, W, 3) image on black from the frame's encoded ``features`` (stages uv, sample, mlp)."""
+                  timer: StageTimer, chunk_size: int = 262144, fast: FastRender | None = None) -> torch.Tensor:
+    """One camera's (H, W, 3) image on black from the frame's encoded ``features`` (stages uv, sample, mlp);
+    with ``fast`` on CPU, by ``engine.realtime`` (rasterised uvs, fused inputs, bf16 MLP where native)."""
+    if fast is not None and torch.device(device).type == "cpu":
+        return fast_render_camera(model, features, raycaster, camera, timer, fast)
     with timer.stage("uv"):
         batch = stack_rays([camera_rays(raycaster, camera)], [0]).to(device)
         query = ray_query(batch, model.spec)
@@ -142,6 +149,7 @@ def evaluate(cfg: EvalConfig) -> dict:
                           device=device)
     grid_rows: list[GridImage] = []
     timer = StageTimer(device)
+    fast = FastRender() if cfg.fast else None
     n_images = n_frames = 0
     cameras_seen: set[int] = set()
     t_wall = 0.0
@@ -149,12 +157,12 @@ def evaluate(cfg: EvalConfig) -> dict:
     for sample in samples:
         if not warmed:  # first use of open3d and of the model's kernels is slow; keep it out of the timing
             render_frame(model, sample, UVRaycaster(sample.inner_verts, info["faces"], sample.outer_verts, info["atlas"]),
-                         device, StageTimer(device), cfg.chunk_size)
+                         device, StageTimer(device), cfg.chunk_size, fast)
             warmed = True
         t0 = time.perf_counter()
         with timer.stage("scene"):
             raycaster = UVRaycaster(sample.inner_verts, info["faces"], sample.outer_verts, info["atlas"])
-        preds = render_frame(model, sample, raycaster, device, timer, cfg.chunk_size)
+        preds = render_frame(model, sample, raycaster, device, timer, cfg.chunk_size, fast)
         t_wall += time.perf_counter() - t0
         gt = composite_target(sample.images, sample.masks)  # black background
         for k in range(sample.num_cameras):
@@ -210,6 +218,7 @@ def evaluate(cfg: EvalConfig) -> dict:
         "fps": 1000.0 / total_single if total_single > 0 else None,
         "fps_shared_cnn": n_images / t_wall if t_wall > 0 else None,
         "device": str(device),
+        "render_path": f"fast ({fast.torch_dtype()})" if fast else "plain",
         "perceptual_backbone": record.get("perceptual_backbone"),
     }
     return result
