@@ -20,6 +20,9 @@ from typing import Literal, Mapping
 
 import numpy as np
 
+from deliffas.io.dna_rendering import SmcFile
+from deliffas.io.files import durable_replace, temp_path
+
 __all__ = ["Undistortion", "FileFramesSpec", "FileFrameSource", "SmcFramesSpec", "SmcFrameSource", "undistort_maps",
            "image_file_size", "numbered_files", "write_image_file"]
 
@@ -87,7 +90,6 @@ def write_image_file(path: Path, image: np.ndarray, jpeg_quality: int = 95) -> P
     """Write an (H, W, 3) RGB or (H, W) grey uint8 image as ``.jpg`` (``jpeg_quality``) or ``.png``, atomically."""
     import cv2
 
-    from deliffas.io.files import durable_replace, temp_path
 
     p = Path(path)
     img = np.ascontiguousarray(image[..., ::-1] if image.ndim == 3 else image)
@@ -210,7 +212,6 @@ class SmcFrameSource:
     """Decodes the JPEG images and masks of an ``.smc`` by (frame, camera index)."""
 
     def __init__(self, spec: SmcFramesSpec):
-        from deliffas.io.dna_rendering import SmcFile
 
         self.spec = spec
         self._smc = SmcFile(spec.path)

@@ -19,7 +19,15 @@ import numpy as np
 
 from deliffas.engine.realtime import default_fast_render
 from deliffas.engine.view.config import ViewConfig
-from deliffas.engine.view.renderer import VIEW_MODES, RenderWorker, ViewRenderer, ViewRequest, ViewResult, scaled_request
+from deliffas.engine.view.renderer import (
+    VIEW_MODES,
+    RenderWorker,
+    ViewRenderer,
+    ViewRequest,
+    ViewResult,
+    fit_camera,
+    scaled_request,
+)
 from deliffas.engine.view.scene import ViewScene
 from deliffas.io.cameras import Camera
 
@@ -271,8 +279,6 @@ class _Viewer:
             capture = view.capture_camera
             serial = view.serial
         if capture is not None:  # the capture camera itself (its own intrinsics), at most the still size
-            from deliffas.engine.view.renderer import fit_camera
-
             side = self.max_res.value
             camera = fit_camera(self.scene.cameras[capture], side, side, upscale=False)
         else:
