@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from deliffas.io.files import durable_replace, temp_path
+from deliffas.io.files import write_bytes_atomic
 
 __all__ = ["AvatarFile", "AvatarFileError", "write_avatar_file", "read_avatar_file", "AVATAR_FORMAT",
            "AVATAR_VERSION", "AVATAR_SUFFIX"]
@@ -74,15 +74,7 @@ def write_avatar_file(path: str | os.PathLike, arrays: dict[str, np.ndarray], re
                 "sha256": json.dumps({k: _array_sha256(v) for k, v in sorted(clean.items())}, sort_keys=True)}
     blob = safetensors_save(clean, metadata=metadata)
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = temp_path(out)
-    try:
-        with open(tmp, "wb") as fh:
-            fh.write(blob)
-        durable_replace(tmp, out)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    return out
+    return write_bytes_atomic(out, blob)
 
 
 def _json_object(path: Path, metadata: dict, key: str) -> dict:
