@@ -127,6 +127,8 @@ class Trainer:
             raise ValueError("ray_chunk needs a single process (under DDP every rank shades its rays in one graph)")
         self.device = device = _device(cfg, self.world)
         self.run_dir = run = Path(cfg.out)
+        if resume and (run / STATE_FILE).is_file():
+            read_training_state(run)  # a broken state is named before anything else is read
         self.identity = capture_identity(ShardSet(cfg.shards).meta)
         if resume and (run / RUN_MARKER).is_file():
             _check_resumed_capture(run, cfg.shards, self.identity)
