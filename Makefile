@@ -8,7 +8,7 @@ STAMP := $(VENV)/.setup-stamp
 DEMO_OUT ?= demo_out
 PYTEST_ARGS ?=
 
-.PHONY: setup test demo bench clean
+.PHONY: setup test soak demo bench clean
 
 setup: $(STAMP)
 
@@ -23,6 +23,12 @@ $(STAMP): pyproject.toml scripts/system_deps.sh
 test: setup
 	$(VENV)/bin/lint-imports --no-cache
 	$(PY) -m pytest -q $(PYTEST_ARGS)
+
+# The reliability suite at soak scale: >= 10,000 fuzz cases per reader, >= 20 SIGKILLs of conversion.
+soak: setup
+	DELIFFAS_SOAK=1 $(PY) -m pytest -q tests/reliability/test_fuzz_readers.py \
+		tests/reliability/test_fuzz_artifacts.py tests/reliability/test_convert_crash.py \
+		tests/reliability/test_checkpoints.py $(PYTEST_ARGS)
 
 demo: setup
 	$(VENV)/bin/deliffas demo --out $(DEMO_OUT)

@@ -60,6 +60,31 @@ def _path_with_suffix(*suffixes: str):
     return parse
 
 
+def _device_name(text: str) -> str:
+    """An argparse type: ``cpu``, ``cuda`` or ``cuda:N`` (whether this machine has it: engine.devices)."""
+    if text != "cpu" and text != "cuda" and not (text.startswith("cuda:") and text[5:].isdigit()):
+        raise argparse.ArgumentTypeError(f"expected cpu, cuda or cuda:N, got {text!r}")
+    return text
+
+
+def _video_or_folder(text: str) -> Path:
+    """An argparse type: a ``.mp4``/``.avi`` file, or a folder (no suffix) for PNG frames."""
+    p = Path(text)
+    if p.suffix and p.suffix.lower() not in (".mp4", ".avi"):
+        raise argparse.ArgumentTypeError(f"expected a .mp4 or .avi file or a folder without a suffix, got {text!r}")
+    return p
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a positive finite number, got {text!r}")
+    return value
+
+
 def _int_list(text: str) -> tuple[int, ...]:
     try:
         return tuple(int(v) for v in text.replace(",", " ").split())
@@ -247,8 +272,10 @@ def _add_geometry_commands(sub) -> None:
 
 
 def _add_engine_commands(sub) -> None:
-    p = sub.add_parser("zoo", help="list the model zoo (named configurations and presets)")
+    p = sub.add_parser("zoo", help="list the model zoo (named configurations and presets) and avatar files")
     p.add_argument("action", choices=["list"], help="what to do")
+    p.add_argument("folder", type=Path, nargs="?", default=None,
+                   help="also list the .avatar files found under this folder (name, model, preset, size)")
     p.add_argument("--json", action="store_true", help="print JSON")
     p.add_argument("--count-paper", action="store_true", help="also build the paper-size models to count parameters")
     p.set_defaults(handler="zoo")
@@ -260,21 +287,23 @@ def _add_engine_commands(sub) -> None:
     p.add_argument("--model", default=None, help="zoo name (default two_surface)")
     p.add_argument("--out", type=Path, required=True, help="run directory")
     p.add_argument("--preset", default=None, help="paper | small (default) | realtime | tiny")
-    p.add_argument("--iters", type=int, default=None)
+    p.add_argument("--iters", type=_positive_int, default=None, help="training iterations (>= 1)")
     p.add_argument("--config", type=Path, default=None, help="JSON file of TrainConfig fields (incl. model_overrides)")
-    p.add_argument("--resume", action="store_true", help="continue from the run directory's last checkpoint")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the run in --out from its last checkpoint (on the same capture)")
+    p.add_argument("--overwrite", action="store_true", help="replace an earlier run in --out")
     p.add_argument("--perceptual", choices=["none", "vgg16-imagenet", "vgg16-random"], default=None,
                    help="stage-2 perceptual backbone; vgg16-random is the explicit offline option")
     p.add_argument("--perceptual-mode", choices=["image", "patch"], default=None)
     p.add_argument("--vgg16-path", default=None, help="ImageNet VGG-16 weights (.pth/.safetensors)")
-    p.add_argument("--cameras-per-frame", type=int, default=None)
-    p.add_argument("--device", default=None, help="cpu | cuda | cuda:N")
-    p.add_argument("--workers", dest="num_workers", type=int, default=None, help="DataLoader workers")
+    p.add_argument("--cameras-per-frame", type=_positive_int, default=None)
+    p.add_argument("--device", type=_device_name, default=None, help="cpu | cuda | cuda:N")
+    p.add_argument("--workers", dest="num_workers", type=_non_negative_int, default=None, help="DataLoader workers")
     p.add_argument("--seed", type=int, default=None)
-    p.add_argument("--ray-chunk", type=int, default=None,
+    p.add_argument("--ray-chunk", type=_positive_int, default=None,
                    help="rays per backward pass (bounds training memory; single process)")
-    p.add_argument("--checkpoint-every", type=int, default=None)
-    p.add_argument("--preview-every", type=int, default=None)
+    p.add_argument("--checkpoint-every", type=_positive_int, default=None)
+    p.add_argument("--preview-every", type=_non_negative_int, default=None)
     p.add_argument("--protocol", choices=["auto", "paper", "all"], default=None,
                    help="frames used: paper = every 10th (DELIFFAS), all = every frame, auto (default) = paper "
                         "from 100 training frames on, else all; stated at start")
@@ -299,8 +328,8 @@ def _add_engine_commands(sub) -> None:
     p.add_argument("--protocol", choices=["paper", "all"], default=None,
                    help="frames: paper = every 10th, all = every frame (default: the run's)")
     p.add_argument("--shards", default=None, help="shard directory (default: the run's)")
-    p.add_argument("--max-frames", type=int, default=None, help="at most this many frames, evenly spaced")
-    p.add_argument("--device", default="cpu", help="cpu | cuda | cuda:N (default cpu)")
+    p.add_argument("--max-frames", type=_positive_int, default=None, help="at most this many frames, evenly spaced")
+    p.add_argument("--device", type=_device_name, default="cpu", help="cpu | cuda | cuda:N (default cpu)")
     p.add_argument("--save-images", default=None, help="folder for predicted images (white background)")
     p.add_argument("--grid", default=None, metavar="PNG",
                    help="write a comparison grid (GT | prediction | error heat map, >= 256 px panels)")
@@ -314,19 +343,35 @@ def _add_engine_commands(sub) -> None:
     p.set_defaults(handler="eval")
 
     p = sub.add_parser("render", help="free-viewpoint video of a trained avatar driven by a motion")
-    p.add_argument("run", type=Path)
-    p.add_argument("--out", type=Path, required=True, help="video file (.mp4 or .avi)")
-    p.add_argument("--orbit", action="store_true", help="camera orbits the avatar (default: capture camera 0)")
+    p.add_argument("run", type=Path, help="run directory of 'deliffas train' or an .avatar file of 'deliffas export'")
+    p.add_argument("--out", type=_video_or_folder, required=True,
+                   help="video file (.mp4: H.264; .avi: Motion-JPEG) or a new folder for PNG frames")
+    p.add_argument("--orbit", action="store_true", help="camera orbits the avatar (default: a capture camera)")
+    p.add_argument("--camera", type=_non_negative_int, default=None, metavar="INDEX",
+                   help="capture camera (calibration index) to render from (default: the first test camera)")
     p.add_argument("--motion", type=Path, default=None,
                    help=".motion (DDC template) or AMASS .npz (SMPL template) (default: the capture's test motion)")
-    p.add_argument("--frames", type=int, default=None, help="number of frames (default: all of the motion, max 300)")
+    p.add_argument("--frames", type=_positive_int, default=None,
+                   help="number of frames (default: all of the motion, max 300); more than the motion has needs --loop")
+    p.add_argument("--loop", action="store_true", help="play the motion again from its start to fill --frames")
     p.add_argument("--size", type=_size, default=None, help="WxH (default: the capture's)")
-    p.add_argument("--fps", type=float, default=25.0)
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--fps", type=_positive_float, default=25.0)
+    p.add_argument("--device", type=_device_name, default="cpu", help="cpu | cuda | cuda:N (default cpu)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out video")
     p.add_argument("--plain", action="store_true",
                    help="render as 'deliffas eval' does (ray-cast uvs, fp32 MLP) instead of the CPU fast path "
                         "(rasterised uvs, fused inputs, bf16 MLP where the CPU has native bf16)")
     p.set_defaults(handler="render")
+
+    p = sub.add_parser("export", help="write a run as one .avatar file (model, template, atlas, cameras)",
+                       description="Write RUN's model (config and weights), template spec and source files, atlas, "
+                                   "faces and capture cameras as one safetensors file with JSON metadata and "
+                                   "sha256s (no pickle). 'deliffas render OUT.avatar --motion M' and 'deliffas view' "
+                                   "load it anywhere, without the shards or the subject.")
+    p.add_argument("run", type=Path, help="run directory written by 'deliffas train'")
+    p.add_argument("out", type=_path_with_suffix(".avatar"), help="the avatar file to write (.avatar)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing OUT")
+    p.set_defaults(handler="export")
 
     p = sub.add_parser("view", help="interactive free-viewpoint viewer in the browser (viser)",
                        description="Serve a browser viewer of a trained run: free camera (orbit, pan, zoom), "
@@ -334,7 +379,7 @@ def _add_engine_commands(sub) -> None:
                                    "normal / U-Net feature views, the inner and outer meshes, ground truth and "
                                    "error at capture cameras, per-stage timing. Open the printed URL; over SSH "
                                    "forward the port (ssh -L 8080:127.0.0.1:8080 HOST). No authentication.")
-    p.add_argument("run", type=Path, help="run directory written by 'deliffas train'")
+    p.add_argument("run", type=Path, help="run directory written by 'deliffas train' or an .avatar file")
     p.add_argument("--compare", type=Path, default=None, help="a second run on the same shards, side by side")
     p.add_argument("--motion", type=Path, default=None,
                    help="driving motion: DynaCap .motion or SMPL .npz (default: the capture's own frames)")
@@ -344,7 +389,7 @@ def _add_engine_commands(sub) -> None:
     p.add_argument("--port", type=_port, default=8080, help="port (default 8080)")
     p.add_argument("--resolution", type=_positive_int, default=512,
                    help="longest side of the still image in pixels (default 512; halved while moving)")
-    p.add_argument("--device", default="cpu", help="cpu | cuda | cuda:N")
+    p.add_argument("--device", type=_device_name, default="cpu", help="cpu | cuda | cuda:N")
     p.add_argument("--plain", action="store_true",
                    help="render as 'deliffas eval' does (ray-cast uvs, fp32 MLP) instead of the CPU fast path "
                         "(rasterised uvs, fused inputs, bf16 MLP where the CPU has native bf16)")

@@ -28,6 +28,7 @@ from deliffas.data.synth import SynthConfig, synthesize_capture
 from deliffas.data.template_build import build_templates
 from deliffas.models.deliffas import DeliffasModel
 from deliffas.models.zoo import get_config, list_models, list_presets
+from deliffas.engine.avatar import export_avatar, list_avatars
 from deliffas.engine.auto_capacity import AutoCapacityConfig, auto_capacity
 from deliffas.engine.demo import DemoConfig, run_demo
 from deliffas.engine.evaluate import EvalConfig, evaluate
@@ -165,13 +166,19 @@ def cmd_zoo(args: argparse.Namespace) -> int:
             rows.append({"model": name, "preset": preset, "atlas_res": cfg.atlas_res,
                          "mlp": f"{cfg.mlp.depth}x{cfg.mlp.width}", "features": cfg.feature_channels,
                          "parameters": params})
+    avatars = list_avatars(args.folder) if args.folder is not None else []
     if args.json:
-        print(json.dumps(rows, indent=2))
+        print(json.dumps({"models": rows, "avatars": avatars} if args.folder is not None else rows, indent=2))
         return 0
     print(f"{'model':<26} {'preset':<7} {'S':>5} {'mlp':>7} {'feat':>5} {'params':>12}")
     for r in rows:
         p = f"{r['parameters']:,}" if r["parameters"] is not None else "(--count-paper)"
         print(f"{r['model']:<26} {r['preset']:<7} {r['atlas_res']:>5} {r['mlp']:>7} {r['features']:>5} {p:>12}")
+    if args.folder is not None:
+        print(f"\navatar files under {args.folder}: {len(avatars)}")
+        for a in avatars:
+            print(f"{a['path']}: " + (f"error: {a['error']}" if a.get("error") else
+                                      f"{a['model']} ({a['preset']}), S {a['atlas_res']}, {a['mb']:.1f} MB"))
     return 0
 
 
@@ -200,7 +207,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         result = auto_capacity(cfg, AutoCapacityConfig(tolerance_db=args.tolerance_db))
         print(json.dumps(result, indent=2))
         return 0
-    result = train(cfg, resume=args.resume)
+    result = train(cfg, resume=args.resume, overwrite=args.overwrite)
     print(f"trained {cfg.model} ({cfg.preset}) for {result.iterations} iterations in {result.seconds:.0f} s "
           f"({result.iters_per_second:.2f} it/s); run in {result.run_dir}")
     return 0
@@ -236,8 +243,15 @@ def cmd_render(args: argparse.Namespace) -> int:
     retain_freed_memory()
     out = render_video(RenderConfig(run=str(args.run), out=str(args.out), orbit=args.orbit,
                                     motion=str(args.motion) if args.motion else None, frames=args.frames,
-                                    size=args.size, device=args.device, fps=args.fps, fast=not args.plain))
+                                    size=args.size, device=args.device, fps=args.fps, loop=args.loop,
+                                    camera=args.camera, overwrite=args.overwrite, fast=not args.plain))
     print(f"wrote {out}")
+    return 0
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    out = export_avatar(args.run, args.out, overwrite=args.overwrite)
+    print(f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB): model, template files, atlas and cameras of {args.run}")
     return 0
 
 

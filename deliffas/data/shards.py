@@ -352,10 +352,10 @@ def read_manifest(out_dir: str | os.PathLike) -> dict:
     """The parsed ``manifest.json`` of an output folder (FileNotFoundError / ValueError when missing or bad)."""
     p = Path(out_dir) / MANIFEST_NAME
     try:
-        data = json.loads(p.read_text())
-    except json.JSONDecodeError as err:
-        raise ValueError(f"{p}: not valid JSON ({err})") from None
-    if data.get("format") != MANIFEST_FORMAT:
+        data = json.loads(p.read_bytes().decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"{p}: not valid UTF-8 JSON ({err})") from None
+    if not isinstance(data, dict) or data.get("format") != MANIFEST_FORMAT:
         raise ValueError(f"{p}: not a deliffas shard manifest")
     return data
 

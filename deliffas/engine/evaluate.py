@@ -24,7 +24,9 @@ from typing import Literal
 import numpy as np
 import torch
 
+from deliffas.engine.devices import resolve_device
 from deliffas.engine.data_bridge import EVAL_SPLITS, evaluation_samples, resolve_protocol
+from deliffas.engine.identity import check_run_shards
 from deliffas.engine.figures import GridImage, comparison_grid
 from deliffas.engine.rays import camera_rays, paint_images, ray_query, stack_rays
 from deliffas.engine.realtime import FastRender, fast_render_camera
@@ -128,11 +130,12 @@ def render_camera(model: DeliffasModel, features: FrameFeatures, raycaster, came
 
 def evaluate(cfg: EvalConfig) -> dict:
     """Evaluate a run on a split; returns the JSON-ready result (see ``deliffas eval --json``)."""
-    device = torch.device(cfg.device)
+    device = resolve_device(cfg.device)
     model, record = load_run(cfg.run, device)
     shards = cfg.shards or record.get("train", {}).get("shards")
     if shards is None:
         raise ValueError(f"{cfg.run}: no shards recorded in train_config.json; pass --shards")
+    check_run_shards(cfg.run, record, shards)
     protocol = cfg.protocol or _run_protocol(record, shards)
     if cfg.split not in EVAL_SPLITS:
         raise ValueError(f"split must be one of {EVAL_SPLITS}, got {cfg.split!r}")

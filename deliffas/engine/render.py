@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -13,15 +12,17 @@ import torch
 
 from deliffas.io.cameras import Camera, look_at
 from deliffas.data.pose_motions import MOTION_SUFFIXES, read_pose_motion
-from deliffas.data.shards import ShardSet
 from deliffas.geometry.atlas import TexelTable, UVAtlas
 from deliffas.geometry.frame_geometry import FrameGeometryBuilder
 from deliffas.geometry.templates import build_template
-from deliffas.engine.evaluate import load_run
+from deliffas.engine.avatar import load_avatar
+from deliffas.engine.devices import resolve_device
 from deliffas.engine.rays import camera_rays, paint_images, ray_query, stack_rays
 from deliffas.engine.realtime import FastRender, default_fast_render, fast_render_camera
 from deliffas.engine.timing import StageTimer
 from deliffas.geometry.raycast import UVRaycaster
+from deliffas.io.files import claim_output_file
+from deliffas.io.video import VIDEO_SUFFIXES, write_video
 
 __all__ = ["RenderConfig", "render_video", "orbit_cameras", "render_images", "motion_geometry_builder"]
 
@@ -33,15 +34,22 @@ class RenderConfig:
     """A free-viewpoint render."""
 
     run: str
-    """Run directory of ``deliffas train``."""
+    """Run directory of ``deliffas train`` or an ``.avatar`` file of ``deliffas export``."""
     out: str
-    """Video file (.mp4 or .avi); a folder of PNGs when it has no suffix."""
+    """Video file (.mp4: H.264, or .avi: Motion-JPEG); a folder of PNGs when it has no suffix."""
     orbit: bool = True
-    """Camera orbits the avatar once over the video; False = the capture's first test camera."""
+    """Camera orbits the avatar once over the video; False = capture camera ``camera``."""
     motion: str | None = None
     """Driving .motion (default: the capture's novel-pose motion, else its training motion)."""
     frames: int | None = None
-    """Number of motion frames (default: all, at most 300)."""
+    """Number of video frames (default: all of the motion, at most 300); more than the motion has is an
+    error unless ``loop``."""
+    loop: bool = False
+    """Play the motion again from its start when ``frames`` exceeds it."""
+    camera: int | None = None
+    """Calibration index of the capture camera to render from (default: the first test camera); not with ``orbit``."""
+    overwrite: bool = False
+    """Replace an existing ``out`` file (a folder of PNGs must be new or empty)."""
     size: tuple[int, int] | None = None
     """(W, H) of the video (default: the capture's image size)."""
     device: str = "cpu"
@@ -105,20 +113,28 @@ def render_video(cfg: RenderConfig) -> Path:
     import cv2
     from tqdm import tqdm
 
-
-    device = torch.device(cfg.device)
-    model, record = load_run(cfg.run, device)
-    shards = record.get("train", {}).get("shards")
-    if not shards:
-        raise ValueError(f"{cfg.run}: train_config.json names no shards")
-    meta = ShardSet(shards).meta
+    out = Path(cfg.out)
+    if out.suffix and out.suffix.lower() not in VIDEO_SUFFIXES:
+        raise ValueError(f"video must end in .mp4 or .avi (or be a folder), got {out.name}")
+    if cfg.camera is not None and cfg.orbit:
+        raise ValueError("camera: a capture camera and an orbit exclude each other")
+    if out.suffix:
+        claim_output_file(out, cfg.overwrite)
+    elif out.is_dir() and any(out.iterdir()):
+        raise FileExistsError(f"{out}: not empty; give a new or empty folder for the PNG frames")
+    device = resolve_device(cfg.device)
+    model, record, meta = load_avatar(cfg.run, device)
     spec = meta.template_spec()
     template, builder = motion_geometry_builder(meta)
     motion_path = Path(cfg.motion) if cfg.motion else _default_motion(Path(meta.attrs["subject"]),
                                                                       MOTION_SUFFIXES[spec.kind])
     motion = read_pose_motion(motion_path, spec, template.num_dofs)
-    n = min(motion.num_frames, cfg.frames or 300)
-    inner = template.pose(torch.as_tensor(motion.dofs[:n], dtype=torch.float64)).numpy()
+    n = cfg.frames or min(motion.num_frames, 300)
+    if n > motion.num_frames and not cfg.loop:
+        raise ValueError(f"frames: {n} asked, the motion {motion_path} has {motion.num_frames}; pass --loop to "
+                         "play it again from its start, or fewer --frames")
+    rows = np.arange(n) % motion.num_frames
+    inner = template.pose(torch.as_tensor(motion.dofs[rows], dtype=torch.float64)).numpy()
     geometry = builder.build(inner)
     T = model.config.temporal_window
     cams_all = meta.cameras()
@@ -130,11 +146,13 @@ def render_video(cfg: RenderConfig) -> Path:
         height = float(np.median(ref_centers[:, 1]))
         cameras = orbit_cameras(cams_all[0], centers, radius, height, cfg.size)
     else:
-        base = cams_all[int(meta.test_cameras[0]) if len(meta.test_cameras) else 0]
+        index = cfg.camera if cfg.camera is not None else int(meta.test_cameras[0]) if len(meta.test_cameras) else 0
+        if not 0 <= index < len(cams_all):
+            raise ValueError(f"camera: {index} is not a capture camera (calibration indices 0..{len(cams_all) - 1})")
+        base = cams_all[index]
         base = base.rescaled(*cfg.size) if cfg.size else base
         cameras = [base] * n
     atlas = UVAtlas(meta.uvs, meta.face_uvs)
-    out = Path(cfg.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     fast = default_fast_render(device) if cfg.fast else None
     images = render_images(model, lambda i: geometry.window(i, T), geometry, meta.faces, atlas, cameras, device,
@@ -145,17 +163,5 @@ def render_video(cfg: RenderConfig) -> Path:
         for i, img in enumerate(bar):
             cv2.imwrite(str(out / f"{i:06d}.png"), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
         return out
-    fourcc = {".mp4": "mp4v", ".avi": "MJPG"}.get(out.suffix.lower())
-    if fourcc is None:
-        raise ValueError(f"video must end in .mp4 or .avi (or be a folder), got {out.name}")
-    tmp = out.with_name(f".{out.stem}.tmp-{os.getpid()}{out.suffix}")
-    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*fourcc), cfg.fps, (cameras[0].width, cameras[0].height))
-    if not writer.isOpened():
-        raise RuntimeError(f"OpenCV cannot write {out.suffix} videos here (codec {fourcc})")
-    try:
-        for img in bar:
-            writer.write(cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
-    finally:
-        writer.release()
-    os.replace(tmp, out)
+    write_video(out, bar, cfg.fps)
     return out

@@ -25,19 +25,56 @@ import torch
 import torch.distributed as dist
 from tqdm import tqdm
 
+from deliffas.data.shards import ShardSet
+from deliffas.engine.avatar import write_run_capture
 from deliffas.engine.checkpointing import STATE_FILE, load_training_state, read_training_state, save_training_state
 from deliffas.engine.data_bridge import shard_info, training_stream
+from deliffas.engine.devices import resolve_device
+from deliffas.engine.identity import CAPTURE_KEYS, capture_identity, check_identity
 from deliffas.engine.samples import FrameSample, composite_target
 from deliffas.engine.train_config import TrainConfig, TrainResult, resolve_model_config
 from deliffas.engine.train_step import balance_weight, render_sample_images, train_step
 from deliffas.models.deliffas import DeliffasModel
 from deliffas.models.losses import PerceptualLoss
+from deliffas.io.files import claim_output
 from deliffas.models.zoo import config_to_dict
 
 __all__ = ["TrainConfig", "TrainResult", "Trainer", "train", "train_step", "resolve_model_config",
-           "render_sample_images"]
+           "render_sample_images", "claim_run", "RUN_MARKER"]
 
 logger = logging.getLogger(__name__)
+
+RUN_MARKER = "train_config.json"
+"""The file every run writes first: a folder holding it is a deliffas run (``claim_run``)."""
+
+
+def claim_run(run: Path, resume: bool, overwrite: bool) -> None:
+    """Make ``run`` ready for training without ever replacing a user's work unasked.
+
+    A missing or empty folder is created. A run (it holds ``RUN_MARKER``) is continued with ``resume``
+    and replaced with ``overwrite``; any other non-empty folder is refused.
+
+    Raises:
+        FileExistsError: naming the folder and the option that would proceed.
+    """
+    if resume and (run / RUN_MARKER).is_file():
+        return
+    if run.is_dir() and any(run.iterdir()) and not overwrite:
+        if (run / RUN_MARKER).is_file():
+            raise FileExistsError(f"{run}: holds a training run; pass --resume to continue it or --overwrite to "
+                                  "replace it")
+        raise FileExistsError(f"{run}: not empty and not a training run (no {RUN_MARKER}); choose another --out")
+    claim_output(run, overwrite, marker=RUN_MARKER, what="a training run")
+
+
+def _check_resumed_capture(run: Path, shards: str, found: dict) -> None:
+    """A resumed run must continue on the capture it started on (the shards may have moved)."""
+    path = run / RUN_MARKER
+    try:
+        recorded = json.loads(path.read_text()).get("identity")
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path}: corrupted JSON ({exc})") from None
+    check_identity(recorded, f"the run {run}", found, f"the shards {shards}", CAPTURE_KEYS)
 
 
 def _lr_at(cfg: TrainConfig, step: int) -> float:
@@ -64,7 +101,7 @@ def _distributed() -> tuple[int, int]:
 
 
 def _device(cfg: TrainConfig, world: int) -> torch.device:
-    device = torch.device(cfg.device if cfg.device != "cuda" or torch.cuda.is_available() else "cpu")
+    device = resolve_device(cfg.device)
     if device.type == "cuda" and world > 1:
         device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", 0)))
     return device
@@ -79,17 +116,26 @@ class Trainer:
 
     Args:
         cfg: the run.
-        resume: continue from the run directory's last checkpoint when there is one.
+        resume: continue from the run directory's last checkpoint when there is one (on the same capture).
+        overwrite: replace an earlier run in ``cfg.out`` (see :func:`claim_run`).
     """
 
-    def __init__(self, cfg: TrainConfig, resume: bool = False) -> None:
+    def __init__(self, cfg: TrainConfig, resume: bool = False, overwrite: bool = False) -> None:
         self.cfg = cfg
         self.rank, self.world = _distributed()
         if cfg.ray_chunk is not None and self.world > 1:
             raise ValueError("ray_chunk needs a single process (under DDP every rank shades its rays in one graph)")
         self.device = device = _device(cfg, self.world)
         self.run_dir = run = Path(cfg.out)
-        run.mkdir(parents=True, exist_ok=True)
+        if resume and (run / STATE_FILE).is_file():
+            read_training_state(run)  # a broken state is named before anything else is read
+        self.identity = capture_identity(ShardSet(cfg.shards).meta)
+        if resume and (run / RUN_MARKER).is_file():
+            _check_resumed_capture(run, cfg.shards, self.identity)
+        if self.rank == 0:
+            claim_run(run, resume, overwrite)
+        if self.world > 1:
+            dist.barrier()
         torch.manual_seed(cfg.seed)
         if device.type == "cpu":
             # Leave the cores the DataLoader workers (and the other ranks) use: oversubscribed OpenMP
@@ -128,8 +174,9 @@ class Trainer:
         data = {k: v for k, v in info.items() if isinstance(v, (int, float, str, list)) and k != "cameras"}
         record = {"train": dataclasses.asdict(self.cfg), "model": config_to_dict(self.model_config), "data": data,
                   "perceptual_backbone": self.backbone, "world_size": self.world, "device": str(self.device),
-                  "num_parameters": self.model.num_parameters()}
-        (self.run_dir / "train_config.json").write_text(json.dumps(record, indent=2, default=str) + "\n")
+                  "num_parameters": self.model.num_parameters(), "identity": self.identity}
+        (self.run_dir / RUN_MARKER).write_text(json.dumps(record, indent=2, default=str) + "\n")
+        write_run_capture(self.run_dir, self.cfg.shards)
 
     def _stage_weight(self, it: int, sample: FrameSample) -> float:
         """The perceptual weight of iteration ``it``: 0 in stage 1, balanced once at the start of stage 2."""
@@ -213,6 +260,9 @@ class Trainer:
         return result
 
 
-def train(cfg: TrainConfig, resume: bool = False) -> TrainResult:
-    """Train one model; resumable; distributed when launched by ``torchrun`` (see :class:`Trainer`)."""
-    return Trainer(cfg, resume).run()
+def train(cfg: TrainConfig, resume: bool = False, overwrite: bool = False) -> TrainResult:
+    """Train one model; resumable; distributed when launched by ``torchrun`` (see :class:`Trainer`).
+
+    ``cfg.out`` must be missing, empty, a run to continue (``resume``) or a run to replace (``overwrite``).
+    """
+    return Trainer(cfg, resume, overwrite).run()

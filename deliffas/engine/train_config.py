@@ -14,8 +14,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+from deliffas.engine.devices import resolve_device
 from deliffas.models.deliffas import DeliffasModel, ModelConfig
-from deliffas.models.zoo import config_from_dict, config_to_dict, get_config
+from deliffas.models.zoo import config_from_dict, config_to_dict, get_config, list_models, list_presets
 
 __all__ = ["TrainConfig", "TrainResult", "resolve_model_config"]
 
@@ -76,6 +77,22 @@ class TrainConfig:
     preview_every: int = 250
     log_every: int = 10
     progress: bool = True
+
+    def __post_init__(self) -> None:
+        """Refuse bad values when the run is described, before any work starts (ValueError naming the field)."""
+        if self.model not in list_models():
+            raise ValueError(f"model: unknown {self.model!r}; the zoo has {', '.join(list_models())}")
+        if self.preset not in list_presets(self.model):
+            raise ValueError(f"preset: {self.model!r} has no preset {self.preset!r}; "
+                             f"presets: {', '.join(list_presets(self.model))}")
+        for name, minimum in (("iters", 1), ("cameras_per_frame", 1), ("checkpoint_every", 1), ("log_every", 1),
+                              ("preview_every", 0), ("num_workers", 0)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+                raise ValueError(f"{name}: expected a whole number >= {minimum}, got {value!r}")
+        if self.ray_chunk is not None and (not isinstance(self.ray_chunk, int) or self.ray_chunk < 1):
+            raise ValueError(f"ray_chunk: expected None or a whole number >= 1, got {self.ray_chunk!r}")
+        resolve_device(self.device)
 
 
 @dataclass(frozen=True)

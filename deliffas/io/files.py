@@ -12,7 +12,8 @@ import os
 import shutil
 from pathlib import Path
 
-__all__ = ["sha256_file", "temp_path", "durable_replace", "claim_output", "claim_output_file", "TMP_MARK"]
+__all__ = ["sha256_file", "temp_path", "durable_replace", "write_bytes_atomic", "claim_output", "claim_output_file",
+           "TMP_MARK"]
 
 TMP_MARK = ".tmp-"
 """Part of every temporary file name (``.<name>.tmp-<pid>``)."""
@@ -46,6 +47,19 @@ def durable_replace(tmp: str | os.PathLike, final: str | os.PathLike) -> None:
     finally:
         os.close(fd)
     os.replace(tmp, final)
+
+
+def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> Path:
+    """Write ``data`` under :func:`temp_path`, fsync and rename it to ``path`` (no partial file on a crash)."""
+    p = Path(path)
+    tmp = temp_path(p)
+    try:
+        tmp.write_bytes(data)
+        durable_replace(tmp, p)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return p
 
 
 def claim_output(path: str | os.PathLike, overwrite: bool, marker: str, what: str) -> Path:

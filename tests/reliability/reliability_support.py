@@ -18,6 +18,14 @@ CONVERT_ARGS = ("--shard-frames", "2", "--atlas-res", "32")
 CONVERT_KW = dict(shard_frames=2, atlas_res=32)
 """The same as ``ConvertConfig`` fields."""
 
+SOAK = os.environ.get("DELIFFAS_SOAK", "") not in ("", "0")
+"""``make soak`` (``DELIFFAS_SOAK=1``): the same tests at soak scale (>= 10,000 fuzz cases per reader,
+>= 20 SIGKILLs of conversion); unset in CI, which keeps the small counts."""
+FUZZ_EXAMPLES = int(os.environ.get("DELIFFAS_FUZZ_EXAMPLES", "10000" if SOAK else "150"))
+"""Hypothesis examples per fuzzed reader (``DELIFFAS_FUZZ_EXAMPLES`` overrides)."""
+KILL_ROUNDS = int(os.environ.get("DELIFFAS_KILL_ROUNDS", "4" if SOAK else "1"))
+"""Rounds of the seeded conversion kill chains (6 SIGKILLs each: 5 with --jobs 1 and --resume, 1 with --jobs 2)."""
+
 COUNTS: Counter = Counter()
 """What the suite exercised in this run."""
 

@@ -30,11 +30,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
-from reliability_support import CONVERT_ARGS, COUNTS, tree_state
+from reliability_support import CONVERT_ARGS, COUNTS, KILL_ROUNDS, tree_state
 
 from deliffas.data.shards import ShardFile, read_manifest, verify_shards
 
-pytestmark = pytest.mark.timeout(600)
+pytestmark = pytest.mark.timeout(600 * KILL_ROUNDS)
 
 SEED = 20231210
 KILL_TIMEOUT_S = 120.0
@@ -213,10 +213,16 @@ def _run_and_kill(cmd: list[str], out: Path, plan: KillPlan) -> dict:
             "temp_files": len(list(out.glob("shards/.*.tmp-*")) + list(out.glob(".*.tmp-*"))) if out.exists() else 0}
 
 
-def _chains(num_shards: int) -> list[list[KillPlan]]:
+def _chains(num_shards: int, rounds: int = 1) -> list[list[KillPlan]]:
     """Seeded kill points. Each chain is one output folder: its first process converts, every later
-    one is a ``--resume`` of the killed one, and after the last kill a clean ``--resume`` completes."""
-    rng = random.Random(SEED)
+    one is a ``--resume`` of the killed one, and after the last kill a clean ``--resume`` completes.
+    ``rounds`` > 1 (the soak) repeats both chains with further seeds."""
+    if rounds > 1:
+        return [c for r in range(rounds) for c in _chains_round(num_shards, random.Random(SEED + r))]
+    return _chains_round(num_shards, random.Random(SEED))
+
+
+def _chains_round(num_shards: int, rng: random.Random) -> list[list[KillPlan]]:
     a, b, c = sorted(rng.sample(range(0, num_shards - 2), 3))
     delay = lambda: rng.uniform(0.0, 0.04)  # noqa: E731 - within the next shard or two
     setup = lambda: rng.uniform(0.3, 1.2)  # noqa: E731 - imports (torch alone takes longer), planning
@@ -243,7 +249,7 @@ def test_sigkill_then_resume_equals_uninterrupted(rel_subject, rel_reference, tm
     kills = chains = missed = 0
     watch = Watch()
     log = []
-    for r, kill_plans in enumerate(_chains(num_shards)):
+    for r, kill_plans in enumerate(_chains(num_shards, KILL_ROUNDS)):
         out = tmp_path / f"chain{r}"
         watcher = Watcher(out, reference, watch)
         watcher.start()
@@ -277,7 +283,7 @@ def test_sigkill_then_resume_equals_uninterrupted(rel_subject, rel_reference, tm
     assert cli_main(["verify", str(out)]) == 0
     assert tree_state(rel_subject) == source_before, "the source folder changed"
     assert watch.files_checked > 0 and watch.manifests_read > 0
-    assert kills >= 4, f"only {kills} of {kills + missed} kills landed before the conversion finished"
+    assert kills >= 4 * KILL_ROUNDS, f"only {kills} of {kills + missed} kills landed before the conversion finished"
 
     listed = [x[2]["listed_at_kill"] for x in log]
     COUNTS["convert: SIGKILLs survived"] += kills

@@ -25,8 +25,9 @@ from deliffas.io.calibration import read_calibration, write_calibration
 from deliffas.io.meshes import MeshSequence, read_meshes, write_meshes
 from deliffas.io.cameras import Camera
 from deliffas.io.dynacap import DynaCapFormatError
+from reliability_support import COUNTS, FUZZ_EXAMPLES
 
-pytestmark = pytest.mark.timeout(300)
+pytestmark = pytest.mark.timeout(300 if FUZZ_EXAMPLES <= 1000 else 3600)
 
 CASES_RUN = itertools.count()
 
@@ -147,7 +148,7 @@ def _check(name: str, data: bytes, tmp: Path) -> None:
         assert isinstance(err, ValueError)
 
 
-SETTINGS = settings(max_examples=int(os.environ.get("DELIFFAS_FUZZ_EXAMPLES", "150")), deadline=None,
+SETTINGS = settings(max_examples=FUZZ_EXAMPLES, deadline=None,
                     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 
 
@@ -179,6 +180,7 @@ def test_arbitrary_text_never_crashes(text):
 def test_report_fuzz_count(capsys):
     """Prints the number of fuzzed cases of this run (for the reliability note)."""
     n = next(CASES_RUN)
+    COUNTS["fuzz: DynaCap/OBJ reader cases"] += n
     with capsys.disabled():
         print(f"\n[fuzz] {n} mutated reader cases ended in a parse or DynaCapFormatError")
     assert n > 0

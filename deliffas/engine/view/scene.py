@@ -19,7 +19,9 @@ import torch
 from deliffas.data.dataset import ShardDataset
 from deliffas.data.pose_motions import read_pose_motion
 from deliffas.data.shards import ShardSet
-from deliffas.engine.evaluate import load_run
+from deliffas.engine.avatar import load_avatar
+from deliffas.engine.devices import resolve_device
+from deliffas.engine.identity import check_identity, check_run_shards
 from deliffas.engine.render import motion_geometry_builder
 from deliffas.geometry.atlas import UVAtlas
 from deliffas.geometry.raycast import UVRaycaster
@@ -83,16 +85,26 @@ class ViewScene:
 
     def __init__(self, runs: list[str], shards: str | None = None, motion: str | None = None,
                  device: str = "cpu", max_frames: int = 300):
-        self.device = torch.device(device)
+        self.device = resolve_device(device)
         self.runs = []
-        for r in runs:
-            model, record = load_run(r, self.device)
+        captures = []
+        for r in runs:  # a run folder or an .avatar file: each carries its capture (no shards needed with a motion)
+            model, record, capture = load_avatar(r, self.device)
             self.runs.append(ViewRun(Path(r).name, model, record))
-        shards = shards or self.runs[0].record.get("train", {}).get("shards")
-        if not shards:
-            raise ValueError(f"{runs[0]}: no shards recorded in train_config.json; pass --shards")
-        self.shards = str(shards)
-        meta = ShardSet(self.shards).meta
+            captures.append(capture)
+        for r, run in zip(runs[1:], self.runs[1:]):
+            check_identity(self.runs[0].record.get("identity"), str(runs[0]), run.record.get("identity") or {}, str(r))
+        recorded = self.runs[0].record.get("train", {}).get("shards")
+        if motion is not None and shards is None and not (recorded and (Path(recorded) / "manifest.json").is_file()):
+            meta, shards = captures[0], None  # the shards moved: a motion needs only the run's capture record
+        else:
+            shards = shards or recorded
+            if not shards:
+                raise ValueError(f"{runs[0]}: no shards recorded; pass --shards (or --motion to view without them)")
+            for r, run in zip(runs, self.runs):
+                check_run_shards(r, run.record, shards)
+            meta = ShardSet(str(shards)).meta
+        self.shards = str(shards) if shards else None
         self.meta = meta
         self.cameras: list[Camera] = meta.cameras()
         self.converted_cameras = [int(c) for c in meta.converted_cameras]
