@@ -214,11 +214,14 @@ def test_browser_shows_the_avatar_and_the_timeline_moves_it(tiny_run, tiny_shard
             ctx.close()
             ctx = None
     finally:
-        if ctx is not None:
-            ctx.close()
-        proc.terminate()
         try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-        log.close()
+            if ctx is not None:
+                ctx.close()
+        finally:  # the server goes even when closing the browser fails (a loaded machine can time it out)
+            proc.terminate()
+            try:
+                proc.wait(10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(10)
+            log.close()

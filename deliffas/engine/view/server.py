@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import math
+import signal
 import threading
 import time
 from dataclasses import dataclass, field
@@ -319,6 +320,9 @@ def serve(cfg: ViewConfig, stop: threading.Event | None = None) -> None:
     scene = ViewScene([cfg.run] + ([cfg.compare] if cfg.compare else []), cfg.shards, cfg.motion, cfg.device,
                       cfg.max_frames)
     server = viser.ViserServer(host=cfg.host, port=cfg.port, label="deliffas view", verbose=False)
+    stop = stop or threading.Event()
+    if threading.current_thread() is threading.main_thread():  # SIGTERM (a service manager, a test) stops cleanly
+        signal.signal(signal.SIGTERM, lambda *_: stop.set())
     try:
         viewer = _Viewer(cfg, scene, server, vtf)
         server.on_client_connect(viewer.connect)
@@ -326,7 +330,7 @@ def serve(cfg: ViewConfig, stop: threading.Event | None = None) -> None:
         logger.info("deliffas view: http://%s:%d (%d frames, %d runs)", cfg.host, cfg.port, scene.num_frames,
                     len(scene.runs))
         next_frame = time.perf_counter()
-        while stop is None or not stop.is_set():
+        while not stop.is_set():
             time.sleep(_TICK_S)
             viewer.tick()
             if viewer.playing.value and time.perf_counter() >= next_frame:
