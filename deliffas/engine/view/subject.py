@@ -35,6 +35,7 @@ logger = logging.getLogger(__name__)
 _CACHED_FRAMES = 4
 _FREE = "free camera"
 _TICK_S = 0.03
+_SETTLE_S = 0.5
 
 
 def is_capture(path: str | os.PathLike) -> bool:
@@ -166,7 +167,8 @@ class _SubjectViewer:
 
         self.cfg, self.view, self.server = cfg, view, server
         self._pose_of, self._mm = capture_camera_pose, MM_PER_UNIT
-        self.inside: dict[int, tuple[int, tuple]] = {}  # client id -> (camera, (wxyz, position)) it looks through
+        self.inside: dict[int, tuple] = {}  # client id -> (camera, (wxyz, position), time) it looks through
+        self.dirty: dict[int, object] = {}  # clients whose camera moved since the last tick
         self.update_lock = threading.Lock()
         gui = server.gui
         with gui.add_folder("Camera"):
@@ -210,9 +212,10 @@ class _SubjectViewer:
             self.frustums[c] = h
         self.mesh = None
         self.show_frame()
-        wxyz, position, fov = self._pose_of(v.cameras[0])
-        init = self.server.initial_camera
-        init.position, init.look_at, init.fov = position, self._centre(), fov
+        _, position, fov = self._pose_of(v.cameras[0])
+        centre = self._centre()
+        init = self.server.initial_camera  # behind camera 0, so that its frustum and the others are in view
+        init.position, init.look_at, init.fov = centre + 1.6 * (position - centre), centre, fov
 
     def _centre(self) -> np.ndarray:
         return self.view.posed(int(self.frame.value)).mean(0) / self._mm
@@ -227,16 +230,16 @@ class _SubjectViewer:
                 side="double", visible=self._mesh_visible())
             for c, h in self.frustums.items():
                 h.image = self.view.frame_image(index, c, self.cfg.texture_resolution)[0]
-        for client_id, (cam, _) in list(self.inside.items()):
+        for client_id, held in list(self.inside.items()):
             client = self.server.get_clients().get(client_id)
             if client is not None:
-                self._background(client, cam)
+                self._background(client, held[0])
 
     def _mesh_visible(self) -> bool:
         return bool(self.show_mesh.value) and not self.inside  # the overlay shows the silhouette already
 
     def _visibility(self) -> None:
-        looking = {cam for cam, _ in self.inside.values()}
+        looking = {held[0] for held in self.inside.values()}
         for c, h in self.frustums.items():
             h.visible = bool(self.show_frustums.value) and c not in looking
         if self.mesh is not None:
@@ -246,7 +249,7 @@ class _SubjectViewer:
         """Move ``client``'s view to capture camera ``cam`` and show its overlay as the background."""
         camera = self.view.cameras[cam]
         wxyz, position, fov = self._pose_of(camera)
-        self.inside[client.client_id] = (cam, (wxyz, position))
+        self.inside[client.client_id] = (cam, (wxyz, position), time.perf_counter())
         self._visibility()
         with client.atomic():
             client.camera.fov = fov
@@ -267,21 +270,39 @@ class _SubjectViewer:
                           f"{self.view.label(result.index)})")
 
     def moved(self, client) -> None:
-        """A camera away from the capture camera it looked through becomes a free camera (no background)."""
-        held = self.inside.get(client.client_id)
-        if held is None:
-            return
-        wxyz, position = held[1]
-        cam = client.camera
-        if (np.abs(np.asarray(cam.position) - position).max() < 1e-3
-                and 1 - abs(float(np.dot(np.asarray(cam.wxyz), wxyz))) < 2e-5):
-            return
+        """Note a camera update; :meth:`tick` decides whether it left its capture camera."""
+        if client.client_id in self.inside:
+            self.dirty[client.client_id] = client
+
+    def tick(self) -> None:
+        """A camera away from the capture camera it looked through becomes a free camera (no background).
+
+        Judged ``_SETTLE_S`` after the move to the capture camera: the browser reports the intermediate
+        states of that move (position, look-at, orientation) one by one."""
+        now = time.perf_counter()
+        for client_id, client in list(self.dirty.items()):
+            held = self.inside.get(client_id)
+            if held is None:
+                self.dirty.pop(client_id, None)
+                continue
+            if now - held[2] < _SETTLE_S:
+                continue
+            self.dirty.pop(client_id, None)
+            wxyz, position = held[1]
+            cam = client.camera
+            if (np.abs(np.asarray(cam.position) - position).max() < 1e-3
+                    and 1 - abs(float(np.dot(np.asarray(cam.wxyz), wxyz))) < 2e-5):
+                continue
+            self._leave(client)
+
+    def _leave(self, client) -> None:
         self.inside.pop(client.client_id, None)
         client.scene.set_background_image(None)
         self._visibility()
         self.camera_menu.value = _FREE  # choosing the same camera again moves back to it
 
     def disconnect(self, client) -> None:
+        self.dirty.pop(client.client_id, None)
         if self.inside.pop(client.client_id, None) is not None:
             self._visibility()
 
@@ -311,6 +332,7 @@ def serve_subject(cfg: SubjectViewConfig, stop: threading.Event | None = None) -
         next_frame = time.perf_counter()
         while stop is None or not stop.is_set():
             time.sleep(_TICK_S)
+            viewer.tick()
             if viewer.playing.value and view.num_frames > 1 and time.perf_counter() >= next_frame:
                 viewer.frame.value = (int(viewer.frame.value) + 1) % view.num_frames
                 next_frame = time.perf_counter() + 1.0 / max(float(viewer.speed.value), 1e-3)
