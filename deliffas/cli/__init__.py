@@ -373,13 +373,22 @@ def _add_engine_commands(sub) -> None:
     p.add_argument("--overwrite", action="store_true", help="replace an existing OUT")
     p.set_defaults(handler="export")
 
-    p = sub.add_parser("view", help="interactive free-viewpoint viewer in the browser (viser)",
+    p = sub.add_parser("view", help="interactive viewer in the browser (viser): a trained run, or a capture",
                        description="Serve a browser viewer of a trained run: free camera (orbit, pan, zoom), "
                                    "the capture's cameras as frustums and a menu, a motion timeline, RGB / uv / "
                                    "normal / U-Net feature views, the inner and outer meshes, ground truth and "
-                                   "error at capture cameras, per-stage timing. Open the printed URL; over SSH "
-                                   "forward the port (ssh -L 8080:127.0.0.1:8080 HOST). No authentication.")
-    p.add_argument("run", type=Path, help="run directory written by 'deliffas train' or an .avatar file")
+                                   "error at capture cameras, per-stage timing. Given a capture folder instead "
+                                   "(no train_config.json), show the capture without a model: its cameras "
+                                   "textured with the current frame's images (red = held-out), the posed "
+                                   "template, and at a chosen camera its image with the template's silhouette "
+                                   "(green), the mask edge (red) and their IoU, as 'deliffas check' scores them. "
+                                   "Open the printed URL; over SSH forward the port "
+                                   "(ssh -L 8080:127.0.0.1:8080 HOST). No authentication.")
+    p.add_argument("run", type=Path, metavar="RUN|SUBJECT",
+                   help="run directory written by 'deliffas train', an .avatar file, or a capture folder (any supported format)")
+    p.add_argument("--format", default="auto", help="SUBJECT: capture format (default: detected)")
+    p.add_argument("--template", type=Path, default=None,
+                   help="SUBJECT: template, SMPL model .npz/.pkl (SMPL captures) or a DDC variant")
     p.add_argument("--compare", type=Path, default=None, help="a second run on the same shards, side by side")
     p.add_argument("--motion", type=Path, default=None,
                    help="driving motion: DynaCap .motion or SMPL .npz (default: the capture's own frames)")
@@ -388,7 +397,8 @@ def _add_engine_commands(sub) -> None:
                    help="interface to bind (default 127.0.0.1; 0.0.0.0 exposes the viewer and warns)")
     p.add_argument("--port", type=_port, default=8080, help="port (default 8080)")
     p.add_argument("--resolution", type=_positive_int, default=512,
-                   help="longest side of the still image in pixels (default 512; halved while moving)")
+                   help="longest side of the still image in pixels (default 512; halved while moving; SUBJECT: of the "
+                        "overlay at a capture camera)")
     p.add_argument("--device", type=_device_name, default="cpu", help="cpu | cuda | cuda:N")
     p.add_argument("--plain", action="store_true",
                    help="render as 'deliffas eval' does (ray-cast uvs, fp32 MLP) instead of the CPU fast path "

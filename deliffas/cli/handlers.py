@@ -35,7 +35,7 @@ from deliffas.engine.evaluate import EvalConfig, evaluate
 from deliffas.engine.memory import retain_freed_memory
 from deliffas.engine.render import RenderConfig, render_video
 from deliffas.engine.train import TrainConfig, train
-from deliffas.engine.view import ViewConfig, view
+from deliffas.engine.view import SubjectViewConfig, ViewConfig, is_capture, view, view_subject
 
 
 def cmd_pose(args: argparse.Namespace) -> int:
@@ -263,11 +263,28 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_view(args: argparse.Namespace) -> int:
+    if is_capture(args.run):
+        given = [flag for flag, value in (("--compare", args.compare), ("--motion", args.motion),
+                                          ("--shards", args.shards)) if value is not None]
+        if given:
+            raise ValueError(f"{args.run} is a capture (no train_config.json): {', '.join(given)} apply to a run")
+        cfg = SubjectViewConfig(subject=str(args.run), format=args.format,
+                                template=str(args.template) if args.template else None, host=args.host,
+                                port=args.port, max_resolution=args.resolution)
+        _print_view_address(cfg.host, cfg.port)
+        view_subject(cfg)
+        return 0
+    if args.format != "auto" or args.template is not None:
+        raise ValueError(f"{args.run} is a run: --format and --template apply to a capture folder")
     cfg = ViewConfig(run=str(args.run), compare=str(args.compare) if args.compare else None,
                      motion=str(args.motion) if args.motion else None, shards=str(args.shards) if args.shards else None,
                      host=args.host, port=args.port, device=args.device, max_resolution=args.resolution,
                      fast=not args.plain)
-    print(f"deliffas view: open http://{'127.0.0.1' if cfg.host in ('0.0.0.0', '::') else cfg.host}:{cfg.port} "
-          "(Ctrl+C stops)", flush=True)
+    _print_view_address(cfg.host, cfg.port)
     view(cfg)
     return 0
+
+
+def _print_view_address(host: str, port: int) -> None:
+    print(f"deliffas view: open http://{'127.0.0.1' if host in ('0.0.0.0', '::') else host}:{port} "
+          "(Ctrl+C stops)", flush=True)

@@ -26,7 +26,7 @@ from deliffas.geometry.templates import build_template
 from deliffas.data.subjects import Subject, SubjectSequence
 
 __all__ = ["CheckConfig", "Finding", "CheckResult", "SubjectCheckError", "check_subject", "check_before_convert",
-           "silhouettes", "mask_iou"]
+           "silhouettes", "mask_iou", "scaled_camera", "scaled_view", "posed_surface"]
 
 log = logging.getLogger(__name__)
 
@@ -134,10 +134,20 @@ def mask_iou(sil: np.ndarray, mask: np.ndarray, tolerance_px: int = 0) -> float:
     return float(np.count_nonzero(sil & mask) / union) if union else float("nan")
 
 
-def _scaled(camera: Camera, max_side: int) -> Camera:
+def scaled_camera(camera: Camera, max_side: int) -> Camera:
+    """``camera`` rescaled so that its longer image side is at most ``max_side`` pixels."""
     s = min(1.0, max_side / max(camera.width, camera.height))
     w, h = max(1, round(camera.width * s)), max(1, round(camera.height * s))
     return camera.rescaled(w, h) if (w, h) != (camera.width, camera.height) else camera
+
+
+def scaled_view(rgb: np.ndarray, mask: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """A frame's (H, W, 3) uint8 image and (H, W) uint8 mask at ``camera``'s size: (h, w, 3) uint8, (h, w) bool."""
+    import cv2
+
+    size = (camera.width, camera.height)
+    return (cv2.resize(rgb, size, interpolation=cv2.INTER_AREA),
+            cv2.resize(mask, size, interpolation=cv2.INTER_AREA) >= 128)
 
 
 def silhouettes(verts: np.ndarray, faces: np.ndarray, cameras: list[Camera]) -> list[np.ndarray]:
@@ -155,15 +165,13 @@ class _Scorer:
     """Posed surfaces and downscaled masks of the sampled frames, scored against any set of cameras."""
 
     def __init__(self, subject: Subject, config: CheckConfig):
-        import cv2
-
         self.subject, self.config = subject, config
         self.template = build_template(subject.template, dtype=torch.float64)
         self.faces = self.template.faces.numpy()
         self.samples: list[tuple[str, int]] = []
         self.masks: list[list[np.ndarray]] = []  # [sample][camera] (h, w) bool
         self.images: list[list[np.ndarray]] = []  # [sample][camera] (h, w, 3) uint8, for the overlays
-        cams = [_scaled(c, config.max_side) for c in subject.cameras]
+        cams = [scaled_camera(c, config.max_side) for c in subject.cameras]
         for name, seq in subject.sequences.items():
             if seq.poses is None:
                 log.info("check: sequence %s has no pose parameters (tracked meshes); not checked", name)
@@ -174,10 +182,9 @@ class _Scorer:
                 for f in frames:
                     row_m, row_i = [], []
                     for c, cam in enumerate(cams):
-                        rgb, m = src.read(int(f), c)
-                        size = (cam.width, cam.height)
-                        row_m.append(cv2.resize(m, size, interpolation=cv2.INTER_AREA) >= 128)
-                        row_i.append(cv2.resize(rgb, size, interpolation=cv2.INTER_AREA))
+                        rgb, m = scaled_view(*src.read(int(f), c), cam)
+                        row_m.append(m)
+                        row_i.append(rgb)
                     self.samples.append((name, int(f)))
                     self.masks.append(row_m)
                     self.images.append(row_i)
@@ -188,13 +195,7 @@ class _Scorer:
         self.cameras = cams
 
     def surface(self, seq: SubjectSequence, frame: int, motion: Motion | None = None) -> np.ndarray | None:
-        motion = motion if motion is not None else seq.poses
-        rows = np.nonzero(motion.frames == frame)[0]
-        if len(rows) == 0:
-            return None
-        with torch.no_grad():
-            verts = self.template.pose(torch.as_tensor(motion.dofs[rows[:1]])).numpy()[0]
-        return offset_shell(verts, self.faces, self.config.offset_mm) if self.config.offset_mm else verts
+        return posed_surface(self.template, motion if motion is not None else seq.poses, frame, self.config.offset_mm)
 
     def score(self, cameras: list[Camera] | None = None, motions: dict[str, Motion] | None = None,
               frame_shift: int = 0, which: list[int] | None = None, order: list[int] | None = None) -> np.ndarray:
@@ -214,6 +215,18 @@ class _Scorer:
                     continue
                 out[c, s] = mask_iou(sils[k], self.masks[s][c], self.config.tolerance_px)
         return out
+
+
+def posed_surface(template, motion: Motion, frame: int, offset_mm: float = 0.0) -> np.ndarray | None:
+    """(V, 3) mm: ``template`` posed by ``motion``'s row of capture frame ``frame`` (None: no such row), moved
+    out to its outer shell by ``offset_mm`` when non-zero (the surface the check scores)."""
+    rows = np.nonzero(motion.frames == frame)[0]
+    if len(rows) == 0:
+        return None
+    with torch.no_grad():
+        verts = template.pose(torch.as_tensor(motion.dofs[rows[:1]])).numpy()[0]
+    faces = template.faces.numpy()
+    return offset_shell(verts, faces, offset_mm) if offset_mm else verts
 
 
 def _sample(seq: SubjectSequence, n: int) -> np.ndarray:

@@ -4,7 +4,17 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = ["ViewConfig"]
+__all__ = ["ViewConfig", "SubjectViewConfig", "is_exposed"]
+
+
+def is_exposed(host: str) -> bool:
+    """True when a server bound to ``host`` listens on more than the loopback interface."""
+    return host not in ("127.0.0.1", "localhost", "::1")
+
+
+def _check_port(port: int) -> None:
+    if not 0 <= port <= 65535:
+        raise ValueError(f"port must be in 0..65535, got {port}")
 
 
 @dataclass(frozen=True)
@@ -39,8 +49,7 @@ class ViewConfig:
     """On CPU, render by ``engine.realtime`` (rasterised uvs, fused inputs, bf16 MLP where native)."""
 
     def __post_init__(self) -> None:
-        if not 0 <= self.port <= 65535:
-            raise ValueError(f"port must be in 0..65535, got {self.port}")
+        _check_port(self.port)
         if self.max_resolution < 16:
             raise ValueError(f"max_resolution must be >= 16 pixels, got {self.max_resolution}")
         if not 0 < self.moving_scale <= 1:
@@ -55,4 +64,40 @@ class ViewConfig:
     @property
     def exposed(self) -> bool:
         """True when the viewer listens on more than the loopback interface."""
-        return self.host not in ("127.0.0.1", "localhost", "::1")
+        return is_exposed(self.host)
+
+
+@dataclass(frozen=True)
+class SubjectViewConfig:
+    """What the capture viewer (``deliffas view SUBJECT``, a capture without a model) shows and where it listens."""
+
+    subject: str
+    """Capture folder (any format ``parse_subject`` reads)."""
+    format: str = "auto"
+    """Capture format (``auto``: detected)."""
+    template: str | None = None
+    """Template the capture's poses drive: SMPL model ``.npz``/``.pkl`` or a DDC variant (as for ``check``)."""
+    motions: tuple[str, ...] = ()
+    """Pose parameters ``[SEQ=]FILE`` instead of the capture's own."""
+    host: str = "127.0.0.1"
+    """Interface to bind; anything but localhost exposes the viewer (no authentication)."""
+    port: int = 8080
+    max_resolution: int = 512
+    """Longest side, in pixels, of a capture camera's overlay (the silhouette and IoU are computed at this size)."""
+    texture_resolution: int = 256
+    """Longest side, in pixels, of the images on the camera frustums."""
+    tolerance_px: int = 1
+    """Pixels within this distance of the silhouette's edge are not scored (as ``deliffas check``)."""
+
+    def __post_init__(self) -> None:
+        _check_port(self.port)
+        if self.max_resolution < 16 or self.texture_resolution < 8:
+            raise ValueError(f"max_resolution must be >= 16 and texture_resolution >= 8 pixels, got "
+                             f"{self.max_resolution}, {self.texture_resolution}")
+        if self.tolerance_px < 0:
+            raise ValueError(f"tolerance_px must be >= 0, got {self.tolerance_px}")
+
+    @property
+    def exposed(self) -> bool:
+        """True when the viewer listens on more than the loopback interface."""
+        return is_exposed(self.host)

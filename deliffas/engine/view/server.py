@@ -32,7 +32,7 @@ from deliffas.engine.view.renderer import (
 from deliffas.engine.view.scene import ViewScene
 from deliffas.io.cameras import Camera
 
-__all__ = ["serve", "viewer_camera", "capture_camera_pose", "MM_PER_UNIT"]
+__all__ = ["serve", "viewer_camera", "capture_camera_pose", "import_viser", "MM_PER_UNIT", "SETTLE_S"]
 
 logger = logging.getLogger(__name__)
 
@@ -40,9 +40,11 @@ MM_PER_UNIT = 1000.0
 """deliffas world millimetres per viser scene unit (the scene is in metres)."""
 _FREE = "free camera"
 _TICK_S = 0.03
+SETTLE_S = 0.5
+"""Seconds after a move to a capture camera before camera updates count as the user leaving it."""
 
 
-def _import_viser():
+def import_viser():
     try:
         import viser
         import viser.transforms as vtf
@@ -56,7 +58,7 @@ def viewer_camera(wxyz: np.ndarray, position: np.ndarray, fov: float, width: int
     """The deliffas camera of a viser view: rotation ``wxyz`` (camera -> world), ``position`` (scene
     units), vertical ``fov`` (radians), canvas ``width`` x ``height`` scaled so its longest side is at
     most ``max_side``; principal point at the image centre."""
-    _, vtf = _import_viser()
+    _, vtf = import_viser()
     s = min(1.0, max_side / max(width, height))
     w, h = max(8, round(width * s)), max(8, round(height * s))
     f = h / 2 / math.tan(fov / 2)
@@ -70,7 +72,7 @@ def viewer_camera(wxyz: np.ndarray, position: np.ndarray, fov: float, width: int
 
 def capture_camera_pose(camera: Camera) -> tuple[np.ndarray, np.ndarray, float]:
     """(wxyz, position in scene units, vertical fov in radians) of a capture camera for viser."""
-    _, vtf = _import_viser()
+    _, vtf = import_viser()
     wxyz = vtf.SO3.from_matrix(camera.R.T).wxyz
     fov = 2 * math.atan(camera.height / 2 / camera.K[1, 1])
     return wxyz, camera.center / MM_PER_UNIT, fov
@@ -86,6 +88,8 @@ class _ClientView:
     pose: tuple | None = None
     """(wxyz, position) set for ``capture_camera``; a camera away from it is a free camera."""
     last_move: float = 0.0
+    entered: float = 0.0
+    """When the view moved to ``capture_camera`` (perf_counter seconds)."""
     refined: bool = True
     serial: int = 0
     lock: threading.Lock = field(default_factory=threading.Lock)
@@ -230,7 +234,7 @@ class _Viewer:
         cam = self.scene.cameras[cam_id]
         wxyz, position, fov = capture_camera_pose(cam)
         with view.lock:
-            view.capture_camera, view.pose = cam_id, (wxyz, position)
+            view.capture_camera, view.pose, view.entered = cam_id, (wxyz, position), time.perf_counter()
         self._toggle_frustums()
         with client.atomic():
             client.camera.fov = fov
@@ -248,7 +252,10 @@ class _Viewer:
                 and 1 - abs(float(np.dot(np.asarray(cam.wxyz), wxyz))) < 2e-5)  # about 0.7 degrees
 
     def _moved(self, view: _ClientView) -> None:
-        if view.capture_camera is not None and not self._at_capture_pose(view):
+        # the browser reports the move to a capture camera field by field (position, look-at, wxyz):
+        # judge "left the capture camera" only once that move has settled
+        settled = time.perf_counter() - view.entered >= SETTLE_S
+        if view.capture_camera is not None and settled and not self._at_capture_pose(view):
             with view.lock:
                 view.capture_camera, view.pose = None, None
             self._toggle_frustums()
@@ -313,7 +320,7 @@ class _Viewer:
 
 def serve(cfg: ViewConfig, stop: threading.Event | None = None) -> None:
     """Serve the viewer at ``cfg.host:cfg.port`` until interrupted (or ``stop`` is set)."""
-    viser, vtf = _import_viser()
+    viser, vtf = import_viser()
     if cfg.exposed:
         logger.warning("deliffas view: listening on %s: anyone who can reach this machine can see the viewer "
                        "(no authentication); prefer 127.0.0.1 and SSH port forwarding", cfg.host)
