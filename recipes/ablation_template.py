@@ -2,18 +2,13 @@
 
 Two comparisons, and the output says which one ran:
 
-* ``--smpl-model FILE`` (your SMPL ``.npz``/``.pkl``; SMPL is not shipped): SMPL against the
-  capture's DDC-style character. SMPL's shape and global pose are fitted to the character's
-  rest-pose template (symmetric closest-point distance, Adam on translation, axis-angle pose and
-  betas), the capture's skin weights are transferred onto the fitted SMPL surface (closest point,
-  barycentric, as the coarse variant does), and the result is written as a DynaCap character with
-  the SMPL mesh, its UVs (``--smpl-uv-obj`` or an xatlas atlas) and a 30 mm outer shell. The SAME
-  subject images are converted with it (``convert --template``).
-  What the existing API does NOT allow, so is missing: the SMPL surface is posed per frame by the
-  capture's skeleton (DQS with the transferred weights), not by SMPL's own kinematic tree, pose
-  blend shapes and per-frame SMPL parameters fitted to the images (``convert`` poses DynaCap
-  characters, or takes tracked ``.meshes`` in the template's vertex order; deliffas has no fitting of
-  SMPL to images or to tracked meshes over a sequence).
+* ``--smpl-model FILE`` (your SMPL ``.npz``/``.pkl``; SMPL is not shipped) or ``--smpl-model procedural``
+  (the license-free body in SMPL layout): SMPL against the capture's DDC-style character, the
+  paper's experiment. SMPL is fitted to every frame of the capture (``deliffas fit-smpl``: one
+  shape, per-frame pose and translation, symmetric closest-point distance to the posed character)
+  and the SAME subject images are converted with the ``smpl`` template and those per-frame
+  parameters (``convert --template MODEL --motions``): SMPL's own kinematics, pose blend shapes and
+  uv layout (``--smpl-uv-obj``, ``<model>_uv.obj``, else xatlas), through shards.
 * otherwise: a "simpler body model" stand-in made from the capture's own character: the template
   decimated to ``--standin-faces`` faces (new atlas, attributes transferred) and Taubin-smoothed
   ``--standin-smooth`` times, i.e. a smooth low-poly body without the template's details.
@@ -32,6 +27,7 @@ import numpy as np
 
 from recipes.ablation_coarse_mesh import MODELS, loses_less, silhouette_errors, template_deviation, variant_source, \
     verdict
+from deliffas.data.shards import ShardSet
 from recipes.common import bar_chart, prepare_shards, prepare_template_variants, recipe_parser, sizes_from_args, \
     train_and_eval, write_outputs
 
@@ -43,113 +39,31 @@ SMPL_FIT_ITERS = 300
 
 
 # --------------------------------------------------------------------------------------------- SMPL
-def fit_smpl_to_mesh(smpl, target_verts: np.ndarray, iters: int = SMPL_FIT_ITERS, pose_prior: float = 1e-2,
-                     beta_prior: float = 1e-3, seed: int = 0) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Fit SMPL's translation, axis-angle pose and betas to a mesh's vertices (same world units, mm).
+def fitted_smpl(out: Path, subject: Path, model: str, uv_obj: Path | None, first_iters: int,
+                frame_iters: int) -> tuple[Path, dict[str, str], dict]:
+    """SMPL fitted to every frame of ``subject`` (cached in ``out``): (model file, ``SEQ=FILE`` motions, report).
 
-    Closest-point correspondences (both directions, scipy cKDTree) are recomputed every iteration;
-    the loss is the mean robust distance (sqrt(d^2 + 1 mm^2)) of both directions plus priors on the
-    body pose (rad^2) and betas. The first 40 % of the iterations move translation, global
-    orientation and betas only.
-
-    Args:
-        smpl: ``deliffas.geometry.templates.SMPLTemplate`` (world units = mm with its default scale).
-        target_verts: (N, 3) float, mm.
-
-    Returns:
-        params (num_dofs,) float64, fitted vertices (V, 3) float64 mm, report dict.
+    ``model`` ``procedural`` builds the license-free body in SMPL layout into ``out/body``.
     """
-    import torch
-    from scipy.spatial import cKDTree
+    from deliffas.data.smpl_capture_fit import fit_smpl_to_subject, write_fit
+    from deliffas.data.subjects import parse_subject
+    from deliffas.geometry.smpl_body import make_procedural_smpl
+    from deliffas.geometry.smpl_surface_fit import SurfaceFitConfig
 
-    target = np.asarray(target_verts, np.float64)
-    tree_t = cKDTree(target)
-
-    def distances(v: np.ndarray) -> np.ndarray:  # both directions, mm
-        return np.concatenate([tree_t.query(v)[0], cKDTree(v).query(target)[0]])
-
-    def objective(v: np.ndarray, body_pose, shape) -> float:  # the optimised loss, without gradients
-        d = distances(v)
-        n = len(v)
-        return float(np.sqrt(d[:n] ** 2 + 1.0).mean() + np.sqrt(d[n:] ** 2 + 1.0).mean()
-                     + pose_prior * 100.0 * float((body_pose ** 2).sum()) + beta_prior * 100.0 * float((shape ** 2).sum()))
-
-    target_t = torch.tensor(target, dtype=smpl.v_template.dtype)
-    with torch.no_grad():
-        rest = smpl.pose(smpl.rest_params()).double().numpy()[0]
-    transl = torch.tensor((target.mean(0) - rest.mean(0)) / smpl.scale, dtype=smpl.v_template.dtype)
-    transl.requires_grad_(True)
-    orient = torch.zeros(3, dtype=smpl.v_template.dtype, requires_grad=True)
-    body = torch.zeros(69, dtype=smpl.v_template.dtype, requires_grad=True)
-    betas = torch.zeros(smpl.num_betas, dtype=smpl.v_template.dtype, requires_grad=True)
-    opt = torch.optim.Adam([{"params": [transl], "lr": 5e-3}, {"params": [orient, body], "lr": 1e-2},
-                            {"params": [betas], "lr": 5e-2}])
-    stage_a = int(0.4 * iters)
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda it: 1.0 - 0.9 * it / max(iters, 1))
-    with torch.no_grad():
-        start = distances(smpl.pose(torch.cat([transl, orient, body, betas])[None]).double().numpy()[0])
-    best = (float("inf"), None)
-    for it in range(iters):
-        params = torch.cat([transl, orient, body if it >= stage_a else body.detach(), betas])[None]
-        verts = smpl.pose(params)[0]  # (V, 3) mm
-        v_np = verts.detach().double().numpy()
-        _, nn_t = tree_t.query(v_np)  # SMPL -> target
-        _, nn_s = cKDTree(v_np).query(target)  # target -> SMPL
-        d_st = ((verts - target_t[nn_t]) ** 2).sum(-1)
-        d_ts = ((target_t - verts[nn_s]) ** 2).sum(-1)
-        data = torch.sqrt(d_st + 1.0).mean() + torch.sqrt(d_ts + 1.0).mean()  # mm
-        loss = data + pose_prior * 100.0 * (body ** 2).sum() + beta_prior * 100.0 * (betas ** 2).sum()
-        if float(loss.detach()) < best[0]:  # Adam's normalised steps can leave a good solution: keep the best
-            best = (float(loss.detach()), params.detach().clone())
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-        sched.step()
-    with torch.no_grad():
-        params = torch.cat([transl, orient, body, betas])[None]
-        last = smpl.pose(params).double().numpy()[0]
-        if best[1] is not None and best[0] < objective(last, body, betas):
-            params = best[1]
-        verts = smpl.pose(params).double().numpy()[0]
-    end = distances(verts)
-    report = {"iterations": int(iters), "initial_vertex_distance_mean_mm": float(start.mean()),
-              "final_vertex_distance_mean_mm": float(end.mean()), "final_vertex_distance_max_mm": float(end.max()),
-              "betas": [float(b) for b in params[0, 3 + 72:]], "transl": [float(t) for t in params[0, :3]]}
-    return params.double().numpy()[0], verts, report
-
-
-def smpl_character(character, smpl_model: str | Path, uv_obj: str | Path | None = None,
-                   fit_iters: int = SMPL_FIT_ITERS, packing_res: int = 512):
-    """A DynaCap character whose template is SMPL fitted to ``character``'s rest-pose mesh.
-
-    Skin weights: the capture's, interpolated at each SMPL vertex's closest point on the original
-    template and re-sparsified; segmentation labels from the nearest original vertex; the original
-    embedded graph; no texture. Returns (Character, fit report).
-    """
-    from scipy.spatial import cKDTree
-
-    from deliffas.io.dynacap import ObjData, Skin
-    from deliffas.geometry.templates import SMPLTemplate
-    from deliffas.geometry.variants import closest_points_on_mesh, sparsify_weights
-
-    smpl = SMPLTemplate(smpl_model, uv_obj=uv_obj, atlas_res=packing_res)
-    mesh = character.mesh
-    _, verts, report = fit_smpl_to_mesh(smpl, mesh.verts, fit_iters)
-    faces = smpl.faces.numpy().astype(np.int64)
-    f_src, b_src, _ = closest_points_on_mesh(verts, mesh.verts, mesh.faces)
-    dense = character.skin.dense()
-    weights = (b_src[..., None] * dense[mesh.faces[f_src]]).sum(axis=1)  # (V_smpl, bones)
-    idx, w = sparsify_weights(weights)
-    _, nearest = cKDTree(mesh.verts).query(verts, k=1)
-    seg = character.segmentation[nearest] if character.segmentation is not None else None
-    hseg = character.hand_segmentation[nearest] if character.hand_segmentation is not None else None
-    new_mesh = ObjData(verts, faces, smpl.uvs.double().numpy(), smpl.face_uvs.numpy().astype(np.int64))
-    extra = {k: v for k, v in character.extra.items() if k != "texture_png"}
-    extra.update(variant="smpl", smpl_model=str(smpl_model))
-    report.update(num_verts=int(len(verts)), num_faces=int(len(faces)),
-                  uv_source="uv_obj" if uv_obj is not None else "xatlas")
-    return dataclasses.replace(character, mesh=new_mesh, skin=Skin(character.skin.bones, idx, w), segmentation=seg,
-                               hand_segmentation=hseg, texture=None, extra=extra), report
+    path = make_procedural_smpl(out / "body") if model == "procedural" else Path(model)
+    stamp = {"model": str(Path(path).resolve()), "uv_obj": str(uv_obj), "subject": str(Path(subject).resolve()),
+             "first_iters": first_iters, "frame_iters": frame_iters}
+    stamp_path = out / "recipe_request.json"
+    if not (stamp_path.is_file() and json.loads(stamp_path.read_text()).get("request") == stamp):
+        fit = fit_smpl_to_subject(parse_subject(subject), path, uv_obj,
+                                  config=SurfaceFitConfig(first_iters=first_iters, frame_iters=frame_iters))
+        write_fit(out / "fit", fit, overwrite=True)
+        report = {name: {"residual_mm_mean": float(r.mean()), "residual_mm_max": float(r.max()), "frames": len(r)}
+                  for name, r in fit.residual_mm.items()}
+        stamp_path.write_text(json.dumps({"request": stamp, "report": report}, indent=2) + "\n")
+    report = json.loads(stamp_path.read_text())["report"]
+    motions = {name: str(out / "fit" / f"{name}.npz") for name in report}
+    return Path(path), motions, report
 
 
 def standin_character(character, faces: int = STANDIN_FACES, smooth_iters: int = STANDIN_SMOOTH,
@@ -182,14 +96,17 @@ def main(argv=None) -> dict:
     from deliffas.io.dynacap import read_character
 
     p = recipe_parser(__doc__.splitlines()[0])
-    p.add_argument("--smpl-model", type=Path, default=None, help="your SMPL model file (.npz, or .pkl without chumpy)")
+    p.add_argument("--smpl-model", default=None,
+                   help="your SMPL model file (.npz, or .pkl without chumpy), or 'procedural' (the license-free body "
+                        "in SMPL layout)")
     p.add_argument("--smpl-uv-obj", type=Path, default=None, help="OBJ with SMPL's UV layout (else an xatlas atlas)")
-    p.add_argument("--smpl-fit-iters", type=int, default=None, help=f"SMPL fitting iterations (default {SMPL_FIT_ITERS}, "
-                                                                    "quick 60)")
+    p.add_argument("--smpl-fit-iters", type=int, default=None,
+                   help=f"Adam steps of the first frame's SMPL fit (default {SMPL_FIT_ITERS}, quick 60; later frames: "
+                        "a sixth of it)")
     p.add_argument("--standin-faces", type=int, default=STANDIN_FACES, help="faces of the stand-in body model")
     p.add_argument("--standin-smooth", type=int, default=STANDIN_SMOOTH, help="Taubin iterations of the stand-in")
     args = p.parse_args(argv)
-    if args.smpl_model is not None and not args.smpl_model.is_file():
+    if args.smpl_model not in (None, "procedural") and not Path(args.smpl_model).is_file():
         from deliffas.io.smpl import SMPL_NOT_SHIPPED
 
         p.error(f"--smpl-model {args.smpl_model}: no such file. {SMPL_NOT_SHIPPED}")
@@ -201,11 +118,10 @@ def main(argv=None) -> dict:
     character = read_character(source.character)
     if args.smpl_model is not None:
         body, body_label = "smpl", "SMPL"
-        comparison = (f"DDC-style template of the capture vs SMPL ({args.smpl_model.name}) fitted to its rest pose, posed by "
-                      "the capture's skeleton with transferred skin weights")
+        comparison = (f"DDC-style template of the capture vs SMPL ({Path(args.smpl_model).name}) fitted to every frame "
+                      "of the capture (fit-smpl), posed by SMPL's own kinematics and pose blend shapes")
         iters = args.smpl_fit_iters or (60 if args.quick else SMPL_FIT_ITERS)
-        stamp = {"smpl_model": str(args.smpl_model.resolve()), "uv_obj": str(args.smpl_uv_obj), "iters": iters,
-                 "character": str(source.character), "packing": packing, "offset_mm": source.offset_mm}
+        stamp = None
     else:
         body, body_label = "standin", "stand-in body model"
         comparison = (f"DDC-style template of the capture vs a simpler-body-model stand-in (the template decimated to "
@@ -214,26 +130,40 @@ def main(argv=None) -> dict:
                  "packing": packing, "offset_mm": source.offset_mm}
     print(f"comparison: {comparison}", flush=True)
     folder = templates / body
-    stamp_path = folder / "recipe_request.json"
-    if stamp_path.is_file() and json.loads(stamp_path.read_text()).get("request") == stamp:
-        build = json.loads(stamp_path.read_text())["report"]
+    convert_args: dict[str, dict] = {"original": {"template": str(folders["original"])}}
+    if body == "smpl":
+        model, motions, build = fitted_smpl(folder, source.subject, args.smpl_model, args.smpl_uv_obj, iters,
+                                            max(5, iters // 6))
+        # the silhouette check would refuse the coarse body by design: its footprint is measured below instead
+        convert_args[body] = {"template": str(model), "motions": [f"{k}={v}" for k, v in motions.items()],
+                              "check": False}
     else:
-        if body == "smpl":
-            made, build = smpl_character(character, args.smpl_model, args.smpl_uv_obj, iters, packing)
+        stamp_path = folder / "recipe_request.json"
+        if stamp_path.is_file() and json.loads(stamp_path.read_text()).get("request") == stamp:
+            build = json.loads(stamp_path.read_text())["report"]
         else:
             made, build = standin_character(character, args.standin_faces, args.standin_smooth, packing), {}
-        write_template_folder(folder, made, body, source.offset_mm)
-        stamp_path.write_text(json.dumps({"request": stamp, "report": build}, indent=2) + "\n")
-    folders[body] = folder
+            write_template_folder(folder, made, body, source.offset_mm)
+            stamp_path.write_text(json.dumps({"request": stamp, "report": build}, indent=2) + "\n")
+        folders[body] = folder
+        convert_args[body] = {"template": str(folder)}
     rows, geometry = [], {}
     labels = {"original": "DDC-style template", body: body_label}
-    for variant, fold in folders.items():
-        geometry[variant] = template_deviation(next(iter(fold.glob("*.character"))), source.character)
+    for variant, kwargs in convert_args.items():
+        shards = prepare_shards(args.out, source.subject, source.sizes, name=f"shards_{variant}",
+                                offset_mm=source.offset_mm, cameras=source.cameras, jobs=1 if args.quick else 2, **kwargs)
+        if variant == "smpl":
+            meta_faces = ShardSet(shards).meta.faces
+            residual = [v["residual_mm_mean"] for v in build.values()]
+            geometry[variant] = {"faces": int(len(meta_faces)), "verts": int(ShardSet(shards).meta.rest_verts.shape[0]),
+                                 "deviation_mean_mm": float(np.mean(residual)),
+                                 "deviation_max_mm": float(max(v["residual_mm_max"] for v in build.values()))}
+        else:
+            geometry[variant] = template_deviation(next(iter(Path(kwargs["template"]).glob("*.character"))),
+                                                   source.character)
         print(f"template {variant}: {geometry[variant]['faces']} faces, {geometry[variant]['verts']} vertices, deviation "
               f"from the original {geometry[variant]['deviation_mean_mm']:.1f} mm mean / "
               f"{geometry[variant]['deviation_max_mm']:.1f} mm max", flush=True)
-        shards = prepare_shards(args.out, source.subject, source.sizes, name=f"shards_{variant}", template=str(fold),
-                                offset_mm=source.offset_mm, cameras=source.cameras, jobs=1 if args.quick else 2)
         geometry[variant].update(silhouette_errors(shards))
         for label, model in MODELS:
             row = train_and_eval(f"{label} · {labels[variant]}", shards, args.out / "runs" / variant / model, sizes,
@@ -262,9 +192,8 @@ def main(argv=None) -> dict:
              f"{'yes' if claims['two_surface_beats_single_surface_on_body_model'] else 'no'}.",
              "Paper (appendix, SMPL, figure only): two-surface on SMPL still recovers geometry beyond the mesh, "
              "single-surface can only paint on it; a better template improves the results.",
-             *(["Missing from the SMPL path (not possible through the existing API): SMPL's own kinematics, pose blend "
-                "shapes and per-frame SMPL parameters; the fitted SMPL surface is posed by the capture's skeleton."]
-               if body == "smpl" else []),
+             *(["SMPL deviation = the per-frame fit's mean symmetric surface distance to the posed character "
+                "(fit-smpl), not a rest-pose distance."] if body == "smpl" else []),
              *(["Quick mode: a few iterations of the tiny preset; the numbers show the pipeline works, not the "
                 "orderings."] if args.quick else []),
              "", "![PSNR per template](psnr_by_template.png)", ""]

@@ -13,7 +13,6 @@ import json
 import logging
 import sys
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
 
@@ -108,8 +107,10 @@ def prepare_capture(out: Path, sizes: RecipeSizes, seed: int = 0, subject: Path 
 
 
 def prepare_shards(out: Path, subject: Path, sizes: RecipeSizes, name: str = "shards", template: str | None = None,
-                   offset_mm: float = 30.0, cameras: Sequence[int] | None = None, jobs: int = 2) -> Path:
-    """Convert ``subject`` (optionally with a template variant or another offset) into ``out/<name>``.
+                   offset_mm: float = 30.0, cameras: Sequence[int] | None = None, jobs: int = 2,
+                   motions: Sequence[str] = (), check: bool = True) -> Path:
+    """Convert ``subject`` (optionally with a template variant or another offset, or another template's
+    per-frame ``motions`` ``SEQ=FILE``) into ``out/<name>``.
 
     ``jobs``: conversion worker processes; 1 converts in this process, which is much faster for the
     quick sizes (0.4 s against ~10 s for spawning two workers that import torch).
@@ -119,19 +120,15 @@ def prepare_shards(out: Path, subject: Path, sizes: RecipeSizes, name: str = "sh
     shards = out / name
     convert(subject, shards, ConvertConfig(atlas_res=sizes.atlas_res, jobs=jobs, resume=True, template=template,
                                            offset_mm=offset_mm, cameras=tuple(cameras) if cameras else None,
-                                           progress=False))
+                                           motions=tuple(motions), check=check, progress=False))
     return shards
 
 
 def find_character(subject: Path) -> Path:
     """The subject's ``character/<name>.character`` (or ``SUBJECT/<name>.character``), as ``convert`` finds it."""
-    for d in (Path(subject) / "character", Path(subject)):
-        found = sorted(d.glob("*.character")) if d.is_dir() else []
-        if len(found) == 1:
-            return found[0]
-        if len(found) > 1:
-            raise FileNotFoundError(f"{d}: several .character files {[p.name for p in found]}")
-    raise FileNotFoundError(f"{subject}: no character/<name>.character")
+    from deliffas.data.subjects import find_character as find
+
+    return find(Path(subject), None)[0]
 
 
 def shards_source(shards: Path) -> dict:

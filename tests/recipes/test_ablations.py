@@ -176,50 +176,19 @@ def test_ablation_template_missing_smpl_file(tmp_path, capsys):
     assert "not shipped" in capsys.readouterr().err
 
 
-def _synthetic_smpl_npz(path: Path) -> Path:
-    """An SMPL-format model file (nothing shipped): an upright ellipsoid, SMPL's kinematic tree."""
-    import trimesh
+def test_ablation_template_quick_smpl_through_shards(tiny_recipe_capture, tmp_path):
+    """--smpl-model procedural: SMPL fitted to every frame, the same images converted with the smpl template
+    and the fitted per-frame parameters, single and two surfaces trained on both templates."""
+    from deliffas.data.shards import ShardSet
+    from recipes import ablation_template
 
-    parents = np.array([-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21])
-    m = trimesh.creation.icosphere(subdivisions=2, radius=0.5)
-    rng = np.random.default_rng(0)
-    V = len(m.vertices)
-    v = np.asarray(m.vertices, np.float64) * [0.6, 1.7, 0.3] + [0.0, 0.9, 0.0]
-    J = rng.random((24, V)) ** 4
-    W = rng.random((V, 24)) ** 6
-    kintree = np.stack([np.where(parents < 0, 4294967295, parents), np.arange(24)]).astype(np.int64)
-    np.savez(path, v_template=v, shapedirs=rng.normal(0, 0.01, (V, 3, 10)), posedirs=rng.normal(0, 0.002, (V, 3, 207)),
-             J_regressor=J / J.sum(1, keepdims=True), weights=W / W.sum(1, keepdims=True), kintree_table=kintree,
-             f=np.asarray(m.faces, np.uint32))
-    return path
-
-
-def test_smpl_character_is_a_poseable_template(tiny_recipe_capture, tmp_path):
-    """The SMPL path as far as the API goes: fit, skin transfer, character folder with shell, posable by DDCTemplate."""
-    import torch
-
-    from deliffas.io.dynacap import read_character, read_obj
-    from deliffas.geometry.templates import DDCTemplate
-    from recipes.ablation_template import fit_smpl_to_mesh, smpl_character, write_template_folder
-    from recipes.common import find_character
-
-    npz = _synthetic_smpl_npz(tmp_path / "smpl_synthetic.npz")
-    original = read_character(find_character(tiny_recipe_capture.subject))
-    made, report = smpl_character(original, npz, fit_iters=25, packing_res=128)
-    assert report["final_vertex_distance_mean_mm"] < report["initial_vertex_distance_mean_mm"]  # the fit moved towards the body
-    assert made.mesh.num_verts == report["num_verts"] == 162 and made.mesh.face_uvs.shape == (320, 3)
-    assert np.allclose(made.skin.dense().sum(1), 1.0, atol=1e-6)
-    assert made.skin.bones == original.skin.bones
-    path = write_template_folder(tmp_path / "smpl", made, "smpl")
-    assert read_obj(tmp_path / "smpl" / "outer.obj").num_verts == 162
-    again = read_character(path)
-    verts = DDCTemplate(again, "dqs", dtype=torch.float64).pose(torch.as_tensor(again.rest_dofs)[None]).numpy()[0]
-    assert np.allclose(verts, made.mesh.verts, atol=1e-2)  # the rest pose reproduces the fitted SMPL surface
-    # the fit alone: from a translated copy of a mesh, translation is recovered
-    from deliffas.geometry.templates import SMPLTemplate
-
-    smpl = SMPLTemplate(npz, atlas_res=128, dtype=torch.float64)
-    with torch.no_grad():
-        target = smpl.pose(smpl.rest_params()).numpy()[0] + [30.0, -20.0, 10.0]
-    _, fitted, rep = fit_smpl_to_mesh(smpl, target, iters=60)
-    assert rep["final_vertex_distance_mean_mm"] < 5.0
+    out = tmp_path / "template_smpl"
+    payload = ablation_template.main(["--quick", "--subject", str(tiny_recipe_capture.subject), "--out", str(out),
+                                      "--smpl-model", "procedural", "--smpl-fit-iters", "30"])
+    data = _check_outputs(out, payload, 4, ("psnr_by_template.png",))
+    assert data["body_model"] == "smpl" and "fitted to every frame" in data["comparison"]
+    assert {(r["template"], r["variant"]) for r in data["results"]} == {
+        (t, m) for t in ("original", "smpl") for m in ("single_surface", "two_surface")}
+    assert ShardSet(out / "shards_smpl").meta.template_spec().kind == "smpl"
+    g = data["templates"]["smpl"]
+    assert np.isfinite(g["deviation_mean_mm"]) and 0.0 <= g["mask_missed"] < 1.0
