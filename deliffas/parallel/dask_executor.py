@@ -83,11 +83,12 @@ class DaskExecutor:
             self._close_cluster()
             raise ConnectionError(f"--dask {target}: no Dask scheduler answered at {address} within "
                                   f"{connect_timeout_s:g} s ({type(err).__name__})") from None
-        workers = len(self.client.scheduler_info().get("workers", {}))
-        services = self.client.scheduler_info().get("services", {})
-        dashboard = self.client.dashboard_link if "dashboard" in services else "none (pip install bokeh)"
-        log.info("Dask scheduler %s: %d workers; dashboard %s", address, workers, dashboard)
-        self.dashboard = dashboard
+        info = self.client.scheduler_info()
+        services = info.get("services", {})
+        self.dashboard = self.client.dashboard_link if "dashboard" in services else "none (pip install bokeh)"
+        log.info("Dask scheduler %s: %d workers; dashboard %s", address, len(info.get("workers", {})), self.dashboard)
+        if not info.get("workers"):
+            log.warning("Dask scheduler %s has no workers yet: the shards wait until workers join", address)
 
     def map(self, fn, tasks, setup, setup_args, local_state=None):
         """Submit every task; yield results as they complete (the in-process ``local_state`` is unused)."""

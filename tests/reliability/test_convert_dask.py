@@ -192,3 +192,11 @@ def test_bad_dask_value_is_refused_at_parse_time(value, rel_subject, tmp_path, c
     errors = [line for line in capsys.readouterr().err.splitlines() if "error:" in line]
     assert len(errors) == 1 and "--dask" in errors[0], errors
     assert not (tmp_path / "out").exists()
+
+
+def test_missing_dask_names_the_package(monkeypatch):
+    from deliffas.parallel import open_executor
+
+    monkeypatch.setitem(sys.modules, "distributed", None)  # as if dask[distributed] were not installed
+    with pytest.raises(ImportError, match=r'pip install "dask\[distributed\]"'):
+        open_executor(dask="local:1")
