@@ -22,6 +22,7 @@ MODULES = [
     "benchmarks.bench_scale",
     "benchmarks.bench_engine",
     "benchmarks.bench_view",
+    "benchmarks.bench_realtime",
     "benchmarks.bench_uv",
     "benchmarks.bench_mlp",
     "benchmarks.bench_unet",

@@ -1,3 +1,3 @@
-"""deliffas: deformable light-field human avatars (DELIFFAS, NeurIPS 2023) on DynaCap-style captures."""
+"""deliffas: deformable light-field human avatars (DELIFFAS, NeurIPS 2023): templates, captures, models, engine."""
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"

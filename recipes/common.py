@@ -22,31 +22,71 @@ from deliffas.engine.run_sizes import RunSizes
 logger = logging.getLogger(__name__)
 
 __all__ = ["RecipeSizes", "recipe_parser", "sizes_from_args", "prepare_capture", "prepare_shards",
-           "train_and_eval", "write_outputs", "find_character", "shards_source", "prepare_template_variants",
+           "train_and_eval", "train_and_eval_seeds", "seed_list", "ablation_sizes", "write_outputs", "find_character", "shards_source", "prepare_template_variants",
            "bar_chart"]
 
+
+POSE_EVAL_FRAMES = 4
+"""Novel-pose frames the ablations evaluate per run (every camera of each: 48 images with 12 cameras)."""
+ABLATION_EVAL_FRAMES = 12
+"""Novel-view frames the ablations evaluate per run in full mode (36 images with 3 test cameras)."""
+ABLATION_ITERS = 1000
+"""Training iterations of the ablations in full mode: 3 seeds of every configuration fit in ~30 min on
+2 shared cores (measured: small preset at 128 px, 3 cameras per step, ~27 it/s single-surface, ~12 it/s
+two-surface, ~0.3 s per evaluated image); ``--iters`` overrides."""
 
 RecipeSizes = RunSizes
 """The recipes' name for ``deliffas.engine.run_sizes.RunSizes`` (full defaults, ``quick()`` for tests)."""
 
 
-def recipe_parser(description: str) -> argparse.ArgumentParser:
+def recipe_parser(description: str, seeds: bool = False) -> argparse.ArgumentParser:
+    """The shared options; ``seeds``: also ``--seeds N`` (configurations trained with N seeds, mean ± std)."""
     p = argparse.ArgumentParser(description=description)
     p.add_argument("--out", type=Path, required=True, help="output folder (results.json, results.md, charts)")
     p.add_argument("--subject", type=Path, default=None, help="DynaCap subject folder (default: a synthetic capture)")
     p.add_argument("--shards", type=Path, default=None, help="already converted shards (skips conversion)")
     p.add_argument("--quick", action="store_true", help="minutes on a CPU; numbers only show the pipeline works")
     p.add_argument("--iters", type=int, default=None, help="training iterations per model")
-    p.add_argument("--device", default="cpu")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--frames", type=int, default=None, help="training frames of the synthetic capture")
+    p.add_argument("--cameras", type=int, default=None,
+                   help="cameras of the synthetic capture (a quarter held out as test cameras)")
+    p.add_argument("--size", type=int, default=None, help="image side of the synthetic capture, pixels")
+    p.add_argument("--device", default="cpu", help="cpu | cuda (default cpu)")
+    p.add_argument("--seed", type=int, default=0,
+                   help="first training seed (seeds are SEED, SEED+1, ...); the capture's seed stays 0")
+    if seeds:
+        p.add_argument("--seeds", type=int, default=None,
+                       help="training seeds per configuration, reported as mean ± std (default 3; 1 with --quick)")
     return p
 
 
 def sizes_from_args(args: argparse.Namespace) -> RecipeSizes:
+    """The run sizes: quick or full defaults, then ``--iters``, ``--frames``, ``--cameras``, ``--size``."""
     sizes = RecipeSizes.quick() if args.quick else RecipeSizes()
-    if args.iters:
-        sizes = dataclasses.replace(sizes, iters=args.iters)
+    for flag, field in (("iters", "iters"), ("frames", "frames"), ("cameras", "cameras"), ("size", "size")):
+        value = getattr(args, flag, None)
+        if value is not None:
+            if value < 1:
+                raise SystemExit(f"--{flag} must be >= 1, got {value}")
+            sizes = dataclasses.replace(sizes, **{field: value})
     return sizes
+
+
+def ablation_sizes(args: argparse.Namespace) -> RecipeSizes:
+    """``sizes_from_args`` with the ablations' budget in full mode: ``ABLATION_EVAL_FRAMES`` evaluated frames
+    and, unless ``--iters`` is given, ``ABLATION_ITERS`` iterations (three seeds per configuration)."""
+    sizes = sizes_from_args(args)
+    if args.quick:
+        return sizes
+    return dataclasses.replace(sizes, eval_frames=sizes.eval_frames or ABLATION_EVAL_FRAMES,
+                               iters=args.iters or ABLATION_ITERS)
+
+
+def seed_list(args: argparse.Namespace) -> list[int]:
+    """Training seeds of each configuration: ``--seed`` and the next ``--seeds - 1``."""
+    from recipes.seeds import default_seeds
+
+    return [args.seed + i for i in range(default_seeds(args.quick, getattr(args, "seeds", None)))]
 
 
 def prepare_capture(out: Path, sizes: RecipeSizes, seed: int = 0, subject: Path | None = None, jobs: int = 2,
@@ -133,8 +173,11 @@ def prepare_template_variants(out: Path, character: Path, smooth_iters: int | No
 
 def train_and_eval(name: str, shards: Path, run_dir: Path, sizes: RecipeSizes, model: str, seed: int = 0,
                    device: str = "cpu", split: str = "novel_view", model_overrides: dict | None = None,
-                   **train_kw) -> dict:
-    """Train one configuration and evaluate it; returns the evaluation dict plus ``name`` and timings."""
+                   extra_splits: bool = False, **train_kw) -> dict:
+    """Train one configuration and evaluate it; returns the evaluation dict plus ``name`` and timings.
+
+    ``extra_splits``: also write comparison grids (``run_dir/grid_<split>.png``) and evaluate the novel
+    poses (``novel_pose``) and the training cameras (``train_fit``: how well it fits what it saw)."""
     from deliffas.engine.evaluate import EvalConfig, evaluate
     from deliffas.engine.train import TrainConfig, train
 
@@ -145,23 +188,52 @@ def train_and_eval(name: str, shards: Path, run_dir: Path, sizes: RecipeSizes, m
                       preview_every=max(sizes.iters, 1), progress=False, model_overrides=model_overrides or {},
                       **train_kw)
     result = train(cfg, resume=True)
-    row = evaluate(EvalConfig(run=str(run_dir), split=split, max_frames=sizes.eval_frames, device=device))
+    row = evaluate(EvalConfig(run=str(run_dir), split=split, max_frames=sizes.eval_frames, device=device,
+                              grid=str(Path(run_dir) / f"grid_{split}.png") if extra_splits else None))
     row.update(name=name, train_s=time.time() - t0, train_iters_per_s=result.iters_per_second,
                train_last_loss=result.last_loss)
-    print(f"  {name}: PSNR {row['psnr']:.2f} dB, SSIM {row['ssim']:.4f}, "
+    if extra_splits:
+        row["novel_pose"] = evaluate(EvalConfig(run=str(run_dir), split="novel_pose",
+                                                max_frames=min(sizes.eval_frames or POSE_EVAL_FRAMES, POSE_EVAL_FRAMES),
+                                                device=device, grid=str(Path(run_dir) / "grid_novel_pose.png")))
+        row["train_fit"] = evaluate(EvalConfig(run=str(run_dir), split="train", max_frames=min(3, sizes.eval_frames or 3),
+                                               device=device))
+    fg = row["foreground"]
+    print(f"  {name} (seed {seed}): fg PSNR {fg['psnr']:.2f} dB, fg SSIM {fg['ssim']:.4f}, fg FLIP "
+          f"{fg['flip'] if fg['flip'] is None else format(fg['flip'], '.4f')} (official PSNR {row['psnr']:.2f} dB), "
           f"{sum(row['stage_ms'].values()):.1f} ms/frame", flush=True)
     return row
 
 
+def train_and_eval_seeds(name: str, shards: Path, run_dir: Path, sizes: RecipeSizes, model: str, seeds: Sequence[int],
+                         device: str = "cpu", **kw) -> dict:
+    """``train_and_eval`` once per training seed (``run_dir/seed<S>``, with grids, novel poses and the fit);
+    the row is the first seed's evaluation plus ``seeds``, ``per_seed`` and ``stats`` (mean ± std,
+    ``recipes.seeds``)."""
+    from recipes.seeds import train_seeds
+
+    def one(seed: int, run: Path):
+        row = train_and_eval(name, shards, run, sizes, model, seed, device, extra_splits=True, **kw)
+        return row, row.pop("novel_pose"), row.pop("train_fit")
+
+    return train_seeds(name, seeds, run_dir, one)
+
+
 def write_outputs(out: Path, title: str, rows: list[dict], extra: dict | None = None, notes: Sequence[str] = (),
                   chart: bool = True) -> dict:
-    """``results.json``, ``results.md`` (title, table, notes) and a speed-vs-accuracy chart."""
+    """``results.json``, ``results.md`` (title, the mean ± std table when rows have seeds, the first seed's
+    full table, notes) and a speed-vs-accuracy chart."""
     from deliffas.engine.report import results_table, speed_accuracy_chart
+    from recipes.seeds import stats_table
 
     out.mkdir(parents=True, exist_ok=True)
     payload = {"title": title, "results": rows, **(extra or {}), "command": " ".join(sys.argv)}
     (out / "results.json").write_text(json.dumps(payload, indent=2, default=str) + "\n")
-    md = [f"# {title}", "", results_table(rows), *notes, ""]
+    md = [f"# {title}", ""]
+    if rows and all("stats" in r for r in rows):
+        md += ["## Mean ± std over training seeds (foreground metrics: the headline)", "", *stats_table(rows), "",
+               "## First seed, every metric", ""]
+    md += [results_table(rows), *notes, ""]
     if chart and rows:
         speed_accuracy_chart(rows, out / "speed_accuracy.png", title)
         md += ["![speed vs accuracy](speed_accuracy.png)", ""]

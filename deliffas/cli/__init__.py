@@ -12,6 +12,8 @@ import logging
 import sys
 from pathlib import Path
 
+from deliffas import __version__
+
 __all__ = ["main", "build_parser"]
 
 log = logging.getLogger(__name__)
@@ -31,14 +33,17 @@ def _size(text: str) -> tuple[int, int]:
     return w, h
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a number >= 1, got {value}")
-    return value
+def _int_at_least(minimum: int):
+    """An argparse type: a whole number >= ``minimum``."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"expected a number >= {minimum}, got {value}")
+        return value
+    return parse
 
 
 def _dask_target(text: str) -> str:
@@ -51,14 +56,8 @@ def _dask_target(text: str) -> str:
     return text
 
 
-def _non_negative_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {value}")
-    return value
+_positive_int = _int_at_least(1)
+_non_negative_int = _int_at_least(0)
 
 
 def _path_with_suffix(*suffixes: str):
@@ -96,16 +95,6 @@ def _port(text: str) -> int:
     if not 0 < port < 65536:
         raise argparse.ArgumentTypeError(f"port must be in 1..65535, got {port}")
     return port
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
-    return value
 
 
 def _add_data_commands(sub) -> None:
@@ -173,7 +162,40 @@ def _add_data_commands(sub) -> None:
     p.add_argument("--masks", metavar="SUBDIR", help="DDC mask folder in each sequence folder "
                                                      "(<cam>/image_c_<cam>_f_<frame>.png|jpg) replacing alpha/fg")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--format", default="auto", help="capture format: dynacap, zju, easymocap, thuman4, dna, actorshq "
+                                                    "(default: detected)")
+    p.add_argument("--no-check", action="store_true", help="convert even when the silhouette check fails")
     p.set_defaults(handler="convert")
+
+    p = sub.add_parser("fit-smpl", help="fit SMPL to every frame of a capture (for converting it with SMPL)",
+                       description="Fit an SMPL model (one shape, per-frame pose and translation) to the surface "
+                                   "of every frame of SUBJECT (its posed template, or tracked .meshes), by "
+                                   "symmetric closest-point distance. Writes OUT/<sequence>.npz (AMASS-style, "
+                                   "with the capture's frame numbers) and OUT/fit.json (residuals in mm); then "
+                                   "`deliffas convert SUBJECT SHARDS --template MODEL --motions training=OUT/"
+                                   "training.npz --motions testing=OUT/testing.npz` converts it with SMPL.")
+    p.add_argument("subject", type=Path, help="capture folder")
+    p.add_argument("--model", type=Path, required=True, help="SMPL model .npz/.pkl (official layout; not shipped)")
+    p.add_argument("--uv", type=Path, default=None, help="OBJ with the model's uv layout (default MODEL_uv.obj if present)")
+    p.add_argument("--out", type=Path, required=True, help="folder for the fitted motions")
+    p.add_argument("--first-iters", type=_positive_int, default=300, help="Adam steps on the first frame (default 300)")
+    p.add_argument("--frame-iters", type=_positive_int, default=40, help="Adam steps per later frame (default 40)")
+    p.add_argument("--overwrite", action="store_true", help="replace an earlier fit in --out")
+    p.set_defaults(handler="fit_smpl")
+
+    p = sub.add_parser("check", help="score the posed template's silhouette against the masks, per camera",
+                       description="Parse SUBJECT, pose its template on a sample of frames, compare its silhouette "
+                                   "with every camera's mask (IoU) and name likely causes of failures (pose "
+                                   "direction, transposed R, OpenGL axes, m vs mm, frame offset, camera order). "
+                                   "Writes OUT/report.md, overlays and summary.json; exit 1 when a camera fails.")
+    p.add_argument("subject", type=Path, help="capture folder (any supported format)")
+    p.add_argument("--out", type=Path, required=True, help="report folder")
+    p.add_argument("--format", default="auto", help="capture format (default: detected)")
+    p.add_argument("--frames", type=_positive_int, default=4, help="frames sampled per sequence (default 4)")
+    p.add_argument("--template", type=Path, help="template: SMPL model .npz/.pkl (SMPL captures), or a DDC variant")
+    p.add_argument("--motions", action="append", metavar="[SEQ=]FILE", help="pose parameters instead of the capture's")
+    p.add_argument("--min-iou", type=float, default=0.8, help="a camera fails below this IoU (default 0.8)")
+    p.set_defaults(handler="check")
 
     p = sub.add_parser("verify", help="check converted shards against their manifest",
                        description="Check every shard of OUT against manifest.json (presence, size, sha256, "
@@ -251,7 +273,7 @@ def _add_engine_commands(sub) -> None:
     p.add_argument("shards", type=Path)
     p.add_argument("--model", default=None, help="zoo name (default two_surface)")
     p.add_argument("--out", type=Path, required=True, help="run directory")
-    p.add_argument("--preset", default=None, help="paper | small (default) | tiny")
+    p.add_argument("--preset", default=None, help="paper | small (default) | realtime | tiny")
     p.add_argument("--iters", type=int, default=None)
     p.add_argument("--config", type=Path, default=None, help="JSON file of TrainConfig fields (incl. model_overrides)")
     p.add_argument("--resume", action="store_true", help="continue from the run directory's last checkpoint")
@@ -267,21 +289,42 @@ def _add_engine_commands(sub) -> None:
                    help="rays per backward pass (bounds training memory; single process)")
     p.add_argument("--checkpoint-every", type=int, default=None)
     p.add_argument("--preview-every", type=int, default=None)
+    p.add_argument("--protocol", choices=["auto", "paper", "all"], default=None,
+                   help="frames used: paper = every 10th (DELIFFAS), all = every frame, auto (default) = paper "
+                        "from 100 training frames on, else all; stated at start")
+    p.add_argument("--val-cameras", dest="validation_cameras", type=_test_cameras, default=None, metavar="N|a,b,...",
+                   help="training cameras held out as the validation split: a count N or calibration indices "
+                        "(default 0; --auto-capacity holds out at least 1)")
     p.add_argument("--auto-capacity", action="store_true",
-                   help="search model capacities and keep the cheapest within --tolerance-db of the best")
-    p.add_argument("--tolerance-db", type=float, default=0.5)
+                   help="search model capacities on the validation split and keep the cheapest within "
+                        "--tolerance-db of the best foreground PSNR; the test split scores the chosen one only")
+    p.add_argument("--tolerance-db", type=float, default=0.5, help="auto-capacity tolerance in dB (default 0.5)")
     p.set_defaults(handler="train")
 
-    p = sub.add_parser("eval", help="evaluate a run: PSNR/SSIM (+LPIPS when weights exist) and per-stage timing")
-    p.add_argument("run", type=Path)
-    p.add_argument("--split", choices=["novel_view", "novel_pose", "train"], default="novel_view")
+    p = sub.add_parser("eval", help="evaluate a run: foreground and official PSNR/SSIM, FLIP (+LPIPS/FID when "
+                                    "weights exist) and per-stage timing",
+                       description="Score RUN on a split. Every number names its protocol: the official one (white "
+                                   "composite, 600x496 crop: at small images mostly background) and the foreground "
+                                   "block (padded mask box, masked PSNR), the headline.")
+    p.add_argument("run", type=Path, help="run directory written by `deliffas train`")
+    p.add_argument("--split", choices=["novel_view", "novel_pose", "validation", "train"], default="novel_view",
+                   help="novel_view / novel_pose: test splits; validation: the run's held-out training cameras "
+                        "(--val-cameras at training); train: the fitted cameras (default novel_view)")
+    p.add_argument("--protocol", choices=["paper", "all"], default=None,
+                   help="frames: paper = every 10th, all = every frame (default: the run's)")
     p.add_argument("--shards", default=None, help="shard directory (default: the run's)")
-    p.add_argument("--max-frames", type=int, default=None)
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--max-frames", type=int, default=None, help="at most this many frames, evenly spaced")
+    p.add_argument("--device", default="cpu", help="cpu | cuda | cuda:N (default cpu)")
     p.add_argument("--save-images", default=None, help="folder for predicted images (white background)")
-    p.add_argument("--vgg16-path", default=None)
-    p.add_argument("--lpips-path", default=None)
+    p.add_argument("--grid", default=None, metavar="PNG",
+                   help="write a comparison grid (GT | prediction | error heat map, >= 256 px panels)")
+    p.add_argument("--vgg16-path", default=None, help="ImageNet VGG-16 weights for LPIPS (.pth/.safetensors)")
+    p.add_argument("--lpips-path", default=None, help="LPIPS v0.1 VGG linear layers (lpips' weights/v0.1/vgg.pth)")
+    p.add_argument("--inception-path", default=None,
+                   help="pytorch-fid's pt_inception-2015-12-05-6726825d.pth for FID (else env / torch hub cache)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--fast", action="store_true",
+                   help="render by the CPU fast path of 'deliffas render'/'view' (to measure what it changes)")
     p.set_defaults(handler="eval")
 
     p = sub.add_parser("render", help="free-viewpoint video of a trained avatar driven by a motion")
@@ -294,6 +337,9 @@ def _add_engine_commands(sub) -> None:
     p.add_argument("--size", type=_size, default=None, help="WxH (default: the capture's)")
     p.add_argument("--fps", type=float, default=25.0)
     p.add_argument("--device", default="cpu")
+    p.add_argument("--plain", action="store_true",
+                   help="render as 'deliffas eval' does (ray-cast uvs, fp32 MLP) instead of the CPU fast path "
+                        "(rasterised uvs, fused inputs, bf16 MLP where the CPU has native bf16)")
     p.set_defaults(handler="render")
 
     p = sub.add_parser("view", help="interactive free-viewpoint viewer in the browser (viser)",
@@ -313,6 +359,9 @@ def _add_engine_commands(sub) -> None:
     p.add_argument("--resolution", type=_positive_int, default=512,
                    help="longest side of the still image in pixels (default 512; halved while moving)")
     p.add_argument("--device", default="cpu", help="cpu | cuda | cuda:N")
+    p.add_argument("--plain", action="store_true",
+                   help="render as 'deliffas eval' does (ray-cast uvs, fp32 MLP) instead of the CPU fast path "
+                        "(rasterised uvs, fused inputs, bf16 MLP where the CPU has native bf16)")
     p.set_defaults(handler="view")
 
     p = sub.add_parser("demo", help="the whole path on the embedded procedural character, with a report")
@@ -324,6 +373,7 @@ def _add_engine_commands(sub) -> None:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="deliffas", description="deliffas: deformable light-field human avatars (DELIFFAS) - templates, captures, shards, training, evaluation and rendering. `deliffas COMMAND --help` explains each command.")
     parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
+    parser.add_argument("--version", action="version", version=f"deliffas {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("pose", help="write a template (DDC character or SMPL model) posed by one frame of a motion",

@@ -16,10 +16,15 @@ from pathlib import Path
 from deliffas.io.camera_formats import read_cameras, write_cameras
 from deliffas.io.files import claim_output_file
 from deliffas.io.dynacap import read_character
+from deliffas.geometry.smpl_surface_fit import SurfaceFitConfig
 from deliffas.geometry.templates import spec_from_file
 from deliffas.geometry.procedural import make_procedural_character
+from deliffas.data.check import CheckConfig, check_subject
+from deliffas.data.check_report import write_check_report
 from deliffas.data.convert import ConvertConfig, convert
+from deliffas.data.subjects import SubjectOptions, parse_subject
 from deliffas.data.posing import pose_frames, write_posed_mesh
+from deliffas.data.smpl_capture_fit import fit_smpl_to_subject, write_fit
 from deliffas.data.shards import verify_shards
 from deliffas.data.synth import SynthConfig, synthesize_capture
 from deliffas.data.template_build import build_templates
@@ -73,7 +78,8 @@ def cmd_convert(args: argparse.Namespace) -> int:
                         motions=tuple(args.motions or ()),
                         template=str(args.template) if args.template else None, atlas_res=args.atlas_res,
                         offset_mm=args.offset, codec=args.codec, window=args.window, layout=args.layout,
-                        test_cameras=args.test_cameras, masks=args.masks, progress=not args.no_progress)
+                        test_cameras=args.test_cameras, masks=args.masks, progress=not args.no_progress,
+                        format=args.format, check=not args.no_check)
     res = convert(args.subject, args.out, cfg)
     work = res.seconds - res.seconds_setup
     rate = res.frames_converted / work if work > 0 else 0.0
@@ -81,6 +87,28 @@ def cmd_convert(args: argparse.Namespace) -> int:
           f"{res.frames_converted} frames / {res.images_converted} images in {res.seconds:.1f} s "
           f"(setup {res.seconds_setup:.1f} s, then {rate:.2f} frames/s), {res.bytes_total / 1e6:.1f} MB")
     return 0
+
+
+def cmd_fit_smpl(args: argparse.Namespace) -> int:
+    if args.out.is_dir() and any(args.out.iterdir()) and not args.overwrite:
+        raise FileExistsError(f"{args.out}: not empty; pass --overwrite to replace an earlier fit there")
+    fit = fit_smpl_to_subject(parse_subject(args.subject), args.model, args.uv,
+                              config=SurfaceFitConfig(first_iters=args.first_iters, frame_iters=args.frame_iters,
+                                                      progress=True))
+    out = write_fit(args.out, fit, overwrite=args.overwrite)
+    for name, r in fit.residual_mm.items():
+        print(f"{name}: {len(r)} frames, mean surface distance {r.mean():.1f} mm (max {r.max():.1f})")
+    print(f"wrote {out}")
+    return 0
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    options = SubjectOptions(template=str(args.template) if args.template else None, motions=tuple(args.motions or ()))
+    subject = parse_subject(args.subject, args.format, options)
+    result = check_subject(subject, CheckConfig(frames=args.frames, min_iou=args.min_iou))
+    report = write_check_report(result, args.out)
+    print(f"{'PASS' if result.ok else 'FAIL'}: {result.reason}\nwrote {report}")
+    return 0 if result.ok else 1
 
 
 def cmd_verify(args: argparse.Namespace) -> int:
@@ -161,7 +189,8 @@ def _train_config(args: argparse.Namespace):
         values.update(json.loads(Path(args.config).read_text()))
     values.update(shards=str(args.shards), out=str(args.out))
     for key in ("model", "preset", "iters", "perceptual", "perceptual_mode", "cameras_per_frame", "device",
-                "num_workers", "seed", "vgg16_path", "checkpoint_every", "preview_every", "ray_chunk"):
+                "num_workers", "seed", "vgg16_path", "checkpoint_every", "preview_every", "ray_chunk", "protocol",
+                "validation_cameras"):
         v = getattr(args, key, None)
         if v is not None:
             values[key] = v
@@ -187,15 +216,27 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 def cmd_eval(args: argparse.Namespace) -> int:
     retain_freed_memory()
-    result = evaluate(EvalConfig(run=str(args.run), split=args.split, shards=args.shards, max_frames=args.max_frames,
-                                 device=args.device, save_images=args.save_images, vgg16_path=args.vgg16_path,
-                                 lpips_path=args.lpips_path))
+    result = evaluate(EvalConfig(run=str(args.run), split=args.split, protocol=args.protocol, shards=args.shards,
+                                 max_frames=args.max_frames, device=args.device, save_images=args.save_images,
+                                 vgg16_path=args.vgg16_path, lpips_path=args.lpips_path,
+                                 inception_path=args.inception_path, grid=args.grid, fast=args.fast))
     if args.json:
         print(json.dumps(result))
-    else:
-        print(f"{args.split}: PSNR {result['psnr']:.2f} dB, SSIM {result['ssim']:.4f}, "
-              f"LPIPS {result['lpips'] if result['lpips'] is not None else 'n/a (' + result['lpips_reason'] + ')'}, "
-              f"{result['fps']:.2f} fps; stage ms " + ", ".join(f"{k} {v:.1f}" for k, v in result["stage_ms"].items()))
+        return 0
+    fg = result["foreground"]
+
+    def na(value, spec, reason):
+        return format(value, spec) if value is not None else f"n/a ({reason})"
+
+    print(f"{args.split} ({result['images']} images, frames protocol {result['protocol']})")
+    print(f"  foreground (padded mask box): PSNR {fg['psnr']:.2f} dB, SSIM {fg['ssim']:.4f}, masked PSNR "
+          f"{fg['masked_psnr']:.2f} dB, FLIP {na(fg['flip'], '.4f', fg['flip_reason'])}, "
+          f"LPIPS {na(fg['lpips'], '.4f', fg['lpips_reason'])}")
+    print(f"  official (white composite, 600x496 crop): PSNR {result['psnr']:.2f} dB, SSIM {result['ssim']:.4f}, "
+          f"FID {na(result['fid'], '.2f', result['fid_reason'])}")
+    print(f"  {result['fps']:.2f} fps; stage ms " + ", ".join(f"{k} {v:.1f}" for k, v in result["stage_ms"].items()))
+    for warning in result["warnings"]:
+        print(f"  warning: {warning}")
     return 0
 
 
@@ -203,7 +244,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     retain_freed_memory()
     out = render_video(RenderConfig(run=str(args.run), out=str(args.out), orbit=args.orbit,
                                     motion=str(args.motion) if args.motion else None, frames=args.frames,
-                                    size=args.size, device=args.device, fps=args.fps))
+                                    size=args.size, device=args.device, fps=args.fps, fast=not args.plain))
     print(f"wrote {out}")
     return 0
 
@@ -218,7 +259,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
 def cmd_view(args: argparse.Namespace) -> int:
     cfg = ViewConfig(run=str(args.run), compare=str(args.compare) if args.compare else None,
                      motion=str(args.motion) if args.motion else None, shards=str(args.shards) if args.shards else None,
-                     host=args.host, port=args.port, device=args.device, max_resolution=args.resolution)
+                     host=args.host, port=args.port, device=args.device, max_resolution=args.resolution,
+                     fast=not args.plain)
     print(f"deliffas view: open http://{'127.0.0.1' if cfg.host in ('0.0.0.0', '::') else cfg.host}:{cfg.port} "
           "(Ctrl+C stops)", flush=True)
     view(cfg)

@@ -41,6 +41,7 @@ from deliffas.data.shards import (
     write_manifest,
 )
 from deliffas.data.subjects import Subject, SubjectOptions, parse_subject
+from deliffas.data.check import check_before_convert
 from deliffas.geometry.shell import mesh_edges
 from deliffas.parallel import TaskExecutor, open_executor
 
@@ -97,6 +98,8 @@ class ConvertConfig:
     """Mask folder inside each sequence folder (e.g. ``foregroundSegmentation``) replacing alpha / fg videos."""
     progress: bool = True
     """Show a tqdm progress bar."""
+    check: bool = True
+    """Run the silhouette check (``deliffas.data.check``) on a few frames first and refuse a failing subject."""
 
     def subject_options(self) -> SubjectOptions:
         """How to read the capture when ``convert`` is given a folder."""
@@ -192,7 +195,8 @@ def _plan(subject: Subject, config: ConvertConfig) -> _Plan:
 
 
 def _manifest_config(subject: Subject, config: ConvertConfig) -> dict:
-    keep = {k: v for k, v in asdict(config).items() if k not in ("jobs", "dask", "resume", "overwrite", "progress")}
+    keep = {k: v for k, v in asdict(config).items()
+            if k not in ("jobs", "dask", "resume", "overwrite", "progress", "check")}
     keep["format"] = subject.format
     keep["subject"] = str(subject.root)
     keep["character"] = subject.template.files.get("character", "")
@@ -271,6 +275,8 @@ def convert(subject: Subject | str | os.PathLike, out_dir: str | os.PathLike,
         subject = parse_subject(root, config.format, config.subject_options())
     if out == subject.root or subject.root in out.parents:
         raise ValueError(f"output {out} lies inside the source folder {subject.root}; the source is never written to")
+    if config.check:
+        check_before_convert(subject)
     plan = _plan(subject, config)
     # the executor connects (or starts its workers) before anything is written: an unreachable
     # Dask scheduler is an error that leaves OUT as it was

@@ -1,10 +1,10 @@
 """Automatic capacity choice: train a ladder of model sizes and keep the cheapest one within a PSNR tolerance.
 
 ``auto_capacity(train_cfg, AutoCapacityConfig(tolerance_db=0.5))`` trains every candidate with the
-same budget (``train_cfg`` with the candidate's ``model_overrides`` merged in), evaluates each on a
-validation split (PSNR, per-stage ms per frame, parameters) and chooses
+same budget (``train_cfg`` with the candidate's ``model_overrides`` merged in), evaluates each on the
+validation split (foreground PSNR, per-stage ms per frame, parameters) and chooses
 
-    among the candidates whose PSNR is within ``tolerance_db`` of the best PSNR it measured,
+    among the candidates whose foreground PSNR is within ``tolerance_db`` of the best it measured,
     the one with the lowest ms per frame; candidates within ``ms_tie_rel`` of that lowest time
     count as tied and the one with fewest parameters wins (then the faster).
 
@@ -13,13 +13,16 @@ its error, the rule and the choice); candidate runs live in ``train_cfg.out/cand
 ``train_cfg.out/chosen`` is a symbolic link to the chosen one (a copy where links are unsupported).
 Candidates that fail (an exception, a non-finite PSNR) are recorded and never chosen.
 
-Validation splits (``AutoCapacityConfig.split``):
+Selection splits (``AutoCapacityConfig.split``), never a test split:
 
-* ``novel_view`` (default): the training frames seen from the held-out cameras, the paper's
-  novel-view protocol. It needs shards with test cameras.
-* ``novel_pose``: the test motion from the held-out cameras (every camera under protocol ``all``).
+* ``validation`` (default): every candidate holds out the same training cameras
+  (``TrainConfig.validation_cameras``, at least ``AutoCapacityConfig.validation_cameras``) and is
+  scored on them over the training frames: a novel-view measure that is not the test cameras.
 * ``train``: the training images themselves. This measures how well a model fits, not how it
-  generalises, so it favours large models. Use it only for captures without held-out cameras.
+  generalises, so it favours large models.
+
+The test split (``novel_view``, when the shards have test cameras) scores the chosen candidate only,
+after the choice (``test`` in the record).
 
 Runs in one process (not under ``torchrun``). ms per frame is measured on the machine at hand; on a
 shared CPU, ``ms_tie_rel`` keeps timing noise from deciding between models of similar cost.
@@ -39,7 +42,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Mapping, Sequence
 
-from deliffas.engine.data_bridge import shard_info
+from deliffas.engine.data_bridge import TEST_SPLITS, shard_info
 from deliffas.engine.evaluate import EvalConfig, evaluate
 from deliffas.engine.train import train
 from deliffas.models.zoo import get_config
@@ -73,8 +76,11 @@ class AutoCapacityConfig:
     ``default_ladder`` of the run's model and preset."""
     iters: int | None = None
     """Training iterations of every candidate; None = ``TrainConfig.iters``."""
-    split: Literal["novel_view", "novel_pose", "train"] = "novel_view"
-    """Validation split (module docstring)."""
+    split: Literal["validation", "train"] = "validation"
+    """Selection split (module docstring); the test splits are refused."""
+    validation_cameras: int = 1
+    """Least number of training cameras every candidate holds out for the validation split (when
+    ``TrainConfig.validation_cameras`` asks for none)."""
     max_frames: int | None = None
     """Validation frames per candidate (evenly spaced); None = all of the split."""
     cost: Literal["frame_ms", "model_ms"] = "frame_ms"
@@ -92,8 +98,13 @@ class AutoCapacityConfig:
             raise ValueError(f"AutoCapacityConfig: tolerance_db must be >= 0, got {self.tolerance_db}")
         if self.iters is not None and self.iters < 1:
             raise ValueError(f"AutoCapacityConfig: iters must be >= 1 or None, got {self.iters}")
-        if self.split not in ("novel_view", "novel_pose", "train"):
-            raise ValueError(f"AutoCapacityConfig: split must be novel_view, novel_pose or train, got {self.split!r}")
+        if self.split in TEST_SPLITS:
+            raise ValueError(f"AutoCapacityConfig: split {self.split!r} is a test split; choosing a capacity on it "
+                             "would report test numbers of a model selected on them. Use 'validation'")
+        if self.split not in ("validation", "train"):
+            raise ValueError(f"AutoCapacityConfig: split must be validation or train, got {self.split!r}")
+        if self.validation_cameras < 1:
+            raise ValueError(f"AutoCapacityConfig: validation_cameras must be >= 1, got {self.validation_cameras}")
         if self.cost not in ("frame_ms", "model_ms"):
             raise ValueError(f"AutoCapacityConfig: cost must be frame_ms or model_ms, got {self.cost!r}")
         if not self.ms_tie_rel >= 0:
@@ -169,14 +180,14 @@ def _finite(x) -> bool:
 
 
 def choose(records: Sequence[Mapping], tolerance_db: float, ms_tie_rel: float = 0.05,
-           cost_key: str = "frame_ms") -> tuple[str | None, float | None]:
-    """The rule of the module docstring over candidate records (``name``, ``psnr``, ``cost_key``,
-    ``num_parameters``, ``error``); returns (chosen name, best PSNR), (None, None) when none is usable."""
-    ok = [r for r in records if r.get("error") is None and _finite(r.get("psnr")) and _finite(r.get(cost_key))]
+           cost_key: str = "frame_ms", quality_key: str = "psnr") -> tuple[str | None, float | None]:
+    """The rule of the module docstring over candidate records (``name``, ``quality_key``, ``cost_key``,
+    ``num_parameters``, ``error``); returns (chosen name, best quality), (None, None) when none is usable."""
+    ok = [r for r in records if r.get("error") is None and _finite(r.get(quality_key)) and _finite(r.get(cost_key))]
     if not ok:
         return None, None
-    best = max(r["psnr"] for r in ok)
-    eligible = [r for r in ok if r["psnr"] >= best - tolerance_db]
+    best = max(r[quality_key] for r in ok)
+    eligible = [r for r in ok if r[quality_key] >= best - tolerance_db]
     cheapest = min(r[cost_key] for r in eligible)
     tied = [r for r in eligible if r[cost_key] <= cheapest * (1 + ms_tie_rel)]
     pick = min(tied, key=lambda r: (r.get("num_parameters") or 0, r[cost_key]))
@@ -220,8 +231,10 @@ def auto_capacity(train_cfg, ac_cfg: AutoCapacityConfig | None = None) -> dict:
     Returns:
         The record written to ``train_cfg.out/auto_capacity.json``: ``{"tolerance_db", "split",
         "iters", "cost", "ms_tie_rel", "timing_repeats", "rule", "candidates": [{"name", "overrides",
-        "run", "psnr", "ssim", "lpips", "stage_ms", "frame_ms", "model_ms", "fps", "num_parameters",
-        "train_s", "error"}], "best_psnr", "choice", "chosen_run", "chosen_link"}``.
+        "run", "fg_psnr", "fg_ssim", "flip", "psnr", "ssim", "lpips", "stage_ms", "frame_ms", "model_ms", "fps",
+        "num_parameters", "train_s", "error"}], "selection_split", "selection_metric", "validation_cameras",
+        "test_cameras", "best_psnr" (best validation foreground PSNR), "choice", "chosen_run", "chosen_link",
+        "test" (the chosen candidate on novel_view, or None without test cameras)}``.
 
     Raises:
         RuntimeError: every candidate failed (the record is written first).
@@ -229,41 +242,48 @@ def auto_capacity(train_cfg, ac_cfg: AutoCapacityConfig | None = None) -> dict:
     ac_cfg = ac_cfg or AutoCapacityConfig()
     out = Path(train_cfg.out)
     out.mkdir(parents=True, exist_ok=True)
-    if ac_cfg.split == "novel_view" and not shard_info(train_cfg.shards)["test_cameras"]:
-        raise ValueError(f"{train_cfg.shards}: no held-out cameras for split 'novel_view'; "
-                         "convert with test cameras or use split='train' (fit only)")
+    held_out = train_cfg.validation_cameras or ac_cfg.validation_cameras
+    test_cameras = shard_info(train_cfg.shards)["test_cameras"]
     candidates = _candidates(train_cfg, ac_cfg)
     iters = ac_cfg.iters or train_cfg.iters
-    rule = (f"among candidates with PSNR >= best - {ac_cfg.tolerance_db} dB, the lowest {ac_cfg.cost}; "
-            f"costs within {100 * ac_cfg.ms_tie_rel:g}% of that lowest are ties, decided by fewest parameters")
+    rule = (f"among candidates with foreground PSNR on the {ac_cfg.split} split >= best - {ac_cfg.tolerance_db} dB, "
+            f"the lowest {ac_cfg.cost}; costs within {100 * ac_cfg.ms_tie_rel:g}% of that lowest are ties, decided "
+            "by fewest parameters; the test split scores the chosen candidate only")
     record: dict = {"model": train_cfg.model, "preset": train_cfg.preset, "shards": str(train_cfg.shards),
-                    "tolerance_db": ac_cfg.tolerance_db, "split": ac_cfg.split, "iters": iters, "cost": ac_cfg.cost,
+                    "tolerance_db": ac_cfg.tolerance_db, "split": ac_cfg.split, "selection_split": ac_cfg.split,
+                    "selection_metric": "fg_psnr (foreground PSNR, padded mask box)", "validation_cameras": None,
+                    "test_cameras": test_cameras, "iters": iters, "cost": ac_cfg.cost,
                     "ms_tie_rel": ac_cfg.ms_tie_rel, "timing_repeats": ac_cfg.timing_repeats, "rule": rule,
-                    "candidates": [], "best_psnr": None, "choice": None, "chosen_run": None, "chosen_link": None}
+                    "candidates": [], "best_psnr": None, "choice": None, "chosen_run": None, "chosen_link": None,
+                    "test": None}
     for cand in candidates:
         run = out / "candidates" / cand.name
         overrides = _merge(train_cfg.model_overrides, cand.overrides)
-        entry: dict = {"name": cand.name, "overrides": overrides, "run": str(run), "psnr": None, "ssim": None,
-                       "lpips": None, "stage_ms": None, "frame_ms": None, "model_ms": None, "fps": None,
+        entry: dict = {"name": cand.name, "overrides": overrides, "run": str(run), "fg_psnr": None, "fg_ssim": None,
+                       "flip": None, "psnr": None, "ssim": None, "lpips": None, "stage_ms": None, "frame_ms": None, "model_ms": None, "fps": None,
                        "num_parameters": None, "train_s": None, "error": None}
         t0 = time.perf_counter()
         try:
             cfg = dataclasses.replace(train_cfg, out=str(run), model_overrides=overrides, iters=iters,
-                                      checkpoint_every=min(train_cfg.checkpoint_every, iters))
+                                      checkpoint_every=min(train_cfg.checkpoint_every, iters),
+                                      validation_cameras=held_out)
             train(cfg, resume=True)
+            record["validation_cameras"] = _recorded_validation_cameras(run)
             entry["train_s"] = time.perf_counter() - t0
             ev = evaluate(EvalConfig(run=str(run), split=ac_cfg.split, max_frames=ac_cfg.max_frames,
                                      device=train_cfg.device))
-            entry.update(psnr=ev["psnr"], ssim=ev["ssim"], lpips=ev["lpips"], num_parameters=ev["num_parameters"],
-                         resolution=ev.get("resolution"))
+            fg = ev["foreground"]
+            entry.update(fg_psnr=fg["psnr"], fg_ssim=fg["ssim"], flip=fg["flip"], psnr=ev["psnr"], ssim=ev["ssim"],
+                         lpips=ev["lpips"], num_parameters=ev["num_parameters"], resolution=ev.get("resolution"),
+                         images=ev["images"])
             _set_costs(entry, ev["stage_ms"])
-            if not _finite(entry["psnr"]):
-                entry["error"] = f"non-finite validation PSNR {entry['psnr']}"
+            if not _finite(entry["fg_psnr"]):
+                entry["error"] = f"non-finite validation foreground PSNR {entry['fg_psnr']}"
         except Exception as exc:  # a failing capacity is recorded, the search goes on
             logger.warning("auto_capacity: candidate %s failed: %s", cand.name, exc)
             entry["error"] = f"{type(exc).__name__}: {exc}"
             entry["traceback"] = traceback.format_exc(limit=8)
-        logger.info("auto_capacity: %s PSNR %s, %s ms, %s parameters", cand.name, entry["psnr"], entry["frame_ms"],
+        logger.info("auto_capacity: %s fg PSNR %s, %s ms, %s parameters", cand.name, entry["fg_psnr"], entry["frame_ms"],
                     entry["num_parameters"])
         record["candidates"].append(entry)
         _write_json(out / RESULT_FILE, record)  # progress survives an interruption
@@ -281,12 +301,23 @@ def auto_capacity(train_cfg, ac_cfg: AutoCapacityConfig | None = None) -> dict:
                 continue
             _set_costs(entry, {k: min(v, again["stage_ms"].get(k, v)) for k, v in entry["stage_ms"].items()})
     cost_key = "frame_ms" if ac_cfg.cost == "frame_ms" else "model_ms"
-    choice, best = choose(record["candidates"], ac_cfg.tolerance_db, ac_cfg.ms_tie_rel, cost_key)
-    record["best_psnr"] = best
+    choice, best = choose(record["candidates"], ac_cfg.tolerance_db, ac_cfg.ms_tie_rel, cost_key, "fg_psnr")
+    record["best_psnr"] = best  # foreground PSNR on the selection split
     if choice is None:
         _write_json(out / RESULT_FILE, record)
         raise RuntimeError(f"auto_capacity: every candidate failed; see {out / RESULT_FILE}")
     chosen_run = out / "candidates" / choice
     record.update(choice=choice, chosen_run=str(chosen_run), chosen_link=str(_link_chosen(out, chosen_run)))
+    if test_cameras:  # test numbers of the final choice only
+        ev = evaluate(EvalConfig(run=str(chosen_run), split="novel_view", max_frames=ac_cfg.max_frames,
+                                 device=train_cfg.device))
+        record["test"] = {"split": "novel_view", "candidate": choice, "images": ev["images"],
+                          "foreground": ev["foreground"], "psnr": ev["psnr"], "ssim": ev["ssim"],
+                          "metric_protocol": ev["metric_protocol"]}
     _write_json(out / RESULT_FILE, record)
     return record
+
+
+def _recorded_validation_cameras(run: Path) -> list[int] | None:
+    record = json.loads((run / "train_config.json").read_text())
+    return record.get("data", {}).get("validation_cameras")

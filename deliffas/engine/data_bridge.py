@@ -20,9 +20,56 @@ from deliffas.engine.rays import frame_rays
 from deliffas.engine.samples import FrameSample
 from deliffas.geometry.atlas import UVAtlas
 
-__all__ = ["training_stream", "evaluation_samples", "shard_info"]
+__all__ = ["training_stream", "evaluation_samples", "shard_info", "resolve_protocol", "validation_cameras",
+           "AUTO_PAPER_MIN_FRAMES", "EVAL_SPLITS", "TEST_SPLITS"]
 
 logger = logging.getLogger(__name__)
+
+AUTO_PAPER_MIN_FRAMES = 100
+"""Protocol ``auto`` keeps every 10th frame (``paper``) from this many training frames on, else every frame."""
+EVAL_SPLITS = ("validation", "novel_view", "novel_pose", "train")
+"""What ``evaluate`` scores: ``validation`` = the run's validation cameras (training cameras it held out) on
+the training frames; ``novel_view`` / ``novel_pose`` = the test splits; ``train`` = what it was fitted to."""
+TEST_SPLITS = ("novel_view", "novel_pose")
+"""Splits that are test data: never used to choose a model, a capacity or a stopping point."""
+
+
+def resolve_protocol(shards_dir: str, requested: str) -> tuple[str, str]:
+    """The frames protocol a run uses and the sentence that says so.
+
+    ``paper`` keeps every 10th frame (DELIFFAS, for DynaCap-scale captures of thousands of frames),
+    ``all`` every converted frame; ``auto`` is ``paper`` when the training sequence has at least
+    ``AUTO_PAPER_MIN_FRAMES`` frames, else ``all``.
+    """
+    if requested not in ("auto", "paper", "all"):
+        raise ValueError(f"protocol must be auto, paper or all, got {requested!r}")
+    shards = ShardSet(shards_dir)
+    n = len(shards.frames("training")) if "training" in shards.meta.sequence_frames else 0
+    if requested == "auto":
+        chosen = "paper" if n >= AUTO_PAPER_MIN_FRAMES else "all"
+        why = (f"{n} training frames >= {AUTO_PAPER_MIN_FRAMES}: every 10th frame (paper)" if chosen == "paper"
+               else f"{n} training frames < {AUTO_PAPER_MIN_FRAMES}: every frame (all)")
+        return chosen, f"frames protocol auto -> {chosen} ({why})"
+    kept = -(-n // 10) if requested == "paper" else n
+    return requested, f"frames protocol {requested}: {kept} of {n} training frames"
+
+
+def validation_cameras(train_cameras: list[int], requested: int | tuple[int, ...] | list[int]) -> list[int]:
+    """The training cameras held out for validation: ``requested`` calibration indices, or that many
+    cameras evenly spaced over ``train_cameras``; at least one training camera must remain."""
+    train = [int(c) for c in train_cameras]
+    if isinstance(requested, int):
+        if requested < 0:
+            raise ValueError(f"validation cameras: expected a count >= 0, got {requested}")
+        picks = [train[int((i + 0.5) * len(train) / requested)] for i in range(requested)] if requested else []
+    else:
+        picks = [int(c) for c in requested]
+        bad = [c for c in picks if c not in train]
+        if bad:
+            raise ValueError(f"validation cameras {bad} are not training cameras (training cameras: {train})")
+    if len(set(picks)) >= len(train):
+        raise ValueError(f"validation cameras {picks} would leave no training camera (training cameras: {train})")
+    return sorted(set(picks))
 
 
 def shard_info(shards_dir: str, temporal_window: int | None = None) -> dict:
@@ -93,30 +140,38 @@ def training_stream(cfg, temporal_window: int, rank: int = 0, world: int = 1,
         start_iteration: iteration resumed from (changes the draw so a resumed run sees new samples).
     """
     info = shard_info(cfg.shards, temporal_window)
-    ds = ShardDataset(cfg.shards, split="train", cameras_per_item=cfg.cameras_per_frame,
-                      temporal_window=info["temporal_window"], protocol=getattr(cfg, "protocol", "paper"))
+    protocol, message = resolve_protocol(cfg.shards, getattr(cfg, "protocol", "paper"))
+    if rank == 0:
+        logger.warning("%s", message)
+    held_out = validation_cameras(info["train_cameras"], getattr(cfg, "validation_cameras", 0))
+    fit_cameras = [c for c in info["train_cameras"] if c not in held_out]
+    ds = ShardDataset(cfg.shards, split="train", cameras=fit_cameras, cameras_per_item=cfg.cameras_per_frame,
+                      temporal_window=info["temporal_window"], protocol=protocol)
     if len(ds.frames) == 0:
-        raise ValueError(f"{cfg.shards}: no training frames under protocol {getattr(cfg, 'protocol', 'paper')!r}")
+        raise ValueError(f"{cfg.shards}: no training frames under protocol {protocol!r}")
     k = min(cfg.cameras_per_frame, len(ds.cameras))
     sampler = _EndlessCameraSampler(ds, k, seed=cfg.seed + 7919 * rank + 104729 * start_iteration)
     collate = _ItemToSample(info["faces"], info["atlas"], info["cameras"], with_rays=True)
     loader = DataLoader(ds, batch_size=1, sampler=sampler, collate_fn=collate, num_workers=cfg.num_workers,
                         persistent_workers=cfg.num_workers > 0, prefetch_factor=2 if cfg.num_workers > 0 else None,
                         worker_init_fn=_one_thread_worker if cfg.num_workers > 0 else None)
-    info.update(train_frames=len(ds.frames), train_cameras=ds.cameras, protocol=ds.protocol)
+    info.update(train_frames=len(ds.frames), train_cameras=ds.cameras, protocol=ds.protocol, protocol_message=message,
+                validation_cameras=held_out)
     return iter(loader), info
 
 
 def evaluation_samples(shards: str, split: str, max_frames: int | None = None, with_rays: bool = False,
-                       protocol: str = "paper", temporal_window: int | None = None) -> tuple[Iterator[FrameSample], dict]:
-    """Every camera of ``split`` for each of its frames (at most ``max_frames``, evenly spaced)."""
+                       protocol: str = "paper", temporal_window: int | None = None,
+                       cameras: list[int] | None = None) -> tuple[Iterator[FrameSample], dict]:
+    """Every camera of ``split`` (or the given calibration ``cameras``) for each of its frames (at most
+    ``max_frames``, evenly spaced)."""
     info = shard_info(shards, temporal_window)
-    ds = ShardDataset(shards, split=split, cameras_per_item=None, temporal_window=info["temporal_window"],
-                      protocol=protocol)
+    ds = ShardDataset(shards, split=split, cameras=cameras, cameras_per_item=None,
+                      temporal_window=info["temporal_window"], protocol=protocol)
     frames = ds.frames
     if max_frames is not None and len(frames) > max_frames:
         pick = np.linspace(0, len(frames) - 1, max_frames).round().astype(int)
-        ds = ShardDataset(shards, split=split, frames=[frames[i] for i in pick], cameras_per_item=None,
-                          temporal_window=info["temporal_window"], protocol=protocol)
+        ds = ShardDataset(shards, split=split, cameras=cameras, frames=[frames[i] for i in pick],
+                          cameras_per_item=None, temporal_window=info["temporal_window"], protocol=protocol)
     collate = _ItemToSample(info["faces"], info["atlas"], info["cameras"], with_rays=with_rays)
     return (collate([ds[i]]) for i in range(len(ds))), info

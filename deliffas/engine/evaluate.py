@@ -2,9 +2,14 @@
 
 Per test frame, the U-Net(s) run once (``cnn``); per test camera the uv maps are ray-cast
 (``uv``), the features bilinearly sampled at the hit uvs (``sample``) and the light-field MLP
-evaluated (``mlp``) — the paper's runtime breakdown. Metrics follow the official protocol
-(``deliffas.models.metrics``): PSNR and SSIM always; LPIPS only from real weights and FID never
-(both null with the reason); a clearly named random-backbone substitute beside them.
+evaluated (``mlp``) — the paper's runtime breakdown.
+
+Metrics (``deliffas.models.metrics``), each labelled with its protocol in the result: the official
+protocol's PSNR/SSIM/FLIP (white composite, 600x496 crop; at small images mostly shared background)
+and the ``foreground`` block (PSNR, SSIM, FLIP in the person's padded box, masked PSNR), which is the
+headline. LPIPS and FID only from real weights (null with the reason otherwise); a clearly named
+random-backbone substitute beside LPIPS. An evaluation of fewer than ``MIN_IMAGES_WARNING`` images
+warns (``warnings`` in the result).
 """
 
 from __future__ import annotations
@@ -19,22 +24,28 @@ from typing import Literal
 import numpy as np
 import torch
 
-from deliffas.engine.data_bridge import evaluation_samples
+from deliffas.engine.data_bridge import EVAL_SPLITS, evaluation_samples, resolve_protocol
+from deliffas.engine.figures import GridImage, comparison_grid
 from deliffas.engine.rays import camera_rays, paint_images, ray_query, stack_rays
+from deliffas.engine.realtime import FastRender, fast_render_camera
 from deliffas.engine.samples import FrameSample, composite_target
 from deliffas.engine.timing import StageTimer
 from deliffas.geometry.raycast import UVRaycaster
 from deliffas.io.cameras import Camera
 from deliffas.models.deliffas import DeliffasModel, FrameFeatures
-from deliffas.models.metrics import Evaluator
+from deliffas.models.metrics import METRICS, Evaluator
 from deliffas.models.unet import optimize_for_inference
 from deliffas.models.zoo import load_checkpoint
 
-__all__ = ["EvalConfig", "evaluate", "render_frame", "render_camera", "load_run"]
+__all__ = ["EvalConfig", "evaluate", "render_frame", "render_camera", "load_run", "MIN_IMAGES_WARNING", "HEADLINE"]
 
 logger = logging.getLogger(__name__)
 
-Split = Literal["novel_view", "novel_pose", "train"]
+Split = Literal["validation", "novel_view", "novel_pose", "train"]
+MIN_IMAGES_WARNING = 10
+"""An evaluation over fewer images than this warns: its mean is too noisy to rank models."""
+HEADLINE = "foreground.psnr"
+"""The number tables, orderings and the demo lead with (``METRICS`` key)."""
 
 
 @dataclass(frozen=True)
@@ -44,8 +55,12 @@ class EvalConfig:
     run: str
     """Run directory written by ``deliffas train``."""
     split: Split = "novel_view"
-    """``novel_view``: held-out cameras on training-motion frames (every 10th); ``novel_pose``:
-    the test motion; ``train``: training cameras (a sanity check)."""
+    """``novel_view``: held-out (test) cameras on training-motion frames; ``novel_pose``: the test motion;
+    ``validation``: the run's validation cameras (training cameras it held out, ``TrainConfig.validation_cameras``)
+    on the training frames, for choosing among runs; ``train``: the cameras it was fitted to (a sanity check)."""
+    protocol: Literal["paper", "all"] | None = None
+    """Frames protocol: ``paper`` = every 10th frame, ``all`` = every frame; None = the run's (as resolved
+    when it trained)."""
     shards: str | None = None
     """Shard directory (default: the one the run was trained on)."""
     max_frames: int | None = None
@@ -56,7 +71,18 @@ class EvalConfig:
     save_images: str | None = None
     """Folder for predicted images ``<cam:03d>/<frame:06d>.png`` (white background), or None."""
     vgg16_path: str | None = None
+    """ImageNet VGG-16 file for LPIPS (else ``$DELIFFAS_VGG16_WEIGHTS`` / torch hub cache)."""
     lpips_path: str | None = None
+    """LPIPS v0.1 VGG lin-layer file (else ``$DELIFFAS_LPIPS_WEIGHTS`` / the lpips package)."""
+    inception_path: str | None = None
+    """pytorch-fid's Inception-v3 weights for FID (else ``$DELIFFAS_INCEPTION_WEIGHTS`` / torch hub cache)."""
+    grid: str | None = None
+    """PNG path of a comparison grid (GT | prediction | error heat map) of the first images, or None."""
+    grid_images: int = 3
+    """Rows of that grid (one image per frame, the first camera)."""
+    fast: bool = False
+    """Render by ``engine.realtime``'s CPU fast path (rasterised uvs, bf16 MLP where native) instead
+    of the reference path, to measure what it changes."""
 
 
 def load_run(run: str | Path, device: str | torch.device = "cpu") -> tuple[DeliffasModel, dict]:
@@ -70,21 +96,24 @@ def load_run(run: str | Path, device: str | torch.device = "cpu") -> tuple[Delif
 
 @torch.no_grad()
 def render_frame(model: DeliffasModel, sample: FrameSample, raycaster, device: torch.device,
-                 timer: StageTimer, chunk_size: int = 262144) -> torch.Tensor:
+                 timer: StageTimer, chunk_size: int = 262144, fast: FastRender | None = None) -> torch.Tensor:
     """Render every camera of ``sample`` with per-stage timing; (K, H, W, 3) on black.
 
     ``sample.rays`` is ignored: the rays are cast here so the ``uv`` stage is timed.
     """
     with timer.stage("cnn"):
         features = model.encode(*sample.normal_maps(device))
-    return torch.stack([render_camera(model, features, raycaster, cam, device, timer, chunk_size)
+    return torch.stack([render_camera(model, features, raycaster, cam, device, timer, chunk_size, fast)
                         for cam in sample.cameras])
 
 
 @torch.no_grad()
 def render_camera(model: DeliffasModel, features: FrameFeatures, raycaster, camera: Camera, device: torch.device,
-                  timer: StageTimer, chunk_size: int = 262144) -> torch.Tensor:
-    """One camera's (H, W, 3) image on black from the frame's encoded ``features`` (stages uv, sample, mlp)."""
+                  timer: StageTimer, chunk_size: int = 262144, fast: FastRender | None = None) -> torch.Tensor:
+    """One camera's (H, W, 3) image on black from the frame's encoded ``features`` (stages uv, sample, mlp);
+    with ``fast`` on CPU, by ``engine.realtime`` (rasterised uvs, fused inputs, bf16 MLP where native)."""
+    if fast is not None and torch.device(device).type == "cpu":
+        return fast_render_camera(model, features, raycaster, camera, timer, fast)
     with timer.stage("uv"):
         batch = stack_rays([camera_rays(raycaster, camera)], [0]).to(device)
         query = ray_query(batch, model.spec)
@@ -104,11 +133,23 @@ def evaluate(cfg: EvalConfig) -> dict:
     shards = cfg.shards or record.get("train", {}).get("shards")
     if shards is None:
         raise ValueError(f"{cfg.run}: no shards recorded in train_config.json; pass --shards")
-    protocol = record.get("train", {}).get("protocol", "paper")
-    samples, info = evaluation_samples(shards, cfg.split, max_frames=cfg.max_frames, with_rays=False,
-                                       protocol=protocol, temporal_window=model.config.temporal_window)
-    evaluator = Evaluator(vgg16_path=cfg.vgg16_path, lpips_path=cfg.lpips_path, device=device)
+    protocol = cfg.protocol or _run_protocol(record, shards)
+    if cfg.split not in EVAL_SPLITS:
+        raise ValueError(f"split must be one of {EVAL_SPLITS}, got {cfg.split!r}")
+    split, cameras = cfg.split, None
+    if cfg.split == "validation":
+        cameras = record.get("data", {}).get("validation_cameras") or []
+        if not cameras:
+            raise ValueError(f"{cfg.run}: the run holds out no validation cameras (train with --val-cameras N)")
+        split = "train"
+    samples, info = evaluation_samples(shards, split, max_frames=cfg.max_frames, with_rays=False,
+                                       protocol=protocol, temporal_window=model.config.temporal_window,
+                                       cameras=cameras)
+    evaluator = Evaluator(vgg16_path=cfg.vgg16_path, lpips_path=cfg.lpips_path, inception_path=cfg.inception_path,
+                          device=device)
+    grid_rows: list[GridImage] = []
     timer = StageTimer(device)
+    fast = FastRender() if cfg.fast else None
     n_images = n_frames = 0
     cameras_seen: set[int] = set()
     t_wall = 0.0
@@ -116,16 +157,21 @@ def evaluate(cfg: EvalConfig) -> dict:
     for sample in samples:
         if not warmed:  # first use of open3d and of the model's kernels is slow; keep it out of the timing
             render_frame(model, sample, UVRaycaster(sample.inner_verts, info["faces"], sample.outer_verts, info["atlas"]),
-                         device, StageTimer(device), cfg.chunk_size)
+                         device, StageTimer(device), cfg.chunk_size, fast)
             warmed = True
         t0 = time.perf_counter()
         with timer.stage("scene"):
             raycaster = UVRaycaster(sample.inner_verts, info["faces"], sample.outer_verts, info["atlas"])
-        preds = render_frame(model, sample, raycaster, device, timer, cfg.chunk_size)
+        preds = render_frame(model, sample, raycaster, device, timer, cfg.chunk_size, fast)
         t_wall += time.perf_counter() - t0
         gt = composite_target(sample.images, sample.masks)  # black background
         for k in range(sample.num_cameras):
-            evaluator.add(preds[k].permute(2, 0, 1).cpu(), gt[k].permute(2, 0, 1), torch.from_numpy(sample.masks[k]))
+            scores = evaluator.add(preds[k].permute(2, 0, 1).cpu(), gt[k].permute(2, 0, 1),
+                                   torch.from_numpy(sample.masks[k]))
+            if cfg.grid and k == 0 and len(grid_rows) < cfg.grid_images:
+                grid_rows.append(GridImage(gt[k].numpy(), preds[k].cpu().numpy(),
+                                           f"cam {int(sample.camera_ids[k])} · frame {sample.frame} · "
+                                           f"fg PSNR {scores.fg_psnr:.1f} dB"))
             if cfg.save_images:
                 _save_white(Path(cfg.save_images), int(sample.camera_ids[k]), sample.frame, preds[k], sample.masks[k])
             cameras_seen.add(int(sample.camera_ids[k]))
@@ -134,6 +180,13 @@ def evaluate(cfg: EvalConfig) -> dict:
     if n_images == 0:
         raise ValueError(f"split {cfg.split!r} of {shards} holds no frames/cameras to evaluate")
     summary = evaluator.summary()
+    warnings = []
+    if n_images < MIN_IMAGES_WARNING:
+        warnings.append(f"only {n_images} image(s) evaluated (< {MIN_IMAGES_WARNING}): the means are noisy; "
+                        f"frames protocol {protocol!r}" + (", try --protocol all" if protocol == "paper" else ""))
+        logger.warning("eval %s: %s", cfg.split, warnings[-1])
+    if cfg.grid and grid_rows:
+        comparison_grid(grid_rows, cfg.grid, f"{record.get('train', {}).get('model')} · {cfg.split}")
     per_image = timer.per_unit(n_images)
     # The U-Net runs once per frame and is shared by the frame's cameras; a single-view render pays it fully.
     cnn_per_frame = timer.total_ms.get("cnn", 0.0) / n_frames
@@ -143,7 +196,11 @@ def evaluate(cfg: EvalConfig) -> dict:
     result = {
         "run": str(cfg.run),
         "split": cfg.split,
+        "is_test_split": cfg.split in ("novel_view", "novel_pose"),
         "protocol": protocol,
+        "frames_protocol": protocol,
+        "headline": HEADLINE,
+        "metric_protocols": {m.key: m.protocol for m in METRICS},
         "model": record.get("train", {}).get("model"),
         "preset": record.get("train", {}).get("preset"),
         "num_parameters": model.num_parameters(),
@@ -151,15 +208,28 @@ def evaluate(cfg: EvalConfig) -> dict:
         "cameras": sorted(cameras_seen),
         "images": n_images,
         "resolution": [int(sample.images.shape[2]), int(sample.images.shape[1])],
+        "metric_protocol": summary["protocol"],
         **{k: summary[k] for k in ("psnr", "ssim", "mse", "mae", "lpips", "lpips_reason", "fid", "fid_reason",
-                                   "lpips_random_vgg16", "lpips_random_vgg16_backbone")},
+                                   "fid_images", "flip", "flip_reason", "flip_protocol", "lpips_random_vgg16",
+                                   "lpips_random_vgg16_backbone", "foreground")},
+        "warnings": warnings,
+        "grid": cfg.grid if cfg.grid and grid_rows else None,
         "stage_ms": stage_ms,
         "fps": 1000.0 / total_single if total_single > 0 else None,
         "fps_shared_cnn": n_images / t_wall if t_wall > 0 else None,
         "device": str(device),
+        "render_path": f"fast ({fast.torch_dtype()})" if fast else "plain",
         "perceptual_backbone": record.get("perceptual_backbone"),
     }
     return result
+
+
+def _run_protocol(record: dict, shards: str) -> str:
+    """The frames protocol the run trained with (resolved ``auto`` as recorded, else resolved now)."""
+    recorded = record.get("data", {}).get("protocol")
+    if recorded in ("paper", "all"):
+        return recorded
+    return resolve_protocol(shards, record.get("train", {}).get("protocol", "paper"))[0]
 
 
 def _save_white(root: Path, cam: int, frame: int, pred: torch.Tensor, mask: np.ndarray) -> None:

@@ -19,6 +19,8 @@ from deliffas.geometry.frame_geometry import FrameGeometryBuilder
 from deliffas.geometry.templates import build_template
 from deliffas.engine.evaluate import load_run
 from deliffas.engine.rays import camera_rays, paint_images, ray_query, stack_rays
+from deliffas.engine.realtime import FastRender, default_fast_render, fast_render_camera
+from deliffas.engine.timing import StageTimer
 from deliffas.geometry.raycast import UVRaycaster
 
 __all__ = ["RenderConfig", "render_video", "orbit_cameras", "render_images", "motion_geometry_builder"]
@@ -45,6 +47,9 @@ class RenderConfig:
     device: str = "cpu"
     fps: float = 25.0
     chunk_size: int = 262144
+    fast: bool = True
+    """On CPU, render by ``engine.realtime`` (rasterised uvs, fused inputs, bf16 MLP where native);
+    False = the plain path of ``deliffas eval``."""
 
 
 def orbit_cameras(reference: Camera, centers: np.ndarray, radius: float, height: float,
@@ -65,15 +70,18 @@ def orbit_cameras(reference: Camera, centers: np.ndarray, radius: float, height:
 
 @torch.no_grad()
 def render_images(model, normal_windows, geometry, faces, atlas, cameras: list[Camera], device: torch.device,
-                  chunk_size: int = 262144, background: float = 0.0):
-    """Yield one (H, W, 3) uint8 image per frame: frame i seen by ``cameras[i]``."""
+                  chunk_size: int = 262144, background: float = 0.0, fast: FastRender | None = None):
+    """Yield one (H, W, 3) uint8 image per frame: frame i seen by ``cameras[i]`` (``fast``: engine.realtime on CPU)."""
     for i, cam in enumerate(cameras):
         ni, no = (w.float()[None].to(device) for w in normal_windows(i))
         features = model.encode(ni, no)
         raycaster = UVRaycaster(geometry.inner[i], faces, geometry.outer[i], atlas)
-        batch = stack_rays([camera_rays(raycaster, cam)], [0]).to(device)
-        rgb = model.shade_chunked(features, ray_query(batch, model.spec), chunk_size=chunk_size)
-        image = paint_images(rgb, batch, 1, cam.height, cam.width, background)[0]
+        if fast is not None and device.type == "cpu":
+            image = fast_render_camera(model, features, raycaster, cam, StageTimer(device), fast, background)
+        else:
+            batch = stack_rays([camera_rays(raycaster, cam)], [0]).to(device)
+            rgb = model.shade_chunked(features, ray_query(batch, model.spec), chunk_size=chunk_size)
+            image = paint_images(rgb, batch, 1, cam.height, cam.width, background)[0]
         yield (image.clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
 
 
@@ -128,8 +136,9 @@ def render_video(cfg: RenderConfig) -> Path:
     atlas = UVAtlas(meta.uvs, meta.face_uvs)
     out = Path(cfg.out)
     out.parent.mkdir(parents=True, exist_ok=True)
+    fast = default_fast_render(device) if cfg.fast else None
     images = render_images(model, lambda i: geometry.window(i, T), geometry, meta.faces, atlas, cameras, device,
-                           cfg.chunk_size)
+                           cfg.chunk_size, fast=fast)
     bar = tqdm(images, total=n, desc="render", unit="frame", dynamic_ncols=True)
     if not out.suffix:
         out.mkdir(parents=True, exist_ok=True)

@@ -8,7 +8,7 @@ from typing import Sequence
 
 import numpy as np
 
-__all__ = ["results_table", "pareto_front", "speed_accuracy_chart", "pyplot", "save_figure"]
+__all__ = ["results_table", "protocol_notes", "fg", "pareto_front", "speed_accuracy_chart", "pyplot", "save_figure"]
 
 
 def pyplot():
@@ -41,21 +41,43 @@ def _fmt(v, spec: str = ".2f") -> str:
     return "n/a" if v is None else format(v, spec)
 
 
+def fg(row: dict, key: str):
+    """``row["foreground"][key]`` of an eval dict (None when absent)."""
+    return (row.get("foreground") or {}).get(key)
+
+
+def protocol_notes(rows: Sequence[dict]) -> list[str]:
+    """Markdown lines naming the protocol behind each column of :func:`results_table`."""
+    first = rows[0] if rows else {}
+    notes = ["Protocols: **fg** = " + str(fg(first, "protocol") or "foreground (padded mask box)")
+             + "; **masked** = over the mask pixels only; **official** = "
+             + str(first.get("metric_protocol") or "the paper's (white composite, 600x496 crop)")
+             + ". FLIP: " + str(first.get("flip_protocol") or "LDR-FLIP, lower is better") + "."]
+    reasons = {r.get("lpips_reason") for r in rows if r.get("lpips") is None and r.get("lpips_reason")}
+    if reasons:
+        notes.append("LPIPS unavailable: " + "; ".join(sorted(reasons)))
+    warnings = sorted({w for r in rows for w in r.get("warnings") or ()})
+    if warnings:
+        notes.append("Warnings: " + "; ".join(warnings))
+    return notes
+
+
 def results_table(rows: Sequence[dict], title: str | None = None) -> str:
-    """A markdown table of evaluation results (``deliffas eval --json`` dicts with a ``name``)."""
+    """A markdown table of evaluation results (``deliffas eval --json`` dicts with a ``name``), foreground
+    metrics first, each column naming its protocol, with the protocol notes below."""
     lines = [f"### {title}", ""] if title else []
-    lines += ["| model | params | PSNR ↑ | SSIM ↑ | LPIPS ↓ | LPIPS (random VGG, substitute) ↓ | uv ms | cnn ms | sample ms | mlp ms | fps |",
-              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    lines += ["| model | params | fg PSNR ↑ | fg SSIM ↑ | fg FLIP ↓ | masked PSNR ↑ | fg LPIPS ↓ | official PSNR ↑ | "
+              "official SSIM ↑ | LPIPS (random VGG, substitute) ↓ | uv ms | cnn ms | sample ms | mlp ms | fps |",
+              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         s = r.get("stage_ms", {})
         lines.append(
-            f"| {r.get('name', r.get('model'))} | {r.get('num_parameters', 0):,} | {_fmt(r.get('psnr'))} | "
-            f"{_fmt(r.get('ssim'), '.4f')} | {_fmt(r.get('lpips'), '.4f')} | {_fmt(r.get('lpips_random_vgg16'), '.5f')} | "
-            f"{_fmt(s.get('uv'), '.1f')} | {_fmt(s.get('cnn'), '.1f')} | {_fmt(s.get('sample'), '.1f')} | "
-            f"{_fmt(s.get('mlp'), '.1f')} | {_fmt(r.get('fps'))} |")
-    reasons = {r.get("lpips_reason") for r in rows if r.get("lpips") is None and r.get("lpips_reason")}
-    if reasons:
-        lines += ["", "LPIPS unavailable: " + "; ".join(sorted(reasons))]
+            f"| {r.get('name', r.get('model'))} | {r.get('num_parameters', 0):,} | {_fmt(fg(r, 'psnr'))} | "
+            f"{_fmt(fg(r, 'ssim'), '.4f')} | {_fmt(fg(r, 'flip'), '.4f')} | {_fmt(fg(r, 'masked_psnr'))} | "
+            f"{_fmt(fg(r, 'lpips'), '.4f')} | {_fmt(r.get('psnr'))} | {_fmt(r.get('ssim'), '.4f')} | "
+            f"{_fmt(r.get('lpips_random_vgg16'), '.5f')} | {_fmt(s.get('uv'), '.1f')} | {_fmt(s.get('cnn'), '.1f')} | "
+            f"{_fmt(s.get('sample'), '.1f')} | {_fmt(s.get('mlp'), '.1f')} | {_fmt(r.get('fps'))} |")
+    lines += [""] + protocol_notes(rows)
     return "\n".join(lines) + "\n"
 
 
@@ -72,11 +94,14 @@ def pareto_front(cost: Sequence[float], quality: Sequence[float]) -> np.ndarray:
 
 
 def speed_accuracy_chart(rows: Sequence[dict], path: str | Path, title: str, resolution: str = "") -> Path:
-    """PSNR against milliseconds per frame, one point per row, with the Pareto front drawn."""
+    """Foreground PSNR (padded mask box) against milliseconds per frame, one point per row, with the
+    Pareto front drawn (official PSNR for rows without a foreground block)."""
     plt = pyplot()
 
     ms = [sum(r["stage_ms"].values()) for r in rows]
-    psnr = [r["psnr"] for r in rows]
+    psnr = [fg(r, "psnr") if fg(r, "psnr") is not None else r["psnr"] for r in rows]
+    ylabel = ("foreground PSNR (dB, padded mask box), held-out cameras" if all(fg(r, "psnr") is not None for r in rows)
+              else "PSNR (dB, official protocol), held-out cameras")
     fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=120)
     ax.scatter(ms, psnr, color="tab:blue", zorder=3)
     for x, y, r in zip(ms, psnr, rows):
@@ -86,7 +111,7 @@ def speed_accuracy_chart(rows: Sequence[dict], path: str | Path, title: str, res
         ax.plot(np.asarray(ms)[front], np.asarray(psnr)[front], "--", color="tab:red", label="Pareto front", zorder=2)
         ax.legend(loc="lower right")
     ax.set_xlabel(f"ms per frame (uv + cnn + sample + mlp){', ' + resolution if resolution else ''}, CPU")
-    ax.set_ylabel("PSNR (dB), held-out cameras")
+    ax.set_ylabel(ylabel)
     ax.set_title(title)
     ax.grid(alpha=0.3)
     return save_figure(fig, path)

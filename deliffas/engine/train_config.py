@@ -46,8 +46,14 @@ class TrainConfig:
     """lr = lr · 0.1^(step / lr_decay_steps), as the official code."""
     cameras_per_frame: int = 4
     """K training cameras per iteration; the U-Nets run once for all K."""
-    protocol: Literal["paper", "all"] = "paper"
-    """Frames used: ``paper`` = every 10th frame (DELIFFAS), ``all`` = every converted frame."""
+    protocol: Literal["auto", "paper", "all"] = "auto"
+    """Frames used: ``paper`` = every 10th frame (DELIFFAS, for DynaCap-scale captures), ``all`` = every
+    converted frame, ``auto`` = ``paper`` from 100 training frames on, else ``all`` (logged at start; the
+    resolved protocol is recorded in ``train_config.json`` ``data.protocol``)."""
+    validation_cameras: int | tuple[int, ...] = 0
+    """Training cameras held out as the validation split (never trained on, never test cameras): a
+    count (evenly spaced over the training cameras) or calibration indices. ``eval --split validation``
+    scores them on the training frames; auto-capacity chooses on them."""
     perceptual: PerceptualChoice = "none"
     """Stage-2 perceptual backbone: ``vgg16-imagenet`` (weights must exist), ``vgg16-random``
     (the explicit offline option, seeded), or ``none`` (L1 only)."""

@@ -361,6 +361,8 @@ class UVRaycaster:
         if peel not in ("recast", "list"):
             raise ValueError(f"peel: expected 'recast' or 'list', got {peel!r}")
         self.peel = peel
+        # the frame's surfaces as given (read by engine/realtime's rasteriser of the same frame)
+        self.inner_verts, self.outer_verts, self.faces, self.atlas = inner_verts, outer_verts, faces, atlas
         self.corner_uvs = atlas.uvs.astype(np.float32)[atlas.face_uvs]  # (F, 3, 2) float32
         self.inner_scene = build_scene(inner_verts, faces)
         self.outer_scene = build_scene(outer_verts, faces)

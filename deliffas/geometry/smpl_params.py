@@ -5,17 +5,22 @@
 per-frame pose parameters as a ``deliffas.io.dynacap.Motion`` (frame numbers + rows). These pure
 functions convert an AMASS-style :class:`~deliffas.io.amass.SMPLMotion` to those rows and that
 ``Motion`` and back, without changing units or axes (AMASS's z-up world stays in the root
-orientation and translation).
+orientation and translation). Capture datasets store the same pose in other forms; the
+conversions are exact and live here too: EasyMocap / ZJU-MoCap ``Rh``/``Th`` (:func:`rhth_to_params`,
+:func:`params_to_rhth`) and SMPL-X's body pose (:func:`smplx_to_smpl_pose`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from deliffas.io.amass import SMPL_POSE_DIM, SMPLMotion
+from deliffas.io.amass import SMPL_BODY_POSE_DIM, SMPL_POSE_DIM, SMPLMotion
+from deliffas.io.camera_conventions import matrix_to_rotvec, rotvec_to_matrix
 from deliffas.io.dynacap import Motion
+from deliffas.io.smpl import SMPLModelData
 
-__all__ = ["smpl_param_dim", "motion_to_params", "params_to_motion", "motion_to_dynacap"]
+__all__ = ["smpl_param_dim", "motion_to_params", "params_to_motion", "motion_to_dynacap", "rest_root_joint",
+           "rhth_to_params", "params_to_rhth", "smplx_to_smpl_pose"]
 
 
 def smpl_param_dim(num_betas: int) -> int:
@@ -61,7 +66,73 @@ def params_to_motion(params: np.ndarray, fps: float | None = None, gender: str |
 
 
 def motion_to_dynacap(motion: SMPLMotion, num_betas: int = 10, first_frame: int = 0) -> Motion:
-    """The motion as deliffas's per-frame pose parameters: frames ``first_frame .. first_frame + N - 1``
-    (int64) and ``dofs`` = :func:`motion_to_params` rows (N, 3 + 72 + num_betas)."""
+    """The motion as deliffas's per-frame pose parameters: the motion's ``frames`` when it has them,
+    else ``first_frame .. first_frame + N - 1`` (int64), and ``dofs`` = :func:`motion_to_params` rows
+    (N, 3 + 72 + num_betas)."""
     params = motion_to_params(motion, num_betas)
-    return Motion(np.arange(first_frame, first_frame + len(params), dtype=np.int64), params)
+    frames = motion.frames if motion.frames is not None else np.arange(first_frame, first_frame + len(params))
+    return Motion(np.asarray(frames, np.int64), params)
+
+
+def rest_root_joint(model: SMPLModelData, betas: np.ndarray) -> np.ndarray:
+    """(3,) float64 the shaped rest pelvis joint ``J_regressor[0] @ (v_template + shapedirs betas)``, model units."""
+    betas = np.asarray(betas, np.float64).ravel()
+    nb = min(len(betas), model.num_betas)
+    shaped = model.v_template + model.shapedirs[:, :, :nb] @ betas[:nb]  # (V, 3)
+    return model.J_regressor[0] @ shaped
+
+
+def rhth_to_params(Rh: np.ndarray, Th: np.ndarray, poses: np.ndarray, betas: np.ndarray,
+                   root_joint: np.ndarray) -> np.ndarray:
+    """SMPL template rows ``[transl, pose (72), betas]`` of EasyMocap's ``Rh``/``Th`` form.
+
+    EasyMocap poses the body with its root at the rest pelvis J0, then rotates the result about the
+    **origin** and translates: ``v = R(Rh) X + Th``. SMPL's root rotation turns about J0 itself:
+    ``v = G (X - J0) + J0 + transl``. With G = R(Rh) R(poses[:3]) both agree when
+    ``transl = Th + R(Rh) J0 - J0``.
+
+    Args:
+        Rh, Th: (N, 3) axis-angle, model units (metres). poses: (N, >= 66) (SMPL 72; SMPL-H/X: the
+            first 66 are the shared 22 joints, the rest are dropped and SMPL's hands set to zero).
+        betas: (NB,) shape, shared. root_joint: (3,) ``rest_root_joint(model, betas)``.
+
+    Returns:
+        (N, 3 + 72 + NB) float64.
+    """
+    Rh, Th = np.atleast_2d(Rh).astype(np.float64), np.atleast_2d(Th).astype(np.float64)
+    poses = np.atleast_2d(poses).astype(np.float64)
+    n = len(Rh)
+    pose = np.zeros((n, SMPL_POSE_DIM))
+    k = SMPL_POSE_DIM if poses.shape[1] == SMPL_POSE_DIM else SMPL_BODY_POSE_DIM
+    pose[:, :k] = poses[:, :k]
+    transl = np.empty((n, 3))
+    for i in range(n):  # frames
+        R = rotvec_to_matrix(Rh[i])
+        pose[i, :3] = matrix_to_rotvec(R @ rotvec_to_matrix(pose[i, :3]))
+        transl[i] = Th[i] + R @ root_joint - root_joint
+    betas = np.broadcast_to(np.asarray(betas, np.float64).ravel(), (n, np.size(betas)))
+    return np.concatenate([transl, pose, betas], axis=1)
+
+
+def params_to_rhth(params: np.ndarray, root_joint: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The inverse of :func:`rhth_to_params`: (Rh (N, 3), Th (N, 3), poses (N, 72) with poses[:, :3] = 0)."""
+    params = np.atleast_2d(np.asarray(params, np.float64))
+    Rh = params[:, 3:6].copy()
+    Th = np.stack([t - rotvec_to_matrix(r) @ root_joint + root_joint for t, r in zip(params[:, :3], Rh)])
+    poses = params[:, 3:3 + SMPL_POSE_DIM].copy()
+    poses[:, :3] = 0.0
+    return Rh, Th, poses
+
+
+def smplx_to_smpl_pose(global_orient: np.ndarray, body_pose: np.ndarray) -> np.ndarray:
+    """(N, 72) SMPL pose from SMPL-X's global orientation (N, 3) and 21-joint body pose (N, 63).
+
+    The 22 shared joints are copied; SMPL's two hand joints (22, 23) are zero. SMPL-X's jaw, eyes,
+    fingers and expression have no SMPL joint and are dropped.
+    """
+    go = np.atleast_2d(np.asarray(global_orient, np.float64))
+    body = np.asarray(body_pose, np.float64).reshape(len(go), -1)
+    out = np.zeros((len(go), SMPL_POSE_DIM))
+    out[:, :3] = go
+    out[:, 3:SMPL_BODY_POSE_DIM] = body[:, :SMPL_BODY_POSE_DIM - 3]
+    return out

@@ -46,6 +46,8 @@ class SMPLMotion:
         betas: (NB,) float64 shape coefficients, NB >= 10 (16 in AMASS's SMPL-H release).
         fps: capture frame rate in Hz, or None when the file gives none.
         gender: ``"male"``/``"female"``/``"neutral"`` as the file says, or None.
+        frames: (N,) int64 strictly increasing capture frame number of each row (a deliffas key, e.g.
+            SMPL fitted to a capture); None = rows are frames 0..N-1, as AMASS files have it.
     """
 
     poses: np.ndarray
@@ -53,11 +55,19 @@ class SMPLMotion:
     betas: np.ndarray
     fps: float | None = None
     gender: str | None = None
+    frames: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         for key in ("poses", "trans", "betas"):
             object.__setattr__(self, key, np.asarray(getattr(self, key), np.float64))
         _check_arrays("SMPLMotion", self.poses, self.trans, self.betas)
+        if self.frames is not None:
+            frames = np.asarray(self.frames)
+            if (frames.shape != (self.poses.shape[0],) or frames.dtype.kind not in "iu"
+                    or (len(frames) > 1 and np.any(np.diff(frames) <= 0))):
+                raise SMPLMotionError(f"SMPLMotion: 'frames' expected {self.poses.shape[0]} strictly increasing "
+                                      f"integers, got shape {frames.shape}, dtype {frames.dtype}")
+            object.__setattr__(self, "frames", frames.astype(np.int64))
 
     @property
     def num_frames(self) -> int:
@@ -145,7 +155,15 @@ def read_smpl_motion(path: str | os.PathLike) -> SMPLMotion:
                 fps = float(value.ravel()[0])
                 break
         gender = _optional_text(z, "gender")
-    return SMPLMotion(poses, trans, betas.ravel(), fps, gender)
+        frames = None
+        if "frames" in z.files:
+            frames = z["frames"]
+            if frames.dtype.kind not in "iu":
+                raise SMPLMotionError(f"{p}: 'frames' expected integer frame numbers, got dtype {frames.dtype}")
+    try:
+        return SMPLMotion(poses, trans, betas.ravel(), fps, gender, frames)
+    except SMPLMotionError as err:
+        raise SMPLMotionError(f"{p}: {str(err).split(': ', 1)[1]}") from None
 
 
 def write_smpl_motion(path: str | os.PathLike, motion: SMPLMotion) -> None:
@@ -160,6 +178,8 @@ def write_smpl_motion(path: str | os.PathLike, motion: SMPLMotion) -> None:
         arrays["mocap_framerate"] = np.asarray(float(motion.fps))
     if motion.gender is not None:
         arrays["gender"] = np.asarray(str(motion.gender))
+    if motion.frames is not None:
+        arrays["frames"] = np.asarray(motion.frames, np.int64)
     tmp = temp_path(p)
     with open(tmp, "wb") as fh:  # a file object: np.savez would append .npz to the temporary name
         np.savez(fh, **arrays)

@@ -162,6 +162,10 @@ class SmcFile:
             raise CaptureFormatError(self.path, "Camera_Parameter", "expected at least one camera, got none")
         return out
 
+    def has(self, key: str) -> bool:
+        """Whether the file holds the group or dataset ``key`` (e.g. ``Mask``, ``SMPLx``)."""
+        return key in self._h5
+
     def frame_count(self, camera: str | int, group: str = "Camera_5mp", kind: str = "color") -> int:
         """Number of frames stored for ``camera`` (``kind`` "color" in ``group``, or "mask")."""
         key = f"Mask/{int(camera)}/mask" if kind == "mask" else f"{group}/{int(camera)}/{kind}"
@@ -214,19 +218,22 @@ def read_smc_calibration(path: PathLike) -> list[SmcCalibration]:
         return smc.calibration()
 
 
-def smc_to_cameras(path: PathLike, size: tuple[int, int] | None = None, group: str = "Camera_5mp") -> list[Camera]:
+def smc_to_cameras(path: PathLike, size: tuple[int, int] | None = None, group: str = "Camera_5mp",
+                   images: PathLike | None = None) -> list[Camera]:
     """deliffas Cameras (world -> camera, mm, +0.5 pixel centres, D in ``extra``) of an ``.smc`` file.
 
     Args:
         size: (width, height) for cameras without an image or mask in the file.
+        images: another ``.smc`` holding the frames the sizes come from (a capture's main file when
+            ``path`` is its ``_annots.smc``); None = ``path``.
 
     Raises:
         ValueError: a camera without images in the file and no ``size``.
     """
     out = []
-    with SmcFile(path) as smc:
+    with SmcFile(path) as smc, SmcFile(images if images is not None else path) as frames:
         for c in smc.calibration():
-            wh = smc.image_size(c.camera_id, group) or size
+            wh = frames.image_size(c.camera_id, group) or smc.image_size(c.camera_id, group) or size
             if wh is None:
                 raise ValueError(f"{path}: camera {c.camera_id} has no image or mask to take its size from; pass size=(w, h)")
             out.append(to_camera(c.name or c.camera_id, c.K, invert_rigid(c.RT), wh[0], wh[1], units="m",

@@ -38,6 +38,7 @@ from deliffas.io.cameras import Camera
 from deliffas.io.camera_conventions import from_camera, require_distortion_fits, to_camera
 from deliffas.io.capture_format import (CaptureFormatError, read_json, require_array, require_rotation, require_size,
                                         write_json_atomic)
+from deliffas.io.files import durable_replace, temp_path
 
 __all__ = [
     "Thuman4Camera",
@@ -47,6 +48,7 @@ __all__ = [
     "thuman4_to_camera",
     "camera_to_thuman4",
     "read_thuman4_smplx",
+    "write_thuman4_smplx",
     "thuman4_image_path",
     "thuman4_mask_path",
 ]
@@ -213,6 +215,18 @@ def read_thuman4_smplx(path: PathLike) -> Thuman4Smplx:
             a = arrays[key]
             others[key] = require_array(p, key, a, (n,) + (-1,) * (a.ndim - 1))
     return Thuman4Smplx(betas, go, transl, body, others)
+
+
+def write_thuman4_smplx(path: PathLike, smplx: Thuman4Smplx) -> None:
+    """Write ``smpl_params.npz`` (float64 arrays, the optional ones from ``others``), atomically."""
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    arrays = {k: np.asarray(getattr(smplx, k), np.float64) for k in _SMPLX_REQUIRED}
+    arrays.update({k: np.asarray(v, np.float64) for k, v in smplx.others.items()})
+    tmp = temp_path(p)
+    with open(tmp, "wb") as fh:
+        np.savez(fh, **arrays)
+    durable_replace(tmp, p)
 
 
 def thuman4_image_path(root: PathLike, camera: str, frame: int) -> Path:

@@ -1,7 +1,8 @@
-"""Image-quality metrics under the official DELIFFAS evaluation protocol (formats doc 3.10).
+"""Image-quality metrics: the official DELIFFAS protocol, the foreground protocol and the perceptual scores.
 
-Protocol (D ``Projects/EvaluationScripts/Lpips.py``), per image (it reads saved 8-bit PNGs;
-:class:`Evaluator` rounds both images to 8 bits first unless ``quantize_8bit=False``):
+**Official protocol** (formats doc 3.10, D ``Projects/EvaluationScripts/Lpips.py``), per image (it
+reads saved 8-bit PNGs; :class:`Evaluator` rounds both images to 8 bits first unless
+``quantize_8bit=False``):
 
 1. the prediction is resized to the ground-truth size (bilinear, as ``cv2.resize`` default);
 2. the mask is thresholded at 0.5 and eroded with a 5 x 5 square (pixels outside the image do
@@ -9,21 +10,19 @@ Protocol (D ``Projects/EvaluationScripts/Lpips.py``), per image (it reads saved 
 3. **both** images are composited on white with that mask;
 4. both are cropped to 600 (H) x 496 (W) centred on the bounding box of the non-white GT pixels,
    shifted to stay inside the image (clipped to the image when it is smaller);
-5. PSNR = 10 log10(1 / MSE) (images in [0, 1]); SSIM as scikit-image
-   ``structural_similarity(gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
-   data_range=1, channel_axis=...)``; MSE and MAE; LPIPS (VGG, v0.1) when real weights exist.
-   Per-image values are averaged over the sequence.
+5. PSNR, SSIM (``deliffas.models.image_metrics``), MSE and MAE; LPIPS (VGG, v0.1) when real weights
+   exist; FLIP. Per-image values are averaged over the sequence; FID is over the set of crops.
 
-SSIM is computed here in float64 torch with exactly scikit-image's settings: Gaussian window
-with sigma 1.5 truncated at 3.5 sigma (11 x 11), K1 = 0.01, K2 = 0.03, population covariances,
-the SSIM map averaged over the pixels at least 5 from the border (skimage crops that border, so
-its filter padding mode never matters), then over channels.
+At small images that crop is mostly shared white background: a blurry blob scores 25 dB. The
+**foreground protocol** (``deliffas.models.foreground``) is reported beside it: PSNR, SSIM, LPIPS
+and FLIP inside the person's padded mask box (prediction as rendered, ground truth over black) and
+PSNR over the mask pixels. :data:`METRICS` lists every per-image metric with its protocol.
 
-LPIPS needs the ImageNet VGG-16 *and* the LPIPS v0.1 linear layers (the ``lpips`` package's
-``weights/v0.1/vgg.pth``, keys ``lin0.model.1.weight`` ... ``lin4.model.1.weight``); FID needs
-Inception-v3 weights and is not implemented. When unavailable they are reported as ``None``
-with a reason, never replaced: ``lpips_random_vgg16`` (an LPIPS-style distance on the seeded
-random VGG-16 with uniform channel weights) is a clearly named substitute reported beside.
+Perceptual scores are never replaced by stand-ins: LPIPS needs the ImageNet VGG-16 and the lpips
+v0.1 linear layers, FID pytorch-fid's Inception weights (``deliffas.models.fid``); absent, each is
+``None`` with the reason. FLIP (``deliffas.models.flip``) needs no ImageNet weights.
+``lpips_random_vgg16`` (an LPIPS-style distance on the seeded random VGG-16 with uniform channel
+weights) is a clearly named substitute reported beside LPIPS.
 """
 
 from __future__ import annotations
@@ -32,28 +31,34 @@ import logging
 import math
 import os
 from dataclasses import asdict, dataclass
-from pathlib import Path
+from typing import Callable
 
+import numpy as np
 import torch
 import torch.nn.functional as F
-from torch import nn
 
-from deliffas.models.vgg import (
-    PerceptualWeightsUnavailable,
-    VGG16Features,
-    load_vgg16_weights,
-    read_state_dict,
-    vgg16_weight_candidates,
-)
+from deliffas.models.fid import FIDInceptionV3, fid_from_features, inception_candidates, load_fid_inception
+from deliffas.models.flip import FLIP_PROTOCOL, flip_error, flip_status
+from deliffas.models.foreground import align_prediction, fg_psnr, fg_ssim, foreground_pair, masked_psnr
+from deliffas.models.image_metrics import mae, mse, psnr, ssim
+from deliffas.models.lpips import ENV_LPIPS_WEIGHTS, LPIPS, load_lpips_linear_weights, lpips_candidates
+from deliffas.models.vgg import PerceptualWeightsUnavailable, load_vgg16_weights, vgg16_weight_candidates
 
 __all__ = [
     "CROP_HW",
     "ENV_LPIPS_WEIGHTS",
     "FID_UNAVAILABLE_REASON",
+    "OFFICIAL_PROTOCOL",
+    "FOREGROUND_PROTOCOL",
+    "MASKED_PROTOCOL",
+    "METRICS",
+    "MetricSpec",
     "eval_mask",
     "composite_on_white",
     "crop_window",
     "prepare_pair",
+    "official_psnr",
+    "official_ssim",
     "mse",
     "mae",
     "psnr",
@@ -69,12 +74,14 @@ logger = logging.getLogger(__name__)
 
 #: Crop size (H, W) of the official protocol.
 CROP_HW = (600, 496)
-#: Environment variable naming the LPIPS v0.1 VGG linear-layer file.
-ENV_LPIPS_WEIGHTS = "DELIFFAS_LPIPS_WEIGHTS"
-FID_UNAVAILABLE_REASON = "FID needs Inception-v3 ImageNet weights (pt_inception-2015-12-05); not found"
-#: LPIPS VGG layers and their channels.
-_LPIPS_LAYERS = ("relu1_2", "relu2_2", "relu3_3", "relu4_3", "relu5_3")
-_LPIPS_CHANNELS = (64, 128, 256, 512, 512)
+FID_UNAVAILABLE_REASON = ("FID needs pytorch-fid's Inception-v3 weights (pt_inception-2015-12-05-6726825d.pth): "
+                          "pass --inception-path, set $DELIFFAS_INCEPTION_WEIGHTS or put the file in the torch hub "
+                          "cache's checkpoints/; not found")
+OFFICIAL_PROTOCOL = ("official: 8-bit, eroded mask (5x5), both images composited on white, 600x496 crop centred "
+                     "on the person (clipped to the image)")
+FOREGROUND_PROTOCOL = ("foreground: padded mask bounding box (10% of its longer side, >= 4 px), prediction as "
+                       "rendered vs ground truth over black, 8-bit")
+MASKED_PROTOCOL = "masked: mean over the ground-truth mask pixels (mask > 0.5) only, 8-bit"
 _WHITE_TOL = 0.5 / 255.0
 
 
@@ -151,162 +158,53 @@ def prepare_pair(
     Returns:
         (pred_crop, gt_crop), each (3, h, w) float.
     """
-    _check_image("pred", pred)
-    _check_image("gt", gt)
-    if tuple(mask.shape) != tuple(gt.shape[1:]):
-        raise ValueError(f"mask: expected shape {tuple(gt.shape[1:])}, got {tuple(mask.shape)}")
-    if pred.shape != gt.shape:
-        pred = F.interpolate(pred[None], size=gt.shape[1:], mode="bilinear", align_corners=False)[0]
-    pred = pred.to(gt.dtype)
+    pred = align_prediction(pred, gt, mask)
     m = eval_mask(mask).to(gt.device)
     pred_c, gt_c = composite_on_white(pred, m), composite_on_white(gt, m)
     top, left, h, w = crop_window(gt_c, crop_hw)
     return pred_c[:, top : top + h, left : left + w], gt_c[:, top : top + h, left : left + w]
 
 
-def mse(pred: torch.Tensor, gt: torch.Tensor) -> float:
-    """Mean squared error over all values (float64)."""
-    return float(((pred.double() - gt.double()) ** 2).mean())
+def _on_pairs(pair: Callable, metric: Callable, doc: str) -> Callable[[torch.Tensor, torch.Tensor, torch.Tensor], float]:
+    """``(pred, gt, mask) -> metric(*pair(pred, gt, mask))``: a metric under a protocol's crop."""
+
+    def scored(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> float:
+        return metric(*pair(pred, gt, mask))
+
+    scored.__doc__ = doc
+    return scored
 
 
-def mae(pred: torch.Tensor, gt: torch.Tensor) -> float:
-    """Mean absolute error over all values (float64)."""
-    return float((pred.double() - gt.double()).abs().mean())
+official_psnr = _on_pairs(prepare_pair, psnr, "PSNR (dB) under the official protocol (:func:`prepare_pair`).")
+official_ssim = _on_pairs(prepare_pair, ssim, "SSIM under the official protocol (:func:`prepare_pair`).")
+_official_flip = _on_pairs(prepare_pair, flip_error, "Mean LDR-FLIP under the official protocol.")
+_fg_flip = _on_pairs(foreground_pair, flip_error, "Mean LDR-FLIP inside the padded foreground box.")
 
 
-def psnr(pred: torch.Tensor, gt: torch.Tensor, max_db: float | None = None) -> float:
-    """PSNR = 10 log10(1 / MSE) of images in [0, 1].
+@dataclass(frozen=True)
+class MetricSpec:
+    """One per-image metric of :data:`METRICS`."""
 
-    Identical images have MSE 0 and PSNR ``inf`` (the original's formula; an average including
-    one is inf). Pass ``max_db`` to cap instead.
-    """
-    if pred.shape != gt.shape:
-        raise ValueError(f"psnr: pred {tuple(pred.shape)} and gt {tuple(gt.shape)} differ")
-    err = mse(pred, gt)
-    value = math.inf if err == 0.0 else 10.0 * math.log10(1.0 / err)
-    return value if max_db is None else min(value, max_db)
-
-
-def _gaussian_window(sigma: float = 1.5, truncate: float = 3.5) -> torch.Tensor:
-    """1-D Gaussian as ``scipy.ndimage.gaussian_filter1d``: radius int(truncate sigma + 0.5), float64."""
-    radius = int(truncate * sigma + 0.5)
-    x = torch.arange(-radius, radius + 1, dtype=torch.float64)
-    w = torch.exp(-0.5 * (x / sigma) ** 2)
-    return w / w.sum()
+    key: str
+    """Its key in the eval JSON (``foreground.<name>`` for the foreground block)."""
+    fn: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], float]
+    """``(pred (3, H, W), gt (3, H, W), mask (H, W)) -> float``, images in [0, 1]."""
+    protocol: str
+    """Which pixels it scores and how (``OFFICIAL_PROTOCOL``, ``FOREGROUND_PROTOCOL``, ``MASKED_PROTOCOL``)."""
+    higher_is_better: bool
+    """The direction of "better"."""
 
 
-def ssim(pred: torch.Tensor, gt: torch.Tensor, data_range: float = 1.0) -> float:
-    """Mean SSIM equal to scikit-image's ``structural_similarity`` with ``gaussian_weights=True,
-    sigma=1.5, use_sample_covariance=False, data_range=data_range`` over channel axis 0.
-
-    Args:
-        pred: (3, H, W) float, H and W >= 11.
-        gt: (3, H, W) float.
-        data_range: value range (1 for [0, 1] images).
-
-    Returns:
-        Mean over channels of the mean SSIM map (border of 5 pixels excluded).
-    """
-    if pred.shape != gt.shape or pred.dim() != 3:
-        raise ValueError(f"ssim: expected two (C, H, W) images of equal shape, got {tuple(pred.shape)}, {tuple(gt.shape)}")
-    window = _gaussian_window().to(pred.device)
-    k = window.numel()
-    if pred.shape[1] < k or pred.shape[2] < k:
-        raise ValueError(f"ssim: images must be at least {k} x {k}, got {tuple(pred.shape)}")
-    channels = pred.shape[0]
-    wx = window.view(1, 1, 1, k).repeat(channels, 1, 1, 1)
-    wy = window.view(1, 1, k, 1).repeat(channels, 1, 1, 1)
-
-    def blur(z: torch.Tensor) -> torch.Tensor:  # valid separable filter: (1, C, H, W) -> (1, C, H-10, W-10)
-        return F.conv2d(F.conv2d(z, wx, groups=channels), wy, groups=channels)
-
-    x = pred.double()[None]
-    y = gt.double()[None]
-    ux, uy = blur(x), blur(y)
-    vx = blur(x * x) - ux * ux
-    vy = blur(y * y) - uy * uy
-    vxy = blur(x * y) - ux * uy
-    c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
-    s = ((2 * ux * uy + c1) * (2 * vxy + c2)) / ((ux * ux + uy * uy + c1) * (vx + vy + c2))
-    return float(s.mean(dim=(2, 3)).mean())
-
-
-class LPIPS(nn.Module):
-    """LPIPS distance (Zhang et al. 2018, v0.1) on a VGG-16 trunk.
-
-    Inputs in [0, 1] are mapped to [-1, 1], shifted/scaled as LPIPS' ``ScalingLayer``, passed
-    through VGG-16 (relu1_2, relu2_2, relu3_3, relu4_3, relu5_3); activations are unit-normalised
-    over channels, their squared differences weighted per channel (1 x 1 "lin" layers), averaged
-    over space and summed over layers.
-
-    Args:
-        backbone: VGG-16 trunk (ImageNet weights for real LPIPS).
-        channel_weights: five (C_l,) non-negative tensors (the LPIPS v0.1 lin layers), or None
-            for uniform weights 1 / C_l (the substitute distance; not LPIPS).
-    """
-
-    def __init__(self, backbone: VGG16Features, channel_weights: list[torch.Tensor] | None = None) -> None:
-        super().__init__()
-        self.backbone = backbone
-        for p in self.backbone.parameters():
-            p.requires_grad_(False)
-        self.backbone.eval()
-        if channel_weights is None:
-            channel_weights = [torch.full((c,), 1.0 / c) for c in _LPIPS_CHANNELS]
-        if len(channel_weights) != len(_LPIPS_CHANNELS) or any(
-            w.shape != (c,) for w, c in zip(channel_weights, _LPIPS_CHANNELS)
-        ):
-            raise ValueError(f"LPIPS: expected channel weights of sizes {_LPIPS_CHANNELS}")
-        for i, w in enumerate(channel_weights):
-            self.register_buffer(f"lin{i}", w.detach().float().clone())
-        self.register_buffer("shift", torch.tensor([-0.030, -0.088, -0.188]).view(1, 3, 1, 1), persistent=False)
-        self.register_buffer("scale", torch.tensor([0.458, 0.448, 0.450]).view(1, 3, 1, 1), persistent=False)
-
-    def forward(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-        """Distance per image pair: x, y (B, 3, H, W) in [0, 1] -> (B,)."""
-        if x.dim() != 4 or x.shape[1] != 3 or x.shape != y.shape:
-            raise ValueError(f"LPIPS: expected two (B, 3, H, W) batches, got {tuple(x.shape)}, {tuple(y.shape)}")
-        fx = self.backbone(((2 * x - 1) - self.shift) / self.scale, _LPIPS_LAYERS)
-        fy = self.backbone(((2 * y - 1) - self.shift) / self.scale, _LPIPS_LAYERS)
-        total = x.new_zeros(x.shape[0])
-        for i, name in enumerate(_LPIPS_LAYERS):
-            a = fx[name] / (fx[name].pow(2).sum(dim=1, keepdim=True).sqrt() + 1e-10)
-            b = fy[name] / (fy[name].pow(2).sum(dim=1, keepdim=True).sqrt() + 1e-10)
-            weighted = ((a - b) ** 2 * getattr(self, f"lin{i}").view(1, -1, 1, 1)).sum(dim=1)  # (B, h, w)
-            total = total + weighted.mean(dim=(1, 2))
-        return total
-
-
-def _lpips_candidates(path: str | os.PathLike | None) -> list[Path]:
-    if path is not None:
-        return [Path(path)]
-    env = os.environ.get(ENV_LPIPS_WEIGHTS)
-    return [Path(env)] if env else []
-
-
-def load_lpips_linear_weights(path: str | os.PathLike) -> list[torch.Tensor]:
-    """Read LPIPS v0.1 VGG lin layers (``lin{i}.model.1.weight`` of shape (1, C_l, 1, 1)).
-
-    Args:
-        path: ``.pth`` (read with ``weights_only=True``) or ``.safetensors`` file.
-
-    Returns:
-        Five (C_l,) tensors.
-
-    Raises:
-        ValueError: naming the file and key when the layout differs.
-    """
-    state = read_state_dict(path)
-    weights = []
-    for i, c in enumerate(_LPIPS_CHANNELS):
-        key = f"lin{i}.model.1.weight"
-        if key not in state:
-            raise ValueError(f"{path}: missing key {key} (expected the lpips v0.1 vgg.pth layout)")
-        w = state[key]
-        if tuple(w.shape) != (1, c, 1, 1):
-            raise ValueError(f"{path}: {key}: expected shape (1, {c}, 1, 1), got {tuple(w.shape)}")
-        weights.append(w.reshape(c).float())
-    return weights
+METRICS: tuple[MetricSpec, ...] = (
+    MetricSpec("psnr", official_psnr, OFFICIAL_PROTOCOL, True),
+    MetricSpec("ssim", official_ssim, OFFICIAL_PROTOCOL, True),
+    MetricSpec("flip", _official_flip, OFFICIAL_PROTOCOL + "; " + FLIP_PROTOCOL, False),
+    MetricSpec("foreground.psnr", fg_psnr, FOREGROUND_PROTOCOL, True),
+    MetricSpec("foreground.ssim", fg_ssim, FOREGROUND_PROTOCOL, True),
+    MetricSpec("foreground.masked_psnr", masked_psnr, MASKED_PROTOCOL, True),
+    MetricSpec("foreground.flip", _fg_flip, FOREGROUND_PROTOCOL + "; " + FLIP_PROTOCOL, False),
+)
+"""Per-image metrics and their protocols (LPIPS, which needs weights, is computed by :class:`Evaluator`)."""
 
 
 def perceptual_metrics_status(
@@ -318,15 +216,15 @@ def perceptual_metrics_status(
 
     Args:
         vgg16_path: ImageNet VGG-16 file (else ``$DELIFFAS_VGG16_WEIGHTS``, torch hub cache).
-        lpips_path: LPIPS v0.1 VGG lin-layer file (else ``$DELIFFAS_LPIPS_WEIGHTS``).
-        inception_path: Inception-v3 FID weights (FID is not implemented; reported unavailable).
+        lpips_path: LPIPS v0.1 VGG lin-layer file (else ``$DELIFFAS_LPIPS_WEIGHTS``, the lpips package).
+        inception_path: pytorch-fid's Inception-v3 file (else ``$DELIFFAS_INCEPTION_WEIGHTS``, torch hub cache).
 
     Returns:
-        ``{"lpips": <weight files> | None, "lpips_reason": None | str, "fid": None,
-        "fid_reason": str}``.
+        ``{"lpips": <weight files> | None, "lpips_reason": None | str, "fid": <file> | None,
+        "fid_reason": None | str, "flip_reason": None | str}``.
     """
     vgg = next((p for p in vgg16_weight_candidates(vgg16_path) if p.is_file()), None)
-    lin_candidates = _lpips_candidates(lpips_path)
+    lin_candidates = lpips_candidates(lpips_path)
     lin = next((p for p in lin_candidates if p.is_file()), None)
     missing = []
     if vgg is None:
@@ -335,28 +233,34 @@ def perceptual_metrics_status(
     if lin is None:
         looked = ", ".join(str(p) for p in lin_candidates) or f"no path given and ${ENV_LPIPS_WEIGHTS} unset"
         missing.append(f"LPIPS v0.1 VGG linear layers lin0..lin4 ({looked})")
-    status: dict[str, str | None] = {
+    inception = next((p for p in inception_candidates(inception_path) if p.is_file()), None)
+    fid_reason = None
+    if inception is None:
+        fid_reason = (FID_UNAVAILABLE_REASON if inception_path is None
+                      else f"FID weights not found at {inception_path} (pytorch-fid's pt_inception-2015-12-05 file)")
+    return {
         "lpips": None if missing else f"vgg16={vgg}; lin={lin}",
         "lpips_reason": ("LPIPS needs " + " and ".join(missing) + "; not found") if missing else None,
-        "fid": None,
-        "fid_reason": FID_UNAVAILABLE_REASON,
+        "fid": None if inception is None else str(inception),
+        "fid_reason": fid_reason,
+        "flip_reason": flip_status(),
     }
-    if inception_path is not None:
-        status["fid_reason"] = (
-            f"FID is not implemented in deliffas (Inception-v3 weights path {inception_path} given but unused)"
-        )
-    return status
 
 
 @dataclass(frozen=True)
 class ImageMetrics:
-    """Metrics of one image pair after the protocol's mask/composite/crop.
+    """Metrics of one image pair.
 
     Attributes:
-        psnr: dB (inf for identical crops). ssim: scikit-image-equivalent mean SSIM.
-        mse, mae: over all values of the crops in [0, 1].
-        lpips: real LPIPS (VGG, v0.1) or None when its weights are unavailable.
+        psnr: dB (inf for identical crops), official protocol. ssim: scikit-image-equivalent mean SSIM.
+        mse, mae: over all values of the official crops in [0, 1].
+        lpips: real LPIPS (VGG, v0.1) on the official crop, or None when its weights are unavailable.
         lpips_random_vgg16: substitute distance (random VGG-16, uniform channel weights); not LPIPS.
+        flip: mean LDR-FLIP on the official crop (None without flip-evaluator).
+        fg_psnr, fg_ssim: inside the padded foreground box (``FOREGROUND_PROTOCOL``).
+        masked_psnr: over the mask pixels (``MASKED_PROTOCOL``).
+        fg_lpips: LPIPS inside the foreground box, or None.
+        fg_flip: mean LDR-FLIP inside the foreground box, or None.
     """
 
     psnr: float
@@ -365,15 +269,21 @@ class ImageMetrics:
     mae: float
     lpips: float | None
     lpips_random_vgg16: float
+    flip: float | None = None
+    fg_psnr: float = math.nan
+    fg_ssim: float = math.nan
+    masked_psnr: float = math.nan
+    fg_lpips: float | None = None
+    fg_flip: float | None = None
 
 
 class Evaluator:
-    """Accumulates protocol metrics over a sequence of images.
+    """Accumulates official and foreground metrics over a sequence of images.
 
     Args:
         vgg16_path: ImageNet VGG-16 weight file (see :func:`perceptual_metrics_status`).
         lpips_path: LPIPS v0.1 VGG lin-layer file.
-        inception_path: FID weights (FID not implemented; always reported unavailable).
+        inception_path: pytorch-fid's Inception-v3 weight file (FID over the official crops).
         substitute_seed: seed of the random VGG-16 of ``lpips_random_vgg16``.
         crop_hw: protocol crop (H, W).
         device: where the perceptual networks run.
@@ -398,62 +308,116 @@ class Evaluator:
         if self.status["lpips"] is not None:
             try:
                 backbone, _ = load_vgg16_weights("vgg16-imagenet", path=vgg16_path)
-                lin_path = next(p for p in _lpips_candidates(lpips_path) if p.is_file())
+                lin_path = next(p for p in lpips_candidates(lpips_path) if p.is_file())
                 self.lpips_net = LPIPS(backbone, load_lpips_linear_weights(lin_path)).to(self.device)
             except (PerceptualWeightsUnavailable, ValueError) as exc:
                 self.status["lpips"] = None
                 self.status["lpips_reason"] = f"LPIPS weights could not be loaded: {exc}"
+        self.fid_net: FIDInceptionV3 | None = None
+        if self.status["fid"] is not None:
+            try:
+                self.fid_net = load_fid_inception(self.status["fid"]).to(self.device)
+            except (ValueError, OSError) as exc:
+                self.status["fid"] = None
+                self.status["fid_reason"] = f"FID weights could not be loaded: {exc}"
+        self._fid_features: tuple[list[np.ndarray], list[np.ndarray]] = ([], [])
         random_backbone, self.substitute_record = load_vgg16_weights("vgg16-random", seed=substitute_seed)
         self.substitute_net = LPIPS(random_backbone, None).to(self.device)
         self.records: list[ImageMetrics] = []
 
+    def _lpips(self, p: torch.Tensor, g: torch.Tensor) -> float | None:
+        if self.lpips_net is None:
+            return None
+        return float(self.lpips_net(p[None].float().to(self.device), g[None].float().to(self.device))[0])
+
     @torch.no_grad()
     def add(self, pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> ImageMetrics:
-        """Score one image: pred (3, H', W'), gt (3, H, W) in [0, 1], mask (H, W) in [0, 1]."""
+        """Score one image: pred (3, H', W') as rendered, gt (3, H, W) over black (the training target),
+        both in [0, 1], mask (H, W) in [0, 1]."""
         if self.quantize_8bit:
             pred = torch.round(pred.clamp(0, 1) * 255) / 255
             gt = torch.round(gt.clamp(0, 1) * 255) / 255
         p, g = prepare_pair(pred, gt, mask, self.crop_hw)
+        fp, fg = foreground_pair(pred, gt, mask)
         pb, gb = p[None].float().to(self.device), g[None].float().to(self.device)
-        lp = None if self.lpips_net is None else float(self.lpips_net(pb, gb)[0])
+        flip_ok = self.status["flip_reason"] is None
+        if self.fid_net is not None:
+            self._fid_features[0].append(self.fid_net(pb).cpu().double().numpy())
+            self._fid_features[1].append(self.fid_net(gb).cpu().double().numpy())
         m = ImageMetrics(
             psnr=psnr(p, g),
             ssim=ssim(p, g),
             mse=mse(p, g),
             mae=mae(p, g),
-            lpips=lp,
+            lpips=self._lpips(p, g),
             lpips_random_vgg16=float(self.substitute_net(pb, gb)[0]),
+            flip=flip_error(p, g) if flip_ok else None,
+            fg_psnr=psnr(fp, fg),
+            fg_ssim=ssim(fp, fg),
+            masked_psnr=masked_psnr(pred, gt, mask),
+            fg_lpips=self._lpips(fp, fg),
+            fg_flip=flip_error(fp, fg) if flip_ok else None,
         )
         self.records.append(m)
         return m
 
+    def _fid(self) -> tuple[float | None, str | None]:
+        if self.fid_net is None:
+            return None, self.status["fid_reason"]
+        n = len(self._fid_features[0])
+        if n < 2:
+            return None, f"FID needs at least 2 images, got {n}"
+        value = fid_from_features(np.concatenate(self._fid_features[0]), np.concatenate(self._fid_features[1]))
+        return value, None
+
     def summary(self) -> dict:
-        """Averages over the images added so far, with the availability of LPIPS/FID.
+        """Averages over the images added so far, each with its protocol, and the availability of LPIPS/FID/FLIP.
 
         Returns:
-            ``{"num_images", "psnr", "ssim", "mse", "mae", "lpips", "lpips_reason", "fid",
-            "fid_reason", "lpips_random_vgg16", "lpips_random_vgg16_backbone"}``; ``lpips`` and
-            ``fid`` are None when unavailable, with the reason beside.
+            ``{"num_images", "psnr", "ssim", "mse", "mae", "lpips", "lpips_reason", "fid", "fid_reason",
+            "fid_images", "flip", "flip_reason", "lpips_random_vgg16", "lpips_random_vgg16_backbone",
+            "protocol", "foreground": {"protocol", "psnr", "ssim", "masked_psnr", "masked_protocol",
+            "lpips", "lpips_reason", "flip", "flip_reason"}, "flip_protocol"}``; unavailable metrics
+            are None with the reason beside.
         """
         n = len(self.records)
 
         def mean(key: str) -> float | None:
-            if n == 0:
+            values = [getattr(r, key) for r in self.records]
+            if n == 0 or any(v is None for v in values):
                 return None
-            return float(sum(getattr(r, key) for r in self.records) / n)
+            return float(sum(values) / n)
 
+        fid, fid_reason = self._fid()
+        lpips_on = self.lpips_net is not None
         return {
             "num_images": n,
+            "protocol": OFFICIAL_PROTOCOL,
             "psnr": mean("psnr"),
             "ssim": mean("ssim"),
             "mse": mean("mse"),
             "mae": mean("mae"),
-            "lpips": mean("lpips") if self.lpips_net is not None else None,
+            "lpips": mean("lpips") if lpips_on else None,
             "lpips_reason": self.status["lpips_reason"],
-            "fid": None,
-            "fid_reason": self.status["fid_reason"],
+            "fid": fid,
+            "fid_reason": fid_reason,
+            "fid_images": n if fid is not None else None,
+            "flip": mean("flip"),
+            "flip_reason": self.status["flip_reason"],
+            "flip_protocol": FLIP_PROTOCOL,
             "lpips_random_vgg16": mean("lpips_random_vgg16"),
             "lpips_random_vgg16_backbone": self.substitute_record.to_dict(),
+            "foreground": {
+                "protocol": FOREGROUND_PROTOCOL,
+                "psnr": mean("fg_psnr"),
+                "ssim": mean("fg_ssim"),
+                "masked_psnr": mean("masked_psnr"),
+                "masked_protocol": MASKED_PROTOCOL,
+                "lpips": mean("fg_lpips") if lpips_on else None,
+                "lpips_reason": self.status["lpips_reason"],
+                "flip": mean("fg_flip"),
+                "flip_reason": self.status["flip_reason"],
+            },
         }
 
     def per_image(self) -> list[dict]:

@@ -7,8 +7,13 @@ preset    S      U-Net (levels, base -> max channels)       MLP depth x w   feat
 ========  =====  =========================================  ==============  =========  ====
 paper     1024   log2 S = 10, 16 -> 512 (paper appendix)    8 x 256, @4     32         10
 small     128    log2 S = 7, 8 -> 64                        4 x 64, @2      16         10
+realtime  128    log2 S = 7, 8 -> 32                        3 x 32, @1      8          10
 tiny      32     log2 S = 5, 4 -> 16 (tests)                2 x 32, @0      8          4
 ========  =====  =========================================  ==============  =========  ====
+
+``realtime`` is ``small`` with a quarter of its per-ray MLP work (5.3 k against 19.9 k multiply-adds
+per ray) and half its feature channels, for CPU rendering at 940 x 1285 (docs/performance.md,
+"Real-time on two cores": its timing is measured, its PSNR against ``small`` is still to be run).
 
 for each of the four variants (``single_surface``, ``single_surface_viewdir``,
 ``single_surface_two_unet``, ``two_surface``); the registered model names are the variant names.
@@ -133,13 +138,16 @@ def _preset(variant: str, preset: str) -> ModelConfig:
     if preset == "paper":
         return ModelConfig(variant=variant, atlas_res=1024,  # type: ignore[arg-type]
                            unet=UNetConfig(in_channels=9, out_channels=32, norm="affine"))
-    if preset == "small":
+    # (atlas side, channels per map, U-Net base / max channels, MLP depth / width / feature layer)
+    compact = {"small": (128, 16, 8, 64, 4, 64, 2), "realtime": (128, 8, 8, 32, 3, 32, 1)}
+    if preset in compact:
+        side, channels, base, top, depth, width, feature_layer = compact[preset]
         return ModelConfig(
             variant=variant,  # type: ignore[arg-type]
-            atlas_res=128,
-            feature_channels=16,
-            unet=UNetConfig(in_channels=9, out_channels=16, base_channels=8, max_channels=64, norm="affine"),
-            mlp=LightFieldMLPConfig(depth=4, width=64, feature_layer=2),
+            atlas_res=side,
+            feature_channels=channels,
+            unet=UNetConfig(in_channels=9, out_channels=channels, base_channels=base, max_channels=top, norm="affine"),
+            mlp=LightFieldMLPConfig(depth=depth, width=width, feature_layer=feature_layer),
         )
     if preset == "tiny":
         return ModelConfig(
@@ -155,7 +163,7 @@ def _preset(variant: str, preset: str) -> ModelConfig:
 
 
 for _variant in VARIANTS:
-    register(_variant, {p: _preset(_variant, p) for p in ("paper", "small", "tiny")})
+    register(_variant, {p: _preset(_variant, p) for p in ("paper", "small", "realtime", "tiny")})
 
 
 # ---------------------------------------------------------------------------------------- config <-> dict

@@ -55,3 +55,41 @@ def converted_copy(tmp_path, converted) -> Path:
     dst = tmp_path / "out"
     shutil.copytree(converted, dst)
     return dst
+
+
+SMPL_TINY = dict(num_frames=4, num_test_frames=1, num_cameras=4, width=64, height=64, seed=1, body_model="procedural",
+                 fps=3.0)
+"""The SMPL-body session capture: fps 3 so that consecutive frames differ (frame-offset detection)."""
+
+
+@pytest.fixture(scope="session")
+def smpl_subject(tmp_path_factory) -> Path:
+    """A synthetic capture of the procedural SMPL-layout body (4 training + 1 testing frames, 4 cameras, 64x64)."""
+    from deliffas.data.synth import SynthConfig, synthesize_capture
+
+    out = tmp_path_factory.mktemp("smpl_subject")
+    synthesize_capture(out, SynthConfig(**SMPL_TINY))
+    return out
+
+
+@pytest.fixture(scope="session")
+def smpl_model(smpl_subject) -> Path:
+    """The SMPL model file of ``smpl_subject`` (what a user passes as --template)."""
+    return smpl_subject / "body" / "smpl_procedural.npz"
+
+
+@pytest.fixture(scope="session")
+def exported(tmp_path_factory, smpl_subject):
+    """``exported(fmt)``: the training sequence of ``smpl_subject`` written in capture format ``fmt`` (cached)."""
+    from deliffas.data.export_capture import export_capture
+    from deliffas.data.subjects import parse_subject
+
+    cache: dict[str, Path] = {}
+    subject = parse_subject(smpl_subject)
+
+    def get(fmt: str) -> Path:
+        if fmt not in cache:
+            cache[fmt] = export_capture(subject, tmp_path_factory.mktemp(f"export_{fmt}") / f"cap_{fmt}", fmt,
+                                        jpeg_quality=100)
+        return cache[fmt]
+    return get

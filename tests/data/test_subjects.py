@@ -39,8 +39,8 @@ def test_options_reach_the_parser(subject):
 
 
 def test_unknown_and_unrecognised_formats(tmp_path):
-    with pytest.raises(ValueError, match=r"unknown capture format 'zju'; registered: .*dynacap"):
-        parse_subject(tmp_path, "zju")
+    with pytest.raises(ValueError, match=r"unknown capture format 'nosuchformat'; registered: .*dynacap"):
+        parse_subject(tmp_path, "nosuchformat")
     with pytest.raises(ValueError, match=r"not a capture of any known format \(.*dynacap.*\); pass --format"):
         parse_subject(tmp_path)
     with pytest.raises(FileNotFoundError, match="capture folder not found"):

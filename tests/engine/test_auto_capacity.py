@@ -18,13 +18,15 @@ from deliffas.engine.train import TrainConfig
 def _rule_holds(record: dict) -> None:
     """Recompute the rule from the recorded numbers alone (not through ``choose``)."""
     cost = record["cost"]
-    ok = [c for c in record["candidates"] if c["error"] is None and math.isfinite(c["psnr"])]
-    best = max(c["psnr"] for c in ok)
+    q = record["selection_metric"].split()[0]  # the quality the rule ranks by (foreground PSNR)
+    assert q == "fg_psnr"
+    ok = [c for c in record["candidates"] if c["error"] is None and math.isfinite(c[q])]
+    best = max(c[q] for c in ok)
     assert record["best_psnr"] == pytest.approx(best)
     chosen = next(c for c in record["candidates"] if c["name"] == record["choice"])
     assert chosen["error"] is None
-    assert chosen["psnr"] >= best - record["tolerance_db"]
-    eligible = [c for c in ok if c["psnr"] >= best - record["tolerance_db"]]
+    assert chosen[q] >= best - record["tolerance_db"]
+    eligible = [c for c in ok if c[q] >= best - record["tolerance_db"]]
     cheapest = min(c[cost] for c in eligible)
     assert chosen[cost] <= cheapest * (1 + record["ms_tie_rel"]) + 1e-9
     tied = [c for c in eligible if c[cost] <= cheapest * (1 + record["ms_tie_rel"])]
@@ -84,6 +86,7 @@ def test_auto_capacity_records_all_and_chooses_by_rule(tiny_shards, tmp_path):
     assert record["candidates"][0]["num_parameters"] < record["candidates"][1]["num_parameters"] \
         < record["candidates"][2]["num_parameters"]
     _rule_holds(record)
+    _selection_is_never_the_test_split(record)
     chosen = tmp_path / "search" / "chosen"
     assert (chosen / "checkpoint" / "config.json").is_file()
     assert chosen.resolve() == Path(record["chosen_run"]).resolve()
@@ -92,8 +95,27 @@ def test_auto_capacity_records_all_and_chooses_by_rule(tiny_shards, tmp_path):
 def test_config_validation():
     with pytest.raises(ValueError, match="tolerance_db"):
         AutoCapacityConfig(tolerance_db=-1)
+    for test_split in ("novel_view", "novel_pose"):
+        with pytest.raises(ValueError, match="test split"):
+            AutoCapacityConfig(split=test_split)
     with pytest.raises(ValueError, match="split"):
-        AutoCapacityConfig(split="validation")
+        AutoCapacityConfig(split="everything")
+    with pytest.raises(ValueError, match="validation_cameras"):
+        AutoCapacityConfig(validation_cameras=0)
+
+
+def _selection_is_never_the_test_split(record: dict) -> None:
+    from deliffas.engine.data_bridge import TEST_SPLITS
+
+    assert record["selection_split"] == "validation" and record["selection_split"] not in TEST_SPLITS
+    val = record["validation_cameras"]
+    assert val and not set(val) & set(record["test_cameras"])
+    for c in record["candidates"]:
+        run_record = json.loads(Path(c["run"], "train_config.json").read_text())
+        assert run_record["data"]["validation_cameras"] == val  # every candidate held out the same cameras
+        assert not set(val) & set(run_record["data"]["train_cameras"])  # and never trained on them
+    if record["test_cameras"]:
+        assert record["test"]["split"] == "novel_view" and record["test"]["candidate"] == record["choice"]
 
 
 def test_cli_auto_capacity(tiny_shards, tmp_path):
@@ -109,4 +131,5 @@ def test_cli_auto_capacity(tiny_shards, tmp_path):
     assert printed["choice"] == record["choice"] and record["tolerance_db"] == 1.0 and record["iters"] == 2
     assert [c["name"] for c in record["candidates"]] == [c.name for c in default_ladder("two_surface", "tiny")]
     _rule_holds(record)
+    _selection_is_never_the_test_split(record)
     assert (run / "chosen" / "checkpoint" / "weights.safetensors").is_file()

@@ -24,3 +24,9 @@ def test_quick_demo_writes_a_complete_report(tmp_path):
     assert all(n in text for n in names)
     for name in ("speed_accuracy.png", "comparison.png"):
         assert (out / name).stat().st_size > 1000
+    assert "foreground PSNR" in text
+    for row in payload["results"]:
+        fg = row["foreground"]
+        assert fg["psnr"] < row["psnr"] and row["novel_pose"]["foreground"]["psnr"] is not None
+        for split in ("novel_view", "novel_pose"):
+            assert (out / f"grid_{row['name']}_{split}.png").stat().st_size > 1000

@@ -208,5 +208,6 @@ def test_cli_pose_writes_ply(sample_dir, sample_character, sample_motion, tmp_pa
     # a missing frame is a clear error, exit code 2
     r = subprocess.run([sys.executable, "-m", "deliffas", "pose", str(sample_dir / "ddc.character"),
                         str(sample_dir / "skeletoolToGTPose" / "poseAngles.motion"), "--frame", "5000",
-                        "--out", str(out)], capture_output=True, text=True)
+                        "--out", str(tmp_path / "q.ply")], capture_output=True, text=True)
     assert r.returncode == 2 and "frame 5000 not in motion" in r.stderr
+    assert not (tmp_path / "q.ply").exists()

@@ -38,6 +38,7 @@ def no_weights(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Path:
     monkeypatch.setenv("TORCH_HOME", str(home))
     monkeypatch.delenv("DELIFFAS_VGG16_WEIGHTS", raising=False)
     monkeypatch.delenv("DELIFFAS_LPIPS_WEIGHTS", raising=False)
+    monkeypatch.delenv("DELIFFAS_INCEPTION_WEIGHTS", raising=False)
     return home
 
 

@@ -129,7 +129,7 @@ def test_status_without_weights(no_weights):
     assert "LPIPS v0.1" in status["lpips_reason"]
     assert status["fid"] is None and status["fid_reason"] == FID_UNAVAILABLE_REASON
     given = perceptual_metrics_status(inception_path="/x/pt_inception.pth")
-    assert given["fid"] is None and "not implemented" in given["fid_reason"]
+    assert given["fid"] is None and "not found at /x/pt_inception.pth" in given["fid_reason"]
 
 
 def test_evaluator_reports_substitute_beside_unavailable_lpips(no_weights):

@@ -29,7 +29,7 @@ from deliffas.models.zoo import (
 def test_registry_lists_variants_and_presets():
     assert list_models() == sorted(VARIANTS)
     for name in VARIANTS:
-        assert set(list_presets(name)) == {"paper", "small", "tiny"}
+        assert set(list_presets(name)) == {"paper", "small", "realtime", "tiny"}
         assert get_config(name).variant == name
         assert get_config(name) == get_config(name, "small")
 

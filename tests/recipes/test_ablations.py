@@ -51,6 +51,13 @@ def _check_outputs(out: Path, payload: dict, num_rows: int, charts: tuple[str, .
         assert math.isfinite(r["lpips_random_vgg16"]) and r["lpips_random_vgg16"] >= 0
         assert r["lpips_random_vgg16_backbone"]["name"] == "vgg16-random"
         assert set(r["stage_ms"]) == {"uv", "cnn", "sample", "mlp"}
+        if "stats" in r:  # the seeded ablations: mean ± std in foreground metrics, grids per run
+            assert r["seeds"] == [s["seed"] for s in r["per_seed"]]
+            assert r["stats"]["fg_psnr"]["mean"] == pytest.approx(r["foreground"]["psnr"])  # one seed in quick mode
+            assert r["stats"]["fg_psnr"]["mean"] < r["psnr"]
+            assert r["novel_pose"]["foreground"]["psnr"] is not None and r["train_fit"]["foreground"]["psnr"] is not None
+            for split in ("novel_view", "novel_pose"):
+                _check_png(Path(r["run"]) / f"grid_{split}.png")
     md = (out / "results.md").read_text()
     assert md.startswith(f"# {data['title']}\n")
     assert md.count("\n| ") >= num_rows + 1  # header + one line per row (+ extra tables)
@@ -116,8 +123,12 @@ def test_ablation_perceptual_quick(tiny_recipe_capture, tmp_path, capsys):
         log = [json.loads(x) for x in (Path(r["run"]) / "log.jsonl").read_text().splitlines()]
         assert log[-1]["stage"] == 2 and log[-1]["perceptual_weight"] > 0
     claims = data["claims"]
-    assert claims["perceptual_metric"] == ("lpips" if all(r["lpips"] is not None for r in rows) else "lpips_random_vgg16")
+    assert claims["perceptual_metric"] == "fg_flip"  # judged on FLIP in the foreground box (issue 18)
+    assert claims["lpips_family_metric"] == (
+        "lpips" if all(r["lpips"] is not None for r in rows) else "lpips_random_vgg16")
     assert isinstance(claims["image_beats_patch_on_perceptual_metric"], bool)
+    assert claims["image_le_patch_on_flip"]["seeds_holding"] == "0 of 1" or \
+        claims["image_le_patch_on_flip"]["seeds_holding"] == "1 of 1"
     md = (out / "results.md").read_text()
     assert "Perceptual metric used for the comparison" in md and "substitute" in md.lower()
 

@@ -11,7 +11,6 @@ already in the deliffas convention (mm, y-up, world -> camera, pixel centres at 
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Sequence
 
@@ -22,6 +21,7 @@ from deliffas.io.meshes import read_meshes
 from deliffas.io.frames import image_size
 from deliffas.geometry.templates import SMPL_MODEL_SUFFIXES, Skinning, TemplateSpec, ddc_spec, spec_from_file
 from deliffas.data.pose_motions import MOTION_SUFFIXES, read_pose_motion
+from deliffas.data.subjects.capture_common import read_test_cameras
 from deliffas.data.subjects.base import (
     FrameSourceSpec,
     Subject,
@@ -94,18 +94,6 @@ def _per_sequence(specs: Sequence[str], option: str) -> dict[str, Path]:
     return out
 
 
-def _test_cameras(subject: Path, override: Sequence[int] | None) -> tuple[int, ...]:
-    if override is not None:
-        return tuple(sorted({int(c) for c in override}))
-    sj = subject / "split.json"
-    if sj.is_file():
-        return tuple(sorted(int(c) for c in json.loads(sj.read_text()).get("test_cameras", [])))
-    tc = subject / "test_cameras.txt"
-    if tc.is_file():
-        return tuple(sorted(int(tok) for tok in tc.read_text().split()))
-    return ()
-
-
 def parse_dynacap(subject: Path, options: SubjectOptions = SubjectOptions()) -> Subject:
     """Read a DynaCap subject folder into a :class:`Subject` (pose parameters = the motions' DOFs)."""
     subject = Path(subject)
@@ -142,7 +130,7 @@ def parse_dynacap(subject: Path, options: SubjectOptions = SubjectOptions()) -> 
         mask_dir = seq_dir / options.masks if options.masks else None
         images = FrameSourceSpec(seq_dir, names, layout, first, mask_dir)
         sequences[seq] = SubjectSequence(seq, avail, first, w, h, images, motion, mesh_path)
-    return Subject(subject, "dynacap", cameras, template, sequences, _test_cameras(subject, options.test_cameras))
+    return Subject(subject, "dynacap", cameras, template, sequences, read_test_cameras(subject, options.test_cameras))
 
 
 def _is_dynacap(folder: Path) -> bool:

@@ -35,6 +35,8 @@ class ViewConfig:
     """Rays shaded at once (bounds peak memory)."""
     max_frames: int = 300
     """At most this many frames of ``motion`` on the timeline."""
+    fast: bool = True
+    """On CPU, render by ``engine.realtime`` (rasterised uvs, fused inputs, bf16 MLP where native)."""
 
     def __post_init__(self) -> None:
         if not 0 <= self.port <= 65535:

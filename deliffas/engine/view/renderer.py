@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from deliffas.engine.evaluate import render_camera
+from deliffas.engine.realtime import FastRender
 from deliffas.engine.rays import camera_rays, paint_images, stack_rays
 from deliffas.engine.timing import STAGES, StageTimer
 from deliffas.engine.view.scene import FrameData, ViewScene
@@ -136,9 +137,10 @@ def compose_panels(panels: list[np.ndarray], canvas: tuple[int, int] | None) -> 
 class ViewRenderer:
     """Renders :class:`ViewRequest` s of a :class:`ViewScene` (the U-Nets' features cached per frame and run)."""
 
-    def __init__(self, scene: ViewScene, chunk_size: int = 262144):
+    def __init__(self, scene: ViewScene, chunk_size: int = 262144, fast: FastRender | None = None):
         self.scene = scene
         self.chunk_size = chunk_size
+        self.fast = fast  # engine.realtime's fast path (server: default_fast_render), None = plain
         self._features: OrderedDict[tuple[int, int], tuple[FrameFeatures, dict]] = OrderedDict()
 
     def features(self, run: int, frame: FrameData, timer: StageTimer) -> tuple[FrameFeatures, dict]:
@@ -191,7 +193,7 @@ class ViewRenderer:
         features, pca = self.features(run, frame, timer)
         if mode == "rgb":
             return render_camera(model, features, frame.raycaster, cam, self.scene.device, timer,
-                                 self.chunk_size).cpu().numpy()
+                                 self.chunk_size, fast=self.fast).cpu().numpy()
         if mode not in VIEW_MODES:
             raise ValueError(f"view mode must be one of {VIEW_MODES}, got {mode!r}")
         with timer.stage("uv"):

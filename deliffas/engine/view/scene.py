@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from deliffas.data.dataset import ShardDataset
+from deliffas.data.pose_motions import read_pose_motion
 from deliffas.data.shards import ShardSet
 from deliffas.engine.evaluate import load_run
 from deliffas.engine.render import motion_geometry_builder
@@ -25,7 +26,7 @@ from deliffas.geometry.raycast import UVRaycaster
 from deliffas.io.cameras import Camera
 from deliffas.models.deliffas import DeliffasModel
 
-__all__ = ["FrameData", "ViewRun", "ViewScene", "read_driving_motion"]
+__all__ = ["FrameData", "ViewRun", "ViewScene"]
 
 logger = logging.getLogger(__name__)
 
@@ -67,23 +68,6 @@ class ViewRun:
     name: str
     model: DeliffasModel
     record: dict
-
-
-def read_driving_motion(path: str | Path, template) -> np.ndarray:
-    """(N, D) float64 template parameters of a DynaCap ``.motion`` or an SMPL/AMASS ``.npz`` motion."""
-    path = Path(path)
-    if path.suffix.lower() == ".npz":
-        from deliffas.geometry.smpl_params import motion_to_params
-        from deliffas.io.amass import read_smpl_motion
-
-        num_betas = template.num_dofs - 75
-        if num_betas < 0:
-            raise ValueError(f"{path}: an SMPL motion drives an smpl template, this capture's has "
-                             f"{template.num_dofs} parameters")
-        return motion_to_params(read_smpl_motion(path), num_betas)
-    from deliffas.io.dynacap import read_motion
-
-    return np.asarray(read_motion(path, template.num_dofs).dofs, np.float64)
 
 
 class ViewScene:
@@ -133,7 +117,7 @@ class ViewScene:
         else:
             self._dataset = None
             self._template, self._builder = motion_geometry_builder(meta)
-            self._motion = read_driving_motion(motion, self._template)[:max_frames]
+            self._motion = read_pose_motion(motion, self.meta.template_spec(), self._template.num_dofs).dofs[:max_frames]
             self.frame_labels = list(range(len(self._motion)))
             self.source = f"motion {Path(motion).name}"
         if not self.frame_labels:

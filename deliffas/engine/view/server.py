@@ -17,8 +17,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from deliffas.engine.realtime import default_fast_render
 from deliffas.engine.view.config import ViewConfig
-from deliffas.engine.view.renderer import VIEW_MODES, RenderWorker, ViewRenderer, ViewRequest, ViewResult, scaled_request
+from deliffas.engine.view.renderer import (
+    VIEW_MODES,
+    RenderWorker,
+    ViewRenderer,
+    ViewRequest,
+    ViewResult,
+    fit_camera,
+    scaled_request,
+)
 from deliffas.engine.view.scene import ViewScene
 from deliffas.io.cameras import Camera
 
@@ -86,7 +95,7 @@ class _Viewer:
 
     def __init__(self, cfg: ViewConfig, scene: ViewScene, server, vtf):
         self.cfg, self.scene, self.server, self.vtf = cfg, scene, server, vtf
-        self.renderer = ViewRenderer(scene, cfg.chunk_size)
+        self.renderer = ViewRenderer(scene, cfg.chunk_size, default_fast_render(cfg.device) if cfg.fast else None)
         self.clients: dict[int, _ClientView] = {}
         self.render_lock = threading.Lock()  # workers share the models and caches: one frame at a time
         self._build_gui()
@@ -270,8 +279,6 @@ class _Viewer:
             capture = view.capture_camera
             serial = view.serial
         if capture is not None:  # the capture camera itself (its own intrinsics), at most the still size
-            from deliffas.engine.view.renderer import fit_camera
-
             side = self.max_res.value
             camera = fit_camera(self.scene.cameras[capture], side, side, upscale=False)
         else:

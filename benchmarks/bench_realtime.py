@@ -1,0 +1,156 @@
+"""Real-time rendering on CPU: the fast path's frame against its irreducible work, and frames per second by preset.
+
+Scene: the benchmark capture (``_capture.py``), frame 0, camera 0 rescaled to 940 x 1285 (and 256^2,
+512^2). Models: ``two_surface`` at the ``realtime``, ``small`` and ``paper`` presets, untrained
+(seed 0), atlas side = the shards' (256), U-Nets on their inference forward. One torch thread
+(``BENCH_THREADS``) on both sides of every ratio.
+
+* frame, pose held: ``engine.realtime.fast_render_camera`` with the frame's U-Net features cached
+  (the viewer while the pose holds), in the dtype ``FastRender()`` resolves to (bf16 where the CPU
+  has native bf16).
+* irreducible work, measured in the same run: one plain z-buffer pass of the outer surface
+  (``UVRasterizer.depth_pass``, incl. projecting its vertices), one ``torch.mm`` per MLP layer shape
+  into preallocated outputs in the same dtype (no bias, activation or concatenation), and one
+  ``index_select`` of every sampled feature value (nearest texel) from the two maps.
+* fps: 1000 / frame ms, with the U-Nets run per frame (``deliffas render``: the pose changes every
+  frame) and with them cached (pose held); no target, machines vary.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import torch
+
+from benchmarks._capture import bench_capture
+from benchmarks._timing import BENCH_THREADS, best_times, torch_threads
+from benchmarks.common import Result
+
+RATIO_TARGET = 1.3
+SIZES = {"256^2": (256, 256), "512^2": (512, 512), "940x1285": (1285, 940)}
+
+
+def _model(info, preset: str):
+    from deliffas.engine.train import TrainConfig, resolve_model_config
+    from deliffas.models.deliffas import DeliffasModel
+    from deliffas.models.unet import optimize_for_inference
+
+    cfg = resolve_model_config(TrainConfig(shards="", out="", model="two_surface", preset=preset), info["atlas_res"], 2)
+    torch.manual_seed(0)
+    return optimize_for_inference(DeliffasModel(cfg).eval())
+
+
+def _gemm_chain(model, n: int, dtype: torch.dtype):
+    """``torch.mm`` per layer shape of the model's MLP on n rows, preallocated, in ``dtype``."""
+    mlp = model.mlp
+    shapes = [(lin.in_features, lin.out_features) for lin in [*mlp.hidden, mlp.output]]
+    xs = {k: torch.rand(n, k).to(dtype) for k, _ in shapes}
+    ws = [torch.rand(k, m).to(dtype) for k, m in shapes]
+    outs = [torch.empty(n, m, dtype=dtype) for _, m in shapes]
+
+    def run():
+        for (k, _), w, out in zip(shapes, ws, outs):
+            torch.mm(xs[k], w, out=out)
+    return run
+
+
+def _gather(features, n: int):
+    """One ``index_select`` of n texels' channels from each of the two maps (nearest texel)."""
+    maps = [m.permute(0, 2, 3, 1).reshape(-1, m.shape[1]) for m in (features.outer, features.inner)]
+    idx = torch.randint(0, maps[0].shape[0], (n,), generator=torch.Generator().manual_seed(0))
+
+    def run():
+        for m in maps:
+            torch.index_select(m, 0, idx)
+    return run
+
+
+def _frame_fns(model, sample, info, camera, fast):
+    from deliffas.engine.evaluate import render_camera
+    from deliffas.engine.timing import StageTimer
+    from deliffas.geometry.raycast import UVRaycaster
+
+    device = torch.device("cpu")
+    rc = UVRaycaster(sample.inner_verts, info["faces"], sample.outer_verts, info["atlas"])
+    with torch.no_grad():
+        features = model.encode(*sample.normal_maps(device))
+
+    def held(timer=None):  # pose held: features cached, the frame's surfaces already set up
+        with torch.no_grad():
+            return render_camera(model, features, rc, camera, device, timer or StageTimer(device), fast=fast)
+
+    def full():  # a new pose: surfaces and U-Nets per frame
+        with torch.no_grad():
+            rc2 = UVRaycaster(sample.inner_verts, info["faces"], sample.outer_verts, info["atlas"])
+            feats = model.encode(*sample.normal_maps(device))
+            return render_camera(model, feats, rc2, camera, device, StageTimer(device), fast=fast)
+    return held, full, features, rc
+
+
+def _ratio_rows(sample, info) -> list[Result]:
+    from deliffas.engine.realtime import FastRender, _rasterizer, fast_camera_rays
+    from deliffas.engine.timing import StageTimer
+
+    fast = FastRender()
+    dtype = fast.torch_dtype()
+    model = _model(info, "realtime")
+    cam = sample.cameras[0].rescaled(*SIZES["940x1285"])
+    held, _full, features, rc = _frame_fns(model, sample, info, cam, fast)
+    n = fast_camera_rays(rc, cam).num_rays
+    rz = _rasterizer(rc)
+    gemm, gather = _gemm_chain(model, n, dtype), _gather(features, n)
+    t = best_times({"frame": held, "raster": lambda: rz.depth_pass(cam), "gemm": gemm, "gather": gather},
+                   repeat=5, min_time=3.0)
+    timer = StageTimer(torch.device("cpu"))
+    held(timer)
+    irreducible = t["raster"] + t["gemm"] + t["gather"]
+    ratio = t["frame"] / irreducible
+    name = str(dtype).replace("torch.", "")
+    return [
+        Result("realtime", f"940x1285 realtime preset, pose held ({n} rays, {name}): frame / irreducible",
+               t["frame"] * 1000, "ms", baseline="raster pass + GEMM chain + gather", ratio=ratio,
+               target=f"<= {RATIO_TARGET}", passed=ratio <= RATIO_TARGET,
+               note=f"raster {t['raster'] * 1000:.1f} ms, GEMMs {t['gemm'] * 1000:.1f} ms, gather "
+                    f"{t['gather'] * 1000:.1f} ms; stages of one frame: "
+                    + ", ".join(f"{k} {v:.1f}" for k, v in timer.total_ms.items())),
+        Result("realtime", "940x1285 realtime preset, pose held: fps", 1 / t["frame"], "fps",
+               note=f"{BENCH_THREADS} torch thread; no target (machines vary)"),
+    ]
+
+
+def _fps_rows(sample, info) -> list[Result]:
+    from deliffas.engine.realtime import FastRender
+
+    rows = []
+    for preset in ("realtime", "small", "paper"):
+        model = _model(info, preset)
+        for size, (w, h) in SIZES.items():
+            cam = sample.cameras[0].rescaled(w, h)
+            fast_held, fast_full, _, _ = _frame_fns(model, sample, info, cam, FastRender())
+            plain_held, _, _, _ = _frame_fns(model, sample, info, cam, None)
+            fns = {"fast_held": fast_held, "fast_full": fast_full}
+            if preset == "small" and size == "940x1285":
+                fns["plain_held"] = plain_held
+            t = best_times(fns, repeat=2, max_rounds=2)
+            note = f"U-Nets per frame {1 / t['fast_full']:.1f} fps ({t['fast_full'] * 1000:.0f} ms)"
+            ratio = None
+            if "plain_held" in t:
+                ratio = t["plain_held"] / t["fast_held"]
+                note += f"; plain path (ray cast, fp32) {t['plain_held'] * 1000:.0f} ms"
+            rows.append(Result("realtime", f"{preset} {size}: fps, pose held (fast path)", 1 / t["fast_held"], "fps",
+                               baseline="plain path, pose held" if ratio else "", ratio=ratio, note=note))
+    return rows
+
+
+def run() -> list[Result]:
+    subject, shards, _ = bench_capture()
+    from benchmarks.bench_engine import _sample
+
+    sample, info = _sample(shards)
+    sample = dataclasses.replace(sample, cameras=sample.cameras[:1], images=sample.images[:1], masks=sample.masks[:1])
+    t0 = time.perf_counter()
+    with torch_threads():
+        rows = _ratio_rows(sample, info) + _fps_rows(sample, info)
+    rows[-1].note += f" (group took {time.perf_counter() - t0:.0f} s)"
+    return rows

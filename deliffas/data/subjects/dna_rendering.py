@@ -1,0 +1,74 @@
+"""The ``dna`` capture format: a DNA-Rendering ``.smc`` capture (main file + optional ``_annots.smc``) as a Subject.
+
+The folder holds ``<name>.smc`` (JPEG colour frames, ``Camera_5mp``; or ``extra["smc_group"]``) and
+optionally ``<name>_annots.smc`` (calibration, masks, SMPL-X); every group is taken from whichever file
+has it. Cameras: metres, ``RT`` camera -> world, OpenCV pixel centres and distortion (undone when
+frames are read). SMPL-X ``fullpose`` (N, 55, 3) -> SMPL: global orientation and the 21 body joints
+are copied with ``transl``, SMPL's hand joints zero; jaw, eyes, fingers and expression are dropped, and
+the first 10 betas are used in the SMPL model's shape space (exact only for a capture fitted with that
+SMPL model). A ``scale`` other than 1 is refused. Needs the SMPL model file (``--template``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from deliffas.io.capture_format import CaptureFormatError
+from deliffas.io.capture_frames import SmcFramesSpec
+from deliffas.io.dna_rendering import SmcFile, smc_to_cameras
+from deliffas.io.dynacap import Motion
+from deliffas.geometry.smpl_params import smplx_to_smpl_pose
+from deliffas.data.subjects.base import Subject, SubjectOptions, SubjectParser, SubjectSequence, register_subject_format
+from deliffas.data.subjects.capture_common import SEQUENCE, fit_betas, read_test_cameras, smpl_template, split_distortion
+
+__all__ = ["parse_dna_rendering"]
+
+
+def _files(root: Path) -> tuple[Path, Path | None]:
+    mains = sorted(p for p in root.glob("*.smc") if not p.stem.endswith("_annots"))
+    if len(mains) != 1:
+        raise FileNotFoundError(f"{root}: expected one <name>.smc (besides <name>_annots.smc), found "
+                                f"{[p.name for p in mains]}")
+    annots = mains[0].with_name(f"{mains[0].stem}_annots.smc")
+    return mains[0], annots if annots.is_file() else None
+
+
+def _has(path: Path, group: str) -> bool:
+    with SmcFile(path) as smc:
+        return smc.has(group)
+
+
+def parse_dna_rendering(root: Path, options: SubjectOptions = SubjectOptions()) -> Subject:
+    """Read a DNA-Rendering capture folder (see the module docstring)."""
+    root = Path(root)
+    main, annots = _files(root)
+    group = str(options.extra.get("smc_group", "Camera_5mp"))
+    pick = {g: annots if annots is not None and _has(annots, g) else main for g in ("Camera_Parameter", "Mask", "SMPLx")}
+    calib = smc_to_cameras(pick["Camera_Parameter"], group=group, images=main)
+    cameras, undistort = split_distortion(calib, "DNA-Rendering")
+    spec = smpl_template(options, "DNA-Rendering")
+    with SmcFile(pick["Camera_Parameter"]) as smc:
+        ids = tuple(str(int(c.camera_id)) for c in smc.calibration())
+    with SmcFile(main) as smc:
+        stored = min(smc.frame_count(cid, group) for cid in ids)
+    with SmcFile(pick["SMPLx"]) as smc:
+        smplx = smc.smplx()
+    if abs(smplx.scale - 1.0) > 1e-9:
+        raise CaptureFormatError(pick["SMPLx"], "SMPLx/scale", f"expected 1 (a scaled SMPL-X fit is not supported), "
+                                                               f"got {smplx.scale:g}")
+    n = min(stored, len(smplx.fullpose))
+    if n == 0:
+        raise CaptureFormatError(main, group, "expected frames with SMPL-X parameters, got none")
+    rows = np.arange(n)
+    betas = fit_betas(smplx.betas[0], f"{pick['SMPLx']}: SMPLx/betas")
+    pose = smplx_to_smpl_pose(smplx.fullpose[:n, 0], smplx.fullpose[:n, 1:22].reshape(n, -1))
+    motion = Motion(rows.astype(np.int64), np.concatenate([smplx.transl[:n], pose, np.tile(betas, (n, 1))], axis=1))
+    mask_path = pick["Mask"] if pick["Mask"] != main else None
+    source = SmcFramesSpec(main, ids, tuple(int(f) for f in rows), group, mask_path, undistort)
+    seq = SubjectSequence(SEQUENCE, motion.frames, 0, cameras[0].width, cameras[0].height, source, motion)
+    return Subject(root, "dna", cameras, spec, {SEQUENCE: seq}, read_test_cameras(root, options.test_cameras))
+
+
+register_subject_format(SubjectParser("dna", lambda root: any(root.glob("*.smc")), parse_dna_rendering))

@@ -1,0 +1,128 @@
+"""The fast path of free-viewpoint rendering on CPU: rasterised uvs, fused per-ray inputs, an MLP in bf16 where native.
+
+A camera's image is rendered here as :func:`deliffas.engine.evaluate.render_camera` renders it,
+stage by stage (``uv``, ``sample``, ``mlp``), with three replacements:
+
+* ``uv``: :class:`~deliffas.geometry.rasterize.UVRasterizer` instead of the open3d ray caster (same
+  shaded pixels and uvs; the ray caster is used where a vertex is behind the camera);
+* ``sample``: :class:`~deliffas.models.fast_shade.FastShader` writes the encodings and sampled
+  features straight into the MLP's operands (one C pass);
+* ``mlp``: the MLP as a chain of ``addmm`` in fp32, or in bf16 where the CPU has native bf16.
+
+:class:`FastRender` is the switch. ``deliffas render`` and ``deliffas view`` use
+:func:`default_fast_render` (on for CPU devices); ``deliffas eval`` keeps the plain path, whose
+numbers are the reference. The environment variable ``DELIFFAS_FAST_RENDER=0`` turns the fast
+path off everywhere, ``DELIFFAS_RENDER_DTYPE=float32`` keeps the MLP in fp32.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import weakref
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+
+from deliffas.engine.rays import CameraRays, camera_rays, paint_images, ray_query, stack_rays
+from deliffas.engine.timing import StageTimer
+from deliffas.geometry.rasterize import UVRasterizer
+from deliffas.geometry.raycast import UVRaycaster
+from deliffas.io.cameras import Camera
+from deliffas.models.deliffas import DeliffasModel, FrameFeatures
+from deliffas.models.fast_shade import FastShader, native_bf16, supports
+
+__all__ = ["FastRender", "default_fast_render", "fast_camera_rays", "fast_render_camera", "FAST_RENDER_ENV",
+           "RENDER_DTYPE_ENV"]
+
+logger = logging.getLogger(__name__)
+
+FAST_RENDER_ENV = "DELIFFAS_FAST_RENDER"
+"""Environment variable: "0" makes :func:`default_fast_render` return None (the plain path)."""
+RENDER_DTYPE_ENV = "DELIFFAS_RENDER_DTYPE"
+"""Environment variable: "float32" or "bfloat16" overrides ``FastRender.dtype="auto"``."""
+
+Dtype = Literal["auto", "float32", "bfloat16"]
+
+
+@dataclass(frozen=True)
+class FastRender:
+    """How the fast path renders."""
+
+    rasterize: bool = True
+    """uvs by rasterisation (False: the open3d ray caster, as the plain path)."""
+    dtype: Dtype = "auto"
+    """The MLP's dtype: "auto" = bf16 where the CPU has native bf16, else fp32."""
+
+    def __post_init__(self) -> None:
+        if self.dtype not in ("auto", "float32", "bfloat16"):
+            raise ValueError(f"FastRender: dtype must be auto, float32 or bfloat16, got {self.dtype!r}")
+
+    def torch_dtype(self) -> torch.dtype:
+        """The resolved MLP dtype."""
+        name = self.dtype
+        if name == "auto":
+            name = os.environ.get(RENDER_DTYPE_ENV, "").strip() or ("bfloat16" if native_bf16() else "float32")
+            if name not in ("float32", "bfloat16"):
+                raise ValueError(f"{RENDER_DTYPE_ENV} must be float32 or bfloat16, got {name!r}")
+        return torch.bfloat16 if name == "bfloat16" else torch.float32
+
+
+def default_fast_render(device: torch.device | str) -> FastRender | None:
+    """The fast path for ``device``: on for CPU unless ``DELIFFAS_FAST_RENDER=0``; None = the plain path."""
+    if torch.device(device).type != "cpu" or os.environ.get(FAST_RENDER_ENV, "1").strip() == "0":
+        return None
+    return FastRender()
+
+
+# one rasteriser and one shader per frame geometry / model, alive as long as their owner
+_RASTERIZERS: "weakref.WeakKeyDictionary[UVRaycaster, UVRasterizer]" = weakref.WeakKeyDictionary()
+_SHADERS: "weakref.WeakKeyDictionary[DeliffasModel, dict[torch.dtype, FastShader]]" = weakref.WeakKeyDictionary()
+
+
+def _rasterizer(raycaster: UVRaycaster) -> UVRasterizer:
+    rz = _RASTERIZERS.get(raycaster)
+    if rz is None:
+        rz = _RASTERIZERS[raycaster] = UVRasterizer(raycaster.inner_verts, raycaster.faces, raycaster.outer_verts,
+                                                    raycaster.atlas)
+    return rz
+
+
+def _shader(model: DeliffasModel, dtype: torch.dtype) -> FastShader:
+    per_model = _SHADERS.setdefault(model, {})
+    if dtype not in per_model:
+        per_model[dtype] = FastShader(model, dtype)
+    return per_model[dtype]
+
+
+def fast_camera_rays(raycaster: UVRaycaster, camera: Camera, rasterize: bool = True) -> CameraRays:
+    """``camera_rays(raycaster, camera)`` by rasterisation (the ray caster where a vertex is behind the camera)."""
+    got = _rasterizer(raycaster).shaded_pixels(camera) if rasterize else None
+    if got is None:
+        return camera_rays(raycaster, camera)
+    return CameraRays(pixels=got.pixels, uv_inner=got.uv_inner, inner_from_outer=got.inner_from_outer,
+                      uv_outer=got.uv_outer, viewdir=got.viewdir, height=camera.height, width=camera.width)
+
+
+@torch.no_grad()
+def fast_render_camera(model: DeliffasModel, features: FrameFeatures, raycaster: UVRaycaster, camera: Camera,
+                       timer: StageTimer, fast: FastRender = FastRender(), background: float = 0.0) -> torch.Tensor:
+    """One camera's (H, W, 3) float32 image on ``background``, as ``render_camera`` on CPU (stages uv, sample, mlp).
+
+    Variants :class:`FastShader` does not support keep the model's own ``gather_inputs`` and MLP."""
+    with timer.stage("uv"):
+        batch = stack_rays([fast_camera_rays(raycaster, camera, fast.rasterize)], [0])
+        query = ray_query(batch, model.spec)
+    if supports(model) and model.mlp.output.weight.dtype == torch.float32 and features.inner.device.type == "cpu":
+        shader = _shader(model, fast.torch_dtype())
+        with timer.stage("sample"):
+            enc, feats = shader.inputs(features, query)
+        with timer.stage("mlp"):
+            rgb = shader.mlp(enc, feats)
+    else:
+        with timer.stage("sample"):
+            enc, feats = model.gather_inputs(features, query)
+        with timer.stage("mlp"):
+            rgb = model.mlp(enc, feats)
+    return paint_images(rgb, batch, 1, camera.height, camera.width, background)[0]

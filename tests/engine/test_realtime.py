@@ -1,0 +1,90 @@
+"""engine.realtime: the fast path renders what render_camera's plain path renders, and its switches work."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from deliffas.engine import realtime
+from deliffas.engine.evaluate import render_camera
+from deliffas.engine.realtime import FastRender, default_fast_render, fast_camera_rays
+from deliffas.engine.rays import camera_rays
+from deliffas.engine.timing import StageTimer
+from deliffas.geometry.raycast import UVRaycaster
+from deliffas.models import DeliffasModel, get_config
+
+
+@pytest.fixture(scope="module")
+def frame(tiny_shards):
+    from deliffas.engine.data_bridge import evaluation_samples
+
+    samples, info = evaluation_samples(str(tiny_shards), "all", max_frames=1, with_rays=False, protocol="all",
+                                       temporal_window=2)
+    sample = next(samples)
+    torch.manual_seed(0)
+    cfg = dataclasses.replace(get_config("two_surface", "tiny"), atlas_res=info["atlas_res"])
+    model = DeliffasModel(cfg).eval()
+    with torch.no_grad():
+        features = model.encode(*sample.normal_maps(torch.device("cpu")))
+    raycaster = UVRaycaster(sample.inner_verts, info["faces"], sample.outer_verts, info["atlas"])
+    return model, features, raycaster, sample.cameras
+
+
+def _render(model, features, raycaster, cam, fast):
+    return render_camera(model, features, raycaster, cam, torch.device("cpu"), StageTimer(torch.device("cpu")),
+                         fast=fast)
+
+
+def test_fast_rays_equal_camera_rays(frame):
+    _, _, raycaster, cameras = frame
+    for cam in [*cameras, cameras[0].rescaled(97, 61)]:
+        a, b = fast_camera_rays(raycaster, cam), camera_rays(raycaster, cam)
+        for name, tol in (("pixels", 0), ("inner_from_outer", 0), ("uv_inner", 1e-4), ("uv_outer", 1e-4),
+                          ("viewdir", 1e-6)):
+            np.testing.assert_allclose(getattr(a, name), getattr(b, name), atol=tol, rtol=0, err_msg=name)
+
+
+def test_fast_fp32_equals_plain(frame):
+    model, features, raycaster, cameras = frame
+    for cam in cameras:
+        plain = _render(model, features, raycaster, cam, None)
+        fast = _render(model, features, raycaster, cam, FastRender(dtype="float32"))
+        assert (plain.sum(-1) > 0).sum() > 50
+        torch.testing.assert_close(fast, plain, atol=1e-4, rtol=0)
+
+
+def test_fast_bf16_within_its_precision(frame):
+    model, features, raycaster, cameras = frame
+    plain = _render(model, features, raycaster, cameras[0], None)
+    fast = _render(model, features, raycaster, cameras[0], FastRender(dtype="bfloat16"))
+    assert float((fast - plain).abs().max()) < 0.02
+
+
+def test_ray_cast_fallback_and_unsupported_variant(frame, tiny_shards):
+    model, features, raycaster, cameras = frame
+    plain = _render(model, features, raycaster, cameras[0], None)
+    fast = _render(model, features, raycaster, cameras[0], FastRender(rasterize=False, dtype="float32"))
+    torch.testing.assert_close(fast, plain, atol=1e-5, rtol=0)
+    viewdir = DeliffasModel(dataclasses.replace(model.config, variant="single_surface_viewdir")).eval()
+    with torch.no_grad():
+        feats = viewdir.encode(features.inner.new_zeros(1, 9, *features.inner.shape[2:]))
+    torch.testing.assert_close(_render(viewdir, feats, raycaster, cameras[0], FastRender(dtype="float32")),
+                               _render(viewdir, feats, raycaster, cameras[0], None), atol=1e-4, rtol=0)
+
+
+def test_switches(monkeypatch):
+    assert default_fast_render("cpu") == FastRender()
+    assert default_fast_render("meta") is None
+    monkeypatch.setenv(realtime.FAST_RENDER_ENV, "0")
+    assert default_fast_render("cpu") is None
+    monkeypatch.setenv(realtime.RENDER_DTYPE_ENV, "float32")
+    assert FastRender().torch_dtype() == torch.float32
+    assert FastRender(dtype="bfloat16").torch_dtype() == torch.bfloat16
+    monkeypatch.setenv(realtime.RENDER_DTYPE_ENV, "half")
+    with pytest.raises(ValueError, match="DELIFFAS_RENDER_DTYPE"):
+        FastRender().torch_dtype()
+    with pytest.raises(ValueError, match="dtype"):
+        FastRender(dtype="fp8")

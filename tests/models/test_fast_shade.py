@@ -1,0 +1,79 @@
+"""FastShader equals DeliffasModel.shade: fp32 within round-off, bf16 within its precision; the fallback agrees."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import deliffas.models.fast_shade as fast_shade
+from deliffas.models import DeliffasModel, get_config
+from deliffas.models.deliffas import FrameFeatures
+from deliffas.models.fast_shade import FastShader, supports
+from deliffas.models.ray_query import RayQuery
+from deliffas.native import LazyLibrary
+
+
+def _case(variant: str, preset: str = "tiny", n: int = 3000, seed: int = 0):
+    torch.manual_seed(seed)
+    model = DeliffasModel(get_config(variant, preset)).eval()
+    for p in model.mlp.parameters():  # non-zero biases, so a dropped bias would show
+        p.data.add_(0.05 * torch.randn_like(p))
+    cfg = model.config
+    g = torch.Generator().manual_seed(seed)
+    maps = [torch.rand(1, cfg.feature_channels, cfg.atlas_res, cfg.atlas_res, generator=g)
+            .contiguous(memory_format=torch.channels_last) for _ in range(2)]
+    feats = FrameFeatures(inner=maps[0], outer=maps[1] if model.spec.outer_unet else None)
+    uv_in = torch.rand(n, 2, generator=g) * 1.1 - 0.05  # a few outside [0, 1]: border clamp
+    uv_out = torch.rand(n, 2, generator=g)
+    peel = (torch.rand(n, generator=g) < 0.2) if model.spec.inner_from_outer else None
+    query = RayQuery(torch.zeros(n, dtype=torch.long), uv_in, uv_out if model.spec.uses_uv_outer else None, None, peel)
+    return model, feats, query
+
+
+@pytest.mark.parametrize("variant,preset", [("two_surface", "tiny"), ("two_surface", "small"),
+                                            ("single_surface", "tiny")])
+def test_fp32_equals_shade(variant, preset):
+    model, feats, query = _case(variant, preset)
+    with torch.no_grad():
+        ref_enc, ref_feats = model.gather_inputs(feats, query)
+        shader = FastShader(model)
+        enc, fts = shader.inputs(feats, query)
+        torch.testing.assert_close(enc, ref_enc, atol=2e-6, rtol=0)
+        torch.testing.assert_close(fts, ref_feats, atol=2e-6, rtol=0)
+        torch.testing.assert_close(shader.shade(feats, query), model.shade(feats, query), atol=2e-6, rtol=0)
+
+
+def test_bf16_within_its_precision():
+    model, feats, query = _case("two_surface", "small")
+    with torch.no_grad():
+        ref = model.shade(feats, query)
+        got = FastShader(model, torch.bfloat16).shade(feats, query)
+    assert got.dtype == torch.float32
+    mse = float(((got - ref) ** 2).mean())
+    assert float((got - ref).abs().max()) < 0.02 and -10 * torch.log10(torch.tensor(mse)) > 50
+
+
+def test_weights_refresh_after_an_update():
+    model, feats, query = _case("two_surface")
+    shader = FastShader(model)
+    with torch.no_grad():
+        shader.shade(feats, query)
+        model.mlp.output.bias.add_(0.5)
+        torch.testing.assert_close(shader.shade(feats, query), model.shade(feats, query), atol=2e-6, rtol=0)
+
+
+def test_fallback_without_the_kernel(monkeypatch):
+    monkeypatch.setenv("DELIFFAS_NATIVE", "0")
+    monkeypatch.setattr(fast_shade, "_KERNEL", LazyLibrary("ray_inputs", fast_shade._SOURCE, fallback="torch"))
+    model, feats, query = _case("two_surface")
+    with torch.no_grad():
+        torch.testing.assert_close(FastShader(model).shade(feats, query), model.shade(feats, query), atol=2e-6, rtol=0)
+
+
+def test_unsupported_variants_are_refused():
+    model = DeliffasModel(get_config("single_surface_viewdir", "tiny"))
+    assert not supports(model)
+    with pytest.raises(ValueError, match="not supported"):
+        FastShader(model)
+    with pytest.raises(ValueError, match="dtype"):
+        FastShader(DeliffasModel(get_config("two_surface", "tiny")), torch.float16)
