@@ -94,6 +94,8 @@ class DaskExecutor:
         """Submit every task; yield results as they complete (the in-process ``local_state`` is unused)."""
         from distributed import as_completed
 
+        if not tasks:  # nothing to send the setup for (e.g. a --resume of a finished conversion)
+            return
         run = f"deliffas-{uuid.uuid4().hex[:12]}"
         self.client.register_plugin(_make_plugin(run, setup, setup_args), name=run)
         futures = [self.client.submit(_run_task, run, fn, *t, key=f"{run}-{i}", pure=False)
