@@ -19,6 +19,7 @@ import torch
 MODULES = [
     "benchmarks.bench_posing",
     "benchmarks.bench_data",
+    "benchmarks.bench_scale",
     "benchmarks.bench_engine",
     "benchmarks.bench_view",
     "benchmarks.bench_realtime",

@@ -46,6 +46,16 @@ def _int_at_least(minimum: int):
     return parse
 
 
+def _dask_target(text: str) -> str:
+    from deliffas.parallel.dask_target import parse_dask_target  # stdlib only: dask is imported when it runs
+
+    try:
+        parse_dask_target(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+    return text
+
+
 _positive_int = _int_at_least(1)
 _non_negative_int = _int_at_least(0)
 
@@ -154,6 +164,10 @@ def _add_data_commands(sub) -> None:
                    help="held-out cameras a,b,... (default: SUBJECT/split.json or test_cameras.txt)")
     p.add_argument("--shard-frames", type=_positive_int, default=10, help="frames per shard (default 10)")
     p.add_argument("--jobs", type=_positive_int, default=1, help="worker processes (default 1)")
+    p.add_argument("--dask", type=_dask_target, metavar="ADDRESS|local:N",
+                   help="convert on Dask, one task per shard: a running scheduler (tcp://HOST:8786) or local:N "
+                        "(a LocalCluster of N worker processes on 127.0.0.1); OUT must be on a file system every "
+                        "worker shares and SUBJECT readable by them (docs/scale.md); replaces --jobs")
     p.add_argument("--resume", action="store_true", help="keep complete shards of an interrupted run")
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing conversion in OUT (or convert into a non-empty folder that holds none)")

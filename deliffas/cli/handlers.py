@@ -8,6 +8,8 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import logging
+import os
 import sys
 from pathlib import Path
 
@@ -66,7 +68,13 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
 
 def cmd_convert(args: argparse.Namespace) -> int:
+    if args.dask:
+        # the scheduler address and dashboard link (deliffas.parallel, INFO); dask's own chatter only with -v
+        logging.getLogger("deliffas.parallel").setLevel(logging.INFO)
+        if not args.verbose:  # read by dask when it is imported (later, by the executor), here and in workers
+            os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
     cfg = ConvertConfig(frames=args.frames, cameras=args.cameras, shard_frames=args.shard_frames, jobs=args.jobs,
+                        dask=args.dask,
                         resume=args.resume, overwrite=args.overwrite, meshes=tuple(args.meshes or ()),
                         motions=tuple(args.motions or ()),
                         template=str(args.template) if args.template else None, atlas_res=args.atlas_res,

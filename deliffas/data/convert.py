@@ -1,9 +1,10 @@
 """Conversion of a capture (a ``Subject``) into sharded HDF5 (docs/shards.md).
 
 ``convert(subject, out_dir, ConvertConfig)`` plans shards of consecutive selected frames per
-sequence, writes ``meta.h5``, converts the shards (in-process or in spawned worker processes, see
-:mod:`deliffas.data.shard_build`), and rewrites ``manifest.json`` atomically after every finished
-shard. ``resume`` keeps the shards the manifest lists whose checksum still matches, and re-adds
+sequence, writes ``meta.h5``, converts the shards (one task per shard, handed to the executor of
+:func:`deliffas.parallel.open_executor`: in-process, spawned worker processes or a Dask cluster; see
+:mod:`deliffas.data.shard_build`), checks each returned checksum against the file and rewrites
+``manifest.json`` atomically after every finished shard. ``resume`` keeps the shards the manifest lists whose checksum still matches, and re-adds
 shards that reached their final name before the manifest was updated. The capture is only read.
 
 Per frame the surface is the posed template (``build_template(subject.template).pose`` of the
@@ -27,7 +28,7 @@ import numpy as np
 from tqdm import tqdm
 
 from deliffas.io.files import TMP_MARK, sha256_file
-from deliffas.data.shard_build import ShardBuilder, ShardSettings, ShardTask, init_worker, write_shard
+from deliffas.data.shard_build import ShardBuilder, ShardSettings, ShardTask
 from deliffas.data.shard_meta import ShardMeta, write_meta
 from deliffas.data.shards import (
     MANIFEST_NAME,
@@ -42,7 +43,7 @@ from deliffas.data.shards import (
 from deliffas.data.subjects import Subject, SubjectOptions, parse_subject
 from deliffas.data.check import check_before_convert
 from deliffas.geometry.shell import mesh_edges
-from deliffas.parallel import process_map
+from deliffas.parallel import TaskExecutor, open_executor
 
 __all__ = ["ConvertConfig", "ConvertResult", "convert", "parse_frame_range"]
 
@@ -64,6 +65,9 @@ class ConvertConfig:
     """Selected frames per shard."""
     jobs: int = 1
     """Worker processes (spawned); 1 = in this process."""
+    dask: str | None = None
+    """Convert on Dask instead: a scheduler address (``tcp://HOST:8786``) or ``local:N`` (a LocalCluster of N
+    worker processes); OUT must be on a file system the workers share, the subject readable by them."""
     resume: bool = False
     """Keep complete shards of an earlier run with the same configuration."""
     overwrite: bool = False
@@ -191,7 +195,8 @@ def _plan(subject: Subject, config: ConvertConfig) -> _Plan:
 
 
 def _manifest_config(subject: Subject, config: ConvertConfig) -> dict:
-    keep = {k: v for k, v in asdict(config).items() if k not in ("jobs", "resume", "overwrite", "progress", "check")}
+    keep = {k: v for k, v in asdict(config).items()
+            if k not in ("jobs", "dask", "resume", "overwrite", "progress", "check")}
     keep["format"] = subject.format
     keep["subject"] = str(subject.root)
     keep["character"] = subject.template.files.get("character", "")
@@ -273,6 +278,14 @@ def convert(subject: Subject | str | os.PathLike, out_dir: str | os.PathLike,
     if config.check:
         check_before_convert(subject)
     plan = _plan(subject, config)
+    # the executor connects (or starts its workers) before anything is written: an unreachable
+    # Dask scheduler is an error that leaves OUT as it was
+    with open_executor(config.jobs, config.dask) as executor:
+        return _convert_planned(subject, out, config, plan, executor, t_start)
+
+
+def _convert_planned(subject: Subject, out: Path, config: ConvertConfig, plan: _Plan, executor: TaskExecutor,
+                     t_start: float) -> ConvertResult:
     tasks = plan.tasks
     mconfig = _manifest_config(subject, config)
     old = None
@@ -290,9 +303,7 @@ def convert(subject: Subject | str | os.PathLike, out_dir: str | os.PathLike,
                               if mconfig.get(k) != old.get("config", {}).get(k))
                 raise ValueError(f"{out}: --resume with a different configuration (differs in {diff})")
     (out / SHARD_DIR).mkdir(parents=True, exist_ok=True)
-    for leftover in list((out / SHARD_DIR).glob(f".*{TMP_MARK}*")) + list(out.glob(f".*{TMP_MARK}*")):
-        log.info("removing leftover temporary file %s", leftover.name)
-        leftover.unlink(missing_ok=True)
+    _remove_leftovers(out)
 
     settings = ShardSettings(out, plan.cameras, config.atlas_res, config.gutter, config.offset_mm, config.window,
                              config.codec)
@@ -333,6 +344,7 @@ def convert(subject: Subject | str | os.PathLike, out_dir: str | os.PathLike,
 
     def record(entry: dict) -> None:
         nonlocal frames_done
+        _check_returned(out, entry)
         done[entry["name"]] = entry
         frames_done += len(entry["frames"])
         write_manifest(out, manifest(False))
@@ -340,16 +352,13 @@ def convert(subject: Subject | str | os.PathLike, out_dir: str | os.PathLike,
         bar.set_postfix(frames_s=f"{frames_done / max(time.perf_counter() - t_start, 1e-9):.2f}")
 
     try:
-        if config.jobs <= 1 or len(pending) <= 1:
-            for t in pending:
-                record(builder.write(t))
-        else:
-            # the subject (with its pose parameters) goes to each worker once, as initargs; tasks stay small
-            for entry in process_map(write_shard, [(t,) for t in pending], min(config.jobs, len(pending)),
-                                     init_worker, (subject, settings)):
-                record(entry)
+        # the subject (with its pose parameters) goes to each worker once, in the setup; tasks stay small
+        for entry in executor.map(ShardBuilder.write, [(t,) for t in pending], ShardBuilder.create,
+                                  (subject, settings), local_state=builder):
+            record(entry)
     finally:
         bar.close()
+    _remove_leftovers(out)  # temporary files of attempts killed with their worker (retried elsewhere)
     write_manifest(out, manifest(True))
     total = sum(int(e["bytes"]) for e in done.values()) + meta_bytes
     seconds = time.perf_counter() - t_start
@@ -357,6 +366,25 @@ def convert(subject: Subject | str | os.PathLike, out_dir: str | os.PathLike,
     log.info("convert %s: %d shards (%d skipped), %d frames in %.1f s", out, len(tasks), skipped, frames_done, seconds)
     return ConvertResult(out, len(tasks), len(pending), skipped, frames_done, frames_done * num_cams, seconds, setup,
                          total)
+
+
+def _remove_leftovers(out: Path) -> None:
+    """Delete temporary files of killed writers (``.<name>.tmp-<pid>``) in ``out`` and its shard folder."""
+    for leftover in list((out / SHARD_DIR).glob(f".*{TMP_MARK}*")) + list(out.glob(f".*{TMP_MARK}*")):
+        log.info("removing leftover temporary file %s", leftover.name)
+        leftover.unlink(missing_ok=True)
+
+
+def _check_returned(out: Path, entry: dict) -> None:
+    """The shard a worker reports must be here with the checksum it reported (OUT on a shared file system)."""
+    path = out / entry["name"]
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: a worker reported this shard written but it is not here; OUT must be on a "
+                                f"file system every worker shares, at the same path")
+    sha = sha256_file(path)
+    if sha != entry["sha256"]:
+        raise ValueError(f"{path}: sha256 {sha[:12]}... differs from the {entry['sha256'][:12]}... its worker "
+                         f"reported (was it written twice, or is OUT not shared?)")
 
 
 def _is_complete_shard(path: Path, task: ShardTask) -> bool:

@@ -2,8 +2,8 @@
 
 :class:`ShardBuilder` holds what every shard of a conversion shares (the template, outer offsets,
 texel table, the sequences' pose parameters and tracked meshes); it is built once per process
-(in-process, or once in each worker through :func:`init_worker`) and writes shards with
-:meth:`ShardBuilder.write`. Geometry runs on one torch thread, so shards are byte-identical whatever
+(in-process, or once in each worker of the executor: ``ShardBuilder.create`` is the per-worker
+setup) and writes shards with :meth:`ShardBuilder.write`. Geometry runs on one torch thread, so shards are byte-identical whatever
 ``--jobs`` is.
 """
 
@@ -27,7 +27,7 @@ from deliffas.geometry.templates import Template, build_template
 from deliffas.data.shards import Codec, ShardGeometry, ShardWriter
 from deliffas.data.subjects import Subject
 
-__all__ = ["ShardTask", "ShardSettings", "ShardBuilder", "single_thread_torch", "init_worker", "write_shard"]
+__all__ = ["ShardTask", "ShardSettings", "ShardBuilder", "single_thread_torch"]
 
 
 @dataclass(frozen=True)
@@ -162,19 +162,3 @@ class ShardBuilder:
         return {"name": task.name, "sequence": task.sequence, "frames": list(task.frames), "sha256": sha,
                 "bytes": size, "seconds": time.perf_counter() - t0}
 
-
-_worker_builder: ShardBuilder | None = None
-"""This worker process's builder (set once by ``init_worker``; spawn gives each worker its own)."""
-
-
-def init_worker(subject: Subject, settings: ShardSettings) -> None:
-    """Process-pool initializer: build the worker's :class:`ShardBuilder` once."""
-    global _worker_builder
-    _worker_builder = ShardBuilder.create(subject, settings)
-
-
-def write_shard(task: ShardTask) -> dict:
-    """Write ``task`` with this worker's builder (after :func:`init_worker`)."""
-    if _worker_builder is None:
-        raise RuntimeError("write_shard: init_worker was not called in this process")
-    return _worker_builder.write(task)
