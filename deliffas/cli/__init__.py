@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 
 from deliffas import __version__
+from deliffas.parallel.dask_target import parse_dask_target  # stdlib only: dask is imported when a conversion runs
 
 __all__ = ["main", "build_parser"]
 
@@ -47,8 +48,6 @@ def _int_at_least(minimum: int):
 
 
 def _dask_target(text: str) -> str:
-    from deliffas.parallel.dask_target import parse_dask_target  # stdlib only: dask is imported when it runs
-
     try:
         parse_dask_target(text)
     except ValueError as err:
