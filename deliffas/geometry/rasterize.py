@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import ctypes
 import logging
-import math
 from dataclasses import dataclass
 from typing import Literal
 
