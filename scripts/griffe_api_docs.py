@@ -29,10 +29,10 @@ ROLE = re.compile(r":(?:py:)?(?:mod|func|class|meth|attr|data|exc|obj|const):`(?
 def link(target: str, title: str, scope: griffe.Object) -> str:
     """The Markdown of a reference to ``target`` shown as ``title``, from a docstring of ``scope``.
 
-    A name without the package (``fit_smpl``, ``Config.field``, ``.subject``) is looked up where the
-    docstring is, as Python would: its first part in ``scope``, then its parents, through imports.
+    A name without the package (``fit_smpl``, ``Config.field``, ``subject`` from ``.subject``) is
+    looked up where the docstring is, as Python would: its first part in ``scope``, then in its
+    parents, through imports.
     """
-    target = target.lstrip(".")
     if any(part.startswith("_") and not part.startswith("__") for part in target.split(".")):
         return f"`{title}`"
     root = scope.package.name
@@ -49,7 +49,7 @@ def link(target: str, title: str, scope: griffe.Object) -> str:
 def convert_roles(text: str, scope: griffe.Object) -> str:
     """``text`` (a docstring of ``scope``) with every reST object role replaced by a reference."""
     def replace(match: re.Match) -> str:
-        target = match["target"].strip().removesuffix("()")
+        target = match["target"].strip().removesuffix("()").lstrip(".")
         title = target.rsplit(".", 1)[-1] if match["tilde"] else target
         return link(target, title, scope)
     return ROLE.sub(replace, text)
@@ -61,6 +61,9 @@ class SphinxRoles(griffe.Extension):
     def on_object(self, *, obj: griffe.Object, **kwargs) -> None:
         if obj.docstring is not None:
             obj.docstring.value = convert_roles(obj.docstring.value, obj)
+
+    def on_package(self, *, pkg: griffe.Module, **kwargs) -> None:
+        self.on_object(obj=pkg)  # griffe fires on_object for the members of the package, not for itself
 
 
 class HiddenDunders(griffe.Extension):

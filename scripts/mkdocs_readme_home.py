@@ -57,7 +57,8 @@ def readme_as_home(markdown: str, pages: Collection[str] = ()) -> str:
 def on_files(files: Files, config) -> Files:
     """Adds the home page, generated from README.md next to mkdocs.yml."""
     if files.get_file_from_path(HOME) is not None:
-        raise ValueError(f"docs/{HOME} exists; the home page is generated from README.md (scripts/mkdocs_readme_home.py)")
+        raise ValueError(f"docs/{HOME} exists, but the home page is generated from README.md "
+                         "(scripts/mkdocs_readme_home.py): remove one of them")
     readme = Path(config.config_file_path).parent / "README.md"
     pages = {f.src_uri for f in files}
     files.append(File.generated(config, HOME, content=readme_as_home(readme.read_text(encoding="utf-8"), pages)))
