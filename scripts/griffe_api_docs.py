@@ -1,4 +1,5 @@
-"""Griffe extensions of the API reference (mkdocs.yml loads them): roles as cross-references, API dunders.
+"""Griffe extensions of the API reference (mkdocs.yml loads them): roles as cross-references, API dunders,
+subpackages on pages of their own.
 
 ``SphinxRoles``: the docstrings are Google style with reST inline roles (``:func:`fit_smpl```,
 ``:class:`~a.b.C```). Markdown would print those literally; this turns each into an mkdocs-autorefs
@@ -10,6 +11,10 @@ reference, so they stay plain code.
 
 ``HiddenDunders``: special methods that are machinery, not API (``__post_init__`` validation,
 pickling, copying), are left out unless documented; protocol methods (``__len__``, ``__enter__``) stay.
+
+``SeparatePages``: the subpackages named in mkdocs.yml (``deliffas.geometry.templates``) are left out of
+their parent's page, which lists every other module by itself; they are rendered where a page names
+them (``::: deliffas.geometry.templates``).
 """
 
 from __future__ import annotations
@@ -85,3 +90,24 @@ class HiddenDunders(griffe.Extension):
                 for name in HIDDEN_DUNDERS & set(cls.members):
                     if cls.members[name].docstring is None:  # a documented one says something about the API
                         cls.del_member(name)
+
+
+class SeparatePages(griffe.Extension):
+    """Marks the listed modules private, so the ``public`` filter leaves them out of their parent's page."""
+
+    def __init__(self, modules: list[str] = ()) -> None:
+        super().__init__()
+        self.modules = list(modules)
+
+    def on_package(self, *, pkg: griffe.Module, **kwargs) -> None:
+        for path in self.modules:
+            first, *parts = path.split(".")
+            if first != pkg.name:
+                continue
+            module = pkg
+            for part in parts:
+                if part not in module.modules:
+                    raise ValueError(f"mkdocs.yml, SeparatePages: {path} is not a module of {pkg.name} "
+                                     f"(no {part!r} in {module.path})")
+                module = module.modules[part]
+            module.public = False

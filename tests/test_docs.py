@@ -89,7 +89,9 @@ def _tiny_config() -> dict:
     python = next(p["mkdocstrings"] for p in config["plugins"] if isinstance(p, dict) and "mkdocstrings" in p)
     python = python["handlers"]["python"]
     python["paths"] = ["."]
-    python["options"]["extensions"] = [str(REPO / ext) for ext in python["options"]["extensions"]]
+    python["options"]["extensions"] = [  # griffe finds them from the working directory: make them absolute
+        str(REPO / ext) if isinstance(ext, str) else {str(REPO / path): options for path, options in ext.items()}
+        for ext in python["options"]["extensions"]]
     return {**config, "site_name": "tiny"}
 
 
