@@ -1,20 +1,18 @@
 """MkDocs hook of the documentation site: README.md is its home page, with its links made site-relative.
 
-The README is written for the repository (``docs/geometry.md``, ``site/api/io/index.html`` after
+The README is written for the repository (``docs/geometry.md``, ``site/api/io.html`` after
 ``make docs``, ``examples/``); the site's pages live in ``docs/``. One source for both: the home page
 ``index.md`` is generated from the README at build time (mkdocs.yml loads this hook), and its links are
 rewritten so ``mkdocs build --strict`` checks them like any page's:
 
 * ``docs/X`` -> ``X`` (a page or picture of the site);
-* ``site/index.html`` -> ``index.md``, ``site/P/index.html`` -> ``P/index.md`` when the site has that
-  page, else ``P.md`` (the built site itself);
+* ``site/P.html`` -> ``P.md`` (a page of the built site itself: ``site/index.html``, ``site/api/io.html``);
 * other repository paths (``examples/``, ``CHANGELOG.md``) are not in the site: the link becomes its text.
 """
 
 from __future__ import annotations
 
 import re
-from collections.abc import Collection
 from pathlib import Path
 
 from mkdocs.structure.files import File, Files
@@ -24,30 +22,24 @@ LINK = re.compile(r"(?P<bang>!?)\[(?P<text>[^\]]*)\]\((?P<target>[^)\s]+)\)")
 """An inline Markdown link or image: ``[text](target)``, ``![alt](target)``."""
 
 
-def site_target(target: str, pages: Collection[str] = ()) -> str | None:
-    """Where a README link target points in the site; None when it is outside the site.
-
-    ``pages``: the site's source files (``api/index.md``), to tell ``P/index.md`` from ``P.md``.
-    """
+def site_target(target: str) -> str | None:
+    """Where a README link target points in the site; None when it is outside the site."""
     if re.match(r"^[a-z][a-z0-9+.-]*:|^#", target):  # http:, mailto:, an anchor of this page
         return target
     path, _, anchor = target.partition("#")
     suffix = f"#{anchor}" if anchor else ""
     if path.startswith("docs/"):
         return path.removeprefix("docs/") + suffix
-    if path == "site/index.html":
-        return HOME + suffix
-    built = re.fullmatch(r"site/(?P<page>.+)/index\.html", path)
+    built = re.fullmatch(r"site/(?P<page>.+)\.html", path)
     if built:
-        page = built["page"]
-        return (f"{page}/index.md" if f"{page}/index.md" in pages else f"{page}.md") + suffix
+        return f"{built['page']}.md{suffix}"
     return None
 
 
-def readme_as_home(markdown: str, pages: Collection[str] = ()) -> str:
-    """The README's Markdown with its links rewritten for the site (``pages`` as in ``site_target``)."""
+def readme_as_home(markdown: str) -> str:
+    """The README's Markdown with its links rewritten for the site."""
     def rewrite(match: re.Match) -> str:
-        target = site_target(match["target"], pages)
+        target = site_target(match["target"])
         if target is None:
             return match["text"]
         return f"{match['bang']}[{match['text']}]({target})"
@@ -60,6 +52,5 @@ def on_files(files: Files, config) -> Files:
         raise ValueError(f"docs/{HOME} exists, but the home page is generated from README.md "
                          "(scripts/mkdocs_readme_home.py): remove one of them")
     readme = Path(config.config_file_path).parent / "README.md"
-    pages = {f.src_uri for f in files}
-    files.append(File.generated(config, HOME, content=readme_as_home(readme.read_text(encoding="utf-8"), pages)))
+    files.append(File.generated(config, HOME, content=readme_as_home(readme.read_text(encoding="utf-8"))))
     return files

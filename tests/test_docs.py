@@ -60,7 +60,7 @@ def site(tmp_path_factory) -> Path:
 
 
 def test_site_builds_strict_with_every_module(site):
-    html = "\n".join(p.read_text(encoding="utf-8") for p in (site / "api").rglob("index.html"))
+    html = "\n".join(p.read_text(encoding="utf-8") for p in (site / "api").glob("*.html"))
     missing = [m for m in _modules() if f'id="{m}"' not in html]
     assert not missing, f"modules not in the API reference (add them to docs/api/*.md): {missing}"
     prose = re.sub(r"<pre.*?</pre>", "", html, flags=re.S)  # code (e.g. an attribute's value) is shown as written
@@ -73,10 +73,10 @@ def test_home_page_is_the_readme_with_its_picture(site):
     readme_title = (REPO / "README.md").read_text(encoding="utf-8").splitlines()[0].lstrip("# ").strip()
     assert readme_title in home
     assert 'src="viewer.png"' in home and (site / "viewer.png").stat().st_size > 0
-    assert 'href="api/geometry/"' in home  # README's site/api/geometry/index.html, made site-relative
+    assert 'href="api/geometry.html"' in home  # README's site/api/geometry.html, made site-relative
     for page in ("architecture", "conventions", "data", "geometry", "models", "shards", "performance",
                  "reliability", "scale", "results"):
-        assert (site / page / "index.html").is_file(), page
+        assert (site / f"{page}.html").is_file(), page
 
 
 def _tiny_config() -> dict:
@@ -167,8 +167,8 @@ def test_roles_become_references():
 def test_readme_links_made_site_relative():
     home = _load("mkdocs_readme_home")
     md = ("![pic](docs/viewer.png) [guide](docs/geometry.md#atlas) [site](site/index.html) "
-          "[api](site/api/index.html) [io](site/api/io/index.html) [`examples/`](examples/) "
+          "[api](site/api/index.html) [io](site/api/io.html) [`examples/`](examples/) "
           "[web](https://example.org/x) [top](#layout)")
-    assert home.readme_as_home(md, pages={"api/index.md", "api/io.md"}) == (
+    assert home.readme_as_home(md) == (
         "![pic](viewer.png) [guide](geometry.md#atlas) [site](index.md) [api](api/index.md) [io](api/io.md) "
         "`examples/` [web](https://example.org/x) [top](#layout)")
