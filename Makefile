@@ -8,7 +8,7 @@ STAMP := $(VENV)/.setup-stamp
 DEMO_OUT ?= demo_out
 PYTEST_ARGS ?=
 
-.PHONY: setup test soak demo bench clean
+.PHONY: setup test docs soak demo bench clean
 
 setup: $(STAMP)
 
@@ -22,7 +22,13 @@ $(STAMP): pyproject.toml scripts/system_deps.sh
 
 test: setup
 	$(VENV)/bin/lint-imports --no-cache
+	$(MAKE) docs
 	$(PY) -m pytest -q $(PYTEST_ARGS)
+
+# The documentation site (docs/*.md and the API reference from the docstrings) into site/; --strict:
+# a broken link or cross-reference fails. Open site/index.html.
+docs: setup
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --site-dir site
 
 # The reliability suite at soak scale: >= 10,000 fuzz cases per reader, >= 20 SIGKILLs of conversion.
 soak: setup
@@ -37,4 +43,4 @@ bench: setup
 	$(PY) -m benchmarks.run
 
 clean:
-	rm -rf $(VENV) $(DEMO_OUT) bench_out .pytest_cache .import_linter_cache
+	rm -rf $(VENV) $(DEMO_OUT) bench_out site .pytest_cache .import_linter_cache

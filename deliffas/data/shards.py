@@ -140,7 +140,8 @@ class ShardWriter:
         sequence: ``training`` or ``testing``.
         frames: (N,) capture frames whose images the shard holds (sorted).
         camera_ids: (C,) calibration indices of the image columns.
-        height, width: image size of every camera.
+        height: image height of every camera, pixels.
+        width: image width of every camera, pixels.
         codec: image codec.
         geometry: the shard's geometry block (must contain every frame of ``window_rows``).
         window: T, predecessors per frame; ``window_rows[n, k]`` = geometry row of max(f_n - k, first).

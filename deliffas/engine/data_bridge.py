@@ -136,7 +136,8 @@ def training_stream(cfg, temporal_window: int, rank: int = 0, world: int = 1,
         cfg: a ``TrainConfig``.
         temporal_window: T of the model being trained (its resolved config's, so the normal-map
             windows match its U-Nets' inputs); at most the window the shards store.
-        rank, world: distributed rank and size (each rank draws its own frames).
+        rank: distributed rank (each rank draws its own frames).
+        world: distributed size (number of ranks).
         start_iteration: iteration resumed from (changes the draw so a resumed run sees new samples).
     """
     info = shard_info(cfg.shards, temporal_window)

@@ -142,7 +142,9 @@ def paint_images(colors: torch.Tensor, batch: RayBatch, num_images: int, height:
         colors: (N, 3) shaded colours of ``batch``'s rays (differentiable: the result is built
             out of place, so gradients reach ``colors``).
         batch: the rays (their ``image_index`` and flat ``pixels``).
-        num_images, height, width: the canvas.
+        num_images: number of images of the canvas.
+        height: the canvas height, pixels.
+        width: the canvas width, pixels.
         background: value of the pixels no ray paints.
     """
     check_shape("colors", colors, f"{batch.num_rays} 3")

@@ -54,8 +54,8 @@ def sample_uv(feature_maps: torch.Tensor, batch_index: torch.Tensor, uv: torch.T
     Performance: for spatially incoherent queries on large maps, pass maps in channels_last
     memory format (``feature_maps.contiguous(memory_format=torch.channels_last)``): each texel's
     C values are then adjacent, and on CPU 1.2 M random lookups into a 1024^2 x 32 map take
-    ~0.5 s instead of ~2.9 s (2 cores). :meth:`DeliffasModel.encode` stores its maps that way.
-    The result is then a contiguous (N, C) tensor.
+    ~0.5 s instead of ~2.9 s (2 cores). :meth:`deliffas.models.deliffas.DeliffasModel.encode` stores
+    its maps that way. The result is then a contiguous (N, C) tensor.
 
     Args:
         feature_maps: (B, C, S_h, S_w) float, atlas-space maps (row 0 = v 1).

@@ -92,9 +92,12 @@ def rhth_to_params(Rh: np.ndarray, Th: np.ndarray, poses: np.ndarray, betas: np.
     ``transl = Th + R(Rh) J0 - J0``.
 
     Args:
-        Rh, Th: (N, 3) axis-angle, model units (metres). poses: (N, >= 66) (SMPL 72; SMPL-H/X: the
-            first 66 are the shared 22 joints, the rest are dropped and SMPL's hands set to zero).
-        betas: (NB,) shape, shared. root_joint: (3,) ``rest_root_joint(model, betas)``.
+        Rh: (N, 3) axis-angle.
+        Th: (N, 3) translation, model units (metres).
+        poses: (N, >= 66) (SMPL 72; SMPL-H/X: the first 66 are the shared 22 joints, the rest are
+            dropped and SMPL's hands set to zero).
+        betas: (NB,) shape, shared.
+        root_joint: (3,) ``rest_root_joint(model, betas)``.
 
     Returns:
         (N, 3 + 72 + NB) float64.

@@ -48,7 +48,8 @@ def require_array(path: str | os.PathLike, key: str, value: Any, shape: tuple[in
     """``value`` as a finite float64 array of ``shape``.
 
     Args:
-        path, key: named in the error.
+        path: named in the error.
+        key: named in the error.
         value: anything numpy turns into a numeric array (nested lists, arrays, HDF5 datasets).
         shape: the expected shape; ``-1`` entries match any size.
         reshape: accept any array with the right number of elements (e.g. a flat list of 9 for a

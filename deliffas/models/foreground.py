@@ -60,7 +60,8 @@ def foreground_box(mask: torch.Tensor, pad_frac: float = FG_PAD_FRAC, min_pad: i
 
     Args:
         mask: (H, W) float in [0, 1] (or bool).
-        pad_frac, min_pad: padding per side = max(min_pad, round(pad_frac * longer box side)) pixels.
+        pad_frac: padding per side = max(min_pad, round(pad_frac * longer box side)) pixels.
+        min_pad: least padding per side, pixels.
         min_side: least side of the box (clipped to the image).
 
     Returns:

@@ -263,7 +263,8 @@ def step_loss(
             step's.
         perceptual: a :class:`PerceptualLoss`, or None (L1 only).
         weight: w of the perceptual term.
-        pred_images, target_images: (K, H, W, 3) in [0, 1] (needed with ``perceptual``).
+        pred_images: (K, H, W, 3) in [0, 1] (needed with ``perceptual``).
+        target_images: (K, H, W, 3) in [0, 1] (needed with ``perceptual``).
         masks: (K, H, W) foreground masks (patch placement in patch mode).
         generator: CPU generator for the patch positions.
     """

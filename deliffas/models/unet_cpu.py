@@ -48,7 +48,8 @@ class Epilogue:
     ``"relu"``, ``"leaky_relu"`` (slope ``slope``) or ``"sigmoid"``. ``sources`` are the tensors
     (and numbers) that tensor-valued ``scale`` and ``shift`` are computed from, e.g. a norm's
     parameters and running statistics: prepacked weights stay valid while these are the same
-    objects at the same version (:func:`packed_conv`), which is cheaper than comparing values."""
+    objects at the same version (:func:`~deliffas.models.unet_prepack.packed_conv`), which is cheaper
+    than comparing values."""
 
     scale: torch.Tensor | float | None = None
     shift: torch.Tensor | None = None

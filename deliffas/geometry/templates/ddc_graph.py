@@ -32,7 +32,8 @@ class EmbeddedGraphTemplate(DDCTemplate):
         graph: a binding from ``deliffas.geometry.embedded_graph.bind_embedded_graph``.
         skinning: ``dqs`` (C++ default: dual-quaternion blend of node transforms) or ``lbs``.
         deformation: ``embedded_graph`` or ``per_vertex``.
-        dof_match, dtype: as ``DDCTemplate``.
+        dof_match: as ``DDCTemplate``.
+        dtype: as ``DDCTemplate``.
     """
 
     def __init__(self, character: Character, graph=None, skinning: Skinning = "dqs",
@@ -74,7 +75,8 @@ class EmbeddedGraphTemplate(DDCTemplate):
             node_angles: (B, K, 3) Euler angles (α, β, γ) of R = R_z R_y R_x per node, rad.
             node_translations: (B, K, 3) Δt per node, mm.
             vertex_deltas: (B, V, 3) per-vertex delta d_i, mm (rest frame).
-            skinning, deformation: override the template's modes.
+            skinning: overrides the template's mode.
+            deformation: overrides the template's mode.
 
         Returns:
             (B, V, 3) vertices in template order, mm, world frame.

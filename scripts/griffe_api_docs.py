@@ -1,0 +1,113 @@
+"""Griffe extensions of the API reference (mkdocs.yml loads them): roles as cross-references, API dunders,
+subpackages on pages of their own.
+
+``SphinxRoles``: the docstrings are Google style with reST inline roles (``:func:`fit_smpl```,
+``:class:`~a.b.C```). Markdown would print those literally; this turns each into an mkdocs-autorefs
+link before the docstring is parsed, so ``mkdocs build --strict`` fails when one names nothing.
+
+``~a.b.C`` shows ``C``, as in Sphinx. Names without the package (``fit_smpl``, ``Config.field``) are
+resolved where the docstring is. Private names (a part starting with ``_``) are not in the
+reference, so they stay plain code.
+
+``HiddenDunders``: special methods that are machinery, not API (``__post_init__`` validation,
+pickling, copying), are left out unless documented; protocol methods (``__len__``, ``__enter__``) stay.
+
+``SeparatePages``: the subpackages named in mkdocs.yml (``deliffas.geometry.templates``) are left out of
+their parent's page, which lists every other module by itself; they are rendered where a page names
+them (``::: deliffas.geometry.templates``).
+"""
+
+from __future__ import annotations
+
+import re
+
+import griffe
+
+HIDDEN_DUNDERS = frozenset({"__post_init__", "__getstate__", "__setstate__", "__deepcopy__", "__copy__",
+                            "__del__", "__reduce__", "__reduce_ex__"})
+"""Special methods that are not part of a class's documented interface."""
+
+ROLE = re.compile(r":(?:py:)?(?:mod|func|class|meth|attr|data|exc|obj|const):`(?P<tilde>~?)(?P<target>[^`]+)`")
+"""A reST role naming a Python object: ``:func:`x```, ``:class:`~a.b.C```."""
+
+
+def link(target: str, title: str, scope: griffe.Object) -> str:
+    """The Markdown of a reference to ``target`` shown as ``title``, from a docstring of ``scope``.
+
+    A name without the package (``fit_smpl``, ``Config.field``, ``subject`` from ``.subject``) is
+    looked up where the docstring is, as Python would: its first part in ``scope``, then in its
+    parents, through imports.
+    """
+    if any(part.startswith("_") and not part.startswith("__") for part in target.split(".")):
+        return f"`{title}`"
+    root = scope.package.name
+    if target != root and not target.startswith(root + "."):
+        first, _, rest = target.partition(".")
+        try:
+            first = scope.resolve(first)
+        except griffe.NameResolutionError:
+            pass  # left as written: the strict build reports it
+        target = f"{first}.{rest}" if rest else first
+    return f"[`{title}`][{target}]"
+
+
+def convert_roles(text: str, scope: griffe.Object) -> str:
+    """``text`` (a docstring of ``scope``) with every reST object role replaced by a reference."""
+    def replace(match: re.Match) -> str:
+        target = match["target"].strip().removesuffix("()").lstrip(".")
+        title = target.rsplit(".", 1)[-1] if match["tilde"] else target
+        return link(target, title, scope)
+    return ROLE.sub(replace, text)
+
+
+class SphinxRoles(griffe.Extension):
+    """Rewrites the roles of every docstring once the object tree is complete."""
+
+    def on_object(self, *, obj: griffe.Object, **kwargs) -> None:
+        if obj.docstring is not None:
+            obj.docstring.value = convert_roles(obj.docstring.value, obj)
+
+    def on_package(self, *, pkg: griffe.Module, **kwargs) -> None:
+        self.on_object(obj=pkg)  # griffe fires on_object for the members of the package, not for itself
+
+
+class HiddenDunders(griffe.Extension):
+    """Removes the undocumented special methods of ``HIDDEN_DUNDERS`` from the classes of the package.
+
+    Removed, not marked private: a class re-exported by its package (``deliffas.models.ModelConfig``)
+    is rendered through an alias, whose members would not see such a mark.
+    """
+
+    def on_package(self, *, pkg: griffe.Module, **kwargs) -> None:
+        modules = [pkg]
+        while modules:
+            module = modules.pop()
+            modules.extend(member for member in module.modules.values() if not member.is_alias)
+            classes = [cls for cls in module.classes.values() if not cls.is_alias]
+            while classes:
+                cls = classes.pop()
+                classes.extend(inner for inner in cls.classes.values() if not inner.is_alias)
+                for name in HIDDEN_DUNDERS & set(cls.members):
+                    if cls.members[name].docstring is None:  # a documented one says something about the API
+                        cls.del_member(name)
+
+
+class SeparatePages(griffe.Extension):
+    """Marks the listed modules private, so the ``public`` filter leaves them out of their parent's page."""
+
+    def __init__(self, modules: list[str] = ()) -> None:
+        super().__init__()
+        self.modules = list(modules)
+
+    def on_package(self, *, pkg: griffe.Module, **kwargs) -> None:
+        for path in self.modules:
+            first, *parts = path.split(".")
+            if first != pkg.name:
+                continue
+            module = pkg
+            for part in parts:
+                if part not in module.modules:
+                    raise ValueError(f"mkdocs.yml, SeparatePages: {path} is not a module of {pkg.name} "
+                                     f"(no {part!r} in {module.path})")
+                module = module.modules[part]
+            module.public = False
