@@ -127,6 +127,67 @@ static void rows_##NAME(int64_t start, int64_t stop, const float *uv_in, const u
 VARIANT(f32, float, PUT_F32)
 VARIANT(bf16, uint16_t, PUT_BF16)
 
+/* exp(x) for x in [-88, 88] to ~2 ulp, branch-free so the compiler vectorises the loop around it:
+   x = k ln2 + r, |r| <= ln2 / 2, exp(r) by a degree-7 polynomial, 2^k through the exponent bits. */
+static inline float exp_approx(float x) {
+    x = x < -87.0f ? -87.0f : (x > 88.0f ? 88.0f : x);
+    float k = nearbyintf(x * 1.44269504088896341f);
+    float r = x - k * 0.693145751953125f - k * 1.428606765330187e-06f;
+    float p = 1.0f + r * (1.0f + r * (0.5f + r * (1.6666667163e-01f + r * (4.1666667908e-02f + r * (8.3333337680e-03f
+              + r * (1.3888889225e-03f + r * 1.9841270114e-04f))))));
+    int32_t e = ((int32_t)k + 127) << 23;
+    float scale;
+    memcpy(&scale, &e, 4);
+    return p * scale;
+}
+
+static inline float bf16_to_f32(uint16_t v) {
+    uint32_t u = (uint32_t)v << 16;
+    float f;
+    memcpy(&f, &u, 4);
+    return f;
+}
+
+/* The MLP's output layer and its sigmoid: rgb = sigmoid(h W^T + b) in fp32 for rows [0, n) of h (n, K)
+   (leading dimension ld, bf16 or fp32), W (3, K) and b (3,) fp32. Row r goes to out[3 pixels[r] ..]
+   when pixels is given (the image canvas), else to out[3 r ..]. 16 partial sums per output so the
+   K loop vectorises without reassociating one sum. */
+void deliffas_rgb_out(int64_t n, const void *h, int64_t ld, int bf16, int64_t K, const float *w, const float *b,
+                      const int64_t *pixels, float *out) {
+    enum { B = 64 };
+    float logit[3 * B];
+    for (int64_t r0 = 0; r0 < n; r0 += B) {
+        int64_t m = n - r0 < B ? n - r0 : B;
+        for (int64_t i = 0; i < m; i++) {
+            float x[16];
+            float acc[3][16];
+            for (int j = 0; j < 3; j++) for (int l = 0; l < 16; l++) acc[j][l] = 0.0f;
+            int64_t k = 0;
+            for (; k + 16 <= K; k += 16) {
+                if (bf16) { const uint16_t *hr = (const uint16_t *)h + (r0 + i) * ld + k;
+                            for (int l = 0; l < 16; l++) x[l] = bf16_to_f32(hr[l]); }
+                else { const float *hr = (const float *)h + (r0 + i) * ld + k;
+                       for (int l = 0; l < 16; l++) x[l] = hr[l]; }
+                for (int j = 0; j < 3; j++) for (int l = 0; l < 16; l++) acc[j][l] += x[l] * w[j * K + k + l];
+            }
+            for (int j = 0; j < 3; j++) {
+                float s = b[j];
+                for (int l = 0; l < 16; l++) s += acc[j][l];
+                for (int64_t kk = k; kk < K; kk++) {
+                    float v = bf16 ? bf16_to_f32(((const uint16_t *)h)[(r0 + i) * ld + kk]) : ((const float *)h)[(r0 + i) * ld + kk];
+                    s += v * w[j * K + kk];
+                }
+                logit[3 * i + j] = s;
+            }
+        }
+        for (int64_t i = 0; i < 3 * m; i++) logit[i] = 1.0f / (1.0f + exp_approx(-logit[i]));
+        for (int64_t i = 0; i < m; i++) {
+            float *o = out + 3 * (pixels ? pixels[r0 + i] : r0 + i);
+            o[0] = logit[3 * i]; o[1] = logit[3 * i + 1]; o[2] = logit[3 * i + 2];
+        }
+    }
+}
+
 void deliffas_ray_inputs(int64_t start, int64_t stop, const float *uv_in, const uint8_t *from_outer,
                          const float *uv_out, int outer_encoded, int L, int include_input, const float *map_in,
                          const float *map_out, int64_t S, int64_t C, int bf16, void *enc, int64_t E, void *feats,
@@ -145,6 +206,8 @@ def _declare(lib: ctypes.CDLL) -> None:
     p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
     lib.deliffas_ray_inputs.argtypes = [i64, i64, p, p, p, i32, i32, i32, p, p, i64, i64, i32, p, i64, p, i64]
     lib.deliffas_ray_inputs.restype = None
+    lib.deliffas_rgb_out.argtypes = [i64, p, i64, i32, i64, p, p, p, p]
+    lib.deliffas_rgb_out.restype = None
 
 
 _KERNEL = LazyLibrary("ray_inputs", _SOURCE, ("-fno-fast-math", "-ffp-contract=off", "-fno-math-errno"), setup=_declare,
@@ -176,14 +239,16 @@ class FastShader:
         model: the model (its weights are read on each call; bf16 copies are refreshed when they change).
         dtype: torch.float32 or torch.bfloat16, the dtype of the MLP's products.
         row_chunk: rays per MLP chunk.
+        use_kernel: False = torch only (the C passes' plain path; also without a C compiler).
     """
 
-    def __init__(self, model: DeliffasModel, dtype: torch.dtype = torch.float32, row_chunk: int = ROW_CHUNK) -> None:
+    def __init__(self, model: DeliffasModel, dtype: torch.dtype = torch.float32, row_chunk: int = ROW_CHUNK,
+                 use_kernel: bool = True) -> None:
         if not supports(model):
             raise ValueError(f"FastShader: variant {model.config.variant!r} is not supported (see fast_shade.supports)")
         if dtype not in (torch.float32, torch.bfloat16):
             raise ValueError(f"FastShader: dtype must be float32 or bfloat16, got {dtype}")
-        self.model, self.dtype, self.row_chunk = model, dtype, int(row_chunk)
+        self.model, self.dtype, self.row_chunk, self.use_kernel = model, dtype, int(row_chunk), bool(use_kernel)
         self._weights_key: tuple | None = None
         self._layers: list[tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]] = []
 
@@ -192,21 +257,23 @@ class FastShader:
         return tuple((p.data_ptr(), p._version) for p in self.model.mlp.parameters())
 
     def layers(self) -> list[tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]]:
-        """Per Linear: (W_h^T (in, out), W_f^T (F, out) or None, bias (out,)): the MLP's dtype, fp32 for the output layer.
+        """Per Linear: (W_h^T (in, out), W_f^T (F, out) or None, bias (out,)) in the MLP's dtype; the output layer
+        as (W (3, in), None, bias (3,)) in fp32 (colours from fp32 logits; W untransposed, the layout both its
+        kernel and torch's fp32 product with out = 3 want: the transposed copy took 4x longer).
 
         W_f^T is the feature columns of the layer after the concatenation (features come first)."""
         key = self._key()
         if key != self._weights_key:
             mlp = self.model.mlp
-            linears = [*mlp.hidden, mlp.output]
             out = []
-            for i, lin in enumerate(linears):
-                dtype = torch.float32 if i == len(linears) - 1 else self.dtype  # colours from fp32 logits
+            for i, lin in enumerate(mlp.hidden):
                 w, w_f = lin.weight.detach(), None
                 if i == mlp.config.feature_layer + 1 and mlp.feature_dim:
                     w_f, w = w[:, : mlp.feature_dim], w[:, mlp.feature_dim:]
-                    w_f = w_f.t().contiguous().to(dtype)
-                out.append((w.t().contiguous().to(dtype), w_f, lin.bias.detach().to(dtype).contiguous()))
+                    w_f = w_f.t().contiguous().to(self.dtype)
+                out.append((w.t().contiguous().to(self.dtype), w_f, lin.bias.detach().to(self.dtype).contiguous()))
+            last = mlp.output
+            out.append((last.weight.detach().float().contiguous(), None, last.bias.detach().float().contiguous()))
             self._layers, self._weights_key = out, key
         return self._layers
 
@@ -214,7 +281,7 @@ class FastShader:
     def inputs(self, features: FrameFeatures, query: RayQuery) -> tuple[torch.Tensor, torch.Tensor]:
         """The MLP's operands: encoded (N, E) and feats (N, F) in the shader's dtype (C kernel, else torch)."""
         model, n = self.model, query.num_rays
-        lib = _KERNEL.get()
+        lib = _KERNEL.get() if self.use_kernel else None
         single = features.batch_size == 1 and (query.batch_index.numel() == 0 or not bool(query.batch_index.any()))
         if lib is None or not single or features.inner.dtype != torch.float32:
             enc, feats = model.gather_inputs(features, query)
@@ -242,24 +309,48 @@ class FastShader:
         return enc, feats
 
     # ------------------------------------------------------------------ MLP
-    def mlp(self, enc: torch.Tensor, feats: torch.Tensor) -> torch.Tensor:
-        """(N, 3) float32 RGB of the operands from :meth:`inputs`."""
+    def mlp(self, enc: torch.Tensor, feats: torch.Tensor, out: torch.Tensor | None = None,
+            rows: torch.Tensor | None = None) -> torch.Tensor:
+        """(N, 3) float32 RGB of the operands from :meth:`inputs`; or, with ``out`` (P, 3) float32 and ``rows`` (N,)
+        int64, ray i's colour written to ``out[rows[i]]`` (an image canvas) and ``out`` returned.
+
+        Hidden layers: ``addmm`` into two buffers reused across row chunks; the output layer, its sigmoid
+        and the write: one C pass in fp32 (``use_kernel=False`` or no kernel: torch's fp32 product)."""
         layers = self.layers()
+        hidden, (w_out, _, b_out) = layers[:-1], layers[-1]
         n = enc.shape[0]
-        rgb = torch.empty(n, 3, dtype=torch.float32)
-        last = len(layers) - 1
-        for start in range(0, n, self.row_chunk):
-            h = enc[start:start + self.row_chunk]
-            f = feats[start:start + self.row_chunk]
-            for i, (w_h, w_f, bias) in enumerate(layers):
-                if h.dtype != w_h.dtype:  # the output layer: fp32 logits
-                    h = h.to(w_h.dtype)
-                y = torch.addmm(bias, h, w_h)  # (n, out)
+        if out is None:
+            out, rows = torch.empty(n, 3, dtype=torch.float32), None
+        elif rows is None or rows.shape != (n,) or rows.dtype != torch.int64 or out.dtype != torch.float32 \
+                or out.dim() != 2 or out.shape[1] != 3 or not out.is_contiguous():
+            raise ValueError("FastShader.mlp: out must be a contiguous (P, 3) float32 canvas and rows (N,) int64")
+        lib = _KERNEL.get() if self.use_kernel else None
+        chunk = min(self.row_chunk, max(n, 1))
+        widths = [w_h.shape[1] for w_h, _, _ in hidden]
+        bufs = [torch.empty(chunk, max(widths), dtype=self.dtype) for _ in range(2)]
+        rows_c = rows.contiguous() if rows is not None else None
+        for start in range(0, n, chunk):
+            m = min(chunk, n - start)
+            h = enc[start:start + m]
+            f = feats[start:start + m]
+            for i, (w_h, w_f, bias) in enumerate(hidden):
+                y = bufs[i % 2][:m, : w_h.shape[1]]
+                torch.addmm(bias, h, w_h, out=y)
                 if w_f is not None:
-                    y.addmm_(f if f.dtype == w_f.dtype else f.to(w_f.dtype), w_f)
-                h = y.relu_() if i < last else y.sigmoid_()
-            rgb[start:start + self.row_chunk] = h
-        return rgb
+                    y.addmm_(f, w_f)
+                h = y.relu_()
+            if lib is not None:
+                lib.deliffas_rgb_out(m, h.data_ptr(), h.stride(0), int(h.dtype == torch.bfloat16), h.shape[1],
+                                     w_out.data_ptr(), b_out.data_ptr(),
+                                     rows_c[start:].data_ptr() if rows_c is not None else None,
+                                     out.data_ptr() if rows_c is not None else out[start:].data_ptr())
+            else:
+                rgb = torch.addmm(b_out, h.float(), w_out.t()).sigmoid_()
+                if rows_c is None:
+                    out[start:start + m] = rgb
+                else:
+                    out.index_copy_(0, rows_c[start:start + m], rgb)
+        return out
 
     @torch.no_grad()
     def shade(self, features: FrameFeatures, query: RayQuery) -> torch.Tensor:

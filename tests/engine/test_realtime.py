@@ -88,3 +88,36 @@ def test_switches(monkeypatch):
         FastRender().torch_dtype()
     with pytest.raises(ValueError, match="dtype"):
         FastRender(dtype="fp8")
+
+
+def test_render_stream_equals_sequential(frame):
+    model, features, raycaster, cameras = frame
+    cams = [*cameras, cameras[0].rescaled(97, 61)] * 2
+
+    def one(cam):
+        return _render(model, features, raycaster, cam, FastRender())
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # the stream's workers run on one intra-op thread each: compare like with like
+    try:
+        sequential = list(realtime.render_stream(one, cams, in_flight=1))
+    finally:
+        torch.set_num_threads(threads)
+    pipelined = list(realtime.render_stream(one, cams, in_flight=2))
+    assert torch.get_num_threads() == threads  # restored
+    assert len(pipelined) == len(cams)
+    for a, b in zip(sequential, pipelined):
+        assert torch.equal(a, b)
+    with pytest.raises(ValueError, match="in_flight"):
+        next(realtime.render_stream(one, cams, in_flight=0))
+
+
+def test_frames_in_flight_switch(monkeypatch):
+    assert FastRender(in_flight=3).frames_in_flight() == 3
+    monkeypatch.setenv(realtime.FRAMES_IN_FLIGHT_ENV, "1")
+    assert FastRender().frames_in_flight() == 1
+    monkeypatch.setenv(realtime.FRAMES_IN_FLIGHT_ENV, "x")
+    with pytest.raises(ValueError, match="DELIFFAS_FRAMES_IN_FLIGHT"):
+        FastRender().frames_in_flight()
+    with pytest.raises(ValueError, match="in_flight"):
+        FastRender(in_flight=-1)

@@ -77,3 +77,24 @@ def test_unsupported_variants_are_refused():
         FastShader(model)
     with pytest.raises(ValueError, match="dtype"):
         FastShader(DeliffasModel(get_config("two_surface", "tiny")), torch.float16)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+def test_output_kernel_equals_torch_and_paints_rows(dtype):
+    model, feats, query = _case("two_surface", "small")
+    with torch.no_grad():
+        fused, plain = FastShader(model, dtype), FastShader(model, dtype, use_kernel=False)
+        enc, fts = plain.inputs(feats, query)
+        tol = 2e-6 if dtype == torch.float32 else 0.02
+        torch.testing.assert_close(fused.inputs(feats, query), (enc, fts), atol=tol, rtol=0)
+        ref = plain.mlp(enc, fts)
+        torch.testing.assert_close(fused.mlp(enc, fts), ref, atol=2e-6, rtol=0)
+        rows = torch.randperm(2 * len(ref))[: len(ref)]
+        canvas = torch.full((2 * len(ref), 3), 0.5)
+        assert fused.mlp(enc, fts, out=canvas, rows=rows) is canvas
+        torch.testing.assert_close(canvas[rows], ref, atol=2e-6, rtol=0)
+        untouched = torch.ones(len(canvas), dtype=torch.bool)
+        untouched[rows] = False
+        assert bool((canvas[untouched] == 0.5).all())
+        with pytest.raises(ValueError, match="canvas"):
+            fused.mlp(enc, fts, out=canvas, rows=None)
