@@ -7,7 +7,9 @@ stage by stage (``uv``, ``sample``, ``mlp``), with three replacements:
   shaded pixels and uvs; the ray caster is used where a vertex is behind the camera);
 * ``sample``: :class:`~deliffas.models.fast_shade.FastShader` writes the encodings and sampled
   features straight into the MLP's operands (one C pass);
-* ``mlp``: the MLP as a chain of ``addmm`` in fp32, or in bf16 where the CPU has native bf16.
+* ``mlp``: the MLP as a chain of ``addmm`` in fp32, or in bf16 where the CPU has native bf16;
+* by default ``sample`` and ``mlp`` are one C pass instead (``FastShader.shade_fused``: 16 rays at a time in
+  the vector lanes, fp32, every colour written to its pixel), timed as the ``mlp`` stage.
 
 :class:`FastRender` is the switch. ``deliffas render`` and ``deliffas view`` use
 :func:`default_fast_render` (on for CPU devices); ``deliffas eval`` keeps the plain path, whose
@@ -41,7 +43,7 @@ from deliffas.models.deliffas import DeliffasModel, FrameFeatures
 from deliffas.models.fast_shade import FastShader, native_bf16, supports
 
 __all__ = ["FastRender", "default_fast_render", "fast_camera_rays", "fast_render_camera", "render_stream",
-           "FAST_RENDER_ENV", "RENDER_DTYPE_ENV", "FRAMES_IN_FLIGHT_ENV"]
+           "FAST_RENDER_ENV", "RENDER_DTYPE_ENV", "FUSED_SHADE_ENV", "FRAMES_IN_FLIGHT_ENV"]
 
 logger = logging.getLogger(__name__)
 
@@ -50,6 +52,8 @@ FAST_RENDER_ENV = "DELIFFAS_FAST_RENDER"
 RENDER_DTYPE_ENV = "DELIFFAS_RENDER_DTYPE"
 """Environment variable: "float32" or "bfloat16" overrides ``FastRender.dtype="auto"``."""
 
+FUSED_SHADE_ENV = "DELIFFAS_FUSED_SHADE"
+"""Environment variable: "0" makes :func:`default_fast_render` use the per-stage path (``FastRender.fused=False``)."""
 FRAMES_IN_FLIGHT_ENV = "DELIFFAS_FRAMES_IN_FLIGHT"
 """Environment variable: frames :func:`render_stream` renders at once under ``FastRender.in_flight=0`` (auto);
 "1" = one after the other."""
@@ -67,6 +71,10 @@ class FastRender:
     """uvs by rasterisation (False: the open3d ray caster, as the plain path)."""
     dtype: Dtype = "auto"
     """The MLP's dtype: "auto" = bf16 where the CPU has native bf16, else fp32."""
+    fused: bool = True
+    """Sampling, encodings and the whole MLP in one C pass in fp32 (``FastShader.shade_fused``), whatever ``dtype``
+    (``dtype`` then applies where the pass is unavailable); False = the per-stage path (inputs, then the MLP in
+    ``dtype``). ``DELIFFAS_FUSED_SHADE=0`` turns it off."""
     in_flight: int = 0
     """Frames :func:`render_stream` renders at once: 0 = auto (``DELIFFAS_FRAMES_IN_FLIGHT``, else one per CPU
     core, at most 2), 1 = sequentially."""
@@ -99,10 +107,11 @@ class FastRender:
 
 
 def default_fast_render(device: torch.device | str) -> FastRender | None:
-    """The fast path for ``device``: on for CPU unless ``DELIFFAS_FAST_RENDER=0``; None = the plain path."""
+    """The fast path for ``device``: on for CPU unless ``DELIFFAS_FAST_RENDER=0`` (the fused pass unless
+    ``DELIFFAS_FUSED_SHADE=0``); None = the plain path."""
     if torch.device(device).type != "cpu" or os.environ.get(FAST_RENDER_ENV, "1").strip() == "0":
         return None
-    return FastRender()
+    return FastRender(fused=os.environ.get(FUSED_SHADE_ENV, "1").strip() != "0")
 
 
 # one rasteriser and one shader per frame geometry / model, alive as long as their owner
@@ -145,6 +154,11 @@ def fast_render_camera(model: DeliffasModel, features: FrameFeatures, raycaster:
         query = ray_query(batch, model.spec)
     if supports(model) and model.mlp.output.weight.dtype == torch.float32 and features.inner.device.type == "cpu":
         shader = _shader(model, fast.torch_dtype())
+        if fast.fused and shader.fused_available():
+            with timer.stage("mlp"):  # sampling, encodings and the MLP in one pass: timed as one stage
+                canvas = torch.full((camera.height * camera.width, 3), float(background))
+                out = shader.shade_fused(features, query, out=canvas, rows=batch.pixels)
+                return out.view(camera.height, camera.width, 3)
         with timer.stage("sample"):
             enc, feats = shader.inputs(features, query)
         with timer.stage("mlp"):  # the output layer writes each colour to its pixel

@@ -56,10 +56,17 @@ def test_fast_fp32_equals_plain(frame):
         torch.testing.assert_close(fast, plain, atol=1e-4, rtol=0)
 
 
+def test_per_stage_path_equals_plain(frame):
+    model, features, raycaster, cameras = frame
+    plain = _render(model, features, raycaster, cameras[0], None)
+    fast = _render(model, features, raycaster, cameras[0], FastRender(dtype="float32", fused=False))
+    torch.testing.assert_close(fast, plain, atol=1e-4, rtol=0)
+
+
 def test_fast_bf16_within_its_precision(frame):
     model, features, raycaster, cameras = frame
     plain = _render(model, features, raycaster, cameras[0], None)
-    fast = _render(model, features, raycaster, cameras[0], FastRender(dtype="bfloat16"))
+    fast = _render(model, features, raycaster, cameras[0], FastRender(dtype="bfloat16", fused=False))
     assert float((fast - plain).abs().max()) < 0.02
 
 
@@ -78,6 +85,9 @@ def test_ray_cast_fallback_and_unsupported_variant(frame, tiny_shards):
 def test_switches(monkeypatch):
     assert default_fast_render("cpu") == FastRender()
     assert default_fast_render("meta") is None
+    monkeypatch.setenv(realtime.FUSED_SHADE_ENV, "0")
+    assert default_fast_render("cpu") == FastRender(fused=False)
+    monkeypatch.delenv(realtime.FUSED_SHADE_ENV)
     monkeypatch.setenv(realtime.FAST_RENDER_ENV, "0")
     assert default_fast_render("cpu") is None
     monkeypatch.setenv(realtime.RENDER_DTYPE_ENV, "float32")

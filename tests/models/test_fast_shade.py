@@ -98,3 +98,25 @@ def test_output_kernel_equals_torch_and_paints_rows(dtype):
         assert bool((canvas[untouched] == 0.5).all())
         with pytest.raises(ValueError, match="canvas"):
             fused.mlp(enc, fts, out=canvas, rows=None)
+
+
+@pytest.mark.parametrize("variant,preset", [("two_surface", "tiny"), ("two_surface", "realtime"),
+                                            ("two_surface", "small"), ("single_surface", "tiny")])
+def test_fused_pass_equals_shade(variant, preset):
+    model, feats, query = _case(variant, preset, n=1000 + 7)  # a partial tile at the end
+    with torch.no_grad():
+        ref = model.shade(feats, query)
+        shader = FastShader(model, torch.bfloat16)  # the fused pass computes in fp32 whatever the dtype
+        assert shader.fused_available() == (fast_shade._FUSED.get() is not None)
+        torch.testing.assert_close(shader.shade_fused(feats, query), ref, atol=2e-6, rtol=0)
+        rows = torch.randperm(len(ref))
+        canvas = torch.zeros(len(ref), 3)
+        shader.shade_fused(feats, query, out=canvas, rows=rows)
+        torch.testing.assert_close(canvas[rows], ref, atol=2e-6, rtol=0)
+        off = FastShader(model, torch.float32, fused=False)  # the switch: the per-stage path
+        assert not off.fused_available()
+        torch.testing.assert_close(off.shade_fused(feats, query), ref, atol=2e-6, rtol=0)
+        empty = RayQuery(query.batch_index[:0], query.uv_inner[:0],
+                         query.uv_outer[:0] if query.uv_outer is not None else None, None,
+                         query.inner_from_outer[:0] if query.inner_from_outer is not None else None)
+        assert shader.shade_fused(feats, empty).shape == (0, 3)
