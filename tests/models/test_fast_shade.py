@@ -108,11 +108,12 @@ def test_fused_pass_equals_shade(variant, preset):
         ref = model.shade(feats, query)
         shader = FastShader(model, torch.bfloat16)  # the fused pass computes in fp32 whatever the dtype
         assert shader.fused_available() == (fast_shade._FUSED.get() is not None)
-        torch.testing.assert_close(shader.shade_fused(feats, query), ref, atol=2e-6, rtol=0)
+        tol = 2e-6 if shader.fused_available() else 0.02  # without the kernel: the per-stage path in bf16
+        torch.testing.assert_close(shader.shade_fused(feats, query), ref, atol=tol, rtol=0)
         rows = torch.randperm(len(ref))
         canvas = torch.zeros(len(ref), 3)
         shader.shade_fused(feats, query, out=canvas, rows=rows)
-        torch.testing.assert_close(canvas[rows], ref, atol=2e-6, rtol=0)
+        torch.testing.assert_close(canvas[rows], ref, atol=tol, rtol=0)
         off = FastShader(model, torch.float32, fused=False)  # the switch: the per-stage path
         assert not off.fused_available()
         torch.testing.assert_close(off.shade_fused(feats, query), ref, atol=2e-6, rtol=0)
