@@ -12,6 +12,8 @@ Scene: the benchmark capture (``_capture.py``), frame 0, camera 0 rescaled to 94
   (``UVRasterizer.depth_pass``, incl. projecting its vertices), one ``torch.mm`` per MLP layer shape
   into preallocated outputs in the same dtype (no bias, activation or concatenation), and one
   ``index_select`` of every sampled feature value (nearest texel) from the two maps.
+* frames in flight: a stream of 8 frames one after the other (1 and 2 intra-op threads) against
+  ``render_stream`` with two frames in flight on one thread each; no target.
 * fps: 1000 / frame ms, with the U-Nets run per frame (``deliffas render``: the pose changes every
   frame) and with them cached (pose held); no target, machines vary.
 """
@@ -119,6 +121,42 @@ def _ratio_rows(sample, info) -> list[Result]:
     ]
 
 
+def _stream_rows(sample, info) -> list[Result]:
+    """Frames per second of a stream of 940x1285 frames: one after the other on 1 and on 2 intra-op threads,
+    and two frames in flight (``render_stream``, one thread each), interleaved; pose held and per frame."""
+    from deliffas.engine.realtime import FastRender, render_stream
+
+    model = _model(info, "realtime")
+    cam = sample.cameras[0].rescaled(*SIZES["940x1285"])
+    held, full, _, _ = _frame_fns(model, sample, info, cam, FastRender())
+    frames = 8
+
+    def sequential(fn, threads):
+        def run():
+            with torch_threads(threads):
+                for _ in range(frames):
+                    fn()
+        return run
+
+    def in_flight(fn):
+        def run():
+            for _ in render_stream(lambda _i: fn(), range(frames), 2):
+                pass
+        return run
+
+    rows = []
+    for label, fn in (("pose held", held), ("U-Nets per frame", full)):
+        t = best_times({"seq1": sequential(fn, 1), "seq2": sequential(fn, 2), "flight2": in_flight(fn)}, repeat=2,
+                       max_rounds=3)
+        fps = {k: frames / v for k, v in t.items()}
+        rows.append(Result("realtime", f"940x1285 realtime preset, {label}: fps, 2 frames in flight",
+                           fps["flight2"], "fps", baseline="1 frame at a time, 2 intra-op threads",
+                           ratio=fps["flight2"] / fps["seq2"],
+                           note=f"1 frame at a time: {fps['seq1']:.1f} fps on 1 thread, {fps['seq2']:.1f} on 2; "
+                                f"{frames} frames per round; no target (machines vary)"))
+    return rows
+
+
 def _fps_rows(sample, info) -> list[Result]:
     from deliffas.engine.realtime import FastRender
 
@@ -151,6 +189,6 @@ def run() -> list[Result]:
     sample = dataclasses.replace(sample, cameras=sample.cameras[:1], images=sample.images[:1], masks=sample.masks[:1])
     t0 = time.perf_counter()
     with torch_threads():
-        rows = _ratio_rows(sample, info) + _fps_rows(sample, info)
+        rows = _ratio_rows(sample, info) + _stream_rows(sample, info) + _fps_rows(sample, info)
     rows[-1].note += f" (group took {time.perf_counter() - t0:.0f} s)"
     return rows

@@ -221,7 +221,7 @@ def evaluate(cfg: EvalConfig) -> dict:
         "fps": 1000.0 / total_single if total_single > 0 else None,
         "fps_shared_cnn": n_images / t_wall if t_wall > 0 else None,
         "device": str(device),
-        "render_path": f"fast ({fast.torch_dtype()})" if fast else "plain",
+        "render_path": (f"fast ({'fused fp32' if fast.fused else fast.torch_dtype()})" if fast else "plain"),
         "perceptual_backbone": record.get("perceptual_backbone"),
     }
     return result

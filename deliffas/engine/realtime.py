@@ -7,21 +7,30 @@ stage by stage (``uv``, ``sample``, ``mlp``), with three replacements:
   shaded pixels and uvs; the ray caster is used where a vertex is behind the camera);
 * ``sample``: :class:`~deliffas.models.fast_shade.FastShader` writes the encodings and sampled
   features straight into the MLP's operands (one C pass);
-* ``mlp``: the MLP as a chain of ``addmm`` in fp32, or in bf16 where the CPU has native bf16.
+* ``mlp``: the MLP as a chain of ``addmm`` in fp32, or in bf16 where the CPU has native bf16;
+* by default ``sample`` and ``mlp`` are one C pass instead (``FastShader.shade_fused``: 16 rays at a time in
+  the vector lanes, fp32, every colour written to its pixel), timed as the ``mlp`` stage.
 
 :class:`FastRender` is the switch. ``deliffas render`` and ``deliffas view`` use
 :func:`default_fast_render` (on for CPU devices); ``deliffas eval`` keeps the plain path, whose
 numbers are the reference. The environment variable ``DELIFFAS_FAST_RENDER=0`` turns the fast
 path off everywhere, ``DELIFFAS_RENDER_DTYPE=float32`` keeps the MLP in fp32.
+
+:func:`render_stream` keeps two frames in flight on a 2-core CPU: each frame renders in a worker
+thread on one torch intra-op thread (every stage releases the GIL: oneDNN, the C kernels through
+ctypes, open3d), so consecutive frames overlap on the two cores and come out in order, identical to
+the sequential path (``in_flight=1``; ``DELIFFAS_FRAMES_IN_FLIGHT=1``).
 """
 
 from __future__ import annotations
 
+import collections
 import logging
 import os
 import weakref
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Literal
+from typing import Callable, Iterable, Iterator, Literal, TypeVar
 
 import torch
 
@@ -33,8 +42,8 @@ from deliffas.io.cameras import Camera
 from deliffas.models.deliffas import DeliffasModel, FrameFeatures
 from deliffas.models.fast_shade import FastShader, native_bf16, supports
 
-__all__ = ["FastRender", "default_fast_render", "fast_camera_rays", "fast_render_camera", "FAST_RENDER_ENV",
-           "RENDER_DTYPE_ENV"]
+__all__ = ["FastRender", "default_fast_render", "fast_camera_rays", "fast_render_camera", "render_stream",
+           "FAST_RENDER_ENV", "RENDER_DTYPE_ENV", "FUSED_SHADE_ENV", "FRAMES_IN_FLIGHT_ENV"]
 
 logger = logging.getLogger(__name__)
 
@@ -43,7 +52,15 @@ FAST_RENDER_ENV = "DELIFFAS_FAST_RENDER"
 RENDER_DTYPE_ENV = "DELIFFAS_RENDER_DTYPE"
 """Environment variable: "float32" or "bfloat16" overrides ``FastRender.dtype="auto"``."""
 
+FUSED_SHADE_ENV = "DELIFFAS_FUSED_SHADE"
+"""Environment variable: "0" makes :func:`default_fast_render` use the per-stage path (``FastRender.fused=False``)."""
+FRAMES_IN_FLIGHT_ENV = "DELIFFAS_FRAMES_IN_FLIGHT"
+"""Environment variable: frames :func:`render_stream` renders at once under ``FastRender.in_flight=0`` (auto);
+"1" = one after the other."""
+
 Dtype = Literal["auto", "float32", "bfloat16"]
+T = TypeVar("T")
+R = TypeVar("R")
 
 
 @dataclass(frozen=True)
@@ -54,10 +71,30 @@ class FastRender:
     """uvs by rasterisation (False: the open3d ray caster, as the plain path)."""
     dtype: Dtype = "auto"
     """The MLP's dtype: "auto" = bf16 where the CPU has native bf16, else fp32."""
+    fused: bool = True
+    """Sampling, encodings and the whole MLP in one C pass in fp32 (``FastShader.shade_fused``), whatever ``dtype``
+    (``dtype`` then applies where the pass is unavailable); False = the per-stage path (inputs, then the MLP in
+    ``dtype``). ``DELIFFAS_FUSED_SHADE=0`` turns it off."""
+    in_flight: int = 0
+    """Frames :func:`render_stream` renders at once: 0 = auto (``DELIFFAS_FRAMES_IN_FLIGHT``, else one per CPU
+    core, at most 2), 1 = sequentially."""
 
     def __post_init__(self) -> None:
         if self.dtype not in ("auto", "float32", "bfloat16"):
             raise ValueError(f"FastRender: dtype must be auto, float32 or bfloat16, got {self.dtype!r}")
+        if not isinstance(self.in_flight, int) or self.in_flight < 0:
+            raise ValueError(f"FastRender: in_flight must be an int >= 0 (0 = auto), got {self.in_flight!r}")
+
+    def frames_in_flight(self) -> int:
+        """The resolved number of frames in flight (>= 1)."""
+        if self.in_flight:
+            return self.in_flight
+        env = os.environ.get(FRAMES_IN_FLIGHT_ENV, "").strip()
+        if env:
+            if not env.isdigit() or int(env) < 1:
+                raise ValueError(f"{FRAMES_IN_FLIGHT_ENV} must be an integer >= 1, got {env!r}")
+            return int(env)
+        return max(1, min(2, os.cpu_count() or 1))
 
     def torch_dtype(self) -> torch.dtype:
         """The resolved MLP dtype."""
@@ -70,10 +107,11 @@ class FastRender:
 
 
 def default_fast_render(device: torch.device | str) -> FastRender | None:
-    """The fast path for ``device``: on for CPU unless ``DELIFFAS_FAST_RENDER=0``; None = the plain path."""
+    """The fast path for ``device``: on for CPU unless ``DELIFFAS_FAST_RENDER=0`` (the fused pass unless
+    ``DELIFFAS_FUSED_SHADE=0``); None = the plain path."""
     if torch.device(device).type != "cpu" or os.environ.get(FAST_RENDER_ENV, "1").strip() == "0":
         return None
-    return FastRender()
+    return FastRender(fused=os.environ.get(FUSED_SHADE_ENV, "1").strip() != "0")
 
 
 # one rasteriser and one shader per frame geometry / model, alive as long as their owner
@@ -116,13 +154,52 @@ def fast_render_camera(model: DeliffasModel, features: FrameFeatures, raycaster:
         query = ray_query(batch, model.spec)
     if supports(model) and model.mlp.output.weight.dtype == torch.float32 and features.inner.device.type == "cpu":
         shader = _shader(model, fast.torch_dtype())
+        if fast.fused and shader.fused_available():
+            with timer.stage("mlp"):  # sampling, encodings and the MLP in one pass: timed as one stage
+                canvas = torch.full((camera.height * camera.width, 3), float(background))
+                out = shader.shade_fused(features, query, out=canvas, rows=batch.pixels)
+                return out.view(camera.height, camera.width, 3)
         with timer.stage("sample"):
             enc, feats = shader.inputs(features, query)
-        with timer.stage("mlp"):
-            rgb = shader.mlp(enc, feats)
+        with timer.stage("mlp"):  # the output layer writes each colour to its pixel
+            canvas = torch.full((camera.height * camera.width, 3), float(background))
+            return shader.mlp(enc, feats, out=canvas, rows=batch.pixels).view(camera.height, camera.width, 3)
     else:
         with timer.stage("sample"):
             enc, feats = model.gather_inputs(features, query)
         with timer.stage("mlp"):
             rgb = model.mlp(enc, feats)
     return paint_images(rgb, batch, 1, camera.height, camera.width, background)[0]
+
+
+def render_stream(render: Callable[[T], R], items: Iterable[T], in_flight: int = 2) -> Iterator[R]:
+    """``render(item)`` of each item, in order, with up to ``in_flight`` items rendering at once.
+
+    ``in_flight`` > 1: worker threads, each item on one torch intra-op thread (set for the stream's
+    duration, then restored: two single-thread frames on two cores beat one frame on two threads,
+    whose many short parallel regions wait for each other; see docs/performance.md). ``render``
+    must be safe to call from several threads at once (the fast path is: per-call buffers,
+    per-thread rasteriser scratch). ``in_flight`` = 1: sequentially in the caller's thread, at the
+    process's thread count (the plain path)."""
+    if in_flight < 1:
+        raise ValueError(f"render_stream: in_flight must be >= 1, got {in_flight}")
+    if in_flight == 1:
+        for item in items:
+            yield render(item)
+        return
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    pending: collections.deque = collections.deque()
+    pool = ThreadPoolExecutor(max_workers=in_flight, thread_name_prefix="render")
+    try:
+        for item in items:
+            pending.append(pool.submit(render, item))
+            if len(pending) >= in_flight:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
+    finally:
+        for fut in pending:
+            fut.cancel()
+        pool.shutdown(wait=True)
+        torch.set_num_threads(threads)

@@ -18,7 +18,7 @@ from deliffas.geometry.templates import build_template
 from deliffas.engine.avatar import load_avatar
 from deliffas.engine.devices import resolve_device
 from deliffas.engine.rays import camera_rays, paint_images, ray_query, stack_rays
-from deliffas.engine.realtime import FastRender, default_fast_render, fast_render_camera
+from deliffas.engine.realtime import FastRender, default_fast_render, fast_render_camera, render_stream
 from deliffas.engine.timing import StageTimer
 from deliffas.geometry.raycast import UVRaycaster
 from deliffas.io.files import claim_output_file
@@ -76,21 +76,27 @@ def orbit_cameras(reference: Camera, centers: np.ndarray, radius: float, height:
     return cams
 
 
-@torch.no_grad()
 def render_images(model, normal_windows, geometry, faces, atlas, cameras: list[Camera], device: torch.device,
                   chunk_size: int = 262144, background: float = 0.0, fast: FastRender | None = None):
-    """Yield one (H, W, 3) uint8 image per frame: frame i seen by ``cameras[i]`` (``fast``: engine.realtime on CPU)."""
-    for i, cam in enumerate(cameras):
+    """Yield one (H, W, 3) uint8 image per frame: frame i seen by ``cameras[i]`` (``fast``: engine.realtime on CPU,
+    ``fast.frames_in_flight()`` frames at once)."""
+    use_fast = fast is not None and device.type == "cpu"
+
+    @torch.no_grad()
+    def frame(i: int) -> np.ndarray:
+        cam = cameras[i]
         ni, no = (w.float()[None].to(device) for w in normal_windows(i))
         features = model.encode(ni, no)
         raycaster = UVRaycaster(geometry.inner[i], faces, geometry.outer[i], atlas)
-        if fast is not None and device.type == "cpu":
+        if use_fast:
             image = fast_render_camera(model, features, raycaster, cam, StageTimer(device), fast, background)
         else:
             batch = stack_rays([camera_rays(raycaster, cam)], [0]).to(device)
             rgb = model.shade_chunked(features, ray_query(batch, model.spec), chunk_size=chunk_size)
             image = paint_images(rgb, batch, 1, cam.height, cam.width, background)[0]
-        yield (image.clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
+        return (image.clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
+
+    yield from render_stream(frame, range(len(cameras)), fast.frames_in_flight() if use_fast else 1)
 
 
 def motion_geometry_builder(meta) -> tuple:

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import ctypes
 import logging
+import threading
 from dataclasses import dataclass
 from typing import Literal
 
@@ -229,7 +230,8 @@ def _project(camera: Camera, verts: np.ndarray) -> np.ndarray:
 
 
 class UVRasterizer:
-    """One frame's inner and outer surfaces, rasterised per camera (scratch buffers reused across calls).
+    """One frame's inner and outer surfaces, rasterised per camera (scratch buffers reused across calls, one set per
+    thread).
 
     Args:
         inner_verts: (V, 3) float, mm, the posed mesh.
@@ -256,12 +258,13 @@ class UVRasterizer:
         diag = float(np.linalg.norm(self.outer.max(0) - self.outer.min(0))) if len(self.outer) else 1.0
         self.peel_eps = PEEL_EPS_REL * max(diag, 1e-6)
         self.hull_points = np.concatenate([self.inner, self.outer])  # (2V, 3)
-        self._scratch: dict[str, np.ndarray] = {}
+        self._local = threading.local()  # scratch buffers per thread: frames may render in several at once
 
     def _buffer(self, name: str, size: int, dtype) -> np.ndarray:
-        buf = self._scratch.get(name)
+        scratch = self._local.__dict__.setdefault("scratch", {})
+        buf = scratch.get(name)
         if buf is None or buf.size < size:
-            buf = self._scratch[name] = np.empty(max(size, 1), dtype)
+            buf = scratch[name] = np.empty(max(size, 1), dtype)
         return buf[:size]
 
     def depth_pass(self, camera: Camera) -> np.ndarray | None:

@@ -16,6 +16,9 @@
 runs every product in bf16 with fp32 output (colours in fp32). Use it where the CPU has native
 bf16 (:func:`native_bf16`); elsewhere bf16 is several times slower than fp32.
 
+:meth:`FastShader.shade_fused` does all of it in one C pass instead (16 rays at a time in the vector lanes,
+fp32, each colour written straight to its pixel); the engine's fast path uses it by default.
+
 Supported variants: no view direction and one inner U-Net (``two_surface``, ``single_surface``);
 :func:`supports` says so, and callers use ``DeliffasModel.shade`` otherwise. Without the C kernel
 (``DELIFFAS_NATIVE=0``, no compiler) the inputs come from ``DeliffasModel.gather_inputs``.
@@ -127,6 +130,67 @@ static void rows_##NAME(int64_t start, int64_t stop, const float *uv_in, const u
 VARIANT(f32, float, PUT_F32)
 VARIANT(bf16, uint16_t, PUT_BF16)
 
+/* exp(x) for x in [-88, 88] to ~2 ulp, branch-free so the compiler vectorises the loop around it:
+   x = k ln2 + r, |r| <= ln2 / 2, exp(r) by a degree-7 polynomial, 2^k through the exponent bits. */
+static inline float exp_approx(float x) {
+    x = x < -87.0f ? -87.0f : (x > 88.0f ? 88.0f : x);
+    float k = nearbyintf(x * 1.44269504088896341f);
+    float r = x - k * 0.693145751953125f - k * 1.428606765330187e-06f;
+    float p = 1.0f + r * (1.0f + r * (0.5f + r * (1.6666667163e-01f + r * (4.1666667908e-02f + r * (8.3333337680e-03f
+              + r * (1.3888889225e-03f + r * 1.9841270114e-04f))))));
+    int32_t e = ((int32_t)k + 127) << 23;
+    float scale;
+    memcpy(&scale, &e, 4);
+    return p * scale;
+}
+
+static inline float bf16_to_f32(uint16_t v) {
+    uint32_t u = (uint32_t)v << 16;
+    float f;
+    memcpy(&f, &u, 4);
+    return f;
+}
+
+/* The MLP's output layer and its sigmoid: rgb = sigmoid(h W^T + b) in fp32 for rows [0, n) of h (n, K)
+   (leading dimension ld, bf16 or fp32), W (3, K) and b (3,) fp32. Row r goes to out[3 pixels[r] ..]
+   when pixels is given (the image canvas), else to out[3 r ..]. 16 partial sums per output so the
+   K loop vectorises without reassociating one sum. */
+void deliffas_rgb_out(int64_t n, const void *h, int64_t ld, int bf16, int64_t K, const float *w, const float *b,
+                      const int64_t *pixels, float *out) {
+    enum { B = 64 };
+    float logit[3 * B];
+    for (int64_t r0 = 0; r0 < n; r0 += B) {
+        int64_t m = n - r0 < B ? n - r0 : B;
+        for (int64_t i = 0; i < m; i++) {
+            float x[16];
+            float acc[3][16];
+            for (int j = 0; j < 3; j++) for (int l = 0; l < 16; l++) acc[j][l] = 0.0f;
+            int64_t k = 0;
+            for (; k + 16 <= K; k += 16) {
+                if (bf16) { const uint16_t *hr = (const uint16_t *)h + (r0 + i) * ld + k;
+                            for (int l = 0; l < 16; l++) x[l] = bf16_to_f32(hr[l]); }
+                else { const float *hr = (const float *)h + (r0 + i) * ld + k;
+                       for (int l = 0; l < 16; l++) x[l] = hr[l]; }
+                for (int j = 0; j < 3; j++) for (int l = 0; l < 16; l++) acc[j][l] += x[l] * w[j * K + k + l];
+            }
+            for (int j = 0; j < 3; j++) {
+                float s = b[j];
+                for (int l = 0; l < 16; l++) s += acc[j][l];
+                for (int64_t kk = k; kk < K; kk++) {
+                    float v = bf16 ? bf16_to_f32(((const uint16_t *)h)[(r0 + i) * ld + kk]) : ((const float *)h)[(r0 + i) * ld + kk];
+                    s += v * w[j * K + kk];
+                }
+                logit[3 * i + j] = s;
+            }
+        }
+        for (int64_t i = 0; i < 3 * m; i++) logit[i] = 1.0f / (1.0f + exp_approx(-logit[i]));
+        for (int64_t i = 0; i < m; i++) {
+            float *o = out + 3 * (pixels ? pixels[r0 + i] : r0 + i);
+            o[0] = logit[3 * i]; o[1] = logit[3 * i + 1]; o[2] = logit[3 * i + 2];
+        }
+    }
+}
+
 void deliffas_ray_inputs(int64_t start, int64_t stop, const float *uv_in, const uint8_t *from_outer,
                          const float *uv_out, int outer_encoded, int L, int include_input, const float *map_in,
                          const float *map_out, int64_t S, int64_t C, int bf16, void *enc, int64_t E, void *feats,
@@ -141,10 +205,182 @@ void deliffas_ray_inputs(int64_t start, int64_t stop, const float *uv_in, const 
 """
 
 
+# The whole shading of a ray in one pass, 16 rays at a time with the rays in the vector lanes (GCC/clang vector
+# extensions: AVX-512 or two AVX2 halves under -march=native): encodings and samples (the pass above, into a
+# transposed tile), every hidden layer (bias, products, ReLU) in fp32 from tile to tile in L1, the output layer,
+# its sigmoid and the write into the canvas. Nothing per ray reaches memory but its colour. FMA contraction is on
+# here (a separate build), so values differ from torch's fp32 in the last bits.
+_FUSED_SOURCE = _SOURCE + r"""
+#include <stdlib.h>
+
+typedef float v16 __attribute__((vector_size(64)));
+typedef int32_t v16i __attribute__((vector_size(64)));
+#define TILE 16
+
+/* The positional encoding of uvs [0, m) of a tile into xt (features, TILE), as encode_f32 per ray (a partial
+   tile repeats its last uv): sin and cos by the same reduction and series, written so the compiler vectorises
+   over the tile (rounding to the nearest multiple of pi by the 1.5 2^52 shift instead of nearbyint). */
+static void encode_tile(const float *uv, int64_t m, int L, int include_input, float *xt) {
+    const float pi = (float)3.14159265358979323846;
+    const double dpi = 3.14159265358979323846, shift = 6755399441055744.0;
+    double s[2][TILE], c[2][TILE];
+    float u[2][TILE];
+    for (int64_t i = 0; i < TILE; i++)
+        for (int d = 0; d < 2; d++) u[d][i] = uv[2 * (i < m ? i : m - 1) + d];
+    for (int d = 0; d < 2; d++) {
+        if (include_input)
+            for (int64_t i = 0; i < TILE; i++) xt[d * TILE + i] = u[d][i];
+        for (int64_t i = 0; i < TILE; i++) {
+            float x = u[d][i];
+            double a = (double)(x * pi);
+            double k = (a * (1.0 / dpi) + shift) - shift, r = a - k * dpi, r2 = r * r;
+            double sn = r * (1.0 + r2 * (-1.0 / 6 + r2 * (1.0 / 120 + r2 * (-1.0 / 5040 + r2 * (1.0 / 362880
+                          + r2 * (-1.0 / 39916800 + r2 * (1.0 / 6227020800.0 + r2 * (-1.0 / 1307674368000.0))))))));
+            double cs = 1.0 + r2 * (-0.5 + r2 * (1.0 / 24 + r2 * (-1.0 / 720 + r2 * (1.0 / 40320 + r2 * (-1.0 / 3628800
+                          + r2 * (1.0 / 479001600.0 + r2 * (-1.0 / 87178291200.0 + r2 * (1.0 / 20922789888000.0))))))));
+            double sign = 1.0 - 2.0 * (double)((int64_t)k & 1);
+            s[d][i] = sign * sn;
+            c[d][i] = sign * cs;
+        }
+    }
+    float *o = xt + (include_input ? 2 : 0) * TILE;
+    for (int k = 0; k < L; k++, o += 4 * TILE) {
+        for (int64_t i = 0; i < TILE; i++) {
+            o[i] = (float)s[0][i]; o[TILE + i] = (float)s[1][i];
+            o[2 * TILE + i] = (float)c[0][i]; o[3 * TILE + i] = (float)c[1][i];
+        }
+        for (int d = 0; d < 2; d++)
+            for (int64_t i = 0; i < TILE; i++) {
+                double t = 2.0 * s[d][i] * c[d][i];
+                c[d][i] = c[d][i] * c[d][i] - s[d][i] * s[d][i];
+                s[d][i] = t;
+            }
+    }
+}
+
+/* Bilinear samples (sample_f32's arithmetic) of uvs [0, m) of a tile into ft (C, TILE): ray i reads map_alt where
+   alt[i] is set, else map; coordinates and weights computed over the tile (vectorised), then C channels of four
+   taps per ray. Clamped coordinates are >= 0, so the integer part is a truncation. */
+static void sample_tile(const float *map, const float *map_alt, const uint8_t *alt, const float *uv, int64_t m,
+                        int64_t S, int64_t C, float *ft) {
+    float w00[TILE], w01[TILE], w10[TILE], w11[TILE];
+    int64_t o00[TILE], o01[TILE], o10[TILE], o11[TILE];
+    const float hi = (float)(S - 1);
+    float u[2][TILE];
+    for (int64_t i = 0; i < TILE; i++)
+        for (int d = 0; d < 2; d++) u[d][i] = uv[2 * (i < m ? i : m - 1) + d];
+    for (int64_t i = 0; i < TILE; i++) {
+        float gx = 2.0f * u[0][i] - 1.0f, gy = 1.0f - 2.0f * u[1][i];
+        float ix = ((gx + 1.0f) * (float)S - 1.0f) / 2.0f, iy = ((gy + 1.0f) * (float)S - 1.0f) / 2.0f;
+        ix = fminf(fmaxf(ix, 0.0f), hi);  /* fmaxf(NaN, 0) = 0, as sample_f32's NaN check */
+        iy = fminf(fmaxf(iy, 0.0f), hi);
+        int32_t x0 = (int32_t)ix, y0 = (int32_t)iy;
+        float fx = ix - (float)x0, fy = iy - (float)y0;
+        int32_t x1 = x0 + (x0 + 1 < S), y1 = y0 + (y0 + 1 < S);
+        w00[i] = (1.0f - fx) * (1.0f - fy); w01[i] = fx * (1.0f - fy); w10[i] = (1.0f - fx) * fy; w11[i] = fx * fy;
+        o00[i] = ((int64_t)y0 * S + x0) * C; o01[i] = ((int64_t)y0 * S + x1) * C;
+        o10[i] = ((int64_t)y1 * S + x0) * C; o11[i] = ((int64_t)y1 * S + x1) * C;
+    }
+    for (int64_t i = 0; i < TILE; i++) {
+        const float *mp = (alt && alt[i < m ? i : m - 1]) ? map_alt : map;
+        const float *p00 = mp + o00[i], *p01 = mp + o01[i], *p10 = mp + o10[i], *p11 = mp + o11[i];
+        for (int64_t c = 0; c < C; c++)
+            ft[c * TILE + i] = w00[i] * p00[c] + w01[i] * p01[c] + w10[i] * p10[c] + w11[i] * p11[c];
+    }
+}
+
+/* y (N, TILE) = relu?(b + x (K, TILE) W (K, N) + f (F, TILE) Wf (F, N)); N a multiple of 8. */
+static void dense(const v16 *x, int64_t K, const float *w, const float *b, const v16 *f, int64_t F, const float *wf,
+                  int64_t N, v16 *y, int relu) {
+    for (int64_t n0 = 0; n0 < N; n0 += 8) {
+        v16 acc[8];
+        for (int j = 0; j < 8; j++) acc[j] = (v16){0} + b[n0 + j];
+        for (int64_t k = 0; k < K; k++) {
+            v16 xv = x[k];
+            const float *wr = w + k * N + n0;
+            for (int j = 0; j < 8; j++) acc[j] += xv * wr[j];
+        }
+        for (int64_t k = 0; k < F; k++) {
+            v16 fv = f[k];
+            const float *wr = wf + k * N + n0;
+            for (int j = 0; j < 8; j++) acc[j] += fv * wr[j];
+        }
+        for (int j = 0; j < 8; j++) {
+            if (relu) acc[j] = (v16)((v16i)acc[j] & (acc[j] > (v16){0}));
+            y[n0 + j] = acc[j];
+        }
+    }
+}
+
+/* Shade rays [0, n): inputs as deliffas_ray_inputs (fp32); layers: nh hidden layers, per layer 5 int64 in dims
+   (K, N, feature rows F (0 or the feature width), offset of W (K, N), of Wf (F, N)), the bias at W + K N + F N;
+   then the output layer (3, K) and its bias (3,) at dims[5 nh]. E, Fd: the encoded and feature widths (E = the
+   first layer's K); wmax: the widest hidden layer. Colour of ray r to out[3 pixels[r] ..] (out[3 r ..] if no
+   pixels). Returns 0, -1 when the scratch tiles cannot be allocated, -2 for more than 512 channels per map. */
+int deliffas_fused_shade(int64_t n, const float *uv_in, const uint8_t *from_outer, const float *uv_out,
+                         int outer_encoded, int L, int include_input, const float *map_in, const float *map_out,
+                         int64_t S, int64_t C, int64_t nh, const int64_t *dims, const float *params, int64_t E,
+                         int64_t Fd, int64_t wmax, const int64_t *pixels, float *out) {
+    size_t tiles = (size_t)(E + Fd + 2 * wmax) * sizeof(v16);
+    if (C > 512) return -2;
+    char *mem = aligned_alloc(64, tiles);
+    if (!mem) return -1;
+    v16 *xe = (v16 *)mem, *xf = xe + E, *h0 = xf + Fd, *h1 = h0 + wmax;
+    const int64_t *od = dims + 5 * nh;
+    const float *wo = params + od[0], *bo = wo + 3 * od[1];
+    for (int64_t r0 = 0; r0 < n; r0 += TILE) {
+        int64_t m = n - r0 < TILE ? n - r0 : TILE;
+        int64_t per_uv = (include_input ? 2 : 0) + 4 * (int64_t)L;
+        float *xt = (float *)xe;
+        if (outer_encoded) { encode_tile(uv_out + 2 * r0, m, L, include_input, xt); xt += per_uv * TILE; }
+        encode_tile(uv_in + 2 * r0, m, L, include_input, xt);
+        float *ft = (float *)xf;
+        if (map_out) { sample_tile(map_out, map_out, 0, uv_out + 2 * r0, m, S, C, ft); ft += C * TILE; }
+        sample_tile(map_in, map_out, (map_out && from_outer) ? from_outer + r0 : 0, uv_in + 2 * r0, m, S, C, ft);
+        const v16 *x = xe;
+        int64_t K = E;
+        v16 *bufs[2] = {h0, h1};
+        for (int64_t l = 0; l < nh; l++) {
+            const int64_t *d = dims + 5 * l;
+            const float *w = params + d[3], *wf = params + d[4];
+            dense(x, d[0], w, w + d[0] * d[1] + d[2] * d[1], d[2] ? xf : 0, d[2], wf, d[1], bufs[l & 1], 1);
+            x = bufs[l & 1];
+            K = d[1];
+        }
+        v16 acc[3];
+        for (int j = 0; j < 3; j++) acc[j] = (v16){0} + bo[j];
+        for (int64_t k = 0; k < K; k++)
+            for (int j = 0; j < 3; j++) acc[j] += x[k] * wo[j * K + k];
+        float rgb[3][TILE];
+        for (int j = 0; j < 3; j++)
+            for (int i = 0; i < TILE; i++) rgb[j][i] = 1.0f / (1.0f + exp_approx(-acc[j][i]));
+        for (int64_t i = 0; i < m; i++) {
+            float *o = out + 3 * (pixels ? pixels[r0 + i] : r0 + i);
+            o[0] = rgb[0][i]; o[1] = rgb[1][i]; o[2] = rgb[2][i];
+        }
+    }
+    free(mem);
+    return 0;
+}
+"""
+
+
+def _declare_fused(lib: ctypes.CDLL) -> None:
+    p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
+    lib.deliffas_fused_shade.argtypes = [i64, p, p, p, i32, i32, i32, p, p, i64, i64, i64, p, p, i64, i64, i64, p, p]
+    lib.deliffas_fused_shade.restype = i32
+
+
+_FUSED = LazyLibrary("fused_shade", _FUSED_SOURCE, ("-ffp-contract=fast", "-fno-math-errno", "-fno-trapping-math", "-std=gnu11"),
+                     setup=_declare_fused, fallback="the per-stage fast path (ray inputs, then the MLP by addmm)")
+
+
 def _declare(lib: ctypes.CDLL) -> None:
     p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
     lib.deliffas_ray_inputs.argtypes = [i64, i64, p, p, p, i32, i32, i32, p, p, i64, i64, i32, p, i64, p, i64]
     lib.deliffas_ray_inputs.restype = None
+    lib.deliffas_rgb_out.argtypes = [i64, p, i64, i32, i64, p, p, p, p]
+    lib.deliffas_rgb_out.restype = None
 
 
 _KERNEL = LazyLibrary("ray_inputs", _SOURCE, ("-fno-fast-math", "-ffp-contract=off", "-fno-math-errno"), setup=_declare,
@@ -176,14 +412,20 @@ class FastShader:
         model: the model (its weights are read on each call; bf16 copies are refreshed when they change).
         dtype: torch.float32 or torch.bfloat16, the dtype of the MLP's products.
         row_chunk: rays per MLP chunk.
+        use_kernel: False = torch only (the C passes' plain path; also without a C compiler).
+        fused: False = :meth:`shade_fused` runs the per-stage path (inputs, then the MLP).
     """
 
-    def __init__(self, model: DeliffasModel, dtype: torch.dtype = torch.float32, row_chunk: int = ROW_CHUNK) -> None:
+    def __init__(self, model: DeliffasModel, dtype: torch.dtype = torch.float32, row_chunk: int = ROW_CHUNK,
+                 use_kernel: bool = True, fused: bool = True) -> None:
         if not supports(model):
             raise ValueError(f"FastShader: variant {model.config.variant!r} is not supported (see fast_shade.supports)")
         if dtype not in (torch.float32, torch.bfloat16):
             raise ValueError(f"FastShader: dtype must be float32 or bfloat16, got {dtype}")
-        self.model, self.dtype, self.row_chunk = model, dtype, int(row_chunk)
+        self.model, self.dtype, self.row_chunk, self.use_kernel = model, dtype, int(row_chunk), bool(use_kernel)
+        self.fused = bool(fused)
+        self._fused_key: tuple | None = None
+        self._fused: tuple[torch.Tensor, torch.Tensor, int] | None = None
         self._weights_key: tuple | None = None
         self._layers: list[tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]] = []
 
@@ -192,33 +434,34 @@ class FastShader:
         return tuple((p.data_ptr(), p._version) for p in self.model.mlp.parameters())
 
     def layers(self) -> list[tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]]:
-        """Per Linear: (W_h^T (in, out), W_f^T (F, out) or None, bias (out,)): the MLP's dtype, fp32 for the output layer.
+        """Per Linear: (W_h^T (in, out), W_f^T (F, out) or None, bias (out,)) in the MLP's dtype; the output layer
+        as (W (3, in), None, bias (3,)) in fp32 (colours from fp32 logits; W untransposed, the layout both its
+        kernel and torch's fp32 product with out = 3 want: the transposed copy took 4x longer).
 
         W_f^T is the feature columns of the layer after the concatenation (features come first)."""
         key = self._key()
         if key != self._weights_key:
             mlp = self.model.mlp
-            linears = [*mlp.hidden, mlp.output]
             out = []
-            for i, lin in enumerate(linears):
-                dtype = torch.float32 if i == len(linears) - 1 else self.dtype  # colours from fp32 logits
+            for i, lin in enumerate(mlp.hidden):
                 w, w_f = lin.weight.detach(), None
                 if i == mlp.config.feature_layer + 1 and mlp.feature_dim:
                     w_f, w = w[:, : mlp.feature_dim], w[:, mlp.feature_dim:]
-                    w_f = w_f.t().contiguous().to(dtype)
-                out.append((w.t().contiguous().to(dtype), w_f, lin.bias.detach().to(dtype).contiguous()))
+                    w_f = w_f.t().contiguous().to(self.dtype)
+                out.append((w.t().contiguous().to(self.dtype), w_f, lin.bias.detach().to(self.dtype).contiguous()))
+            last = mlp.output
+            out.append((last.weight.detach().float().contiguous(), None, last.bias.detach().float().contiguous()))
             self._layers, self._weights_key = out, key
         return self._layers
 
     # ------------------------------------------------------------------ inputs
-    def inputs(self, features: FrameFeatures, query: RayQuery) -> tuple[torch.Tensor, torch.Tensor]:
-        """The MLP's operands: encoded (N, E) and feats (N, F) in the shader's dtype (C kernel, else torch)."""
-        model, n = self.model, query.num_rays
-        lib = _KERNEL.get()
+    def _ray_args(self, features: FrameFeatures, query: RayQuery) -> tuple[tuple, list] | None:
+        """The per-ray arguments of the C passes (uv_in .. C), and the tensors they point into (keep them alive);
+        None when the C passes cannot read these inputs (several frames, non-fp32 maps)."""
+        model = self.model
         single = features.batch_size == 1 and (query.batch_index.numel() == 0 or not bool(query.batch_index.any()))
-        if lib is None or not single or features.inner.dtype != torch.float32:
-            enc, feats = model.gather_inputs(features, query)
-            return enc.to(self.dtype), feats.to(self.dtype).contiguous()
+        if not single or features.inner.dtype != torch.float32:
+            return None
         spec = model.spec
         maps = [m.permute(0, 2, 3, 1).contiguous() if m is not None else None for m in (features.inner, features.outer)]
         map_in, map_out = maps[0], (maps[1] if spec.outer_unet else None)
@@ -230,36 +473,126 @@ class FastShader:
         if peel is not None and not spec.inner_from_outer and bool(peel.any()):
             raise ValueError(f"shade: inner_from_outer has True entries but variant {model.config.variant!r} has no outer feature map")
         peel_u8 = peel.to(torch.uint8).contiguous() if peel is not None and spec.inner_from_outer else None
+        S, C = map_in.shape[1], map_in.shape[3]
+        args = (uv_in.data_ptr(), peel_u8.data_ptr() if peel_u8 is not None else None, uv_out.data_ptr(),
+                int(spec.encoded_uvs[0] == "outer"), model.pe_uv.num_freqs, int(model.pe_uv.include_input),
+                map_in.data_ptr(), map_out.data_ptr() if map_out is not None else None, S, C)
+        return args, [uv_in, uv_out, peel_u8, map_in, map_out]
+
+    def inputs(self, features: FrameFeatures, query: RayQuery) -> tuple[torch.Tensor, torch.Tensor]:
+        """The MLP's operands: encoded (N, E) and feats (N, F) in the shader's dtype (C kernel, else torch)."""
+        model, n = self.model, query.num_rays
+        lib = _KERNEL.get() if self.use_kernel else None
+        got = self._ray_args(features, query) if lib is not None else None
+        if got is None:
+            enc, feats = model.gather_inputs(features, query)
+            return enc.to(self.dtype), feats.to(self.dtype).contiguous()
         E, F = model.mlp.in_dim, model.mlp.feature_dim
         enc = torch.empty(n, E, dtype=self.dtype)
         feats = torch.empty(n, F, dtype=self.dtype)
-        S, C = map_in.shape[1], map_in.shape[3]
-        lib.deliffas_ray_inputs(0, n, uv_in.data_ptr(), peel_u8.data_ptr() if peel_u8 is not None else None,
-                                uv_out.data_ptr(), int(spec.encoded_uvs[0] == "outer"), model.pe_uv.num_freqs,
-                                int(model.pe_uv.include_input), map_in.data_ptr(),
-                                map_out.data_ptr() if map_out is not None else None, S, C,
-                                int(self.dtype == torch.bfloat16), enc.data_ptr(), E, feats.data_ptr(), F)
+        lib.deliffas_ray_inputs(0, n, *got[0], int(self.dtype == torch.bfloat16), enc.data_ptr(), E, feats.data_ptr(), F)
         return enc, feats
 
+    # ------------------------------------------------------------------ fused
+    def _fused_params(self) -> tuple[torch.Tensor, torch.Tensor, int]:
+        """The MLP for the fused pass: (dims (5 nh + 2,) int64, params fp32, widest hidden layer); hidden widths
+        padded to multiples of 8 with zero columns (their ReLU outputs are 0 and meet zero rows downstream)."""
+        key = self._key()
+        if self._fused_key != key:
+            mlp = self.model.mlp
+            dims, parts, offset, k_in = [], [], 0, mlp.in_dim
+            for i, lin in enumerate(mlp.hidden):
+                w = lin.weight.detach().float()
+                f = mlp.feature_dim if (i == mlp.config.feature_layer + 1 and mlp.feature_dim) else 0
+                w_f, w_h = w[:, :f], w[:, f:]
+                n_out = -(-w.shape[0] // 8) * 8
+                pad = lambda t, rows: torch.nn.functional.pad(t, (0, n_out - t.shape[1], 0, rows - t.shape[0]))  # noqa: E731
+                block = [pad(w_h.t(), k_in), pad(w_f.t(), f), pad(lin.bias.detach().float()[None], 1)]
+                dims += [k_in, n_out, f, offset, offset + k_in * n_out]
+                parts += [b.reshape(-1) for b in block]
+                offset += sum(b.numel() for b in block)
+                k_in = n_out
+            w_o = torch.nn.functional.pad(mlp.output.weight.detach().float(), (0, k_in - mlp.output.in_features))
+            dims += [offset, k_in]
+            parts += [w_o.reshape(-1), mlp.output.bias.detach().float()]
+            widest = max([dims[5 * i + 1] for i in range(len(mlp.hidden))] + [1])
+            self._fused = (torch.tensor(dims, dtype=torch.int64), torch.cat(parts).contiguous(), widest)
+            self._fused_key = key
+        return self._fused
+
+    def fused_available(self) -> bool:
+        """Whether :meth:`shade_fused` runs its C pass (``fused=True`` and the kernel built)."""
+        return self.fused and self.use_kernel and _FUSED.get() is not None
+
+    def shade_fused(self, features: FrameFeatures, query: RayQuery, out: torch.Tensor | None = None,
+                    rows: torch.Tensor | None = None) -> torch.Tensor:
+        """``mlp(*inputs(...), out, rows)`` in one C pass in fp32 whatever the shader's dtype (module docstring);
+        the per-stage path where the pass is unavailable or cannot read the inputs."""
+        lib = _FUSED.get() if self.fused and self.use_kernel else None
+        got = self._ray_args(features, query) if lib is not None else None
+        if got is None:
+            return self.mlp(*self.inputs(features, query), out=out, rows=rows)
+        n = query.num_rays
+        out, rows = self._check_out(n, out, rows)
+        dims, params, widest = self._fused_params()
+        model = self.model
+        status = lib.deliffas_fused_shade(n, *got[0], len(model.mlp.hidden), dims.data_ptr(), params.data_ptr(),
+                                          model.mlp.in_dim, model.mlp.feature_dim, widest,
+                                          rows.data_ptr() if rows is not None else None, out.data_ptr())
+        if status == -2:
+            raise ValueError(f"FastShader.shade_fused: at most 512 feature channels per map, got {features.inner.shape[1]}")
+        if status != 0:
+            raise MemoryError("FastShader.shade_fused: the scratch tiles could not be allocated")
+        return out
+
+    @staticmethod
+    def _check_out(n: int, out: torch.Tensor | None, rows: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor | None]:
+        if out is None:
+            return torch.empty(n, 3, dtype=torch.float32), None
+        if rows is None or rows.shape != (n,) or rows.dtype != torch.int64 or out.dtype != torch.float32 \
+                or out.dim() != 2 or out.shape[1] != 3 or not out.is_contiguous():
+            raise ValueError("FastShader: out must be a contiguous (P, 3) float32 canvas and rows (N,) int64")
+        return out, rows.contiguous()
+
     # ------------------------------------------------------------------ MLP
-    def mlp(self, enc: torch.Tensor, feats: torch.Tensor) -> torch.Tensor:
-        """(N, 3) float32 RGB of the operands from :meth:`inputs`."""
+    def mlp(self, enc: torch.Tensor, feats: torch.Tensor, out: torch.Tensor | None = None,
+            rows: torch.Tensor | None = None) -> torch.Tensor:
+        """(N, 3) float32 RGB of the operands from :meth:`inputs`; or, with ``out`` (P, 3) float32 and ``rows`` (N,)
+        int64, ray i's colour written to ``out[rows[i]]`` (an image canvas) and ``out`` returned.
+
+        Hidden layers: ``addmm`` into two buffers reused across row chunks; the output layer, its sigmoid
+        and the write: one C pass in fp32 (``use_kernel=False`` or no kernel: torch's fp32 product)."""
         layers = self.layers()
+        hidden, (w_out, _, b_out) = layers[:-1], layers[-1]
         n = enc.shape[0]
-        rgb = torch.empty(n, 3, dtype=torch.float32)
-        last = len(layers) - 1
-        for start in range(0, n, self.row_chunk):
-            h = enc[start:start + self.row_chunk]
-            f = feats[start:start + self.row_chunk]
-            for i, (w_h, w_f, bias) in enumerate(layers):
-                if h.dtype != w_h.dtype:  # the output layer: fp32 logits
-                    h = h.to(w_h.dtype)
-                y = torch.addmm(bias, h, w_h)  # (n, out)
+        out, rows = self._check_out(n, out, rows)
+        lib = _KERNEL.get() if self.use_kernel else None
+        chunk = min(self.row_chunk, max(n, 1))
+        widths = [w_h.shape[1] for w_h, _, _ in hidden]
+        bufs = [torch.empty(chunk, max(widths), dtype=self.dtype) for _ in range(2)]
+        rows_c = rows
+        for start in range(0, n, chunk):
+            m = min(chunk, n - start)
+            h = enc[start:start + m]
+            f = feats[start:start + m]
+            for i, (w_h, w_f, bias) in enumerate(hidden):
+                y = bufs[i % 2][:m, : w_h.shape[1]]
+                torch.addmm(bias, h, w_h, out=y)
                 if w_f is not None:
-                    y.addmm_(f if f.dtype == w_f.dtype else f.to(w_f.dtype), w_f)
-                h = y.relu_() if i < last else y.sigmoid_()
-            rgb[start:start + self.row_chunk] = h
-        return rgb
+                    y.addmm_(f, w_f)
+                h = y.relu_()
+            if lib is not None:
+                lib.deliffas_rgb_out(m, h.data_ptr(), h.stride(0), int(h.dtype == torch.bfloat16), h.shape[1],
+                                     w_out.data_ptr(), b_out.data_ptr(),
+                                     rows_c[start:].data_ptr() if rows_c is not None else None,
+                                     out.data_ptr() if rows_c is not None else out[start:].data_ptr())
+            else:
+                rgb = torch.addmm(b_out, h.float(), w_out.t()).sigmoid_()
+                if rows_c is None:
+                    out[start:start + m] = rgb
+                else:
+                    out.index_copy_(0, rows_c[start:start + m], rgb)
+        return out
 
     @torch.no_grad()
     def shade(self, features: FrameFeatures, query: RayQuery) -> torch.Tensor:

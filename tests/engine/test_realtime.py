@@ -56,10 +56,17 @@ def test_fast_fp32_equals_plain(frame):
         torch.testing.assert_close(fast, plain, atol=1e-4, rtol=0)
 
 
+def test_per_stage_path_equals_plain(frame):
+    model, features, raycaster, cameras = frame
+    plain = _render(model, features, raycaster, cameras[0], None)
+    fast = _render(model, features, raycaster, cameras[0], FastRender(dtype="float32", fused=False))
+    torch.testing.assert_close(fast, plain, atol=1e-4, rtol=0)
+
+
 def test_fast_bf16_within_its_precision(frame):
     model, features, raycaster, cameras = frame
     plain = _render(model, features, raycaster, cameras[0], None)
-    fast = _render(model, features, raycaster, cameras[0], FastRender(dtype="bfloat16"))
+    fast = _render(model, features, raycaster, cameras[0], FastRender(dtype="bfloat16", fused=False))
     assert float((fast - plain).abs().max()) < 0.02
 
 
@@ -78,6 +85,9 @@ def test_ray_cast_fallback_and_unsupported_variant(frame, tiny_shards):
 def test_switches(monkeypatch):
     assert default_fast_render("cpu") == FastRender()
     assert default_fast_render("meta") is None
+    monkeypatch.setenv(realtime.FUSED_SHADE_ENV, "0")
+    assert default_fast_render("cpu") == FastRender(fused=False)
+    monkeypatch.delenv(realtime.FUSED_SHADE_ENV)
     monkeypatch.setenv(realtime.FAST_RENDER_ENV, "0")
     assert default_fast_render("cpu") is None
     monkeypatch.setenv(realtime.RENDER_DTYPE_ENV, "float32")
@@ -88,3 +98,36 @@ def test_switches(monkeypatch):
         FastRender().torch_dtype()
     with pytest.raises(ValueError, match="dtype"):
         FastRender(dtype="fp8")
+
+
+def test_render_stream_equals_sequential(frame):
+    model, features, raycaster, cameras = frame
+    cams = [*cameras, cameras[0].rescaled(97, 61)] * 2
+
+    def one(cam):
+        return _render(model, features, raycaster, cam, FastRender())
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # the stream's workers run on one intra-op thread each: compare like with like
+    try:
+        sequential = list(realtime.render_stream(one, cams, in_flight=1))
+    finally:
+        torch.set_num_threads(threads)
+    pipelined = list(realtime.render_stream(one, cams, in_flight=2))
+    assert torch.get_num_threads() == threads  # restored
+    assert len(pipelined) == len(cams)
+    for a, b in zip(sequential, pipelined):
+        assert torch.equal(a, b)
+    with pytest.raises(ValueError, match="in_flight"):
+        next(realtime.render_stream(one, cams, in_flight=0))
+
+
+def test_frames_in_flight_switch(monkeypatch):
+    assert FastRender(in_flight=3).frames_in_flight() == 3
+    monkeypatch.setenv(realtime.FRAMES_IN_FLIGHT_ENV, "1")
+    assert FastRender().frames_in_flight() == 1
+    monkeypatch.setenv(realtime.FRAMES_IN_FLIGHT_ENV, "x")
+    with pytest.raises(ValueError, match="DELIFFAS_FRAMES_IN_FLIGHT"):
+        FastRender().frames_in_flight()
+    with pytest.raises(ValueError, match="in_flight"):
+        FastRender(in_flight=-1)

@@ -77,3 +77,47 @@ def test_unsupported_variants_are_refused():
         FastShader(model)
     with pytest.raises(ValueError, match="dtype"):
         FastShader(DeliffasModel(get_config("two_surface", "tiny")), torch.float16)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+def test_output_kernel_equals_torch_and_paints_rows(dtype):
+    model, feats, query = _case("two_surface", "small")
+    with torch.no_grad():
+        fused, plain = FastShader(model, dtype), FastShader(model, dtype, use_kernel=False)
+        enc, fts = plain.inputs(feats, query)
+        tol = 2e-6 if dtype == torch.float32 else 0.02
+        torch.testing.assert_close(fused.inputs(feats, query), (enc, fts), atol=tol, rtol=0)
+        ref = plain.mlp(enc, fts)
+        torch.testing.assert_close(fused.mlp(enc, fts), ref, atol=2e-6, rtol=0)
+        rows = torch.randperm(2 * len(ref))[: len(ref)]
+        canvas = torch.full((2 * len(ref), 3), 0.5)
+        assert fused.mlp(enc, fts, out=canvas, rows=rows) is canvas
+        torch.testing.assert_close(canvas[rows], ref, atol=2e-6, rtol=0)
+        untouched = torch.ones(len(canvas), dtype=torch.bool)
+        untouched[rows] = False
+        assert bool((canvas[untouched] == 0.5).all())
+        with pytest.raises(ValueError, match="canvas"):
+            fused.mlp(enc, fts, out=canvas, rows=None)
+
+
+@pytest.mark.parametrize("variant,preset", [("two_surface", "tiny"), ("two_surface", "realtime"),
+                                            ("two_surface", "small"), ("single_surface", "tiny")])
+def test_fused_pass_equals_shade(variant, preset):
+    model, feats, query = _case(variant, preset, n=1000 + 7)  # a partial tile at the end
+    with torch.no_grad():
+        ref = model.shade(feats, query)
+        shader = FastShader(model, torch.bfloat16)  # the fused pass computes in fp32 whatever the dtype
+        assert shader.fused_available() == (fast_shade._FUSED.get() is not None)
+        tol = 2e-6 if shader.fused_available() else 0.02  # without the kernel: the per-stage path in bf16
+        torch.testing.assert_close(shader.shade_fused(feats, query), ref, atol=tol, rtol=0)
+        rows = torch.randperm(len(ref))
+        canvas = torch.zeros(len(ref), 3)
+        shader.shade_fused(feats, query, out=canvas, rows=rows)
+        torch.testing.assert_close(canvas[rows], ref, atol=tol, rtol=0)
+        off = FastShader(model, torch.float32, fused=False)  # the switch: the per-stage path
+        assert not off.fused_available()
+        torch.testing.assert_close(off.shade_fused(feats, query), ref, atol=2e-6, rtol=0)
+        empty = RayQuery(query.batch_index[:0], query.uv_inner[:0],
+                         query.uv_outer[:0] if query.uv_outer is not None else None, None,
+                         query.inner_from_outer[:0] if query.inner_from_outer is not None else None)
+        assert shader.shade_fused(feats, empty).shape == (0, 3)
