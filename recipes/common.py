@@ -203,15 +203,15 @@ def train_and_eval(name: str, shards: Path, run_dir: Path, sizes: RecipeSizes, m
 
 
 def train_and_eval_seeds(name: str, shards: Path, run_dir: Path, sizes: RecipeSizes, model: str, seeds: Sequence[int],
-                         device: str = "cpu", **kw) -> dict:
-    """``train_and_eval`` once per training seed (``run_dir/seed<S>``, with grids, novel poses and the fit);
-    the row is the first seed's evaluation plus ``seeds``, ``per_seed`` and ``stats`` (mean ± std,
-    ``recipes.seeds``)."""
+                         device: str = "cpu", extra_splits: bool = True, **kw) -> dict:
+    """``train_and_eval`` once per training seed (``run_dir/seed<S>``, with grids, novel poses and the fit
+    unless ``extra_splits`` is False: then the novel views only); the row is the first seed's evaluation plus
+    ``seeds``, ``per_seed`` and ``stats`` (mean ± std, ``recipes.seeds``)."""
     from recipes.seeds import train_seeds
 
     def one(seed: int, run: Path):
-        row = train_and_eval(name, shards, run, sizes, model, seed, device, extra_splits=True, **kw)
-        return row, row.pop("novel_pose"), row.pop("train_fit")
+        row = train_and_eval(name, shards, run, sizes, model, seed, device, extra_splits=extra_splits, **kw)
+        return row, row.pop("novel_pose", None), row.pop("train_fit", None)
 
     return train_seeds(name, seeds, run_dir, one)
 

@@ -158,6 +158,13 @@ def test_ablation_template_quick_standin(tiny_recipe_capture, tmp_path, capsys):
     assert 0.0 <= g["mask_missed"] < 1.0 and 0.0 <= g["inner_outside_mask"] < 1.0
     assert "Comparison run:" in (out / "results.md").read_text()
     assert data["claims"]["two_surface_loses_less"] in (True, False, None)
+    assert data["seeds"] == [0] and all("stats" in r for r in data["results"])  # --seeds: 1 in quick mode
+    by = {(r["variant"], r["template"]): r for r in data["results"]}
+    for model in ("single_surface", "two_surface"):  # the loss is paired by seed, in foreground PSNR
+        expected = by[(model, "original")]["stats"]["fg_psnr"]["mean"] - by[(model, "standin")]["stats"]["fg_psnr"]["mean"]
+        assert data["fg_psnr_loss_vs_original_db"][model] == pytest.approx(expected)
+        assert data["fg_psnr_loss_std_db"][model] == 0.0
+    assert "Mean ± std over training seeds" in (out / "results.md").read_text()
 
 
 def test_loses_less_needs_a_loss():
