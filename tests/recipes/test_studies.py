@@ -55,7 +55,7 @@ def stability(tiny_recipe_capture, tmp_path_factory):
 
 def test_speed_accuracy_rows_and_pareto(speed, tiny_recipe_capture):
     from deliffas.engine.report import pareto_front
-    from recipes.speed_accuracy import VARIANTS, SweepPlan
+    from recipes.speed_accuracy import HEADLINE, VARIANTS, SweepPlan
 
     out, payload = speed
     written = json.loads((out / "results.json").read_text())
@@ -67,8 +67,10 @@ def test_speed_accuracy_rows_and_pareto(speed, tiny_recipe_capture):
     assert knobs.count("mlp") == len(plan.mlp) and knobs.count("unet") == len(plan.unet)
     assert knobs.count("atlas") == len(plan.atlas) and knobs.count("template") == len(plan.coarse)
     usable = []
+    assert payload["seeds"] == [0]  # --seeds: 1 in quick mode
     for r in rows:
-        if _finite_or_error(r):
+        if _finite_or_error(r, ("psnr", "ssim", HEADLINE)):
+            assert r["seeds"] == [0] and r[HEADLINE] == pytest.approx(r["foreground"]["psnr"])
             assert set(r["stage_ms"]) == {"uv", "cnn", "sample", "mlp"}
             assert r["num_parameters"] > 0 and r["fps"] > 0
             assert r["ms_per_frame"] == pytest.approx(sum(r["stage_ms"].values()))
@@ -77,13 +79,13 @@ def test_speed_accuracy_rows_and_pareto(speed, tiny_recipe_capture):
         else:
             assert r["pareto"] is None
     assert len(usable) >= 4  # at least the four variants train on the tiny capture
-    front = pareto_front([r["ms_per_frame"] for r in usable], [r["psnr"] for r in usable])
+    front = pareto_front([r["ms_per_frame"] for r in usable], [r[HEADLINE] for r in usable])  # foreground PSNR
     assert {usable[i]["name"] for i in front} == {r["name"] for r in usable if r["pareto"]}
     assert payload["pareto_front"] == [usable[i]["name"] for i in front]
     side = tiny_recipe_capture.sizes.size
     assert payload["resolution"] == [side, side]
     md = (out / "results.md").read_text()
-    assert "on Pareto front" in md and f"{side}x{side}" in md
+    assert "on Pareto front" in md and f"{side}x{side}" in md and "Mean ± std over training seeds" in md
     for r in rows:
         assert r["name"] in md
     _valid_png(out / "speed_accuracy.png")
@@ -92,13 +94,13 @@ def test_speed_accuracy_rows_and_pareto(speed, tiny_recipe_capture):
 
 
 def test_mark_pareto_skips_errors():
-    from recipes.speed_accuracy import mark_pareto
+    from recipes.speed_accuracy import HEADLINE, mark_pareto
 
-    rows = [{"name": "a", "psnr": 20.0, "stage_ms": {"uv": 1.0, "mlp": 1.0}},
-            {"name": "b", "psnr": 25.0, "stage_ms": {"uv": 3.0, "mlp": 1.0}},
-            {"name": "c", "psnr": 22.0, "stage_ms": {"uv": 5.0, "mlp": 1.0}},
-            {"name": "d", "psnr": None, "stage_ms": None, "error": "RuntimeError: boom"},
-            {"name": "e", "psnr": float("nan"), "stage_ms": {"uv": 0.5, "mlp": 0.1}}]
+    rows = [{"name": "a", HEADLINE: 20.0, "stage_ms": {"uv": 1.0, "mlp": 1.0}},
+            {"name": "b", HEADLINE: 25.0, "stage_ms": {"uv": 3.0, "mlp": 1.0}},
+            {"name": "c", HEADLINE: 22.0, "stage_ms": {"uv": 5.0, "mlp": 1.0}},
+            {"name": "d", HEADLINE: None, "stage_ms": None, "error": "RuntimeError: boom"},
+            {"name": "e", HEADLINE: float("nan"), "stage_ms": {"uv": 0.5, "mlp": 0.1}}]
     mark_pareto(rows)
     assert [r["pareto"] for r in rows] == [True, True, False, None, None]
 
