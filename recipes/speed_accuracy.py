@@ -148,7 +148,7 @@ def markdown_table(rows: list[dict]) -> str:
 
 
 def chart(rows: list[dict], path: Path, title: str, resolution: str, key: str = HEADLINE,
-          higher_is_better: bool = True, ylabel: str = "foreground PSNR (dB), held-out cameras, mean over seeds",
+          higher_is_better: bool = True, ylabel: str = "fg PSNR (dB), held-out cameras, mean over seeds",
           flag: str = "pareto") -> Path:
     """Quality against ms per frame, coloured by knob, the Pareto front drawn and its points ringed."""
     from deliffas.engine.report import pyplot, save_figure

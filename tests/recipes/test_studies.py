@@ -106,9 +106,10 @@ def test_mark_pareto_skips_errors():
 
 
 def test_stability_structure_and_fail_rule(stability):
-    from recipes.stability import SWEEPS, StabilityPlan
+    from recipes.stability import HEADLINE, SWEEPS, StabilityPlan
 
     out, payload = stability
+    assert payload["seeds"] == [0] and payload["metric"] == HEADLINE == "fg_psnr_mean"
     assert json.loads((out / "results.json").read_text())["failures"] == payload["failures"]
     rows = payload["results"]
     plan = StabilityPlan.for_mode(True)
@@ -125,12 +126,13 @@ def test_stability_structure_and_fail_rule(stability):
                 assert group and all(r["error"] and r["failed"] for r in group), sweep
                 continue
             assert len(group) == expected[sweep], (sweep, v, [r["label"] for r in group])
-            usable = [r for r in group if _finite_or_error(r)]
+            usable = [r for r in group if _finite_or_error(r, ("psnr", "ssim", HEADLINE))]
             assert usable, (sweep, v)
-            best = max(r["psnr"] for r in usable)
+            assert all(r["seeds"] == [0] and r[HEADLINE] == r["stats"]["fg_psnr"]["mean"] for r in usable)
+            best = max(r[HEADLINE] for r in usable)
             for r in group:
                 assert r["best_psnr"] == pytest.approx(best)
-                should_fail = bool(r["error"]) or best - r["psnr"] > payload["fail_db"]
+                should_fail = bool(r["error"]) or best - r[HEADLINE] > payload["fail_db"]
                 assert r["failed"] == should_fail, r["name"]
             listed = payload["failures"][sweep][v]
             assert len(listed) == sum(r["failed"] for r in group)
@@ -152,3 +154,24 @@ def test_stability_structure_and_fail_rule(stability):
     md = (out / "results.md").read_text()
     for sweep in SWEEPS:
         assert f"## {sweep}" in md and f"stability_{sweep}.png" in md
+
+
+def test_stability_two_seeds(tiny_recipe_capture, tmp_path):
+    """--seeds 2: each configuration trained twice (runs/KEY/VARIANT/seed<S>), rows are mean ± std over both,
+    also the pose-distance rows scored from every seed's run."""
+    from recipes import stability
+
+    out = tmp_path / "stability2"
+    payload = stability.main(_args(tiny_recipe_capture, out) + ["--sweeps", "pose_distance", "--variants",
+                                                                "two_surface", "--seeds", "2"])
+    assert payload["seeds"] == [0, 1]
+    rows = payload["results"]
+    assert len(rows) == 1 + stability.StabilityPlan.for_mode(True).pose_bins
+    for r in rows:
+        assert r["error"] is None and r["seeds"] == [0, 1] and [s["seed"] for s in r["per_seed"]] == [0, 1]
+        values = r["stats"]["fg_psnr"]["values"]
+        assert len(values) == 2 and all(math.isfinite(v) for v in values)
+        assert r["fg_psnr_mean"] == pytest.approx(sum(values) / 2) and r["stats"]["fg_psnr"]["std"] > 0
+    for seed in (0, 1):
+        assert (out / "runs" / "base" / "two_surface" / f"seed{seed}" / "checkpoint").is_dir()
+    assert " ± " in (out / "results.md").read_text()
