@@ -25,6 +25,8 @@ Usage: ``python -m recipes.ablation_perceptual --out OUT [--quick] [--seeds N] [
 from __future__ import annotations
 
 import dataclasses
+import json
+from pathlib import Path
 
 from recipes.common import (ablation_sizes, bar_chart, prepare_capture, prepare_shards, recipe_parser, seed_list,
                             train_and_eval_seeds, write_outputs)
@@ -60,6 +62,23 @@ def choose_backbone(requested: str | None, vgg16_path=None) -> tuple[str, str]:
                             "paper's ImageNet perceptual loss.")
 
 
+def stage2_record(run: Path) -> dict | None:
+    """How stage 2 trained in ``run`` (its ``log.jsonl``): the balanced weight and the weighted perceptual
+    term as a fraction of the L1 term at the first and the last logged stage-2 iteration (the paper: the
+    two start "roughly the same", so the first share is ~1); None when stage 2 never ran."""
+    path = Path(run) / "log.jsonl"
+    log = [json.loads(line) for line in path.read_text().splitlines()] if path.is_file() else []
+    stage2 = [r for r in log if r.get("stage") == 2 and r.get("perceptual") is not None and r.get("l1")]
+    if not stage2:
+        return None
+
+    def share(r):
+        return r["perceptual_weight"] * r["perceptual"] / r["l1"]
+
+    return {"from_iteration": stage2[0]["iteration"], "weight": stage2[0]["perceptual_weight"],
+            "share_of_l1_first": share(stage2[0]), "share_of_l1_last": share(stage2[-1])}
+
+
 def backbone_title(backbone: str, seed: int) -> str:
     if backbone == "vgg16-random":
         return f"vgg16-random: VGG-16 random backbone, seed {seed} — not ImageNet"
@@ -92,7 +111,8 @@ def main(argv=None) -> dict:
                                    sizes, MODEL, seeds, args.device, perceptual=perceptual, perceptual_mode=mode,
                                    perceptual_start=args.perceptual_start, vgg16_path=args.vgg16_path)
         row.update(perceptual=perceptual, perceptual_mode=None if perceptual == "none" else mode,
-                   stage2_from_iteration=None if perceptual == "none" else stage2)
+                   stage2_from_iteration=None if perceptual == "none" else stage2,
+                   stage2_per_seed=[stage2_record(s["run"]) for s in row["per_seed"]])
         rows.append(row)
     a, b, c = rows
     width, height = a["resolution"]
@@ -133,6 +153,10 @@ def main(argv=None) -> dict:
              f"First seed, image-level beats patch-level on {metric}: {'yes' if claims['image_beats_patch_on_lpips_family'] else 'no'} "
              f"({c[metric]:.4g} vs {b[metric]:.4g}); image-level beats L1 only: "
              f"{'yes' if c[metric] < a[metric] else 'no'} (L1 only: {a[metric]:.4g}).",
+             "Stage 2 as trained (first seed; weighted perceptual term / L1 term at its first and last logged "
+             "iteration, ~1 at the start by construction): " + "; ".join(
+                 f"{r['name'][:2]} weight {st['weight']:.4g}, share {st['share_of_l1_first']:.2f} → "
+                 f"{st['share_of_l1_last']:.2f}" for r in (b, c) for st in r["stage2_per_seed"][:1] if st) + ".",
              "Paper (D2, ImageNet VGG-16): LPIPS×1000 L1 18.51, patch 16.54, image 12.85; PSNR 33.27 / 33.24 / 33.30.",
              f"All rows: two-surface, {sizes.iters} iterations, stage 2 from iteration {stage2} "
              f"(perceptual weight balanced with L1 when stage 2 starts); patches: 8 random 32×32 per image "

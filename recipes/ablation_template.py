@@ -13,7 +13,11 @@ Two comparisons, and the output says which one ran:
   decimated to ``--standin-faces`` faces (new atlas, attributes transferred) and Taubin-smoothed
   ``--standin-smooth`` times, i.e. a smooth low-poly body without the template's details.
 
-Usage: ``python -m recipes.ablation_template --out OUT [--quick] [--subject DIR | --shards DIR]
+Every configuration is trained with ``--seeds N`` training seeds (default 3 in full mode) and reported
+as mean ± std in foreground PSNR/SSIM/FLIP; the PSNR each model loses against the DDC-style template is
+paired by seed (same seed on both templates).
+
+Usage: ``python -m recipes.ablation_template --out OUT [--quick] [--seeds N] [--subject DIR | --shards DIR]
 [--smpl-model FILE [--smpl-uv-obj FILE]]``.
 """
 
@@ -25,11 +29,12 @@ from pathlib import Path
 
 import numpy as np
 
-from recipes.ablation_coarse_mesh import MODELS, loses_less, silhouette_errors, template_deviation, variant_source, \
-    verdict
+from recipes.ablation_coarse_mesh import MODELS, loses_less, losses_against_original, silhouette_errors, \
+    template_deviation, variant_source, verdict
 from deliffas.data.shards import ShardSet
-from recipes.common import bar_chart, prepare_shards, prepare_template_variants, recipe_parser, sizes_from_args, \
-    train_and_eval, write_outputs
+from recipes.common import ablation_sizes, bar_chart, prepare_shards, prepare_template_variants, recipe_parser, \
+    seed_list, train_and_eval_seeds, write_outputs
+from recipes.seeds import mean
 
 STANDIN_FACES = 1500
 STANDIN_SMOOTH = 100
@@ -95,7 +100,7 @@ def write_template_folder(folder: Path, character, name: str, offset_mm: float =
 def main(argv=None) -> dict:
     from deliffas.io.dynacap import read_character
 
-    p = recipe_parser(__doc__.splitlines()[0])
+    p = recipe_parser(__doc__.splitlines()[0], seeds=True)
     p.add_argument("--smpl-model", default=None,
                    help="your SMPL model file (.npz, or .pkl without chumpy), or 'procedural' (the license-free body "
                         "in SMPL layout)")
@@ -110,7 +115,8 @@ def main(argv=None) -> dict:
         from deliffas.io.smpl import SMPL_NOT_SHIPPED
 
         p.error(f"--smpl-model {args.smpl_model}: no such file. {SMPL_NOT_SHIPPED}")
-    sizes = sizes_from_args(args)
+    sizes = ablation_sizes(args)
+    seeds = seed_list(args)
     source = variant_source(args, sizes)
     packing = 256 if args.quick else 512
     templates = args.out / "templates"
@@ -166,16 +172,18 @@ def main(argv=None) -> dict:
               f"{geometry[variant]['deviation_max_mm']:.1f} mm max", flush=True)
         geometry[variant].update(silhouette_errors(shards))
         for label, model in MODELS:
-            row = train_and_eval(f"{label} · {labels[variant]}", shards, args.out / "runs" / variant / model, sizes,
-                                 model, args.seed, args.device)
+            row = train_and_eval_seeds(f"{label} · {labels[variant]}", shards, args.out / "runs" / variant / model,
+                                       sizes, model, seeds, args.device)
             row.update(template=variant, variant=model, **{f"template_{k}": v for k, v in geometry[variant].items()})
             rows.append(row)
     by = {(r["variant"], r["template"]): r for r in rows}
-    loss = {m: by[(m, "original")]["foreground"]["psnr"] - by[(m, body)]["foreground"]["psnr"] for _, m in MODELS}  # the headline metric
-    official_loss = {m: by[(m, "original")]["psnr"] - by[(m, body)]["psnr"] for _, m in MODELS}
+    paired = losses_against_original(rows)  # per seed, then the mean: the headline metric is fg PSNR
+    loss = {m: paired[m][body]["psnr_loss_db"] for _, m in MODELS}
+    loss_std = {m: paired[m][body]["psnr_loss_std_db"] for _, m in MODELS}
+    official_loss = {m: paired[m][body]["official_psnr_loss_db"] for _, m in MODELS}
     claims = {"comparison": body,
               "two_surface_beats_single_surface_on_body_model": bool(
-                  by[("two_surface", body)]["foreground"]["psnr"] > by[("single_surface", body)]["foreground"]["psnr"]),
+                  mean(by[("two_surface", body)], "fg_psnr") > mean(by[("single_surface", body)], "fg_psnr")),
               "two_surface_loses_less": loses_less(loss["single_surface"], loss["two_surface"]),
               "better_template_improves_two_surface": bool(loss["two_surface"] > 0)}
     title = (f"Ablation: DDC-style template vs {'SMPL' if body == 'smpl' else 'simpler body model (stand-in, no SMPL)'}, "
@@ -187,8 +195,10 @@ def main(argv=None) -> dict:
              f"{100 * g['inner_outside_mask']:.1f}% (mask-relative) of training pixels outside the person and misses "
              f"{100 * g['mask_missed']:.1f}% of the person (DDC-style template: "
              f"{100 * geometry['original']['inner_outside_mask']:.1f}% / {100 * geometry['original']['mask_missed']:.1f}%).",
-             f"Foreground PSNR lost against the DDC-style template: single-surface {loss['single_surface']:+.2f} dB, "
-             f"two-surface {loss['two_surface']:+.2f} dB (official protocol: {official_loss['single_surface']:+.2f} / "
+             f"Foreground PSNR lost against the DDC-style template (mean ± std over seeds {seeds}, paired by seed): "
+             f"single-surface {loss['single_surface']:+.2f} ± {loss_std['single_surface']:.2f} dB, "
+             f"two-surface {loss['two_surface']:+.2f} ± {loss_std['two_surface']:.2f} dB (official protocol: "
+             f"{official_loss['single_surface']:+.2f} / "
              f"{official_loss['two_surface']:+.2f} dB) (two-surface loses less: {verdict(claims['two_surface_loses_less'])}); "
              f"two-surface beats single-surface on the {body_label} template: "
              f"{'yes' if claims['two_surface_beats_single_surface_on_body_model'] else 'no'}.",
@@ -200,12 +210,14 @@ def main(argv=None) -> dict:
                 "orderings."] if args.quick else []),
              "", "![PSNR per template](psnr_by_template.png)", ""]
     payload = write_outputs(args.out, title, rows, {"quick": args.quick, "sizes": dataclasses.asdict(sizes),
-                                                     "comparison": comparison, "body_model": body,
+                                                     "seeds": seeds, "comparison": comparison, "body_model": body,
                                                      "body_model_build": build, "templates": geometry,
                                                      "fg_psnr_loss_vs_original_db": loss,
+                                                     "fg_psnr_loss_std_db": loss_std,
                                                      "official_psnr_loss_vs_original_db": official_loss, "claims": claims,
                                                      "subject": str(source.subject)}, notes)
-    bar_chart(rows, args.out / "psnr_by_template.png", title, groups=[labels[r["template"]] for r in rows])
+    bar_chart(rows, args.out / "psnr_by_template.png", title, key="fg_psnr_mean",
+              ylabel="foreground PSNR (dB, padded mask box), mean over seeds", groups=[labels[r["template"]] for r in rows])
     return payload
 
 

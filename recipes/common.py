@@ -25,6 +25,10 @@ __all__ = ["RecipeSizes", "recipe_parser", "sizes_from_args", "prepare_capture",
            "bar_chart"]
 
 
+RESUMABLE_FIELDS = frozenset({"out", "iters", "checkpoint_every", "preview_every", "log_every", "progress",
+                              "num_workers", "device"})
+"""TrainConfig fields a recipe may change when it finds its run folder already trained (it continues or
+re-evaluates that run); any other change means the folder holds another configuration's run."""
 POSE_EVAL_FRAMES = 4
 """Novel-pose frames the ablations evaluate per run (every camera of each: 48 images with 12 cameras)."""
 ABLATION_EVAL_FRAMES = 12
@@ -168,6 +172,25 @@ def prepare_template_variants(out: Path, character: Path, smooth_iters: int | No
     return {name: Path(out) / name for name in sorted(want, key=("original", "smooth", "coarse").index)}
 
 
+def check_same_configuration(run_dir: Path, cfg) -> None:
+    """Refuse a run folder trained with other settings than ``cfg`` (``SystemExit`` naming the fields).
+
+    Recipes resume their runs, so a rerun into the same ``--out`` with another option (dropout, the
+    view-direction encoding, the perceptual mode, ...) would otherwise re-evaluate the old model
+    and report its numbers under the new option's name.
+    """
+    path = Path(run_dir) / "train_config.json"
+    if not path.is_file():
+        return
+    recorded = json.loads(path.read_text()).get("train", {})
+    wanted = json.loads(json.dumps(dataclasses.asdict(cfg), default=str))
+    changed = {k: (recorded.get(k), v) for k, v in wanted.items() if k not in RESUMABLE_FIELDS and recorded.get(k) != v}
+    if changed:
+        diff = "; ".join(f"{k}: {old!r} there, {new!r} now" for k, (old, new) in sorted(changed.items()))
+        raise SystemExit(f"error: {path.parent} holds a run trained with other settings ({diff}); choose another --out "
+                         "or remove that folder")
+
+
 def train_and_eval(name: str, shards: Path, run_dir: Path, sizes: RecipeSizes, model: str, seed: int = 0,
                    device: str = "cpu", split: str = "novel_view", model_overrides: dict | None = None,
                    extra_splits: bool = False, **train_kw) -> dict:
@@ -184,6 +207,7 @@ def train_and_eval(name: str, shards: Path, run_dir: Path, sizes: RecipeSizes, m
                       device=device, num_workers=1, checkpoint_every=max(sizes.iters, 1),
                       preview_every=max(sizes.iters, 1), progress=False, model_overrides=model_overrides or {},
                       **train_kw)
+    check_same_configuration(run_dir, cfg)
     result = train(cfg, resume=True)
     row = evaluate(EvalConfig(run=str(run_dir), split=split, max_frames=sizes.eval_frames, device=device,
                               grid=str(Path(run_dir) / f"grid_{split}.png") if extra_splits else None))
@@ -203,15 +227,15 @@ def train_and_eval(name: str, shards: Path, run_dir: Path, sizes: RecipeSizes, m
 
 
 def train_and_eval_seeds(name: str, shards: Path, run_dir: Path, sizes: RecipeSizes, model: str, seeds: Sequence[int],
-                         device: str = "cpu", **kw) -> dict:
-    """``train_and_eval`` once per training seed (``run_dir/seed<S>``, with grids, novel poses and the fit);
-    the row is the first seed's evaluation plus ``seeds``, ``per_seed`` and ``stats`` (mean ± std,
-    ``recipes.seeds``)."""
+                         device: str = "cpu", extra_splits: bool = True, **kw) -> dict:
+    """``train_and_eval`` once per training seed (``run_dir/seed<S>``, with grids, novel poses and the fit
+    unless ``extra_splits`` is False: then the novel views only); the row is the first seed's evaluation plus
+    ``seeds``, ``per_seed`` and ``stats`` (mean ± std, ``recipes.seeds``)."""
     from recipes.seeds import train_seeds
 
     def one(seed: int, run: Path):
-        row = train_and_eval(name, shards, run, sizes, model, seed, device, extra_splits=True, **kw)
-        return row, row.pop("novel_pose"), row.pop("train_fit")
+        row = train_and_eval(name, shards, run, sizes, model, seed, device, extra_splits=extra_splits, **kw)
+        return row, row.pop("novel_pose", None), row.pop("train_fit", None)
 
     return train_seeds(name, seeds, run_dir, one)
 

@@ -17,8 +17,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
 
-__all__ = ["STAT_KEYS", "STAT_LABELS", "compact", "aggregate", "mean", "Ordering", "ordering", "stats_table",
-           "default_seeds", "train_seeds"]
+__all__ = ["STAT_KEYS", "STAT_LABELS", "compact", "aggregate", "mean", "Ordering", "ordering", "format_stat",
+           "stats_table", "default_seeds", "train_seeds"]
 
 STAT_KEYS = ("fg_psnr", "fg_ssim", "fg_flip", "masked_psnr", "pose_fg_psnr", "train_fg_psnr", "psnr")
 STAT_LABELS = {"fg_psnr": "fg PSNR ↑ (novel view)", "fg_ssim": "fg SSIM ↑", "fg_flip": "fg FLIP ↓",
@@ -116,7 +116,8 @@ def ordering(claim: str, a: dict, b: dict, key: str, target: float, higher_is_be
     return Ordering(claim, target, diff, noise, holds, f"{k} of {len(paired)}", within)
 
 
-def _fmt(stat: dict, spec: str) -> str:
+def format_stat(stat: dict, spec: str = ".2f") -> str:
+    """``mean ± std`` of one ``aggregate`` entry (``n/a`` when no seed has the number)."""
     if stat["mean"] is None:
         return "n/a"
     return f"{stat['mean']:{spec}} ± {stat['std']:{spec}}"
@@ -129,7 +130,7 @@ def stats_table(rows: Sequence[dict], keys: Sequence[str] = STAT_KEYS) -> list[s
              "|---|---:|" + "---:|" * len(keys)]
     for r in rows:
         lines.append(f"| {r['name']} | {len(r['seeds'])} | "
-                     + " | ".join(_fmt(r["stats"][k], spec.get(k, ".2f")) for k in keys) + " |")
+                     + " | ".join(format_stat(r["stats"][k], spec.get(k, ".2f")) for k in keys) + " |")
     return lines
 
 

@@ -1,8 +1,10 @@
 """Speed against accuracy: every variant and several capacities on one chart, with the Pareto front.
 
-Usage: ``python -m recipes.speed_accuracy --out OUT [--quick] [--subject DIR | --shards DIR]``.
+Usage: ``python -m recipes.speed_accuracy --out OUT [--quick] [--seeds N] [--subject DIR | --shards DIR]``.
 
-Points, all trained with the same iterations (L1 only) and evaluated on the held-out cameras:
+Points, all trained with the same iterations (L1 only) and evaluated on the held-out cameras, each with
+``--seeds N`` training seeds (default 3 in full mode; accuracy is the mean ± std over them in foreground
+PSNR/SSIM/FLIP inside the person's padded mask box, the official protocol's PSNR beside it):
 
 * the four zoo variants at the recipe's preset (``tiny`` in quick mode, ``small`` otherwise);
 * the two-surface model (DELIFFAS) with one knob changed at a time: MLP depth x width, U-Net
@@ -13,7 +15,8 @@ Points, all trained with the same iterations (L1 only) and evaluated on the held
 Cost is milliseconds per frame of one camera (uv ray casting + U-Net(s) + feature sampling + MLP,
 ``deliffas eval``'s stage timing) at the capture's image size, on this machine's CPU. The Pareto
 front (``deliffas.engine.report.pareto_front``) holds the points no other point beats in both lower
-cost and higher PSNR; with LPIPS weights available a second chart does the same for LPIPS.
+cost and higher foreground PSNR (mean over seeds); with LPIPS weights available a second chart does the
+same for LPIPS (first seed). Cost is timed on the first seed's run.
 Writes ``results.json``, ``results.md``, ``speed_accuracy.png`` (and ``speed_lpips.png``).
 """
 
@@ -29,12 +32,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from recipes.common import (find_character, prepare_capture, prepare_shards, prepare_template_variants,
-                            recipe_parser, shards_source, sizes_from_args, train_and_eval)
+                            recipe_parser, seed_list, shards_source, sizes_from_args, train_and_eval_seeds)
+from recipes.seeds import stats_table
 
 logger = logging.getLogger(__name__)
 
 VARIANTS = ("single_surface", "single_surface_viewdir", "single_surface_two_unet", "two_surface")
 KNOB_MODEL = "two_surface"
+HEADLINE = "fg_psnr_mean"
+"""Accuracy of a point: foreground PSNR (padded mask box), mean over the training seeds."""
+SEED_KEYS = ("fg_psnr", "fg_ssim", "fg_flip", "psnr")
+"""Metrics of the mean ± std table (no novel-pose or fit evaluation here)."""
 
 
 @dataclass(frozen=True)
@@ -88,7 +96,8 @@ def _points(plan: SweepPlan, atlas_sides: list[int], coarse_faces: list[int]) ->
 
 
 def _error_row(point: Point, exc: BaseException) -> dict:
-    return {"name": point.name, "model": point.model, "psnr": None, "ssim": None, "lpips": None, "stage_ms": None,
+    return {"name": point.name, "model": point.model, "psnr": None, "ssim": None, "lpips": None, HEADLINE: None,
+            "stage_ms": None,
             "fps": None, "num_parameters": None, "error": f"{type(exc).__name__}: {exc}",
             "traceback": traceback.format_exc(limit=6)}
 
@@ -104,7 +113,7 @@ def _usable(row: dict, key: str) -> bool:
     return row.get("error") is None and v is not None and math.isfinite(v) and total_ms(row) is not None
 
 
-def mark_pareto(rows: list[dict], key: str = "psnr", higher_is_better: bool = True, flag: str = "pareto") -> None:
+def mark_pareto(rows: list[dict], key: str = HEADLINE, higher_is_better: bool = True, flag: str = "pareto") -> None:
     """Set ``row[flag]`` to whether the row is on the (cost = ms per frame, quality = ``key``) Pareto front;
     rows without a usable value get None."""
     from deliffas.engine.report import pareto_front
@@ -121,25 +130,26 @@ def _fmt(v, spec: str = ".2f") -> str:
 
 
 def markdown_table(rows: list[dict]) -> str:
-    lines = ["| configuration | knob | params | PSNR ↑ | SSIM ↑ | LPIPS ↓ | uv ms | cnn ms | sample ms | "
-             "mlp ms | "
-             "ms/frame | fps | on Pareto front |",
-             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|:---:|"]
+    lines = ["| configuration | knob | params | fg PSNR ↑ (mean) | official PSNR ↑ | official SSIM ↑ | LPIPS ↓ | "
+             "uv ms | cnn ms | sample ms | mlp ms | ms/frame | fps | on Pareto front |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|:---:|"]
     for r in rows:
         s = r.get("stage_ms") or {}
         if r.get("error"):
-            lines.append(f"| {r['name']} | {r.get('knob', '')} | | error: {r['error'][:80]} | | | | | | | | | |")
+            lines.append(f"| {r['name']} | {r.get('knob', '')} | | error: {r['error'][:80]} | | | | | | | | | | |")
             continue
         params = r.get("num_parameters")
-        lines.append(f"| {r['name']} | {r.get('knob', '')} | {params:,} | {_fmt(r.get('psnr'))} | "
+        lines.append(f"| {r['name']} | {r.get('knob', '')} | {params:,} | {_fmt(r.get(HEADLINE))} | "
+                     f"{_fmt(r.get('psnr'))} | "
                      f"{_fmt(r.get('ssim'), '.4f')} | {_fmt(r.get('lpips'), '.4f')} | {_fmt(s.get('uv'), '.1f')} | "
                      f"{_fmt(s.get('cnn'), '.1f')} | {_fmt(s.get('sample'), '.1f')} | {_fmt(s.get('mlp'), '.1f')} | "
                      f"{_fmt(total_ms(r), '.1f')} | {_fmt(r.get('fps'))} | {'yes' if r.get('pareto') else 'no'} |")
     return "\n".join(lines) + "\n"
 
 
-def chart(rows: list[dict], path: Path, title: str, resolution: str, key: str = "psnr",
-          higher_is_better: bool = True, ylabel: str = "PSNR (dB), held-out cameras", flag: str = "pareto") -> Path:
+def chart(rows: list[dict], path: Path, title: str, resolution: str, key: str = HEADLINE,
+          higher_is_better: bool = True, ylabel: str = "fg PSNR (dB), held-out cameras, mean over seeds",
+          flag: str = "pareto") -> Path:
     """Quality against ms per frame, coloured by knob, the Pareto front drawn and its points ringed."""
     from deliffas.engine.report import pyplot, save_figure
 
@@ -211,6 +221,7 @@ def _coarse_budgets(character: Path, fractions: tuple[float, ...]) -> list[int]:
 def main(argv=None) -> dict:
     args = _parser().parse_args(argv)
     sizes = sizes_from_args(args)
+    seeds = seed_list(args)
     plan = SweepPlan.for_mode(args.quick if args.plan == "auto" else args.plan == "quick")
     jobs = 1 if args.quick else 2
     out: Path = args.out
@@ -258,9 +269,9 @@ def main(argv=None) -> dict:
     for p in points:
         try:
             run = out / "runs" / p.name.replace(" ", "_")
-            row = train_and_eval(p.name, shards_for(p.shards_key), run, sizes, p.model, args.seed, args.device,
-                                 model_overrides=p.overrides)
-            timed.append((row, run))
+            row = train_and_eval_seeds(p.name, shards_for(p.shards_key), run, sizes, p.model, seeds, args.device,
+                                       extra_splits=False, model_overrides=p.overrides)
+            timed.append((row, run / f"seed{seeds[0]}"))  # the cost does not depend on the seed
         except Exception as exc:  # one broken configuration never stops the study
             logger.exception("%s failed", p.name)
             print(f"  {p.name}: ERROR {type(exc).__name__}: {exc}", flush=True)
@@ -269,14 +280,14 @@ def main(argv=None) -> dict:
                    ms_per_frame=total_ms(row))
         rows.append(row)
     retime(timed, args.timing_repeats, args.device)
-    mark_pareto(rows, "psnr", True, "pareto")
+    mark_pareto(rows, HEADLINE, True, "pareto")
     have_lpips = any(_usable(r, "lpips") for r in rows)
     if have_lpips:
         mark_pareto(rows, "lpips", False, "pareto_lpips")
     res = next((r.get("resolution") for r in rows if r.get("resolution")), None)
     resolution = f"{res[0]}x{res[1]} px" if res else "the capture's size"
     title = "Speed vs accuracy" + (" — quick mode" if args.quick else "")
-    charts = {"psnr": str(chart(rows, out / "speed_accuracy.png", f"{title} (PSNR)", resolution))}
+    charts = {"psnr": str(chart(rows, out / "speed_accuracy.png", f"{title} (foreground PSNR)", resolution))}
     if have_lpips:
         charts["lpips"] = str(chart(rows, out / "speed_lpips.png", f"{title} (LPIPS)", resolution, "lpips", False,
                                     "LPIPS (VGG), held-out cameras", "pareto_lpips"))
@@ -286,14 +297,18 @@ def main(argv=None) -> dict:
              f"the U-Net is paid once per frame), {args.device}; each stage is the minimum over "
              f"{args.timing_repeats} timed evaluations, rounds taken over all points in turn (other jobs may "
              "share the CPU).",
-             f"Pareto front (PSNR): {' → '.join(front) if front else 'empty'}.",
-             f"Preset {sizes.preset}; {sizes.iters} iterations per point; knob rows change one thing of {KNOB_MODEL}.",
+             f"Pareto front (foreground PSNR, mean over seeds {seeds}): {' → '.join(front) if front else 'empty'}.",
+             f"Preset {sizes.preset}; {sizes.iters} iterations per point and seed; knob rows change one thing of "
+             f"{KNOB_MODEL}.",
              "LPIPS: " + ("available (second chart)" if have_lpips else f"unavailable ({lpips_reason})")]
     payload = {"title": title, "quick": args.quick, "sizes": dataclasses.asdict(sizes), "resolution": res,
-               "plan": dataclasses.asdict(plan), "pareto_front": front, "charts": charts, "results": rows,
+               "plan": dataclasses.asdict(plan), "seeds": seeds, "pareto_front": front, "charts": charts, "results": rows,
                "command": " ".join(sys.argv)}
     (out / "results.json").write_text(json.dumps(payload, indent=2, default=str) + "\n")
+    seeded = [r for r in rows if "stats" in r]
     md = [f"# {title}", "", markdown_table(rows), "", *[f"- {n}" for n in notes], "",
+          "## Mean ± std over training seeds (foreground metrics: the headline)", "",
+          *stats_table(seeded, SEED_KEYS), "",
           "![speed vs accuracy](speed_accuracy.png)", ""]
     if have_lpips:
         md += ["![speed vs LPIPS](speed_lpips.png)", ""]
@@ -303,7 +318,7 @@ def main(argv=None) -> dict:
 
 
 def _parser():
-    p = recipe_parser(__doc__.splitlines()[0])
+    p = recipe_parser(__doc__.splitlines()[0], seeds=True)
     p.add_argument("--plan", choices=["auto", "quick", "full"], default="auto",
                    help="capacities swept: quick (one per knob) or full; auto follows --quick")
     p.add_argument("--timing-repeats", type=int, default=3,

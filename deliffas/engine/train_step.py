@@ -15,7 +15,7 @@ from deliffas.engine.rays import RayBatch, paint_images, ray_query, stack_rays
 from deliffas.engine.samples import FrameSample, composite_target
 from deliffas.engine.timing import StageTimer
 from deliffas.models.deliffas import DeliffasModel, FrameFeatures
-from deliffas.models.losses import l1_foreground, step_loss
+from deliffas.models.losses import step_loss
 from deliffas.models.ray_query import RayQuery
 
 __all__ = ["train_step", "render_sample_images", "balance_weight"]
@@ -25,6 +25,13 @@ def _rays(model: DeliffasModel, sample: FrameSample, device: torch.device) -> tu
     """The sample's rays of all K cameras (one frame: batch row 0) and the model's query of them."""
     batch = stack_rays(sample.rays, [0] * sample.num_cameras).to(device)
     return batch, ray_query(batch, model.spec)
+
+
+def _targets(sample: FrameSample, batch: RayBatch, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """The training target images (K, H, W, 3) and their values at the rays' pixels (N, 3)."""
+    K, H, W = sample.images.shape[:3]
+    target = composite_target(sample.images, sample.masks).to(device)
+    return target, target.reshape(K, H * W, 3)[batch.image_index, batch.pixels]
 
 
 def _psnr(mse: float) -> float:
@@ -71,8 +78,7 @@ def _chunked_backward(model: DeliffasModel, sample: FrameSample, device: torch.d
     features = model.encode(*sample.normal_maps(device))  # (1, C, S, S) maps with the U-Net graph
     leaves = FrameFeatures(inner=features.inner.detach().requires_grad_(),
                            outer=None if features.outer is None else features.outer.detach().requires_grad_())
-    target = composite_target(sample.images, sample.masks).to(device)  # (K, H, W, 3)
-    target_rays = target.reshape(K, H * W, 3)[batch.image_index, batch.pixels]  # (N, 3)
+    target, target_rays = _targets(sample, batch, device)  # (K, H, W, 3), (N, 3)
     n = batch.num_rays
     ray_grad = terms = None
     if perceptual is not None and perceptual_weight > 0:
@@ -136,8 +142,7 @@ def train_step(model: DeliffasModel, sample: FrameSample, optimizer: torch.optim
     H, W = sample.images.shape[1:3]
     batch, query = _rays(model, sample, device)
     pred = (net or model)(*sample.normal_maps(device), query)  # (N, 3)
-    target = composite_target(sample.images, sample.masks).to(device)  # (K, H, W, 3)
-    target_rays = target.reshape(K, H * W, 3)[batch.image_index, batch.pixels]  # (N, 3)
+    target, target_rays = _targets(sample, batch, device)  # (K, H, W, 3), (N, 3)
     if num_rays:
         # L1 over the rays the model paints (pixels outside the shell are background in both images,
         # up to person pixels the shell misses, which no parameter can change)
@@ -157,11 +162,22 @@ def train_step(model: DeliffasModel, sample: FrameSample, optimizer: torch.optim
 
 def balance_weight(model: DeliffasModel, sample: FrameSample, device: torch.device,
                    perceptual: torch.nn.Module) -> float:
-    """Perceptual weight making both loss terms equally large on this frame (paper: 'roughly the same')."""
+    """Perceptual weight making both loss terms equally large on this frame (paper: 'roughly the same').
+
+    The L1 it matches is the one the step differentiates: the mean over the shaded rays
+    (:func:`step_loss`), not over whole images. The images' background pixels outside the shell
+    are 0 in both, so a whole-image L1 is smaller by the rays' share of the pixels (~15 % at 128 px):
+    balanced against it, the perceptual term started ~7x smaller than the step's L1 (the full-mode
+    perceptual ablation before this fix), not as large as it.
+    """
     with torch.no_grad():
         model.eval()
-        pred = render_sample_images(model, sample, device)
-        target = composite_target(sample.images, sample.masks).to(device)
-        p = perceptual(pred.permute(0, 3, 1, 2), target.permute(0, 3, 1, 2), torch.from_numpy(sample.masks).to(device),
-                       generator=torch.Generator().manual_seed(0))
-        return float(l1_foreground(pred, target) / p.clamp_min(1e-12))
+        K = sample.num_cameras
+        H, W = sample.images.shape[1:3]
+        batch, query = _rays(model, sample, device)
+        pred_rays = model(*sample.normal_maps(device), query)  # (N, 3)
+        target, target_rays = _targets(sample, batch, device)  # (K, H, W, 3), (N, 3)
+        terms = step_loss(pred_rays, target_rays, perceptual=perceptual, weight=1.0,
+                          pred_images=paint_images(pred_rays, batch, K, H, W), target_images=target,
+                          masks=torch.from_numpy(sample.masks).to(device), generator=torch.Generator().manual_seed(0))
+        return float(terms.l1 / terms.perceptual.clamp_min(1e-12))

@@ -68,9 +68,10 @@ class UNetConfig:
     """Upper bound on the channels of any block."""
     levels: int | None = None
     """Number of down (and up) sampling stages; None = log2(S), i.e. a 1 x 1 bottleneck."""
-    dropout: bool = False
-    """Dropout 0.5 after the first three up blocks (pix2pix); off by default (the original ran
-    its U-Nets in inference mode, so its dropout was inactive)."""
+    dropout: bool | float = False
+    """Dropout after the first three up blocks (pix2pix): True = rate 0.5 (pix2pix), a float = that
+    rate in [0, 1); off by default (the original ran its U-Nets in inference mode, so its dropout was
+    inactive)."""
     norm: NormKind = "batch"
     """Normalisation after every down block but the first and every up block (see module doc)."""
     negative_slope: float = 0.3
@@ -87,6 +88,16 @@ class UNetConfig:
             raise ValueError(f"UNetConfig: levels must be >= 1 or None, got {self.levels}")
         if self.norm not in ("batch", "affine", "none"):
             raise ValueError(f"UNetConfig: norm must be 'batch', 'affine' or 'none', got {self.norm!r}")
+        if not isinstance(self.dropout, bool) and not (isinstance(self.dropout, (int, float))
+                                                       and 0.0 <= self.dropout < 1.0):
+            raise ValueError(f"UNetConfig: dropout must be true/false or a rate in [0, 1), got {self.dropout!r}")
+
+    @property
+    def dropout_rate(self) -> float:
+        """The dropout probability: 0.5 for ``dropout=True`` (pix2pix), 0 for False, else the rate given."""
+        if isinstance(self.dropout, bool):
+            return 0.5 if self.dropout else 0.0
+        return float(self.dropout)
 
 
 def resolve_levels(config: UNetConfig, size: int) -> int:
@@ -182,8 +193,8 @@ class UNet(nn.Module):
             ch = self.channels[i]
             layers = [ConvTranspose2d(prev, ch, kernel_size=4, stride=2, padding=1, bias=config.norm == "none")]
             layers.append(_norm(config.norm, ch))
-            if config.dropout and k < 3:
-                layers.append(nn.Dropout(0.5))
+            if config.dropout_rate > 0 and k < 3:
+                layers.append(nn.Dropout(config.dropout_rate))
             layers.append(nn.ReLU(inplace=True))
             self.up.append(nn.Sequential(*layers))
             prev = 2 * ch  # after concatenation with the skip

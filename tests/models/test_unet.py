@@ -61,6 +61,14 @@ def test_block_structure():
     dropouts = [any(isinstance(m, nn.Dropout) for m in block) for block in net.up]
     assert dropouts == [True, True, True, False]
     assert not any(isinstance(m, nn.Dropout) for m in UNet(UNetConfig(in_channels=9, base_channels=4), 32).modules())
+    assert {m.p for m in net.modules() if isinstance(m, nn.Dropout)} == {0.5}  # True: pix2pix's rate
+    light = UNet(UNetConfig(in_channels=9, base_channels=4, max_channels=16, dropout=0.1), 32)
+    assert [m.p for m in light.modules() if isinstance(m, nn.Dropout)] == [0.1, 0.1, 0.1]
+    assert not any(isinstance(m, nn.Dropout) for m in UNet(UNetConfig(in_channels=9, base_channels=4, dropout=0.0),
+                                                           32).modules())
+    for bad in (1.0, -0.1, "0.5"):
+        with pytest.raises(ValueError, match="dropout"):
+            UNetConfig(in_channels=9, dropout=bad)
     assert isinstance(net.final, nn.ConvTranspose2d) and net.final.out_channels == 32
 
 

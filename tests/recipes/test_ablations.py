@@ -122,6 +122,9 @@ def test_ablation_perceptual_quick(tiny_recipe_capture, tmp_path, capsys):
         assert r["stage2_from_iteration"] == int(0.5 * tiny_recipe_capture.sizes.iters)
         log = [json.loads(x) for x in (Path(r["run"]) / "log.jsonl").read_text().splitlines()]
         assert log[-1]["stage"] == 2 and log[-1]["perceptual_weight"] > 0
+        st = r["stage2_per_seed"][0]  # the weighted perceptual term is balanced with the step's L1
+        assert st["weight"] == log[-1]["perceptual_weight"] and 0.25 < st["share_of_l1_first"] < 4.0, st
+    assert rows[0]["stage2_per_seed"] == [None]  # L1 only
     claims = data["claims"]
     assert claims["perceptual_metric"] == "fg_flip"  # judged on FLIP in the foreground box (issue 18)
     assert claims["lpips_family_metric"] == (
@@ -131,6 +134,7 @@ def test_ablation_perceptual_quick(tiny_recipe_capture, tmp_path, capsys):
         claims["image_le_patch_on_flip"]["seeds_holding"] == "1 of 1"
     md = (out / "results.md").read_text()
     assert "Perceptual metric used for the comparison" in md and "substitute" in md.lower()
+    assert "Stage 2 as trained" in md and "b. weight" in md and "c. weight" in md
 
 
 def test_ablation_perceptual_rejects_bad_start(tmp_path):
@@ -158,6 +162,13 @@ def test_ablation_template_quick_standin(tiny_recipe_capture, tmp_path, capsys):
     assert 0.0 <= g["mask_missed"] < 1.0 and 0.0 <= g["inner_outside_mask"] < 1.0
     assert "Comparison run:" in (out / "results.md").read_text()
     assert data["claims"]["two_surface_loses_less"] in (True, False, None)
+    assert data["seeds"] == [0] and all("stats" in r for r in data["results"])  # --seeds: 1 in quick mode
+    by = {(r["variant"], r["template"]): r for r in data["results"]}
+    for model in ("single_surface", "two_surface"):  # the loss is paired by seed, in foreground PSNR
+        expected = by[(model, "original")]["stats"]["fg_psnr"]["mean"] - by[(model, "standin")]["stats"]["fg_psnr"]["mean"]
+        assert data["fg_psnr_loss_vs_original_db"][model] == pytest.approx(expected)
+        assert data["fg_psnr_loss_std_db"][model] == 0.0
+    assert "Mean ± std over training seeds" in (out / "results.md").read_text()
 
 
 def test_loses_less_needs_a_loss():

@@ -46,8 +46,39 @@ def test_ablation_single_surface_quick(tiny_recipe_capture, tmp_path):
     md = (out / "results.md").read_text()
     assert "Mean ± std over training seeds" in md and "two-surface >= single-surface + 1.5 dB (fg PSNR)" in md
     assert payload["title"] == data["title"]
+    assert data["rows"] == ["a", "b", "c", "d"] and data["settings"]["viewdir_pe_freqs"] == 2
+    assert "Investigation settings: 4 capture cameras (3 training, 1 held out)" in md
     with pytest.raises(SystemExit):
         ablation_single_surface.main(["--quick", "--out", str(tmp_path / "x"), "--seeds", "0"])
+    for bad in (["--rows", "a,e"], ["--rows", ","], ["--unet-dropout", "1.0"], ["--viewdir-pe-freqs", "-1"]):
+        with pytest.raises(SystemExit):
+            ablation_single_surface.main(["--quick", "--out", str(tmp_path / "x"), *bad])
+
+
+def test_viewdir_investigation_options(tmp_path):
+    """--rows a,b --cameras N --viewdir-pe-freqs 0 --unet-dropout 0.1: only the two rows train, on a capture with
+    N cameras, with the raw direction and dropout 0.1, and the report says so."""
+    import torch
+
+    from deliffas.models.zoo import load_checkpoint
+    from recipes import ablation_single_surface
+
+    out = tmp_path / "viewdir"
+    ablation_single_surface.main(["--quick", "--out", str(out), "--rows", "a,b", "--cameras", "8",
+                                  "--viewdir-pe-freqs", "0", "--unet-dropout", "0.1"])
+    data = json.loads((out / "results.json").read_text())
+    assert [r["name"] for r in data["results"]] == [label for label, _ in ablation_single_surface.ROWS[:2]]
+    assert sorted(p.name for p in (out / "runs").iterdir()) == ["single_surface", "single_surface_viewdir"]
+    assert data["settings"] == {"cameras": 8, "train_cameras": 6, "test_cameras": 2, "viewdir_pe_freqs": 0,
+                                "viewdir_pe_freqs_is_preset_default": False,
+                                "viewdir_encoding": "raw direction only (3 inputs, no sin/cos)", "unet_dropout": 0.1}
+    assert set(data["claims"]) == {"viewdir_vs_single"}  # the two-surface claims need row d
+    md = (out / "results.md").read_text()
+    assert "8 capture cameras (6 training, 2 held out)" in md and "U-Net dropout 0.1" in md
+    assert "8 cameras, view-direction PE 0, U-Net dropout 0.1" in data["title"]
+    model = load_checkpoint(out / "runs" / "single_surface_viewdir" / "seed0" / "checkpoint").model
+    assert model.config.viewdir_pe_freqs == 0 and model.config.unet.dropout == 0.1
+    assert [m.p for m in model.modules() if isinstance(m, torch.nn.Dropout)] == [0.1] * 3
 
 
 def test_coarse_mesh_variants_checked(tmp_path):

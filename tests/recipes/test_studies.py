@@ -55,7 +55,7 @@ def stability(tiny_recipe_capture, tmp_path_factory):
 
 def test_speed_accuracy_rows_and_pareto(speed, tiny_recipe_capture):
     from deliffas.engine.report import pareto_front
-    from recipes.speed_accuracy import VARIANTS, SweepPlan
+    from recipes.speed_accuracy import HEADLINE, VARIANTS, SweepPlan
 
     out, payload = speed
     written = json.loads((out / "results.json").read_text())
@@ -67,8 +67,10 @@ def test_speed_accuracy_rows_and_pareto(speed, tiny_recipe_capture):
     assert knobs.count("mlp") == len(plan.mlp) and knobs.count("unet") == len(plan.unet)
     assert knobs.count("atlas") == len(plan.atlas) and knobs.count("template") == len(plan.coarse)
     usable = []
+    assert payload["seeds"] == [0]  # --seeds: 1 in quick mode
     for r in rows:
-        if _finite_or_error(r):
+        if _finite_or_error(r, ("psnr", "ssim", HEADLINE)):
+            assert r["seeds"] == [0] and r[HEADLINE] == pytest.approx(r["foreground"]["psnr"])
             assert set(r["stage_ms"]) == {"uv", "cnn", "sample", "mlp"}
             assert r["num_parameters"] > 0 and r["fps"] > 0
             assert r["ms_per_frame"] == pytest.approx(sum(r["stage_ms"].values()))
@@ -77,13 +79,13 @@ def test_speed_accuracy_rows_and_pareto(speed, tiny_recipe_capture):
         else:
             assert r["pareto"] is None
     assert len(usable) >= 4  # at least the four variants train on the tiny capture
-    front = pareto_front([r["ms_per_frame"] for r in usable], [r["psnr"] for r in usable])
+    front = pareto_front([r["ms_per_frame"] for r in usable], [r[HEADLINE] for r in usable])  # foreground PSNR
     assert {usable[i]["name"] for i in front} == {r["name"] for r in usable if r["pareto"]}
     assert payload["pareto_front"] == [usable[i]["name"] for i in front]
     side = tiny_recipe_capture.sizes.size
     assert payload["resolution"] == [side, side]
     md = (out / "results.md").read_text()
-    assert "on Pareto front" in md and f"{side}x{side}" in md
+    assert "on Pareto front" in md and f"{side}x{side}" in md and "Mean ± std over training seeds" in md
     for r in rows:
         assert r["name"] in md
     _valid_png(out / "speed_accuracy.png")
@@ -92,21 +94,22 @@ def test_speed_accuracy_rows_and_pareto(speed, tiny_recipe_capture):
 
 
 def test_mark_pareto_skips_errors():
-    from recipes.speed_accuracy import mark_pareto
+    from recipes.speed_accuracy import HEADLINE, mark_pareto
 
-    rows = [{"name": "a", "psnr": 20.0, "stage_ms": {"uv": 1.0, "mlp": 1.0}},
-            {"name": "b", "psnr": 25.0, "stage_ms": {"uv": 3.0, "mlp": 1.0}},
-            {"name": "c", "psnr": 22.0, "stage_ms": {"uv": 5.0, "mlp": 1.0}},
-            {"name": "d", "psnr": None, "stage_ms": None, "error": "RuntimeError: boom"},
-            {"name": "e", "psnr": float("nan"), "stage_ms": {"uv": 0.5, "mlp": 0.1}}]
+    rows = [{"name": "a", HEADLINE: 20.0, "stage_ms": {"uv": 1.0, "mlp": 1.0}},
+            {"name": "b", HEADLINE: 25.0, "stage_ms": {"uv": 3.0, "mlp": 1.0}},
+            {"name": "c", HEADLINE: 22.0, "stage_ms": {"uv": 5.0, "mlp": 1.0}},
+            {"name": "d", HEADLINE: None, "stage_ms": None, "error": "RuntimeError: boom"},
+            {"name": "e", HEADLINE: float("nan"), "stage_ms": {"uv": 0.5, "mlp": 0.1}}]
     mark_pareto(rows)
     assert [r["pareto"] for r in rows] == [True, True, False, None, None]
 
 
 def test_stability_structure_and_fail_rule(stability):
-    from recipes.stability import SWEEPS, StabilityPlan
+    from recipes.stability import HEADLINE, SWEEPS, StabilityPlan
 
     out, payload = stability
+    assert payload["seeds"] == [0] and payload["metric"] == HEADLINE == "fg_psnr_mean"
     assert json.loads((out / "results.json").read_text())["failures"] == payload["failures"]
     rows = payload["results"]
     plan = StabilityPlan.for_mode(True)
@@ -123,12 +126,13 @@ def test_stability_structure_and_fail_rule(stability):
                 assert group and all(r["error"] and r["failed"] for r in group), sweep
                 continue
             assert len(group) == expected[sweep], (sweep, v, [r["label"] for r in group])
-            usable = [r for r in group if _finite_or_error(r)]
+            usable = [r for r in group if _finite_or_error(r, ("psnr", "ssim", HEADLINE))]
             assert usable, (sweep, v)
-            best = max(r["psnr"] for r in usable)
+            assert all(r["seeds"] == [0] and r[HEADLINE] == r["stats"]["fg_psnr"]["mean"] for r in usable)
+            best = max(r[HEADLINE] for r in usable)
             for r in group:
                 assert r["best_psnr"] == pytest.approx(best)
-                should_fail = bool(r["error"]) or best - r["psnr"] > payload["fail_db"]
+                should_fail = bool(r["error"]) or best - r[HEADLINE] > payload["fail_db"]
                 assert r["failed"] == should_fail, r["name"]
             listed = payload["failures"][sweep][v]
             assert len(listed) == sum(r["failed"] for r in group)
@@ -150,3 +154,24 @@ def test_stability_structure_and_fail_rule(stability):
     md = (out / "results.md").read_text()
     for sweep in SWEEPS:
         assert f"## {sweep}" in md and f"stability_{sweep}.png" in md
+
+
+def test_stability_two_seeds(tiny_recipe_capture, tmp_path):
+    """--seeds 2: each configuration trained twice (runs/KEY/VARIANT/seed<S>), rows are mean ± std over both,
+    also the pose-distance rows scored from every seed's run."""
+    from recipes import stability
+
+    out = tmp_path / "stability2"
+    payload = stability.main(_args(tiny_recipe_capture, out) + ["--sweeps", "pose_distance", "--variants",
+                                                                "two_surface", "--seeds", "2"])
+    assert payload["seeds"] == [0, 1]
+    rows = payload["results"]
+    assert len(rows) == 1 + stability.StabilityPlan.for_mode(True).pose_bins
+    for r in rows:
+        assert r["error"] is None and r["seeds"] == [0, 1] and [s["seed"] for s in r["per_seed"]] == [0, 1]
+        values = r["stats"]["fg_psnr"]["values"]
+        assert len(values) == 2 and all(math.isfinite(v) for v in values)
+        assert r["fg_psnr_mean"] == pytest.approx(sum(values) / 2) and r["stats"]["fg_psnr"]["std"] > 0
+    for seed in (0, 1):
+        assert (out / "runs" / "base" / "two_surface" / f"seed{seed}" / "checkpoint").is_dir()
+    assert " ± " in (out / "results.md").read_text()
