@@ -9,7 +9,8 @@ stage by stage (``uv``, ``sample``, ``mlp``), with three replacements:
   features straight into the MLP's operands (one C pass);
 * ``mlp``: the MLP as a chain of ``addmm`` in fp32, or in bf16 where the CPU has native bf16;
 * by default ``sample`` and ``mlp`` are one C pass instead (``FastShader.shade_fused``: 16 rays at a time in
-  the vector lanes, fp32, every colour written to its pixel), timed as the ``mlp`` stage.
+  the vector lanes, the hidden layers in bf16 with native bf16 dot products where the dtype is bf16, else fp32;
+  every colour written to its pixel), timed as the ``mlp`` stage.
 
 :class:`FastRender` is the switch. ``deliffas render`` and ``deliffas view`` use
 :func:`default_fast_render` (on for CPU devices); ``deliffas eval`` keeps the plain path, whose
@@ -72,9 +73,9 @@ class FastRender:
     dtype: Dtype = "auto"
     """The MLP's dtype: "auto" = bf16 where the CPU has native bf16, else fp32."""
     fused: bool = True
-    """Sampling, encodings and the whole MLP in one C pass in fp32 (``FastShader.shade_fused``), whatever ``dtype``
-    (``dtype`` then applies where the pass is unavailable); False = the per-stage path (inputs, then the MLP in
-    ``dtype``). ``DELIFFAS_FUSED_SHADE=0`` turns it off."""
+    """Sampling, encodings and the whole MLP in one C pass (``FastShader.shade_fused``): its hidden layers in bf16
+    when ``dtype`` resolves to bf16 and the kernel has native bf16 dot products, else in fp32; False = the
+    per-stage path (inputs, then the MLP in ``dtype``). ``DELIFFAS_FUSED_SHADE=0`` turns it off."""
     in_flight: int = 0
     """Frames :func:`render_stream` renders at once: 0 = auto (``DELIFFAS_FRAMES_IN_FLIGHT``, else one per CPU
     core, at most 2), 1 = sequentially."""
