@@ -199,33 +199,38 @@ int deliffas_raster_depth(const double *P, const int32_t *faces, int64_t F, int6
     return 0;
 }
 
-/* Per face of P: 1 / (its projected area), 1 / (camera z of its corners), four doubles a face (0 where the area
-   is 0 or not finite: such faces are never hit). */
-static void face_consts(const double *P, const int32_t *faces, int64_t F, double *k) {
+/* Per face of P: the uv at pixel centre (x, y) as two ratios of affine functions of (x, y), nine doubles a face:
+   u = (k0 x + k1 y + k2) / (k6 x + k7 y + k8), v = (k3 x + k4 y + k5) / (same). The perspective-correct barycentrics
+   are q_i / sum q, q_i = l_i / z_i with l_i the screen-space weights, affine in (x, y); expanding them once per face
+   leaves an uv two dot products and a division (within 1e-6 of the numpy version, which evaluates the weights per
+   pixel). Zeros where the area is 0 or not finite: such faces are never hit. */
+static void face_consts(const double *P, const int32_t *faces, const float *corner_uvs, int64_t F, double *k) {
     for (int64_t t = 0; t < F; t++) {
-        const double *a = P + 3 * (int64_t)faces[3 * t], *b = P + 3 * (int64_t)faces[3 * t + 1],
-                     *c = P + 3 * (int64_t)faces[3 * t + 2];
+        const double *v[3] = {P + 3 * (int64_t)faces[3 * t], P + 3 * (int64_t)faces[3 * t + 1],
+                              P + 3 * (int64_t)faces[3 * t + 2]};
+        const double *a = v[0], *b = v[1], *c = v[2];
         double area = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]);
-        int ok = area != 0.0 && isfinite(area);
-        k[4 * t] = ok ? 1.0 / area : 0.0;
-        k[4 * t + 1] = ok ? 1.0 / a[2] : 0.0;
-        k[4 * t + 2] = ok ? 1.0 / b[2] : 0.0;
-        k[4 * t + 3] = ok ? 1.0 / c[2] : 0.0;
+        double *kt = k + 9 * t;
+        for (int j = 0; j < 9; j++) kt[j] = 0.0;
+        if (!(area != 0.0) || !isfinite(area)) continue;
+        double A = 1.0 / area;
+        for (int i = 0; i < 3; i++) {  /* l_i = (e_y (y - p1) - e_x (x - p0)) A over the edge opposite corner i */
+            const double *p = v[(i + 1) % 3], *q = v[(i + 2) % 3];
+            double ex = q[1] - p[1], ey = q[0] - p[0], iz = 1.0 / v[i][2];
+            double lx = -ex * A * iz, ly = ey * A * iz, l0 = (ex * p[0] - ey * p[1]) * A * iz;
+            const float *cu = corner_uvs + 6 * t + 2 * i;
+            kt[0] += lx * cu[0]; kt[1] += ly * cu[0]; kt[2] += l0 * cu[0];
+            kt[3] += lx * cu[1]; kt[4] += ly * cu[1]; kt[5] += l0 * cu[1];
+            kt[6] += lx; kt[7] += ly; kt[8] += l0;
+        }
     }
 }
 
-/* uv at pixel centre (x, y) of face f: perspective-correct barycentrics of the hit point (k: face_consts of P). */
-static void face_uv(const double *P, const int32_t *faces, const double *k, const float *corner_uvs, int64_t f,
-                    double x, double y, float *uv) {
-    const double *a = P + 3 * (int64_t)faces[3 * f], *b = P + 3 * (int64_t)faces[3 * f + 1],
-                 *c = P + 3 * (int64_t)faces[3 * f + 2];
-    const double *kf = k + 4 * f;
-    double l[3];
-    weights(a, b, c, x, y, kf[0], l);
-    double q0 = l[0] * kf[1], q1 = l[1] * kf[2], q2 = l[2] * kf[3], s = 1.0 / (q0 + q1 + q2);
-    const float *cu = corner_uvs + 6 * f;
-    uv[0] = (float)((q0 * cu[0] + q1 * cu[2] + q2 * cu[4]) * s);
-    uv[1] = (float)((q0 * cu[1] + q1 * cu[3] + q2 * cu[5]) * s);
+/* uv at pixel centre (x, y) of a face with coefficients kf (face_consts). */
+static inline void face_uv(const double *kf, double x, double y, float *uv) {
+    double s = 1.0 / (kf[6] * x + kf[7] * y + kf[8]);
+    uv[0] = (float)((kf[0] * x + kf[1] * y + kf[2]) * s);
+    uv[1] = (float)((kf[3] * x + kf[4] * y + kf[5]) * s);
 }
 
 /* Shaded pixels of the window in row-major order; returns their number N (-1 when out of memory).
@@ -240,13 +245,13 @@ int64_t deliffas_raster_uv(const double *pin, const double *pout, const int32_t 
                            int64_t *pix, float *uv_in, uint8_t *from_outer, float *uv_out, float *viewdir) {
     int64_t nb = (h + BAND - 1) / BAND, n = w * h;
     int64_t *start_in = malloc((size_t)(nb + 1) * sizeof(int64_t)), *start_out = malloc((size_t)(nb + 1) * sizeof(int64_t));
-    double *k_in = malloc((size_t)(F > 0 ? F : 1) * 4 * sizeof(double)), *k_out = malloc((size_t)(F > 0 ? F : 1) * 4 * sizeof(double));
+    double *k_in = malloc((size_t)(F > 0 ? F : 1) * 9 * sizeof(double)), *k_out = malloc((size_t)(F > 0 ? F : 1) * 9 * sizeof(double));
     int32_t *list_in = start_in ? bin_faces(pin, faces, F, r0, h, start_in) : NULL;
     int32_t *list_out = start_out ? bin_faces(pout, faces, F, r0, h, start_out) : NULL;
     int64_t out = 0;
     if (!start_in || !start_out || !k_in || !k_out || !list_in || !list_out) { out = -1; goto done; }
-    face_consts(pin, faces, F, k_in);
-    face_consts(pout, faces, F, k_out);
+    face_consts(pin, faces, corner_uvs, F, k_in);
+    face_consts(pout, faces, corner_uvs, F, k_out);
     for (int64_t band = 0; band < nb; band++) {
         int64_t rlo = r0 + band * BAND, rhi = rlo + BAND - 1 < r0 + h - 1 ? rlo + BAND - 1 : r0 + h - 1;
         for (int64_t i = (rlo - r0) * w; i < (rhi - r0 + 1) * w; i++) fi[i] = -1;
@@ -276,9 +281,8 @@ int64_t deliffas_raster_uv(const double *pin, const double *pout, const int32_t 
                     if (!outer_exit) continue;
                 }
                 pix[out] = (r0 + r) * W + c0 + cc;
-                face_uv(outer_exit ? pout : pin, faces, outer_exit ? k_out : k_in, corner_uvs, inner_face, x, y,
-                        uv_in + 2 * out);
-                face_uv(pout, faces, k_out, corner_uvs, fo[p], x, y, uv_out + 2 * out);
+                face_uv((outer_exit ? k_out : k_in) + 9 * inner_face, x, y, uv_in + 2 * out);
+                face_uv(k_out + 9 * (int64_t)fo[p], x, y, uv_out + 2 * out);
                 from_outer[out] = (uint8_t)outer_exit;
                 viewdir[3 * out] = (float)(d0 / len);
                 viewdir[3 * out + 1] = (float)(d1 / len);
