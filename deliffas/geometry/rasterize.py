@@ -226,13 +226,6 @@ static void face_consts(const double *P, const int32_t *faces, const float *corn
     }
 }
 
-/* uv at pixel centre (x, y) of a face with coefficients kf (face_consts). */
-static inline void face_uv(const double *kf, double x, double y, float *uv) {
-    double s = 1.0 / (kf[6] * x + kf[7] * y + kf[8]);
-    uv[0] = (float)((kf[0] * x + kf[1] * y + kf[2]) * s);
-    uv[1] = (float)((kf[3] * x + kf[4] * y + kf[5]) * s);
-}
-
 /* Shaded pixels of the window in row-major order; returns their number N (-1 when out of memory).
    pin/pout (V, 3) projected surfaces, faces (F, 3), corner_uvs (F, 6), window (c0, r0, w, h),
    image width W, m = R^T K^-1 (3, 3) row-major, eps = peel distance along the ray (mm).
@@ -248,8 +241,10 @@ int64_t deliffas_raster_uv(const double *pin, const double *pout, const int32_t 
     double *k_in = malloc((size_t)(F > 0 ? F : 1) * 9 * sizeof(double)), *k_out = malloc((size_t)(F > 0 ? F : 1) * 9 * sizeof(double));
     int32_t *list_in = start_in ? bin_faces(pin, faces, F, r0, h, start_in) : NULL;
     int32_t *list_out = start_out ? bin_faces(pout, faces, F, r0, h, start_out) : NULL;
+    double *rowbuf = malloc((size_t)(w > 0 ? w : 1) * 7 * sizeof(double)), *num[6], *xs = rowbuf;
     int64_t out = 0;
-    if (!start_in || !start_out || !k_in || !k_out || !list_in || !list_out) { out = -1; goto done; }
+    if (!start_in || !start_out || !k_in || !k_out || !list_in || !list_out || !rowbuf) { out = -1; goto done; }
+    for (int j = 0; j < 6; j++) num[j] = rowbuf + (j + 1) * w;  /* per shaded pixel of a row: uv numerators, denominator (inner, outer) */
     face_consts(pin, faces, corner_uvs, F, k_in);
     face_consts(pout, faces, corner_uvs, F, k_out);
     for (int64_t band = 0; band < nb; band++) {
@@ -261,16 +256,19 @@ int64_t deliffas_raster_uv(const double *pin, const double *pout, const int32_t 
         raster(pout, faces, list_out + start_out[band], start_out[band + 1] - start_out[band], c0, r0, w, h, rlo, rhi, zo,
                fo, L);
         for (int64_t r = rlo - r0; r <= rhi - r0; r++) {
+            /* the row's shaded pixels: which faces (branches, per pixel), then their divisions and square roots in
+               loops over the row that the compiler vectorises (one pixel at a time, these took most of the time) */
+            int64_t first = out, cnt = 0;
+            double y = r0 + r + 0.5;
             for (int64_t cc = 0; cc < w; cc++) {
                 int64_t p = r * w + cc;
                 if (fo[p] < 0) continue;
-                double x = c0 + cc + 0.5, y = r0 + r + 0.5;
-                double d0 = m[0] * x + m[1] * y + m[2], d1 = m[3] * x + m[4] * y + m[5], d2 = m[6] * x + m[7] * y + m[8];
-                double len = sqrt(d0 * d0 + d1 * d1 + d2 * d2);
+                double x = c0 + cc + 0.5;
                 int64_t inner_face = fi[p];
                 int outer_exit = 0;
                 if (inner_face < 0) {
-                    double zmin = (double)zo[p] + eps / len;
+                    double d0 = m[0] * x + m[1] * y + m[2], d1 = m[3] * x + m[4] * y + m[5], d2 = m[6] * x + m[7] * y + m[8];
+                    double zmin = (double)zo[p] + eps / sqrt(d0 * d0 + d1 * d1 + d2 * d2);
                     for (int k = 1; k < L; k++) {
                         if (fo[k * n + p] >= 0 && (double)zo[k * n + p] > zmin) {
                             inner_face = fo[k * n + p];
@@ -280,19 +278,37 @@ int64_t deliffas_raster_uv(const double *pin, const double *pout, const int32_t 
                     }
                     if (!outer_exit) continue;
                 }
+                const double *ki = (outer_exit ? k_out : k_in) + 9 * inner_face, *ko = k_out + 9 * (int64_t)fo[p];
                 pix[out] = (r0 + r) * W + c0 + cc;
-                face_uv((outer_exit ? k_out : k_in) + 9 * inner_face, x, y, uv_in + 2 * out);
-                face_uv(k_out + 9 * (int64_t)fo[p], x, y, uv_out + 2 * out);
                 from_outer[out] = (uint8_t)outer_exit;
-                viewdir[3 * out] = (float)(d0 / len);
-                viewdir[3 * out + 1] = (float)(d1 / len);
-                viewdir[3 * out + 2] = (float)(d2 / len);
+                xs[cnt] = x;
+                for (int j = 0; j < 3; j++) {
+                    num[j][cnt] = ki[3 * j] * x + ki[3 * j + 1] * y + ki[3 * j + 2];
+                    num[3 + j][cnt] = ko[3 * j] * x + ko[3 * j + 1] * y + ko[3 * j + 2];
+                }
+                cnt++;
                 out++;
+            }
+            float *ui = uv_in + 2 * first, *uo = uv_out + 2 * first, *vd = viewdir + 3 * first;
+            for (int64_t j = 0; j < cnt; j++) {  /* uv = numerator / denominator (face_uv) */
+                double si = 1.0 / num[2][j], so = 1.0 / num[5][j];
+                ui[2 * j] = (float)(num[0][j] * si);
+                ui[2 * j + 1] = (float)(num[1][j] * si);
+                uo[2 * j] = (float)(num[3][j] * so);
+                uo[2 * j + 1] = (float)(num[4][j] * so);
+            }
+            for (int64_t j = 0; j < cnt; j++) {
+                double x = xs[j];
+                double d0 = m[0] * x + m[1] * y + m[2], d1 = m[3] * x + m[4] * y + m[5], d2 = m[6] * x + m[7] * y + m[8];
+                double len = sqrt(d0 * d0 + d1 * d1 + d2 * d2);
+                vd[3 * j] = (float)(d0 / len);
+                vd[3 * j + 1] = (float)(d1 / len);
+                vd[3 * j + 2] = (float)(d2 / len);
             }
         }
     }
 done:
-    free(start_in); free(start_out); free(k_in); free(k_out); free(list_in); free(list_out);
+    free(start_in); free(start_out); free(k_in); free(k_out); free(list_in); free(list_out); free(rowbuf);
     return out;
 }
 """
@@ -307,7 +323,7 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.deliffas_raster_depth.restype = ctypes.c_int
 
 
-_KERNEL = LazyLibrary("rasterize", _SOURCE, ("-fno-fast-math", "-ffp-contract=off"), setup=_declare,
+_KERNEL = LazyLibrary("rasterize", _SOURCE, ("-fno-fast-math", "-ffp-contract=off", "-fno-math-errno"), setup=_declare,
                       fallback="the numpy rasteriser, about 20-50x slower")
 
 
