@@ -35,7 +35,7 @@ from typing import Callable, Iterable, Iterator, Literal, TypeVar
 
 import torch
 
-from deliffas.engine.rays import CameraRays, camera_rays, paint_images, ray_query, stack_rays
+from deliffas.engine.rays import CameraRays, RayBatch, camera_rays, paint_images, ray_query
 from deliffas.engine.timing import StageTimer
 from deliffas.geometry.rasterize import UVRasterizer
 from deliffas.geometry.raycast import UVRaycaster
@@ -144,6 +144,15 @@ def fast_camera_rays(raycaster: UVRaycaster, camera: Camera, rasterize: bool = T
                       uv_outer=got.uv_outer, viewdir=got.viewdir, height=camera.height, width=camera.width)
 
 
+def _camera_batch(rays: CameraRays) -> RayBatch:
+    """``stack_rays([rays], [0])`` without copies: the batch's tensors share ``rays``' arrays (fresh ones from
+    :func:`fast_camera_rays`; the copies took 0.6 ms a 940 x 1285 frame)."""
+    zeros = torch.zeros(rays.num_rays, dtype=torch.long)
+    return RayBatch(batch_index=zeros, image_index=zeros, pixels=torch.from_numpy(rays.pixels),
+                    uv_inner=torch.from_numpy(rays.uv_inner), uv_outer=torch.from_numpy(rays.uv_outer),
+                    inner_from_outer=torch.from_numpy(rays.inner_from_outer), viewdir=torch.from_numpy(rays.viewdir))
+
+
 @torch.no_grad()
 def fast_render_camera(model: DeliffasModel, features: FrameFeatures, raycaster: UVRaycaster, camera: Camera,
                        timer: StageTimer, fast: FastRender = FastRender(), background: float = 0.0) -> torch.Tensor:
@@ -151,7 +160,7 @@ def fast_render_camera(model: DeliffasModel, features: FrameFeatures, raycaster:
 
     Variants :class:`FastShader` does not support keep the model's own ``gather_inputs`` and MLP."""
     with timer.stage("uv"):
-        batch = stack_rays([fast_camera_rays(raycaster, camera, fast.rasterize)], [0])
+        batch = _camera_batch(fast_camera_rays(raycaster, camera, fast.rasterize))
         query = ray_query(batch, model.spec)
     if supports(model) and model.mlp.output.weight.dtype == torch.float32 and features.inner.device.type == "cpu":
         shader = _shader(model, fast.torch_dtype())
