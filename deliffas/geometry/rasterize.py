@@ -88,17 +88,45 @@ static inline int face_rows(const double *P, const int32_t *faces, int64_t t, in
     return *rs <= *re;
 }
 
+/* Insert fragments (zf, fv) into the first `layers` layers of 8 pixels from q where `in`: whether a fragment goes
+   before layer k is monotone in k, so each layer takes its own value, the fragment's or the previous layer's. */
+static inline __attribute__((always_inline)) void insert8(float *z, int32_t *face, int64_t plane, int64_t q, int layers,
+                                                          v8i in, v8f zf, v8i fv) {
+    v8i zi, zk[L], fk[L], before[L];
+    memcpy(&zi, &zf, 32);
+    for (int k = 0; k < layers; k++) {
+        v8f zk_f;
+        memcpy(&zk_f, z + k * plane + q, 32);
+        memcpy(&fk[k], face + k * plane + q, 32);
+        memcpy(&zk[k], &zk_f, 32);
+        before[k] = in & ((fk[k] < 0) | (zf < zk_f));
+    }
+    for (int k = layers - 1; k >= 0; k--) {
+        v8i nz = (zi & before[k]) | (zk[k] & ~before[k]);
+        v8i nf = (fv & before[k]) | (fk[k] & ~before[k]);
+        if (k > 0) {
+            nz = (zk[k - 1] & before[k - 1]) | (nz & ~before[k - 1]);
+            nf = (fk[k - 1] & before[k - 1]) | (nf & ~before[k - 1]);
+        }
+        memcpy(z + k * plane + q, &nz, 32);
+        memcpy(face + k * plane + q, &nf, 32);
+    }
+}
+
 /* z-buffer pass of faces list[0 .. count) of one surface over window rows [rlo, rhi]: P (V, 3) = (x px, y px,
    camera z > 0); keeps the `layers` (<= L) nearest fragments per window pixel, sorted by depth (a fragment after
    those at its depth), in z (float) and face (int32, -1 = none), layer k of window pixel p at k w h + p. Both need
-   7 elements of slack after the last layer.
+   7 elements of slack after the last layer. With `cover` (the inner surface's faces, this band rasterised), 8 pixels
+   that all have one keep only the nearest fragment: the farther layers are read only where the inner surface is
+   missed (the exit search), and these blends and stores took a third of the outer pass.
    8 pixels of a row at a time in vectors (GCC/clang vector extensions), without branches: the coverage test
    (the same operations as weights() per pixel, so the same pixels), the depth, and the insertion into each layer
    (whether the fragment goes before layer k is monotone in k, so each layer takes its own value, the fragment's
    or the previous layer's). Per pixel with branches this took 2-3x longer: the order of the faces says nothing
    about depth, so the insertion's branches were mispredicted at about every other fragment. */
 static void raster(const double *P, const int32_t *faces, const int32_t *list, int64_t count, int64_t c0, int64_t r0,
-                   int64_t w, int64_t h, int64_t rlo, int64_t rhi, float *z, int32_t *face, int layers) {
+                   int64_t w, int64_t h, int64_t rlo, int64_t rhi, float *z, int32_t *face, int layers,
+                   const int32_t *cover) {
     const v8d lane = {0.5, 1.5, 2.5, 3.5, 4.5, 5.5, 6.5, 7.5};
     const v8i lane_i = {0, 1, 2, 3, 4, 5, 6, 7};
     const int64_t plane = w * h;
@@ -130,27 +158,17 @@ static void raster(const double *P, const int32_t *faces, const int32_t *list, i
                 v8i in = __builtin_convertvector((m0 >= 0.0) & (m1 >= 0.0) & (m2 >= 0.0), v8i)
                          & (lane_i < (int32_t)(ce - col0 + 1));
                 v8f zf = __builtin_convertvector(1.0 / (m0 * ia + m1 * ib + m2 * ic), v8f);
-                v8i zi;
-                memcpy(&zi, &zf, 32);
                 int64_t q = (row - r0) * w + (col0 - c0);
-                v8i zk[L], fk[L], before[L];
-                for (int k = 0; k < layers; k++) {
-                    v8f zk_f;
-                    memcpy(&zk_f, z + k * plane + q, 32);
-                    memcpy(&fk[k], face + k * plane + q, 32);
-                    memcpy(&zk[k], &zk_f, 32);
-                    before[k] = in & ((fk[k] < 0) | (zf < zk_f));
+                int all_covered = cover != 0;
+                if (cover) {
+                    v8i cv;
+                    memcpy(&cv, cover + q, 32);
+                    for (int j = 0; j < 8; j++) all_covered &= cv[j] >= 0;
                 }
-                for (int k = layers - 1; k >= 0; k--) {
-                    v8i nz = (zi & before[k]) | (zk[k] & ~before[k]);
-                    v8i nf = (fv & before[k]) | (fk[k] & ~before[k]);
-                    if (k > 0) {
-                        nz = (zk[k - 1] & before[k - 1]) | (nz & ~before[k - 1]);
-                        nf = (fk[k - 1] & before[k - 1]) | (nf & ~before[k - 1]);
-                    }
-                    memcpy(z + k * plane + q, &nz, 32);
-                    memcpy(face + k * plane + q, &nf, 32);
-                }
+                if (all_covered)
+                    insert8(z, face, plane, q, 1, in, zf, fv);
+                else
+                    insert8(z, face, plane, q, layers, in, zf, fv);
             }
         }
     }
@@ -192,7 +210,7 @@ int deliffas_raster_depth(const double *P, const int32_t *faces, int64_t F, int6
     for (int64_t k = 0; k < nb; k++) {
         int64_t rlo = r0 + k * BAND, rhi = rlo + BAND - 1 < r0 + h - 1 ? rlo + BAND - 1 : r0 + h - 1;
         for (int64_t i = (rlo - r0) * w; i < (rhi - r0 + 1) * w; i++) face[i] = -1;
-        raster(P, faces, list + start[k], start[k + 1] - start[k], c0, r0, w, h, rlo, rhi, z, face, 1);
+        raster(P, faces, list + start[k], start[k + 1] - start[k], c0, r0, w, h, rlo, rhi, z, face, 1, 0);
     }
     free(list);
     free(start);
@@ -252,9 +270,9 @@ int64_t deliffas_raster_uv(const double *pin, const double *pout, const int32_t 
         for (int64_t i = (rlo - r0) * w; i < (rhi - r0 + 1) * w; i++) fi[i] = -1;
         for (int k = 0; k < L; k++)
             for (int64_t i = (rlo - r0) * w; i < (rhi - r0 + 1) * w; i++) fo[k * n + i] = -1;
-        raster(pin, faces, list_in + start_in[band], start_in[band + 1] - start_in[band], c0, r0, w, h, rlo, rhi, zi, fi, 1);
+        raster(pin, faces, list_in + start_in[band], start_in[band + 1] - start_in[band], c0, r0, w, h, rlo, rhi, zi, fi, 1, 0);
         raster(pout, faces, list_out + start_out[band], start_out[band + 1] - start_out[band], c0, r0, w, h, rlo, rhi, zo,
-               fo, L);
+               fo, L, fi);
         for (int64_t r = rlo - r0; r <= rhi - r0; r++) {
             /* the row's shaded pixels: which faces (branches, per pixel), then their divisions and square roots in
                loops over the row that the compiler vectorises (one pixel at a time, these took most of the time) */
