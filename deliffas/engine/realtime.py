@@ -135,9 +135,10 @@ def _shader(model: DeliffasModel, dtype: torch.dtype) -> FastShader:
     return per_model[dtype]
 
 
-def fast_camera_rays(raycaster: UVRaycaster, camera: Camera, rasterize: bool = True) -> CameraRays:
-    """``camera_rays(raycaster, camera)`` by rasterisation (the ray caster where a vertex is behind the camera)."""
-    got = _rasterizer(raycaster).shaded_pixels(camera) if rasterize else None
+def fast_camera_rays(raycaster: UVRaycaster, camera: Camera, rasterize: bool = True, viewdir: bool = True) -> CameraRays:
+    """``camera_rays(raycaster, camera)`` by rasterisation (the ray caster where a vertex is behind the camera);
+    ``viewdir=False``: the rasteriser leaves the view directions out (``viewdir`` None)."""
+    got = _rasterizer(raycaster).shaded_pixels(camera, viewdir) if rasterize else None
     if got is None:
         return camera_rays(raycaster, camera)
     return CameraRays(pixels=got.pixels, uv_inner=got.uv_inner, inner_from_outer=got.inner_from_outer,
@@ -146,11 +147,12 @@ def fast_camera_rays(raycaster: UVRaycaster, camera: Camera, rasterize: bool = T
 
 def _camera_batch(rays: CameraRays) -> RayBatch:
     """``stack_rays([rays], [0])`` without copies: the batch's tensors share ``rays``' arrays (fresh ones from
-    :func:`fast_camera_rays`; the copies took 0.6 ms a 940 x 1285 frame)."""
+    :func:`fast_camera_rays`; the copies took 0.6 ms a 940 x 1285 frame); ``viewdir`` None where the rays have none."""
     zeros = torch.zeros(rays.num_rays, dtype=torch.long)
     return RayBatch(batch_index=zeros, image_index=zeros, pixels=torch.from_numpy(rays.pixels),
                     uv_inner=torch.from_numpy(rays.uv_inner), uv_outer=torch.from_numpy(rays.uv_outer),
-                    inner_from_outer=torch.from_numpy(rays.inner_from_outer), viewdir=torch.from_numpy(rays.viewdir))
+                    inner_from_outer=torch.from_numpy(rays.inner_from_outer),
+                    viewdir=torch.from_numpy(rays.viewdir) if rays.viewdir is not None else None)  # type: ignore[arg-type]
 
 
 @torch.no_grad()
@@ -160,7 +162,8 @@ def fast_render_camera(model: DeliffasModel, features: FrameFeatures, raycaster:
 
     Variants :class:`FastShader` does not support keep the model's own ``gather_inputs`` and MLP."""
     with timer.stage("uv"):
-        batch = _camera_batch(fast_camera_rays(raycaster, camera, fast.rasterize))
+        # view directions only for the variants that read them (ray_query passes them on only then)
+        batch = _camera_batch(fast_camera_rays(raycaster, camera, fast.rasterize, viewdir=model.spec.viewdir))
         query = ray_query(batch, model.spec)
     if supports(model) and model.mlp.output.weight.dtype == torch.float32 and features.inner.device.type == "cpu":
         shader = _shader(model, fast.torch_dtype())
