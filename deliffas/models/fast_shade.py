@@ -397,6 +397,39 @@ static void pair_tile(const v16 *x, int64_t K, __m512bh *xp) {
     if (k < K) xp[k / 2] = pair_rows((__m512)x[k], _mm512_setzero_ps());
 }
 
+/* encode_tile_f32 straight into row pairs: (u, v), then per frequency (sin u, sin v) and (cos u, cos v), which is
+   how the encoding's rows pair up (each uv's rows are even in number); no fp32 rows stored and read back. */
+static void encode_pairs(const float *uv, int64_t m, int L, int include_input, __m512bh *xp) {
+    const float pi = (float)3.14159265358979323846, pi_hi = 3.140625f, pi_lo = 9.67653589793e-4f,
+                shift = 12582912.0f;
+    float s[2][TILE], c[2][TILE], u[2][TILE];
+    for (int64_t i = 0; i < TILE; i++)
+        for (int d = 0; d < 2; d++) u[d][i] = uv[2 * (i < m ? i : m - 1) + d];
+    for (int d = 0; d < 2; d++)
+        for (int64_t i = 0; i < TILE; i++) {  /* as encode_tile_f32 */
+            float a = u[d][i] * pi;
+            float k = (a * (1.0f / pi) + shift) - shift;
+            float r = (a - k * pi_hi) - k * pi_lo, r2 = r * r;
+            float sn = r * (1.0f + r2 * (-1.0f / 6 + r2 * (1.0f / 120 + r2 * (-1.0f / 5040 + r2 * (1.0f / 362880
+                         + r2 * (-1.0f / 39916800))))));
+            float cs = 1.0f + r2 * (-0.5f + r2 * (1.0f / 24 + r2 * (-1.0f / 720 + r2 * (1.0f / 40320
+                         + r2 * (-1.0f / 3628800 + r2 * (1.0f / 479001600))))));
+            float sign = 1.0f - 2.0f * (float)((int32_t)k & 1);
+            s[d][i] = sign * sn;
+            c[d][i] = sign * cs;
+        }
+    v16 s0, s1, c0, c1, u0, u1;
+    memcpy(&s0, s[0], 64); memcpy(&s1, s[1], 64); memcpy(&c0, c[0], 64); memcpy(&c1, c[1], 64);
+    memcpy(&u0, u[0], 64); memcpy(&u1, u[1], 64);
+    if (include_input) *xp++ = pair_rows((__m512)u0, (__m512)u1);
+    for (int k = 0; k < L; k++) {
+        *xp++ = pair_rows((__m512)s0, (__m512)s1);
+        *xp++ = pair_rows((__m512)c0, (__m512)c1);
+        v16 t0 = 2.0f * s0 * c0, t1 = 2.0f * s1 * c1;
+        c0 = c0 * c0 - s0 * s0; c1 = c1 * c1 - s1 * s1; s0 = t0; s1 = t1;
+    }
+}
+
 /* relu(b + x W + f Wf) for N outputs (a multiple of 8): x (K2 pairs), W (K2, N) and Wf (F2, N) weight pairs; into
    yp as pairs, or into yf as fp32 rows when yf is given (the last hidden layer, read by the fp32 output layer). */
 static void dense_bf16(const __m512bh *x, int64_t K2, const uint32_t *w, const float *b, const __m512bh *f, int64_t F2,
@@ -459,10 +492,13 @@ int deliffas_fused_shade(int64_t n, const float *uv_in, const uint8_t *from_oute
     for (int64_t r0 = 0; r0 < n; r0 += TILE) {
         int64_t m = n - r0 < TILE ? n - r0 : TILE;
         int64_t per_uv = (include_input ? 2 : 0) + 4 * (int64_t)L;
-        float *xt = (float *)xe;
-        void (*encode)(const float *, int64_t, int, int, float *) = bf16 ? encode_tile_f32 : encode_tile;
-        if (outer_encoded) { encode(uv_out + 2 * r0, m, L, include_input, xt); xt += per_uv * TILE; }
-        encode(uv_in + 2 * r0, m, L, include_input, xt);
+        int pairs_direct = FUSED_BF16 && bf16 && nh > 0;  /* encodings straight into bf16 pairs */
+        if (!pairs_direct) {
+            float *xt = (float *)xe;
+            void (*encode)(const float *, int64_t, int, int, float *) = bf16 ? encode_tile_f32 : encode_tile;
+            if (outer_encoded) { encode(uv_out + 2 * r0, m, L, include_input, xt); xt += per_uv * TILE; }
+            encode(uv_in + 2 * r0, m, L, include_input, xt);
+        }
         float *ft = (float *)xf;
         if (map_out) { sample_tile(map_out, map_out, 0, uv_out + 2 * r0, m, S, C, ft); ft += C * TILE; }
         sample_tile(map_in, map_out, (map_out && from_outer) ? from_outer + r0 : 0, uv_in + 2 * r0, m, S, C, ft);
@@ -471,7 +507,9 @@ int deliffas_fused_shade(int64_t n, const float *uv_in, const uint8_t *from_oute
         if (bf16 && nh > 0) {
 #if FUSED_BF16
             __m512bh *pe = (__m512bh *)pairs, *pf = pe + (E + 1) / 2, *ph[2] = {pf + (Fd + 1) / 2, pf + (Fd + 1) / 2 + wmax / 2};
-            pair_tile(xe, E, pe);
+            __m512bh *pp = pe;
+            if (outer_encoded) { encode_pairs(uv_out + 2 * r0, m, L, include_input, pp); pp += per_uv / 2; }
+            encode_pairs(uv_in + 2 * r0, m, L, include_input, pp);
             pair_tile(xf, Fd, pf);
             const __m512bh *xp = pe;
             const uint32_t *words = (const uint32_t *)params;
