@@ -154,3 +154,19 @@ def test_bf16_weight_pairs():
     torch.testing.assert_close(pairs[:, :, 0], w[0::2].to(torch.bfloat16), atol=0, rtol=0)
     torch.testing.assert_close(pairs[:, :, 1], w[1::2].to(torch.bfloat16), atol=0, rtol=0)
     assert fast_shade._bf16_pairs(torch.zeros(0, 8)).shape == (0, 8)
+
+
+def test_fused_pass_built_without_native_bf16_runs_fp32(monkeypatch):
+    """The fallback of the bf16 hidden layers: a kernel built without AVX512-BF16 (here: -mno-avx512bf16) reports
+    none, and a bf16 shader's fused pass then computes in fp32."""
+    lib = LazyLibrary("fused_shade_nobf16", fast_shade._FUSED_SOURCE, (*fast_shade._FUSED.flags, "-mno-avx512bf16"),
+                      setup=fast_shade._declare_fused, fallback="none")
+    if lib.get() is None:  # no compiler, or one that does not know the flag
+        pytest.skip(f"kernel not built: {lib.load().reason}")
+    monkeypatch.setattr(fast_shade, "_FUSED", lib)
+    assert not lib.get().deliffas_fused_bf16()
+    model, feats, query = _case("two_surface", "realtime", n=500)
+    with torch.no_grad():
+        shader = FastShader(model, torch.bfloat16)
+        assert shader.fused_available() and not shader.fused_bf16()
+        torch.testing.assert_close(shader.shade_fused(feats, query), model.shade(feats, query), atol=2e-6, rtol=0)
