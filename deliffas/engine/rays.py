@@ -37,7 +37,8 @@ class CameraRays:
         uv_inner: (N, 2) float32, inner hit uv or outer exit uv.
         inner_from_outer: (N,) bool, True where ``uv_inner`` is the outer exit hit.
         uv_outer: (N, 2) float32, first outer hit uv.
-        viewdir: (N, 3) float32 unit ray directions, world frame.
+        viewdir: (N, 3) float32 unit ray directions, world frame (None from ``engine.realtime.fast_camera_rays``
+            with ``viewdir=False``).
         height, width: image size.
     """
 
@@ -45,7 +46,7 @@ class CameraRays:
     uv_inner: np.ndarray
     inner_from_outer: np.ndarray
     uv_outer: np.ndarray
-    viewdir: np.ndarray
+    viewdir: np.ndarray | None
     height: int
     width: int
 
@@ -89,7 +90,7 @@ class RayBatch:
         pixels: (N,) long flat pixel index in its image.
         uv_inner, uv_outer: (N, 2) float.
         inner_from_outer: (N,) bool.
-        viewdir: (N, 3) float.
+        viewdir: (N, 3) float (None from the fast path for variants without a view direction).
     """
 
     batch_index: torch.Tensor

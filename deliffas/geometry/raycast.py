@@ -17,6 +17,7 @@ open3d is imported at call time, only here (shell.py reaches it through these fu
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass, fields
 from typing import Literal, Sequence
 
@@ -364,8 +365,9 @@ class UVRaycaster:
         # the frame's surfaces as given (read by engine/realtime's rasteriser of the same frame)
         self.inner_verts, self.outer_verts, self.faces, self.atlas = inner_verts, outer_verts, faces, atlas
         self.corner_uvs = atlas.uvs.astype(np.float32)[atlas.face_uvs]  # (F, 3, 2) float32
-        self.inner_scene = build_scene(inner_verts, faces)
-        self.outer_scene = build_scene(outer_verts, faces)
+        # open3d scenes built at the first cast: the rasterising fast path never casts (1.3 ms a frame saved)
+        self._scenes: tuple | None = None
+        self._scenes_lock = threading.Lock()
         ov = np.asarray(outer_verts, dtype=np.float64)
         diag = float(np.linalg.norm(ov.max(0) - ov.min(0))) if len(ov) else 1.0
         self.peel_eps = PEEL_EPS_REL * max(diag, 1e-6)
@@ -375,6 +377,23 @@ class UVRaycaster:
         self.hull_points = both  # (2V, 3) float64: every ray that meets a surface meets their hull
         self.box_lo = both.min(0) - pad if len(both) else np.full(3, np.inf)
         self.box_hi = both.max(0) + pad if len(both) else np.full(3, -np.inf)
+
+    def _built_scenes(self) -> tuple:
+        if self._scenes is None:
+            with self._scenes_lock:  # frames may render in several threads with one raycaster
+                if self._scenes is None:
+                    self._scenes = (build_scene(self.inner_verts, self.faces), build_scene(self.outer_verts, self.faces))
+        return self._scenes
+
+    @property
+    def inner_scene(self):
+        """The open3d ray casting scene of the inner surface (built on first use)."""
+        return self._built_scenes()[0]
+
+    @property
+    def outer_scene(self):
+        """The open3d ray casting scene of the outer surface (built on first use)."""
+        return self._built_scenes()[1]
 
     def cast_rays(self, origins: np.ndarray, directions: np.ndarray) -> RaycastHits:
         """Hits of arbitrary rays: origins (N, 3) mm and unit directions (N, 3); flat (N,) hits.

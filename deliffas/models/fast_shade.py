@@ -17,7 +17,10 @@ runs every product in bf16 with fp32 output (colours in fp32). Use it where the 
 bf16 (:func:`native_bf16`); elsewhere bf16 is several times slower than fp32.
 
 :meth:`FastShader.shade_fused` does all of it in one C pass instead (16 rays at a time in the vector lanes,
-fp32, each colour written straight to its pixel); the engine's fast path uses it by default.
+each colour written straight to its pixel); the engine's fast path uses it by default. Its hidden layers run
+in bf16 with native bf16 dot products (AVX512-BF16's ``vdpbf16ps``, fp32 sums) when the shader's dtype is bf16
+and the kernel was built with them for this CPU (:meth:`FastShader.fused_bf16`), else in fp32; encodings,
+samples, the output layer and its sigmoid are fp32 either way.
 
 Supported variants: no view direction and one inner U-Net (``two_surface``, ``single_surface``);
 :func:`supports` says so, and callers use ``DeliffasModel.shade`` otherwise. Without the C kernel
@@ -214,6 +217,7 @@ _FUSED_SOURCE = _SOURCE + r"""
 #include <stdlib.h>
 
 typedef float v16 __attribute__((vector_size(64)));
+typedef float v8 __attribute__((vector_size(32)));
 typedef int32_t v16i __attribute__((vector_size(64)));
 #define TILE 16
 
@@ -258,6 +262,47 @@ static void encode_tile(const float *uv, int64_t m, int L, int include_input, fl
     }
 }
 
+/* encode_tile in float32 for the bf16 hidden layers, whose inputs are rounded to bf16 (8 bits) anyway: sin and cos
+   of a = float(x pi) by a two-part pi reduction and Taylor series to degree 11 / 12 (error < 1e-7), the higher
+   frequencies by the double-angle recurrence in float32 (its error doubles per step: about 3e-5 at the 10th
+   frequency, against bf16's 2e-3), 16 lanes a vector instead of 8 in float64. */
+static void encode_tile_f32(const float *uv, int64_t m, int L, int include_input, float *xt) {
+    const float pi = (float)3.14159265358979323846, pi_hi = 3.140625f, pi_lo = 9.67653589793e-4f,
+                shift = 12582912.0f;  /* 1.5 2^23: adding and subtracting it rounds to an integer */
+    float s[2][TILE], c[2][TILE], u[2][TILE];
+    for (int64_t i = 0; i < TILE; i++)
+        for (int d = 0; d < 2; d++) u[d][i] = uv[2 * (i < m ? i : m - 1) + d];
+    for (int d = 0; d < 2; d++) {
+        if (include_input)
+            for (int64_t i = 0; i < TILE; i++) xt[d * TILE + i] = u[d][i];
+        for (int64_t i = 0; i < TILE; i++) {
+            float a = u[d][i] * pi;
+            float k = (a * (1.0f / pi) + shift) - shift;
+            float r = (a - k * pi_hi) - k * pi_lo, r2 = r * r;
+            float sn = r * (1.0f + r2 * (-1.0f / 6 + r2 * (1.0f / 120 + r2 * (-1.0f / 5040 + r2 * (1.0f / 362880
+                         + r2 * (-1.0f / 39916800))))));
+            float cs = 1.0f + r2 * (-0.5f + r2 * (1.0f / 24 + r2 * (-1.0f / 720 + r2 * (1.0f / 40320
+                         + r2 * (-1.0f / 3628800 + r2 * (1.0f / 479001600))))));
+            float sign = 1.0f - 2.0f * (float)((int32_t)k & 1);
+            s[d][i] = sign * sn;
+            c[d][i] = sign * cs;
+        }
+    }
+    float *o = xt + (include_input ? 2 : 0) * TILE;
+    for (int k = 0; k < L; k++, o += 4 * TILE) {
+        for (int64_t i = 0; i < TILE; i++) {
+            o[i] = s[0][i]; o[TILE + i] = s[1][i];
+            o[2 * TILE + i] = c[0][i]; o[3 * TILE + i] = c[1][i];
+        }
+        for (int d = 0; d < 2; d++)
+            for (int64_t i = 0; i < TILE; i++) {
+                float t = 2.0f * s[d][i] * c[d][i];
+                c[d][i] = c[d][i] * c[d][i] - s[d][i] * s[d][i];
+                s[d][i] = t;
+            }
+    }
+}
+
 /* Bilinear samples (sample_f32's arithmetic) of uvs [0, m) of a tile into ft (C, TILE): ray i reads map_alt where
    alt[i] is set, else map; coordinates and weights computed over the tile (vectorised), then C channels of four
    taps per ray. Clamped coordinates are >= 0, so the integer part is a truncation. */
@@ -272,8 +317,9 @@ static void sample_tile(const float *map, const float *map_alt, const uint8_t *a
     for (int64_t i = 0; i < TILE; i++) {
         float gx = 2.0f * u[0][i] - 1.0f, gy = 1.0f - 2.0f * u[1][i];
         float ix = ((gx + 1.0f) * (float)S - 1.0f) / 2.0f, iy = ((gy + 1.0f) * (float)S - 1.0f) / 2.0f;
-        ix = fminf(fmaxf(ix, 0.0f), hi);  /* fmaxf(NaN, 0) = 0, as sample_f32's NaN check */
-        iy = fminf(fmaxf(iy, 0.0f), hi);
+        /* NaN -> 0, as sample_f32's NaN check; comparisons rather than fminf/fmaxf, which stay libm calls here */
+        ix = ix > 0.0f ? ix : 0.0f; ix = ix < hi ? ix : hi;
+        iy = iy > 0.0f ? iy : 0.0f; iy = iy < hi ? iy : hi;
         int32_t x0 = (int32_t)ix, y0 = (int32_t)iy;
         float fx = ix - (float)x0, fy = iy - (float)y0;
         int32_t x1 = x0 + (x0 + 1 < S), y1 = y0 + (y0 + 1 < S);
@@ -281,12 +327,27 @@ static void sample_tile(const float *map, const float *map_alt, const uint8_t *a
         o00[i] = ((int64_t)y0 * S + x0) * C; o01[i] = ((int64_t)y0 * S + x1) * C;
         o10[i] = ((int64_t)y1 * S + x0) * C; o11[i] = ((int64_t)y1 * S + x1) * C;
     }
-    for (int64_t i = 0; i < TILE; i++) {
-        const float *mp = (alt && alt[i < m ? i : m - 1]) ? map_alt : map;
-        const float *p00 = mp + o00[i], *p01 = mp + o01[i], *p10 = mp + o10[i], *p11 = mp + o11[i];
-        for (int64_t c = 0; c < C; c++)
-            ft[c * TILE + i] = w00[i] * p00[c] + w01[i] * p01[c] + w10[i] * p10[c] + w11[i] * p11[c];
+    const float *base[TILE];
+    for (int64_t i = 0; i < TILE; i++) base[i] = (alt && alt[i < m ? i : m - 1]) ? map_alt : map;
+    int64_t c = 0;
+    for (; c + 8 <= C; c += 8) {  /* 8 channels of a ray in one vector, then the (TILE, 8) block transposed into ft */
+        float blk[TILE][8];
+        for (int64_t i = 0; i < TILE; i++) {
+            const float *mp = base[i] + c;
+            v8 t00, t01, t10, t11;
+            memcpy(&t00, mp + o00[i], 32); memcpy(&t01, mp + o01[i], 32);
+            memcpy(&t10, mp + o10[i], 32); memcpy(&t11, mp + o11[i], 32);
+            v8 v = w00[i] * t00 + w01[i] * t01 + w10[i] * t10 + w11[i] * t11;
+            memcpy(blk[i], &v, 32);
+        }
+        for (int j = 0; j < 8; j++)
+            for (int64_t i = 0; i < TILE; i++) ft[(c + j) * TILE + i] = blk[i][j];
     }
+    for (; c < C; c++)
+        for (int64_t i = 0; i < TILE; i++) {
+            const float *mp = base[i] + c;
+            ft[c * TILE + i] = w00[i] * mp[o00[i]] + w01[i] * mp[o01[i]] + w10[i] * mp[o10[i]] + w11[i] * mp[o11[i]];
+        }
 }
 
 /* y (N, TILE) = relu?(b + x (K, TILE) W (K, N) + f (F, TILE) Wf (F, N)); N a multiple of 8. */
@@ -312,40 +373,166 @@ static void dense(const v16 *x, int64_t K, const float *w, const float *b, const
     }
 }
 
+/* Native bf16 dot products (AVX512-BF16, compiled in only where -march=native has them): the hidden layers with
+   bf16 inputs and weights, fp32 sums. An activation tile is held as row pairs, (K/2, TILE, 2) bf16: lanes 2i, 2i+1 of
+   vector k are rows 2k, 2k+1 of ray i, so one vdpbf16ps adds two products for 16 rays to one output, the weight pair
+   (w[2k][n], w[2k+1][n]) broadcast as one 32-bit word. */
+#if defined(__AVX512BF16__) && defined(__AVX512BW__)
+#include <immintrin.h>
+#define FUSED_BF16 1
+
+static const uint16_t interleave_idx[32] = {0, 16, 1, 17, 2, 18, 3, 19, 4, 20, 5, 21, 6, 22, 7, 23,
+                                            8, 24, 9, 25, 10, 26, 11, 27, 12, 28, 13, 29, 14, 30, 15, 31};
+
+/* rows a and b of 16 rays as one pair vector (round to nearest even, as torch's .to(bfloat16)) */
+static inline __m512bh pair_rows(__m512 a, __m512 b) {
+    __m512i v = (__m512i)_mm512_cvtne2ps_pbh(b, a);  /* a in lanes 0..15, b in 16..31 */
+    return (__m512bh)_mm512_permutexvar_epi16(_mm512_loadu_si512(interleave_idx), v);
+}
+
+/* (K, TILE) fp32 rows as ceil(K/2) pair vectors (an odd last row paired with 0) */
+static void pair_tile(const v16 *x, int64_t K, __m512bh *xp) {
+    int64_t k = 0;
+    for (; k + 1 < K; k += 2) xp[k / 2] = pair_rows((__m512)x[k], (__m512)x[k + 1]);
+    if (k < K) xp[k / 2] = pair_rows((__m512)x[k], _mm512_setzero_ps());
+}
+
+/* encode_tile_f32 straight into row pairs: (u, v), then per frequency (sin u, sin v) and (cos u, cos v), which is
+   how the encoding's rows pair up (each uv's rows are even in number); no fp32 rows stored and read back. */
+static void encode_pairs(const float *uv, int64_t m, int L, int include_input, __m512bh *xp) {
+    const float pi = (float)3.14159265358979323846, pi_hi = 3.140625f, pi_lo = 9.67653589793e-4f,
+                shift = 12582912.0f;
+    float s[2][TILE], c[2][TILE], u[2][TILE];
+    for (int64_t i = 0; i < TILE; i++)
+        for (int d = 0; d < 2; d++) u[d][i] = uv[2 * (i < m ? i : m - 1) + d];
+    for (int d = 0; d < 2; d++)
+        for (int64_t i = 0; i < TILE; i++) {  /* as encode_tile_f32 */
+            float a = u[d][i] * pi;
+            float k = (a * (1.0f / pi) + shift) - shift;
+            float r = (a - k * pi_hi) - k * pi_lo, r2 = r * r;
+            float sn = r * (1.0f + r2 * (-1.0f / 6 + r2 * (1.0f / 120 + r2 * (-1.0f / 5040 + r2 * (1.0f / 362880
+                         + r2 * (-1.0f / 39916800))))));
+            float cs = 1.0f + r2 * (-0.5f + r2 * (1.0f / 24 + r2 * (-1.0f / 720 + r2 * (1.0f / 40320
+                         + r2 * (-1.0f / 3628800 + r2 * (1.0f / 479001600))))));
+            float sign = 1.0f - 2.0f * (float)((int32_t)k & 1);
+            s[d][i] = sign * sn;
+            c[d][i] = sign * cs;
+        }
+    v16 s0, s1, c0, c1, u0, u1;
+    memcpy(&s0, s[0], 64); memcpy(&s1, s[1], 64); memcpy(&c0, c[0], 64); memcpy(&c1, c[1], 64);
+    memcpy(&u0, u[0], 64); memcpy(&u1, u[1], 64);
+    if (include_input) *xp++ = pair_rows((__m512)u0, (__m512)u1);
+    for (int k = 0; k < L; k++) {
+        *xp++ = pair_rows((__m512)s0, (__m512)s1);
+        *xp++ = pair_rows((__m512)c0, (__m512)c1);
+        v16 t0 = 2.0f * s0 * c0, t1 = 2.0f * s1 * c1;
+        c0 = c0 * c0 - s0 * s0; c1 = c1 * c1 - s1 * s1; s0 = t0; s1 = t1;
+    }
+}
+
+/* relu(b + x W + f Wf) for N outputs (a multiple of 8): x (K2 pairs), W (K2, N) and Wf (F2, N) weight pairs; into
+   yp as pairs, or into yf as fp32 rows when yf is given (the last hidden layer, read by the fp32 output layer). */
+static void dense_bf16(const __m512bh *x, int64_t K2, const uint32_t *w, const float *b, const __m512bh *f, int64_t F2,
+                       const uint32_t *wf, int64_t N, __m512bh *yp, v16 *yf) {
+    for (int64_t n0 = 0; n0 < N; n0 += 8) {
+        __m512 acc[8];
+        for (int j = 0; j < 8; j++) acc[j] = _mm512_set1_ps(b[n0 + j]);
+        for (int64_t k = 0; k < K2; k++) {
+            __m512bh xv = x[k];
+            const uint32_t *wr = w + k * N + n0;
+            for (int j = 0; j < 8; j++) acc[j] = _mm512_dpbf16_ps(acc[j], xv, (__m512bh)_mm512_set1_epi32((int)wr[j]));
+        }
+        for (int64_t k = 0; k < F2; k++) {
+            __m512bh fv = f[k];
+            const uint32_t *wr = wf + k * N + n0;
+            for (int j = 0; j < 8; j++) acc[j] = _mm512_dpbf16_ps(acc[j], fv, (__m512bh)_mm512_set1_epi32((int)wr[j]));
+        }
+        for (int j = 0; j < 8; j++) acc[j] = _mm512_max_ps(acc[j], _mm512_setzero_ps());  /* NaN -> 0, as dense */
+        if (yf)
+            for (int j = 0; j < 8; j++) yf[n0 + j] = (v16)acc[j];
+        else
+            for (int j = 0; j < 8; j += 2) yp[(n0 + j) / 2] = pair_rows(acc[j], acc[j + 1]);
+    }
+}
+#else
+#define FUSED_BF16 0
+#endif
+
+/* 1 when the bf16 hidden layers are compiled in and this CPU runs them. */
+int deliffas_fused_bf16(void) {
+#if FUSED_BF16 && defined(__GNUC__)
+    __builtin_cpu_init();
+    return __builtin_cpu_supports("avx512bf16") ? 1 : 0;
+#else
+    return FUSED_BF16;
+#endif
+}
+
 /* Shade rays [0, n): inputs as deliffas_ray_inputs (fp32); layers: nh hidden layers, per layer 5 int64 in dims
    (K, N, feature rows F (0 or the feature width), offset of W (K, N), of Wf (F, N)), the bias at W + K N + F N;
    then the output layer (3, K) and its bias (3,) at dims[5 nh]. E, Fd: the encoded and feature widths (E = the
    first layer's K); wmax: the widest hidden layer. Colour of ray r to out[3 pixels[r] ..] (out[3 r ..] if no
-   pixels). Returns 0, -1 when the scratch tiles cannot be allocated, -2 for more than 512 channels per map. */
+   pixels). params are 4-byte words: fp32, or with bf16 (deliffas_fused_bf16() must be 1) the hidden layers'
+   weights as bf16 pairs, W (K/2, N) and Wf (F/2, N) with dims giving K/2 and F/2, biases and the output layer
+   fp32. Returns 0, -1 when the scratch tiles cannot be allocated, -2 for more than 512 channels per map, -3 for
+   bf16 without the kernel. */
 int deliffas_fused_shade(int64_t n, const float *uv_in, const uint8_t *from_outer, const float *uv_out,
                          int outer_encoded, int L, int include_input, const float *map_in, const float *map_out,
                          int64_t S, int64_t C, int64_t nh, const int64_t *dims, const float *params, int64_t E,
-                         int64_t Fd, int64_t wmax, const int64_t *pixels, float *out) {
-    size_t tiles = (size_t)(E + Fd + 2 * wmax) * sizeof(v16);
+                         int64_t Fd, int64_t wmax, const int64_t *pixels, float *out, int bf16) {
     if (C > 512) return -2;
+    if (bf16 && !FUSED_BF16) return -3;
+    /* fp32 tiles: E + Fd input rows, two hidden layers; bf16: the inputs' and two hidden layers' pairs besides */
+    size_t tiles = (size_t)(E + Fd + 2 * wmax + (bf16 ? (E + 1) / 2 + (Fd + 1) / 2 + wmax : 0)) * sizeof(v16);
     char *mem = aligned_alloc(64, tiles);
     if (!mem) return -1;
-    v16 *xe = (v16 *)mem, *xf = xe + E, *h0 = xf + Fd, *h1 = h0 + wmax;
+    v16 *xe = (v16 *)mem, *xf = xe + E, *h0 = xf + Fd, *h1 = h0 + wmax, *pairs = h1 + wmax;
     const int64_t *od = dims + 5 * nh;
     const float *wo = params + od[0], *bo = wo + 3 * od[1];
     for (int64_t r0 = 0; r0 < n; r0 += TILE) {
         int64_t m = n - r0 < TILE ? n - r0 : TILE;
         int64_t per_uv = (include_input ? 2 : 0) + 4 * (int64_t)L;
-        float *xt = (float *)xe;
-        if (outer_encoded) { encode_tile(uv_out + 2 * r0, m, L, include_input, xt); xt += per_uv * TILE; }
-        encode_tile(uv_in + 2 * r0, m, L, include_input, xt);
+        int pairs_direct = FUSED_BF16 && bf16 && nh > 0;  /* encodings straight into bf16 pairs */
+        if (!pairs_direct) {
+            float *xt = (float *)xe;
+            void (*encode)(const float *, int64_t, int, int, float *) = bf16 ? encode_tile_f32 : encode_tile;
+            if (outer_encoded) { encode(uv_out + 2 * r0, m, L, include_input, xt); xt += per_uv * TILE; }
+            encode(uv_in + 2 * r0, m, L, include_input, xt);
+        }
         float *ft = (float *)xf;
         if (map_out) { sample_tile(map_out, map_out, 0, uv_out + 2 * r0, m, S, C, ft); ft += C * TILE; }
         sample_tile(map_in, map_out, (map_out && from_outer) ? from_outer + r0 : 0, uv_in + 2 * r0, m, S, C, ft);
         const v16 *x = xe;
         int64_t K = E;
-        v16 *bufs[2] = {h0, h1};
-        for (int64_t l = 0; l < nh; l++) {
-            const int64_t *d = dims + 5 * l;
-            const float *w = params + d[3], *wf = params + d[4];
-            dense(x, d[0], w, w + d[0] * d[1] + d[2] * d[1], d[2] ? xf : 0, d[2], wf, d[1], bufs[l & 1], 1);
-            x = bufs[l & 1];
-            K = d[1];
+        if (bf16 && nh > 0) {
+#if FUSED_BF16
+            __m512bh *pe = (__m512bh *)pairs, *pf = pe + (E + 1) / 2, *ph[2] = {pf + (Fd + 1) / 2, pf + (Fd + 1) / 2 + wmax / 2};
+            __m512bh *pp = pe;
+            if (outer_encoded) { encode_pairs(uv_out + 2 * r0, m, L, include_input, pp); pp += per_uv / 2; }
+            encode_pairs(uv_in + 2 * r0, m, L, include_input, pp);
+            pair_tile(xf, Fd, pf);
+            const __m512bh *xp = pe;
+            const uint32_t *words = (const uint32_t *)params;
+            for (int64_t l = 0; l < nh; l++) {
+                const int64_t *d = dims + 5 * l;
+                const uint32_t *w = words + d[3], *wf = words + d[4];
+                const float *b = params + d[3] + d[0] * d[1] + d[2] * d[1];
+                int last = l == nh - 1;
+                dense_bf16(xp, d[0], w, b, d[2] ? pf : 0, d[2], wf, d[1], ph[l & 1], last ? h0 : 0);
+                xp = ph[l & 1];
+                K = d[1];
+            }
+            x = h0;
+#endif
+        } else {
+            v16 *bufs[2] = {h0, h1};
+            for (int64_t l = 0; l < nh; l++) {
+                const int64_t *d = dims + 5 * l;
+                const float *w = params + d[3], *wf = params + d[4];
+                dense(x, d[0], w, w + d[0] * d[1] + d[2] * d[1], d[2] ? xf : 0, d[2], wf, d[1], bufs[l & 1], 1);
+                x = bufs[l & 1];
+                K = d[1];
+            }
         }
         v16 acc[3];
         for (int j = 0; j < 3; j++) acc[j] = (v16){0} + bo[j];
@@ -367,8 +554,10 @@ int deliffas_fused_shade(int64_t n, const float *uv_in, const uint8_t *from_oute
 
 def _declare_fused(lib: ctypes.CDLL) -> None:
     p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
-    lib.deliffas_fused_shade.argtypes = [i64, p, p, p, i32, i32, i32, p, p, i64, i64, i64, p, p, i64, i64, i64, p, p]
+    lib.deliffas_fused_shade.argtypes = [i64, p, p, p, i32, i32, i32, p, p, i64, i64, i64, p, p, i64, i64, i64, p, p, i32]
     lib.deliffas_fused_shade.restype = i32
+    lib.deliffas_fused_bf16.argtypes = []
+    lib.deliffas_fused_bf16.restype = i32
 
 
 _FUSED = LazyLibrary("fused_shade", _FUSED_SOURCE, ("-ffp-contract=fast", "-fno-math-errno", "-fno-trapping-math", "-std=gnu11"),
@@ -396,6 +585,14 @@ def native_bf16() -> bool:
     except OSError:
         return False
     return any(flag in flags.split() for flag in ("avx512_bf16", "amx_bf16", "bf16"))
+
+
+def _bf16_pairs(w: torch.Tensor) -> torch.Tensor:
+    """(K, N) fp32 with K even as (K/2, N) int32 words, each the bf16 pair (w[2k, n], w[2k+1, n]) (low half first)."""
+    k, n = w.shape
+    if k == 0:  # (no feature columns; an empty tensor's strides cannot be viewed as int32)
+        return torch.empty(0, n, dtype=torch.int32)
+    return w.to(torch.bfloat16).reshape(k // 2, 2, n).transpose(1, 2).contiguous().view(torch.int32).reshape(k // 2, n)
 
 
 def supports(model: DeliffasModel) -> bool:
@@ -494,10 +691,13 @@ class FastShader:
         return enc, feats
 
     # ------------------------------------------------------------------ fused
-    def _fused_params(self) -> tuple[torch.Tensor, torch.Tensor, int]:
-        """The MLP for the fused pass: (dims (5 nh + 2,) int64, params fp32, widest hidden layer); hidden widths
-        padded to multiples of 8 with zero columns (their ReLU outputs are 0 and meet zero rows downstream)."""
-        key = self._key()
+    def _fused_params(self, bf16: bool) -> tuple[torch.Tensor, torch.Tensor, int]:
+        """The MLP for the fused pass: (dims (5 nh + 2,) int64, params as 4-byte words, widest hidden layer); hidden
+        widths padded to multiples of 8 with zero columns (their ReLU outputs are 0 and meet zero rows downstream).
+
+        fp32: every weight and bias fp32. ``bf16``: the hidden layers' W and Wf as bf16 row pairs (K/2, N, 2) (an odd
+        K padded with a zero row), dims giving K/2 and F/2; biases and the output layer fp32."""
+        key = (self._key(), bf16)
         if self._fused_key != key:
             mlp = self.model.mlp
             dims, parts, offset, k_in = [], [], 0, mlp.in_dim
@@ -507,18 +707,30 @@ class FastShader:
                 w_f, w_h = w[:, :f], w[:, f:]
                 n_out = -(-w.shape[0] // 8) * 8
                 pad = lambda t, rows: torch.nn.functional.pad(t, (0, n_out - t.shape[1], 0, rows - t.shape[0]))  # noqa: E731
-                block = [pad(w_h.t(), k_in), pad(w_f.t(), f), pad(lin.bias.detach().float()[None], 1)]
-                dims += [k_in, n_out, f, offset, offset + k_in * n_out]
+                bias = pad(lin.bias.detach().float()[None], 1).view(torch.int32)
+                if bf16:
+                    k2, f2 = -(-k_in // 2), -(-f // 2)
+                    block = [_bf16_pairs(pad(w_h.t(), 2 * k2)), _bf16_pairs(pad(w_f.t(), 2 * f2)), bias]
+                    dims += [k2, n_out, f2, offset, offset + k2 * n_out]
+                else:
+                    block = [pad(w_h.t(), k_in).view(torch.int32), pad(w_f.t(), f).view(torch.int32), bias]
+                    dims += [k_in, n_out, f, offset, offset + k_in * n_out]
                 parts += [b.reshape(-1) for b in block]
                 offset += sum(b.numel() for b in block)
                 k_in = n_out
             w_o = torch.nn.functional.pad(mlp.output.weight.detach().float(), (0, k_in - mlp.output.in_features))
             dims += [offset, k_in]
-            parts += [w_o.reshape(-1), mlp.output.bias.detach().float()]
+            parts += [w_o.reshape(-1).view(torch.int32), mlp.output.bias.detach().float().view(torch.int32)]
             widest = max([dims[5 * i + 1] for i in range(len(mlp.hidden))] + [1])
             self._fused = (torch.tensor(dims, dtype=torch.int64), torch.cat(parts).contiguous(), widest)
             self._fused_key = key
         return self._fused
+
+    def fused_bf16(self) -> bool:
+        """Whether :meth:`shade_fused` runs its hidden layers in bf16: the shader's dtype is bf16 and the fused kernel
+        was built with native bf16 dot products (AVX512-BF16) this CPU has; else the pass is fp32."""
+        lib = _FUSED.get() if self.fused and self.use_kernel and self.dtype == torch.bfloat16 else None
+        return lib is not None and bool(lib.deliffas_fused_bf16())
 
     def fused_available(self) -> bool:
         """Whether :meth:`shade_fused` runs its C pass (``fused=True`` and the kernel built)."""
@@ -526,19 +738,20 @@ class FastShader:
 
     def shade_fused(self, features: FrameFeatures, query: RayQuery, out: torch.Tensor | None = None,
                     rows: torch.Tensor | None = None) -> torch.Tensor:
-        """``mlp(*inputs(...), out, rows)`` in one C pass in fp32 whatever the shader's dtype (module docstring);
-        the per-stage path where the pass is unavailable or cannot read the inputs."""
+        """``mlp(*inputs(...), out, rows)`` in one C pass, the hidden layers in bf16 where :meth:`fused_bf16`, else
+        fp32 (module docstring); the per-stage path where the pass is unavailable or cannot read the inputs."""
         lib = _FUSED.get() if self.fused and self.use_kernel else None
         got = self._ray_args(features, query) if lib is not None else None
         if got is None:
             return self.mlp(*self.inputs(features, query), out=out, rows=rows)
         n = query.num_rays
         out, rows = self._check_out(n, out, rows)
-        dims, params, widest = self._fused_params()
+        bf16 = self.fused_bf16()
+        dims, params, widest = self._fused_params(bf16)
         model = self.model
         status = lib.deliffas_fused_shade(n, *got[0], len(model.mlp.hidden), dims.data_ptr(), params.data_ptr(),
                                           model.mlp.in_dim, model.mlp.feature_dim, widest,
-                                          rows.data_ptr() if rows is not None else None, out.data_ptr())
+                                          rows.data_ptr() if rows is not None else None, out.data_ptr(), int(bf16))
         if status == -2:
             raise ValueError(f"FastShader.shade_fused: at most 512 feature channels per map, got {features.inner.shape[1]}")
         if status != 0:

@@ -63,11 +63,13 @@ def test_per_stage_path_equals_plain(frame):
     torch.testing.assert_close(fast, plain, atol=1e-4, rtol=0)
 
 
-def test_fast_bf16_within_its_precision(frame):
+@pytest.mark.parametrize("fused", [False, True])  # True: bf16 hidden layers in the fused pass where native
+def test_fast_bf16_within_its_precision(frame, fused):
     model, features, raycaster, cameras = frame
     plain = _render(model, features, raycaster, cameras[0], None)
-    fast = _render(model, features, raycaster, cameras[0], FastRender(dtype="bfloat16", fused=False))
-    assert float((fast - plain).abs().max()) < 0.02
+    fast = _render(model, features, raycaster, cameras[0], FastRender(dtype="bfloat16", fused=fused))
+    mse = float(((fast - plain) ** 2).mean())
+    assert float((fast - plain).abs().max()) < 0.02 and -10 * np.log10(max(mse, 1e-20)) > 50
 
 
 def test_ray_cast_fallback_and_unsupported_variant(frame, tiny_shards):

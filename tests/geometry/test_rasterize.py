@@ -101,6 +101,11 @@ def test_native_equals_numpy(blob):
         np.testing.assert_allclose(a.uv_inner, b.uv_inner, atol=1e-6)
         np.testing.assert_allclose(a.uv_outer, b.uv_outer, atol=1e-6)
         np.testing.assert_allclose(a.viewdir, b.viewdir, atol=1e-6)
+        for method in ("native", "numpy"):  # without view directions: the same rays
+            c = UVRasterizer(v, f, outer, atlas, method=method).shaded_pixels(cam, viewdir=False)
+            assert c.viewdir is None
+            np.testing.assert_array_equal(c.pixels, a.pixels)
+            np.testing.assert_array_equal(c.uv_inner, (a if method == "native" else b).uv_inner)
 
 
 def test_vertex_behind_the_camera_returns_none(blob):

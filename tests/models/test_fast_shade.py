@@ -106,9 +106,10 @@ def test_fused_pass_equals_shade(variant, preset):
     model, feats, query = _case(variant, preset, n=1000 + 7)  # a partial tile at the end
     with torch.no_grad():
         ref = model.shade(feats, query)
-        shader = FastShader(model, torch.bfloat16)  # the fused pass computes in fp32 whatever the dtype
+        shader = FastShader(model, torch.float32)
         assert shader.fused_available() == (fast_shade._FUSED.get() is not None)
-        tol = 2e-6 if shader.fused_available() else 0.02  # without the kernel: the per-stage path in bf16
+        assert not shader.fused_bf16()  # fp32 shader: fp32 pass
+        tol = 2e-6
         torch.testing.assert_close(shader.shade_fused(feats, query), ref, atol=tol, rtol=0)
         rows = torch.randperm(len(ref))
         canvas = torch.zeros(len(ref), 3)
@@ -121,3 +122,51 @@ def test_fused_pass_equals_shade(variant, preset):
                          query.uv_outer[:0] if query.uv_outer is not None else None, None,
                          query.inner_from_outer[:0] if query.inner_from_outer is not None else None)
         assert shader.shade_fused(feats, empty).shape == (0, 3)
+
+
+@pytest.mark.parametrize("variant,preset", [("two_surface", "tiny"), ("two_surface", "realtime"),
+                                            ("two_surface", "small"), ("single_surface", "tiny")])
+def test_fused_pass_in_bf16_within_its_precision(variant, preset):
+    """A bf16 shader's fused pass: bf16 hidden layers where the kernel has native bf16 dot products, else fp32;
+    either way within bf16's precision of the fp32 reference (and without the kernel: the per-stage bf16 path)."""
+    model, feats, query = _case(variant, preset, n=1000 + 7)
+    with torch.no_grad():
+        ref = model.shade(feats, query)
+        shader = FastShader(model, torch.bfloat16)
+        lib = fast_shade._FUSED.get()
+        assert shader.fused_bf16() == (lib is not None and bool(lib.deliffas_fused_bf16()))
+        got = shader.shade_fused(feats, query)
+        mse = float(((got - ref) ** 2).mean())
+        assert float((got - ref).abs().max()) < 0.02 and -10 * torch.log10(torch.tensor(mse)) > 50
+        if not shader.fused_bf16() and shader.fused_available():
+            torch.testing.assert_close(got, ref, atol=2e-6, rtol=0)
+        rows = torch.randperm(len(ref))
+        canvas = torch.zeros(len(ref), 3)
+        shader.shade_fused(feats, query, out=canvas, rows=rows)
+        torch.testing.assert_close(canvas[rows], got, atol=0, rtol=0)
+        assert not FastShader(model, torch.bfloat16, fused=False).fused_bf16()  # the switches
+        assert not FastShader(model, torch.bfloat16, use_kernel=False).fused_bf16()
+
+
+def test_bf16_weight_pairs():
+    w = torch.randn(6, 5)
+    pairs = fast_shade._bf16_pairs(w).view(torch.bfloat16).reshape(3, 5, 2)  # low half first (little-endian)
+    torch.testing.assert_close(pairs[:, :, 0], w[0::2].to(torch.bfloat16), atol=0, rtol=0)
+    torch.testing.assert_close(pairs[:, :, 1], w[1::2].to(torch.bfloat16), atol=0, rtol=0)
+    assert fast_shade._bf16_pairs(torch.zeros(0, 8)).shape == (0, 8)
+
+
+def test_fused_pass_built_without_native_bf16_runs_fp32(monkeypatch):
+    """The fallback of the bf16 hidden layers: a kernel built without AVX512-BF16 (here: -mno-avx512bf16) reports
+    none, and a bf16 shader's fused pass then computes in fp32."""
+    lib = LazyLibrary("fused_shade_nobf16", fast_shade._FUSED_SOURCE, (*fast_shade._FUSED.flags, "-mno-avx512bf16"),
+                      setup=fast_shade._declare_fused, fallback="none")
+    if lib.get() is None:  # no compiler, or one that does not know the flag
+        pytest.skip(f"kernel not built: {lib.load().reason}")
+    monkeypatch.setattr(fast_shade, "_FUSED", lib)
+    assert not lib.get().deliffas_fused_bf16()
+    model, feats, query = _case("two_surface", "realtime", n=500)
+    with torch.no_grad():
+        shader = FastShader(model, torch.bfloat16)
+        assert shader.fused_available() and not shader.fused_bf16()
+        torch.testing.assert_close(shader.shade_fused(feats, query), model.shade(feats, query), atol=2e-6, rtol=0)
