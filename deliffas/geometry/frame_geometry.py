@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from deliffas.checks import check_finite, check_shape
+from deliffas.geometry.arrays import to_torch
 from deliffas.geometry.atlas import TexelTable
 from deliffas.geometry.mesh_ops import vertex_normals
 from deliffas.geometry.normal_maps import NormalMapGather, temporal_window
@@ -67,6 +68,6 @@ class FrameGeometryBuilder:
         check_finite("inner", inner)  # NaN vertices would become NaN normal maps in the shards
         inner = np.asarray(inner, np.float64)
         outer = offset_shell(inner, self.faces, self.offsets)
-        nm_in = self.gather.apply(vertex_normals(inner, self.faces), dtype=self.dtype)
-        nm_out = self.gather.apply(vertex_normals(outer, self.faces), dtype=self.dtype)
+        nm_in = self.gather.apply(to_torch(vertex_normals(inner, self.faces)), dtype=self.dtype)
+        nm_out = self.gather.apply(to_torch(vertex_normals(outer, self.faces)), dtype=self.dtype)
         return FrameGeometry(inner.astype(np.float32), np.asarray(outer, np.float32), nm_in, nm_out)
