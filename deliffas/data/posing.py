@@ -3,6 +3,9 @@
 The template is a ``.character`` (DDC, with a ``.motion``) or an SMPL model file (with an AMASS-style
 ``.npz`` motion); frames are the frame numbers the motion file gives (row ``i`` of an AMASS file is
 frame ``i``).
+
+This is posing's numpy boundary: templates are torch modules (``Template.pose`` takes and returns
+tensors); ``pose_frames`` reads files, poses in torch and returns numpy vertices.
 """
 
 from __future__ import annotations
@@ -30,9 +33,12 @@ def pose_frames(template: TemplateSpec | str | os.PathLike, motion: Motion | str
         template: a spec, or a template file (``.character`` or SMPL model, :func:`spec_from_file`).
         motion: pose parameters, or a motion file of the template's kind.
         frames: frame numbers as written in the motion file (not row numbers); None = all frames.
+        skinning: a DDC template's skinning (when ``template`` is a file).
+        dtype: the precision the template poses in, and the dtype of the returned vertices.
 
     Returns:
-        verts (N, V, 3) float64 mm in template vertex order, and the template.
+        verts (N, V, 3) numpy mm in template vertex order, of ``dtype`` (float64 by default), and
+        the template.
 
     Raises:
         ValueError: a frame the motion lacks, a motion of another kind or size, or non-finite output.
@@ -51,7 +57,7 @@ def pose_frames(template: TemplateSpec | str | os.PathLike, motion: Motion | str
         except KeyError as err:
             raise ValueError(str(err.args[0])) from None
     with torch.no_grad():
-        verts = posable.pose(torch.as_tensor(motion.dofs[rows], dtype=dtype)).cpu().numpy().astype(np.float64)
+        verts = posable.pose(torch.as_tensor(motion.dofs[rows], dtype=dtype)).cpu().numpy()
     if not np.isfinite(verts).all():
         raise ValueError(f"posing gave non-finite vertices (frames {[int(f) for f in motion.frames[rows]][:5]}); "
                          "check the motion's values")

@@ -19,7 +19,7 @@ from typing import Union
 import numpy as np
 import torch
 
-__all__ = ["ArrayLike", "to_torch", "to_numpy", "like", "is_numpy"]
+__all__ = ["ArrayLike", "to_torch", "to_numpy", "like", "is_numpy", "require_tensor"]
 
 ArrayLike = Union[np.ndarray, torch.Tensor]
 """A numpy array or a torch tensor."""
@@ -47,6 +47,12 @@ def to_numpy(x: object, dtype: np.dtype | type | None = None) -> np.ndarray:
     """``x`` as a numpy array (a tensor is detached and copied to the CPU)."""
     a = x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
     return a if dtype is None else a.astype(dtype, copy=False)
+
+
+def require_tensor(name: str, x: object, boundary: str) -> None:
+    """The entry check of a torch-only function: TypeError naming ``name`` and where numpy is taken."""
+    if not isinstance(x, torch.Tensor):
+        raise TypeError(f"{name}: expected a torch.Tensor, got {type(x).__name__} (torch-only; {boundary})")
 
 
 def like(out: object, ref: object) -> ArrayLike:

@@ -7,6 +7,9 @@ the top (v = 1).
 
 The texel table is computed once per atlas and resolution; per-frame normal maps are then a
 gather through it (``deliffas.geometry.normal_maps``).
+
+Arrays: the atlas and its tables are numpy records. ``UVAtlas`` takes numpy arrays or torch
+tensors and stores read-only numpy copies (the one conversion); everything here returns numpy.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from deliffas.checks import check_shape
+from deliffas.geometry.arrays import to_numpy
 
 __all__ = [
     "UVAtlas",
@@ -62,11 +66,11 @@ class UVAtlas:
     def __post_init__(self) -> None:
         sizes = check_shape("uvs", self.uvs, "T 2")
         check_shape("face_uvs", self.face_uvs, "F 3")
-        fu = np.asarray(self.face_uvs)
+        fu = to_numpy(self.face_uvs)
         if fu.size and (fu.min() < 0 or fu.max() >= sizes["T"]):
             raise ValueError(f"face_uvs: indices must be in [0, {sizes['T']}), got [{fu.min()}, {fu.max()}]")
-        object.__setattr__(self, "uvs", _readonly(np.asarray(self.uvs, dtype=np.float64)))
-        object.__setattr__(self, "face_uvs", _readonly(np.asarray(self.face_uvs, dtype=np.int64)))
+        object.__setattr__(self, "uvs", _readonly(to_numpy(self.uvs, np.float64)))
+        object.__setattr__(self, "face_uvs", _readonly(to_numpy(self.face_uvs, np.int64)))
 
     @property
     def num_faces(self) -> int:
@@ -105,19 +109,19 @@ class UVAtlas:
             xatlas's uvs are rescaled by (width, height) / max(width, height) so texels are square.
         """
         check_shape("faces", faces, "F 3")
-        faces = np.asarray(faces, dtype=np.int64)
+        faces = to_numpy(faces, np.int64)
         if (uvs is None) != (face_uvs is None):
             raise ValueError("UVAtlas.from_mesh: give both uvs and face_uvs, or neither")
         if uvs is not None:
             check_shape("face_uvs", face_uvs, "F 3", {"F": len(faces)})
-            return cls(np.asarray(uvs, dtype=np.float64), np.asarray(face_uvs, dtype=np.int64))
+            return cls(uvs, face_uvs)
         check_shape("verts", verts, "V 3")
         try:
             import xatlas
         except ImportError as exc:  # pragma: no cover - hard dependency
             raise ImportError("UVAtlas.from_mesh without uvs needs the 'xatlas' package") from exc
         atlas = xatlas.Atlas()
-        atlas.add_mesh(np.ascontiguousarray(verts, dtype=np.float32), np.ascontiguousarray(faces, dtype=np.uint32))
+        atlas.add_mesh(np.ascontiguousarray(to_numpy(verts), dtype=np.float32), np.ascontiguousarray(faces, dtype=np.uint32))
         pack = xatlas.PackOptions()
         pack.resolution = int(resolution)
         pack.padding = int(padding)

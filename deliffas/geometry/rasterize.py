@@ -34,6 +34,7 @@ from typing import Literal
 import numpy as np
 
 from deliffas.checks import check_shape
+from deliffas.geometry.arrays import to_numpy
 from deliffas.geometry.atlas import UVAtlas
 from deliffas.geometry.raycast import PEEL_EPS_REL, projected_pixel_window
 from deliffas.io.cameras import Camera
@@ -231,6 +232,9 @@ def _project(camera: Camera, verts: np.ndarray) -> np.ndarray:
 class UVRasterizer:
     """One frame's inner and outer surfaces, rasterised per camera (scratch buffers reused across calls).
 
+    numpy inside: vertices and faces may be numpy arrays or torch tensors (copied to numpy here, the
+    one conversion); the results (:class:`ShadedPixels`) are numpy.
+
     Args:
         inner_verts: (V, 3) float, mm, the posed mesh.
         faces: (F, 3) int, shared by both surfaces.
@@ -249,9 +253,9 @@ class UVRasterizer:
         if method not in ("auto", "native", "numpy"):
             raise ValueError(f"method: expected 'auto', 'native' or 'numpy', got {method!r}")
         self.method = method
-        self.inner = np.asarray(inner_verts, np.float64)
-        self.outer = np.asarray(outer_verts, np.float64)
-        self.faces = np.ascontiguousarray(faces, np.int32)
+        self.inner = to_numpy(inner_verts, np.float64)  # the numpy boundary: tensors (any device) come to the CPU
+        self.outer = to_numpy(outer_verts, np.float64)
+        self.faces = np.ascontiguousarray(to_numpy(faces), np.int32)
         self.corner_uvs = np.ascontiguousarray(atlas.uvs.astype(np.float32)[atlas.face_uvs].reshape(-1, 6))  # (F, 6)
         diag = float(np.linalg.norm(self.outer.max(0) - self.outer.min(0))) if len(self.outer) else 1.0
         self.peel_eps = PEEL_EPS_REL * max(diag, 1e-6)

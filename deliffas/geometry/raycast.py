@@ -12,6 +12,10 @@ point (1 - b1 - b2) v0 + b1 v1 + b2 v2, so ``bary = (1 - b1 - b2, b1, b2)`` (che
 Per-corner uv at a hit: uv = sum_k bary_k * uvs[face_uvs[face, k]].
 
 open3d is imported at call time, only here (shell.py reaches it through these functions).
+
+Arrays: open3d works on numpy, so this module is numpy inside. ``build_scene`` and ``UVRaycaster``
+take numpy arrays or torch tensors (any device; converted once, on entry) and every result
+(``RaycastHits``, hit arrays) is numpy.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ import numpy as np
 
 from deliffas.checks import check_finite, check_shape
 from deliffas.io.cameras import Camera
+from deliffas.geometry.arrays import to_numpy
 from deliffas.geometry.atlas import UVAtlas
 
 __all__ = [
@@ -78,6 +83,7 @@ def build_scene(verts: np.ndarray, faces: np.ndarray):
     check_finite("verts", verts)  # open3d would silently drop the faces of a NaN vertex
     if len(faces) and (int(np.min(faces)) < 0 or int(np.max(faces)) >= sizes["V"]):
         raise ValueError(f"faces: indices must be in [0, {sizes['V']}), got [{int(np.min(faces))}, {int(np.max(faces))}]")
+    verts, faces = to_numpy(verts), to_numpy(faces)
     o3d = _o3d()
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(
@@ -360,6 +366,7 @@ class UVRaycaster:
             raise ValueError(f"atlas: face_uvs has {atlas.num_faces} rows, faces has {sizes['F']}")
         if peel not in ("recast", "list"):
             raise ValueError(f"peel: expected 'recast' or 'list', got {peel!r}")
+        inner_verts, faces, outer_verts = to_numpy(inner_verts), to_numpy(faces), to_numpy(outer_verts)
         self.peel = peel
         # the frame's surfaces as given (read by engine/realtime's rasteriser of the same frame)
         self.inner_verts, self.outer_verts, self.faces, self.atlas = inner_verts, outer_verts, faces, atlas

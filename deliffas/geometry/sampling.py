@@ -19,6 +19,7 @@ import torch
 import torch.nn.functional as F
 
 from deliffas.checks import check_shape
+from deliffas.geometry.arrays import require_tensor
 
 __all__ = ["sample_uv", "uv_to_grid"]
 
@@ -67,8 +68,12 @@ def sample_uv(feature_maps: torch.Tensor, batch_index: torch.Tensor, uv: torch.T
         ``uv``. The result may be a non-contiguous (transposed) view.
 
     Raises:
+        TypeError: an argument is not a tensor (torch-only: it is differentiable and runs where the
+            maps are; ``torch.as_tensor`` converts numpy).
         ValueError: on shape mismatch, non-integer ``batch_index`` or an index outside [0, B).
     """
+    for name, x in (("feature_maps", feature_maps), ("batch_index", batch_index), ("uv", uv)):
+        require_tensor(name, x, "torch.as_tensor converts numpy")
     sizes = check_shape("feature_maps", feature_maps, "B C _ _")
     sizes = check_shape("uv", uv, "N 2", sizes)
     check_shape("batch_index", batch_index, "N", sizes)

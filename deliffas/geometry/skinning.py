@@ -1,10 +1,16 @@
-"""Linear blend skinning and dual-quaternion skinning (formats doc 2.1), batched plain functions."""
+"""Linear blend skinning and dual-quaternion skinning (formats doc 2.1), batched plain functions.
+
+``lbs`` and ``dqs`` follow the geometry array policy (numpy in -> numpy out, torch in -> torch out
+in the rest vertices' dtype and device; ``deliffas.geometry.arrays``); the quaternion helpers are
+torch-only maths.
+"""
 
 from __future__ import annotations
 
 import torch
 
 from deliffas.checks import check_shape
+from deliffas.geometry.arrays import ArrayLike, like, to_torch
 
 __all__ = [
     "matrix_to_quaternion", "quaternion_to_matrix", "rigid_to_dual_quaternion",
@@ -64,7 +70,7 @@ def rigid_to_dual_quaternion(T: torch.Tensor) -> tuple[torch.Tensor, torch.Tenso
     return real, 0.5 * _qmul(t, real)
 
 
-def lbs(rest_verts: torch.Tensor, weights: torch.Tensor, bone_transforms: torch.Tensor) -> torch.Tensor:
+def lbs(rest_verts: ArrayLike, weights: ArrayLike, bone_transforms: ArrayLike) -> ArrayLike:
     """Linear blend skinning: v' = (Σ_b w_vb M_b) v.
 
     Args:
@@ -73,23 +79,27 @@ def lbs(rest_verts: torch.Tensor, weights: torch.Tensor, bone_transforms: torch.
         bone_transforms: (B, Bn, 4, 4) per-bone transforms relative to the rest pose.
 
     Returns:
-        (B, V, 3) posed vertices, mm.
+        (B, V, 3) posed vertices, mm; numpy or torch as ``rest_verts``, in its dtype and on its device.
     """
     check_shape("rest_verts", rest_verts, "V 3")
     sizes = check_shape("weights", weights, "V Bn", {"V": rest_verts.shape[0]})
     check_shape("bone_transforms", bone_transforms, "B Bn 4 4", sizes)
+    if not isinstance(rest_verts, torch.Tensor):
+        return like(lbs(to_torch(rest_verts), to_torch(weights), to_torch(bone_transforms)), rest_verts)
+    weights = to_torch(weights, rest_verts.dtype, rest_verts.device)
+    bone_transforms = to_torch(bone_transforms, rest_verts.dtype, rest_verts.device)
     B, Bn = bone_transforms.shape[:2]
     blended = (weights @ bone_transforms[..., :3, :].reshape(B, Bn, 12)).reshape(B, -1, 3, 4)  # (B, V, 3, 4)
     return torch.einsum("bvij,vj->bvi", blended[..., :3], rest_verts) + blended[..., 3]
 
 
 def dqs(
-    rest_verts: torch.Tensor,
-    indices: torch.Tensor,
-    weights: torch.Tensor,
-    bone_transforms: torch.Tensor,
+    rest_verts: ArrayLike,
+    indices: ArrayLike,
+    weights: ArrayLike,
+    bone_transforms: ArrayLike,
     chunk: int = 64,
-) -> torch.Tensor:
+) -> ArrayLike:
     """Dual-quaternion skinning as the C++ reference (formats doc 2.1).
 
     Each influence after the first has its dual quaternion negated when its real part's dot product
@@ -103,12 +113,18 @@ def dqs(
         chunk: frames processed at once (bounds memory at chunk·V·K·8 values).
 
     Returns:
-        (B, V, 3) posed vertices, mm.
+        (B, V, 3) posed vertices, mm; numpy or torch as ``rest_verts``, in its dtype and on its device.
     """
     check_shape("rest_verts", rest_verts, "V 3")
     check_shape("indices", indices, "V K", {"V": rest_verts.shape[0]})
     check_shape("weights", weights, "V K", {"V": rest_verts.shape[0], "K": indices.shape[1]})
     check_shape("bone_transforms", bone_transforms, "B Bn 4 4")
+    if not isinstance(rest_verts, torch.Tensor):
+        return like(dqs(to_torch(rest_verts), to_torch(indices), to_torch(weights), to_torch(bone_transforms), chunk),
+                    rest_verts)
+    indices = to_torch(indices, torch.long, rest_verts.device)
+    weights = to_torch(weights, rest_verts.dtype, rest_verts.device)
+    bone_transforms = to_torch(bone_transforms, rest_verts.dtype, rest_verts.device)
     real, dual = rigid_to_dual_quaternion(bone_transforms)  # (B, Bn, 4) each
     idx = indices.clamp(min=0)
     w = weights * (indices >= 0)

@@ -16,6 +16,7 @@ from torch import nn
 
 from deliffas.checks import check_finite, check_shape
 from deliffas.io.dynacap import Character, read_character, read_character_files
+from deliffas.geometry.arrays import require_tensor
 from deliffas.geometry.skeleton import SkeletonFK
 from deliffas.geometry.skinning import dqs, lbs
 from deliffas.geometry.templates.base import TemplateSpec, make_spec, register_template_kind
@@ -101,8 +102,10 @@ class DDCTemplate(nn.Module):
             skinning: override the template's skinning mode.
 
         Returns:
-            (B, V, 3) vertices in the template's vertex order, mm, world frame.
+            (B, V, 3) vertices in the template's vertex order, mm, world frame, in the template's
+            dtype and on its device (torch-only: numpy motions go through ``deliffas.data.posing``).
         """
+        require_tensor("dofs", dofs, "torch.as_tensor(dofs), or deliffas.data.posing.pose_frames for numpy")
         check_shape("dofs", dofs, "B D", {"D": self.num_dofs})
         check_finite("dofs", dofs)
         dofs = dofs.to(device=self.rest_verts.device, dtype=self.rest_verts.dtype)

@@ -18,6 +18,7 @@ from torch import nn
 from deliffas.checks import check_finite, check_shape
 from deliffas.io.obj import read_obj
 from deliffas.io.smpl import NUM_JOINTS, NUM_POSE_BASIS, SMPLModelData, SMPLModelError, load_smpl_model
+from deliffas.geometry.arrays import require_tensor
 from deliffas.geometry.atlas import UVAtlas
 from deliffas.geometry.smpl import smpl_lbs
 from deliffas.geometry.templates.base import TemplateSpec, make_spec, register_template_kind
@@ -93,7 +94,9 @@ class SMPLTemplate(nn.Module):
         return torch.zeros(batch, self.num_dofs, dtype=self.v_template.dtype, device=self.v_template.device)
 
     def pose_with_joints(self, params: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Vertices (B, V, 3) and joints (B, 24, 3), world units (mm with the default scale)."""
+        """Vertices (B, V, 3) and joints (B, 24, 3), world units (mm with the default scale), in the
+        template's dtype and on its device (torch-only: numpy motions go through ``deliffas.data.posing``)."""
+        require_tensor("params", params, "torch.as_tensor(params), or deliffas.data.posing.pose_frames for numpy")
         check_shape("params", params, "B D", {"D": self.num_dofs})
         check_finite("params", params)
         params = params.to(self.v_template)
