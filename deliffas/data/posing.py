@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from jaxtyping import Float, Real
 
 from deliffas.io.dynacap import Motion
 from deliffas.io.mesh_files import write_mesh
@@ -26,7 +27,7 @@ __all__ = ["pose_frames", "write_posed_mesh"]
 
 def pose_frames(template: TemplateSpec | str | os.PathLike, motion: Motion | str | os.PathLike,
                 frames: list[int] | None = None, skinning: Skinning = "dqs",
-                dtype: torch.dtype = torch.float64) -> tuple[np.ndarray, Template]:
+                dtype: torch.dtype = torch.float64) -> tuple[Float[np.ndarray, "N V 3"], Template]:
     """Posed vertices of ``template`` for the given frame numbers of ``motion``.
 
     Args:
@@ -64,7 +65,7 @@ def pose_frames(template: TemplateSpec | str | os.PathLike, motion: Motion | str
     return verts, posable
 
 
-def write_posed_mesh(path: str | os.PathLike, verts: np.ndarray, template: Template) -> Path:
+def write_posed_mesh(path: str | os.PathLike, verts: Real[np.ndarray, "V 3"], template: Template) -> Path:
     """Write one posed mesh as ``.obj`` (with the template's per-corner uvs) or ``.ply``, template order."""
     return write_mesh(path, verts, template.faces.cpu().numpy(), template.uvs.cpu().numpy(),
                       template.face_uvs.cpu().numpy())

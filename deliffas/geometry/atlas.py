@@ -18,9 +18,10 @@ import logging
 from dataclasses import dataclass, field
 
 import numpy as np
+from jaxtyping import Bool, Float, Integer, Real
 
 from deliffas.checks import check_shape
-from deliffas.geometry.arrays import to_numpy
+from deliffas.geometry.arrays import ArrayLike, to_numpy
 
 __all__ = [
     "UVAtlas",
@@ -60,8 +61,8 @@ class UVAtlas:
         face_uvs: (F, 3) int64, face_uvs[f, k] indexes the uv of corner k of face f.
     """
 
-    uvs: np.ndarray
-    face_uvs: np.ndarray
+    uvs: Float[ArrayLike, "T 2"]
+    face_uvs: Integer[ArrayLike, "F 3"]
 
     def __post_init__(self) -> None:
         sizes = check_shape("uvs", self.uvs, "T 2")
@@ -77,17 +78,17 @@ class UVAtlas:
         return int(self.face_uvs.shape[0])
 
     @property
-    def corner_uvs(self) -> np.ndarray:
+    def corner_uvs(self) -> Float[np.ndarray, "F 3 2"]:
         """(F, 3, 2) float64 uv of every face corner."""
         return self.uvs[self.face_uvs]
 
     @classmethod
     def from_mesh(
         cls,
-        verts: np.ndarray,
-        faces: np.ndarray,
-        uvs: np.ndarray | None = None,
-        face_uvs: np.ndarray | None = None,
+        verts: Real[ArrayLike, "V 3"] | None,
+        faces: Integer[ArrayLike, "F 3"],
+        uvs: Float[ArrayLike, "T 2"] | None = None,
+        face_uvs: Integer[ArrayLike, "F 3"] | None = None,
         *,
         resolution: int = 1024,
         padding: int = 4,
@@ -152,11 +153,11 @@ class TexelTable:
         degenerate_faces: (K,) int64, faces with zero UV area (they cover no texel).
     """
 
-    face: np.ndarray
-    bary: np.ndarray
-    covered: np.ndarray
-    valid: np.ndarray
-    degenerate_faces: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    face: Integer[np.ndarray, "S S"]
+    bary: Float[np.ndarray, "S S 3"]
+    covered: Bool[np.ndarray, "S S"]
+    valid: Bool[np.ndarray, "S S"]
+    degenerate_faces: Integer[np.ndarray, "K"] = field(default_factory=lambda: np.zeros(0, np.int64))
 
     @property
     def size(self) -> int:
@@ -164,7 +165,7 @@ class TexelTable:
         return int(self.face.shape[0])
 
 
-def texel_centers_uv(size: int) -> np.ndarray:
+def texel_centers_uv(size: int) -> Float[np.ndarray, "S S 2"]:
     """uv of every texel centre of an S x S atlas image.
 
     Returns:

@@ -12,6 +12,7 @@ computed in torch and converted back (float64 stays float64).
 from __future__ import annotations
 
 import torch
+from jaxtyping import Bool, Float, Integer
 
 from deliffas.checks import check_shape
 from deliffas.geometry.arrays import ArrayLike, is_numpy, to_numpy, to_torch
@@ -31,7 +32,7 @@ def _face_normals_t(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     return torch.cross(v1 - v0, v2 - v0, dim=-1)
 
 
-def face_normals(verts: ArrayLike, faces: ArrayLike) -> ArrayLike:
+def face_normals(verts: Float[ArrayLike, "*B V 3"], faces: Integer[ArrayLike, "F 3"]) -> Float[ArrayLike, "*B F 3"]:
     """Unnormalised face normals cross(v1 - v0, v2 - v0) (length = 2 x face area).
 
     Args:
@@ -48,7 +49,8 @@ def face_normals(verts: ArrayLike, faces: ArrayLike) -> ArrayLike:
     return to_numpy(out) if is_numpy(verts) else out
 
 
-def vertex_normals(verts: ArrayLike, faces: ArrayLike, *, return_valid: bool = False):
+def vertex_normals(verts: Float[ArrayLike, "*B V 3"], faces: Integer[ArrayLike, "F 3"], *, return_valid: bool = False
+                   ) -> Float[ArrayLike, "*B V 3"] | tuple[Float[ArrayLike, "*B V 3"], Bool[ArrayLike, "*B V"]]:
     """Unit vertex normals: normalised sum of the unnormalised normals of the incident faces.
 
     Args:

@@ -30,6 +30,8 @@ from typing import Literal, Union
 
 import numpy as np
 import torch
+from jaxtyping import Float, Integer, Real, Shaped
+from torch import Tensor
 
 from deliffas.checks import check_shape
 from deliffas.geometry.arrays import ArrayLike, is_numpy, to_numpy, to_torch
@@ -200,12 +202,12 @@ class NormalMapGather:
     """
 
     size: int
-    vert_index: torch.Tensor
-    weights: torch.Tensor
-    matrix: torch.Tensor
+    vert_index: Integer[Tensor, "S2 3"]
+    weights: Float[Tensor, "S2 3"]
+    matrix: Tensor
 
     @classmethod
-    def from_table(cls, table: TexelTable, faces: ArrayLike, num_verts: int | None = None) -> "NormalMapGather":
+    def from_table(cls, table: TexelTable, faces: Integer[ArrayLike, "F 3"], num_verts: int | None = None) -> "NormalMapGather":
         """Flatten a texel table against the mesh's faces.
 
         Args:
@@ -263,9 +265,9 @@ class NormalMapGather:
         return tables
 
     def apply(
-        self, vertex_normals: ArrayLike, dtype: torch.dtype | np.dtype | type | None = None,
+        self, vertex_normals: Real[ArrayLike, "*B V 3"], dtype: torch.dtype | np.dtype | type | None = None,
         method: Literal["auto", "fused", "sparse", "gather"] = "auto",
-    ) -> ArrayLike:
+    ) -> Float[ArrayLike, "*B 3 S S"]:
         """Normal maps of one or more frames.
 
         Args:
@@ -350,8 +352,8 @@ def _torch_dtype(dtype: torch.dtype | np.dtype | type | None) -> torch.dtype | N
     return torch.from_numpy(np.zeros(0, dtype)).dtype
 
 
-def normal_maps(vertex_normals: ArrayLike, faces: ArrayLike, table: TexelTable,
-                dtype: torch.dtype | np.dtype | type | None = None) -> ArrayLike:
+def normal_maps(vertex_normals: Real[ArrayLike, "*B V 3"], faces: Integer[ArrayLike, "F 3"], table: TexelTable,
+                dtype: torch.dtype | np.dtype | type | None = None) -> Float[ArrayLike, "*B 3 S S"]:
     """Normal maps (B, 3, S, S) of vertex normals (B, V, 3) through ``table``.
 
     One-shot convenience over ``NormalMapGather.from_table(table, faces).apply(...)``; build the
@@ -363,7 +365,8 @@ def normal_maps(vertex_normals: ArrayLike, faces: ArrayLike, table: TexelTable,
     return gather.apply(vertex_normals, dtype=dtype)
 
 
-def temporal_window(maps_per_frame: ArrayLike, rows: ArrayLike, window: int) -> ArrayLike:
+def temporal_window(maps_per_frame: Shaped[ArrayLike, "F 3 S S"], rows: Integer[ArrayLike, "B"],
+                    window: int) -> Shaped[ArrayLike, "B C S S"]:
     """Stack frames f, f-1, ..., f-T along channels, clamped at the first frame.
 
     Args:
@@ -397,8 +400,8 @@ def temporal_window(maps_per_frame: ArrayLike, rows: ArrayLike, window: int) -> 
 
 
 def rasterize_normal_map_naive(
-    vertex_normals: ArrayLike, faces: ArrayLike, atlas: UVAtlas, size: int, gutter: int = 2
-) -> torch.Tensor:
+    vertex_normals: Real[ArrayLike, "B V 3"], faces: Integer[ArrayLike, "F 3"], atlas: UVAtlas, size: int, gutter: int = 2
+) -> Float[ArrayLike, "B 3 S S"]:
     """Baseline for benchmarks: re-rasterise the atlas for every frame, then interpolate.
 
     Same result as ``NormalMapGather.apply`` but pays ``uv_texel_table`` per frame, as a

@@ -32,9 +32,10 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
+from jaxtyping import Bool, Float, Integer, Real
 
 from deliffas.checks import check_shape
-from deliffas.geometry.arrays import to_numpy
+from deliffas.geometry.arrays import ArrayLike, to_numpy
 from deliffas.geometry.atlas import UVAtlas
 from deliffas.geometry.raycast import PEEL_EPS_REL, projected_pixel_window
 from deliffas.io.cameras import Camera
@@ -206,11 +207,11 @@ class ShadedPixels:
         viewdir: (N, 3) float32 unit ray directions, world frame.
     """
 
-    pixels: np.ndarray
-    uv_inner: np.ndarray
-    inner_from_outer: np.ndarray
-    uv_outer: np.ndarray
-    viewdir: np.ndarray
+    pixels: Integer[np.ndarray, "N"]
+    uv_inner: Float[np.ndarray, "N 2"]
+    inner_from_outer: Bool[np.ndarray, "N"]
+    uv_outer: Float[np.ndarray, "N 2"]
+    viewdir: Float[np.ndarray, "N 3"]
 
     @property
     def num_rays(self) -> int:
@@ -243,8 +244,8 @@ class UVRasterizer:
         method: "auto" (the C kernel when available, else numpy), "native" or "numpy".
     """
 
-    def __init__(self, inner_verts: np.ndarray, faces: np.ndarray, outer_verts: np.ndarray, atlas: UVAtlas,
-                 method: Method = "auto") -> None:
+    def __init__(self, inner_verts: Real[ArrayLike, "V 3"], faces: Integer[ArrayLike, "F 3"],
+                 outer_verts: Real[ArrayLike, "V 3"], atlas: UVAtlas, method: Method = "auto") -> None:
         sizes = check_shape("inner_verts", inner_verts, "V 3")
         sizes = check_shape("faces", faces, "F 3", sizes)
         check_shape("outer_verts", outer_verts, "V 3", sizes)
@@ -268,7 +269,7 @@ class UVRasterizer:
             buf = self._scratch[name] = np.empty(max(size, 1), dtype)
         return buf[:size]
 
-    def depth_pass(self, camera: Camera) -> np.ndarray | None:
+    def depth_pass(self, camera: Camera) -> Integer[np.ndarray, "h w"] | None:
         """Face index (h, w) int32 (-1 = none) of the outer surface's nearest fragment per pixel of the
         projected window: one plain z-buffer pass, no peeling and no uvs (C kernel only; the benchmarks'
         baseline). None when a vertex is behind the camera."""

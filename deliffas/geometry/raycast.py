@@ -25,10 +25,11 @@ from dataclasses import dataclass, fields
 from typing import Literal, Sequence
 
 import numpy as np
+from jaxtyping import Bool, Float, Integer, Real, Shaped
 
 from deliffas.checks import check_finite, check_shape
 from deliffas.io.cameras import Camera
-from deliffas.geometry.arrays import to_numpy
+from deliffas.geometry.arrays import ArrayLike, to_numpy
 from deliffas.geometry.atlas import UVAtlas
 
 __all__ = [
@@ -71,7 +72,7 @@ def _o3d():
     return o3d
 
 
-def build_scene(verts: np.ndarray, faces: np.ndarray):
+def build_scene(verts: Real[ArrayLike, "V 3"], faces: Integer[ArrayLike, "F 3"]):
     """An open3d ``RaycastingScene`` holding one triangle mesh (float32 positions).
 
     Args:
@@ -120,7 +121,8 @@ def _cast(scene, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return t, face, bary
 
 
-def first_hits(scene, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def first_hits(scene, origins: Real[np.ndarray, "N 3"], directions: Real[np.ndarray, "N 3"]
+               ) -> tuple[Float[np.ndarray, "N"], Integer[np.ndarray, "N"], Float[np.ndarray, "N 3"]]:
     """First intersection of each ray.
 
     Args:
@@ -137,7 +139,8 @@ def first_hits(scene, origins: np.ndarray, directions: np.ndarray) -> tuple[np.n
     return _cast(scene, _rays(origins, directions))
 
 
-def all_hits(scene, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def all_hits(scene, origins: Real[np.ndarray, "N 3"], directions: Real[np.ndarray, "N 3"]
+             ) -> tuple[Integer[np.ndarray, "M"], Float[np.ndarray, "M"], Integer[np.ndarray, "M"], Float[np.ndarray, "M 3"]]:
     """Every intersection of every ray (open3d ``list_intersections``), sorted by (ray, t).
 
     Returns:
@@ -185,22 +188,22 @@ class RaycastHits:
         pixels: (N, 2) int64 (col, row) of the cast pixels for a subset, None for a full image.
     """
 
-    inner_hit: np.ndarray
-    inner_face: np.ndarray
-    inner_bary: np.ndarray
-    uv_inner: np.ndarray
-    inner_depth: np.ndarray
-    outer_hit: np.ndarray
-    outer_face: np.ndarray
-    outer_bary: np.ndarray
-    uv_outer: np.ndarray
-    outer_depth: np.ndarray
-    outer_exit_hit: np.ndarray
-    outer_exit_face: np.ndarray
-    outer_exit_bary: np.ndarray
-    uv_outer_exit: np.ndarray
-    outer_exit_depth: np.ndarray
-    pixels: np.ndarray | None = None
+    inner_hit: Bool[np.ndarray, "*R"]
+    inner_face: Integer[np.ndarray, "*R"]
+    inner_bary: Float[np.ndarray, "*R 3"]
+    uv_inner: Float[np.ndarray, "*R 2"]
+    inner_depth: Float[np.ndarray, "*R"]
+    outer_hit: Bool[np.ndarray, "*R"]
+    outer_face: Integer[np.ndarray, "*R"]
+    outer_bary: Float[np.ndarray, "*R 3"]
+    uv_outer: Float[np.ndarray, "*R 2"]
+    outer_depth: Float[np.ndarray, "*R"]
+    outer_exit_hit: Bool[np.ndarray, "*R"]
+    outer_exit_face: Integer[np.ndarray, "*R"]
+    outer_exit_bary: Float[np.ndarray, "*R 3"]
+    uv_outer_exit: Float[np.ndarray, "*R 2"]
+    outer_exit_depth: Float[np.ndarray, "*R"]
+    pixels: Integer[np.ndarray, "N 2"] | None = None
 
     def reshaped(self, shape: tuple[int, ...]) -> "RaycastHits":
         """The same hits with the ray dimensions reshaped to ``shape`` (pixels kept)."""
@@ -215,7 +218,7 @@ class RaycastHits:
         return RaycastHits(**out)
 
 
-def uv_inner_or_exit(hits: RaycastHits) -> tuple[np.ndarray, np.ndarray]:
+def uv_inner_or_exit(hits: RaycastHits) -> tuple[Float[np.ndarray, "*R 2"], Bool[np.ndarray, "*R"]]:
     """The DELIFFAS inner sample: the inner hit's uv, or the outer exit's uv where the ray misses.
 
     A ray that misses the inner surface but crosses the outer shell samples the shell's second
@@ -261,7 +264,8 @@ def _box_candidates(origins: np.ndarray, directions: np.ndarray, lo: np.ndarray,
     return np.flatnonzero(keep)
 
 
-def projected_pixel_window(camera: Camera, points: np.ndarray, pad: float = 1.0) -> tuple[int, int, int, int] | None:
+def projected_pixel_window(camera: Camera, points: Real[np.ndarray, "N 3"], pad: float = 1.0
+                           ) -> tuple[int, int, int, int] | None:
     """The pixels whose ray can meet the convex hull of ``points``: a window [c0, c1) x [r0, r1).
 
     For a pinhole camera and points strictly in front of it (camera z > 0), a triangle projects
@@ -352,9 +356,9 @@ class UVRaycaster:
 
     def __init__(
         self,
-        inner_verts: np.ndarray,
-        faces: np.ndarray,
-        outer_verts: np.ndarray,
+        inner_verts: Real[ArrayLike, "V 3"],
+        faces: Integer[ArrayLike, "F 3"],
+        outer_verts: Real[ArrayLike, "V 3"],
         atlas: UVAtlas,
         *,
         peel: PeelMethod = "recast",
@@ -383,7 +387,7 @@ class UVRaycaster:
         self.box_lo = both.min(0) - pad if len(both) else np.full(3, np.inf)
         self.box_hi = both.max(0) + pad if len(both) else np.full(3, -np.inf)
 
-    def cast_rays(self, origins: np.ndarray, directions: np.ndarray) -> RaycastHits:
+    def cast_rays(self, origins: Real[np.ndarray, "N 3"], directions: Real[np.ndarray, "N 3"]) -> RaycastHits:
         """Hits of arbitrary rays: origins (N, 3) mm and unit directions (N, 3); flat (N,) hits.
 
         Only the rays that meet the (padded) bounding box of both surfaces are handed to open3d;
@@ -464,7 +468,7 @@ class UVRaycaster:
             out += [tt, ff, bb]
         return out
 
-    def cast(self, camera: Camera, mask: np.ndarray | None = None) -> RaycastHits:
+    def cast(self, camera: Camera, mask: Shaped[np.ndarray, "H W"] | None = None) -> RaycastHits:
         """Hits of the rays through pixel centres of ``camera``.
 
         Args:

@@ -18,10 +18,11 @@ from __future__ import annotations
 
 import logging
 from dataclasses import asdict, dataclass, field
-from typing import Sequence, Union
+from typing import Sequence
 
 import numpy as np
 import torch
+from jaxtyping import Float, Integer, Real
 
 from deliffas.checks import check_shape
 from deliffas.io.cameras import Camera
@@ -118,7 +119,8 @@ class ShellReport:
         return asdict(self)
 
 
-def offset_shell(verts: ArrayLike, faces: ArrayLike, offsets: Union[float, ArrayLike]) -> ArrayLike:
+def offset_shell(verts: Float[ArrayLike, "*B V 3"], faces: Integer[ArrayLike, "F 3"],
+                 offsets: float | Real[ArrayLike, "... V"]) -> Float[ArrayLike, "*B V 3"]:
     """Outer surface vertices = inner + d * unit vertex normal (same faces, same uvs).
 
     Args:
@@ -141,7 +143,8 @@ def offset_shell(verts: ArrayLike, faces: ArrayLike, offsets: Union[float, Array
     return verts + d * normals
 
 
-def mesh_edges(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def mesh_edges(faces: Integer[ArrayLike, "F 3"]
+               ) -> tuple[Integer[ArrayLike, "E 2"], Integer[ArrayLike, "E"], Integer[ArrayLike, "F 3"]]:
     """Unique undirected edges of a triangle mesh.
 
     Returns:
@@ -155,7 +158,7 @@ def mesh_edges(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return like(edges, faces), like(counts, faces), like(inverse.reshape(-1, 3), faces)
 
 
-def boundary_edges(faces: np.ndarray) -> np.ndarray:
+def boundary_edges(faces: Integer[ArrayLike, "F 3"]) -> Integer[ArrayLike, "K 2"]:
     """(K, 2) int64 edges used by exactly one face (a hole's rim), numpy or torch as ``faces``."""
     edges, counts, _ = mesh_edges(to_numpy(faces, np.int64))
     return like(edges[counts == 1], faces)
@@ -184,7 +187,7 @@ def _segment_crosses_triangle(p: np.ndarray, q: np.ndarray, tri: np.ndarray) -> 
     return ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > _SEGMENT_EPS) & (t < 1 - _SEGMENT_EPS)
 
 
-def self_intersecting_faces(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
+def self_intersecting_faces(verts: Real[ArrayLike, "V 3"], faces: Integer[ArrayLike, "F 3"]) -> Integer[ArrayLike, "K"]:
     """Faces crossed by an edge of a non-adjacent face (a vectorised triangle-pair test).
 
     Two triangles in general position intersect iff an edge of one pierces the other. Every
@@ -221,7 +224,7 @@ def _self_intersecting_faces(verts: np.ndarray, faces: np.ndarray) -> np.ndarray
     return np.union1d(np.unique(face[crossing]), edge_faces).astype(np.int64)
 
 
-def fold_distances(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
+def fold_distances(verts: Real[ArrayLike, "V 3"], faces: Integer[ArrayLike, "F 3"]) -> Float[ArrayLike, "V"]:
     """Per-vertex offset at which the shell first folds locally.
 
     For a uniform offset d, face f of the shell has normal N(d) = (e1 + d g1) x (e2 + d g2) with
@@ -328,8 +331,8 @@ def _lipschitz_envelope(verts: np.ndarray, edges: np.ndarray, d: np.ndarray, slo
 
 
 def safe_offsets(
-    verts: np.ndarray,
-    faces: np.ndarray,
+    verts: Real[ArrayLike, "V 3"],
+    faces: Integer[ArrayLike, "F 3"],
     offset_mm: float,
     *,
     fraction: float = 0.45,
@@ -340,7 +343,7 @@ def safe_offsets(
     fold_fraction: float | None = None,
     repair_iterations: int = 16,
     repair_shrink: float = 0.8,
-) -> np.ndarray:
+) -> Float[ArrayLike, "V"]:
     """Per-vertex offsets that keep the shell from crossing other body parts and itself.
 
     1. Cast a ray from each vertex along its unit normal against the inner mesh; skip hits on
@@ -426,7 +429,7 @@ def safe_offsets(
     return like(d, given)
 
 
-def shell_offsets(verts: np.ndarray, faces: np.ndarray, config: ShellConfig) -> np.ndarray:
+def shell_offsets(verts: Real[ArrayLike, "V 3"], faces: Integer[ArrayLike, "F 3"], config: ShellConfig) -> Float[ArrayLike, "V"]:
     """(V,) per-vertex offsets in mm for ``config``: constant, or ``safe_offsets`` in safe mode.
 
     Numpy or torch as ``verts``, in its floating dtype and on its device (float64 for integer input).
@@ -450,11 +453,11 @@ def shell_offsets(verts: np.ndarray, faces: np.ndarray, config: ShellConfig) -> 
 
 
 def shell_report(
-    inner_verts: np.ndarray,
-    faces: np.ndarray,
-    outer_verts: np.ndarray,
+    inner_verts: Real[ArrayLike, "V 3"],
+    faces: Integer[ArrayLike, "F 3"],
+    outer_verts: Real[ArrayLike, "V 3"],
     cameras: Sequence[Camera] | None = None,
-    offsets: np.ndarray | None = None,
+    offsets: Real[ArrayLike, "V"] | None = None,
     *,
     offset_mm: float | None = None,
     depth_tol_mm: float = 1e-3,

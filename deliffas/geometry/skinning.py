@@ -8,6 +8,8 @@ torch-only maths.
 from __future__ import annotations
 
 import torch
+from jaxtyping import Float, Integer
+from torch import Tensor
 
 from deliffas.checks import check_shape
 from deliffas.geometry.arrays import ArrayLike, like, to_torch
@@ -18,7 +20,7 @@ __all__ = [
 ]
 
 
-def matrix_to_quaternion(R: torch.Tensor) -> torch.Tensor:
+def matrix_to_quaternion(R: Float[Tensor, "*B 3 3"]) -> Float[Tensor, "*B 4"]:
     """(..., 3, 3) rotations -> (..., 4) unit quaternions (w, x, y, z), numerically stable branch choice."""
     m = R
     tr = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
@@ -39,7 +41,7 @@ def matrix_to_quaternion(R: torch.Tensor) -> torch.Tensor:
     return q * torch.where(q[..., :1] < 0, -1.0, 1.0).to(q.dtype)
 
 
-def quaternion_to_matrix(q: torch.Tensor) -> torch.Tensor:
+def quaternion_to_matrix(q: Float[Tensor, "*B 4"]) -> Float[Tensor, "*B 3 3"]:
     """(..., 4) unit quaternions (w, x, y, z) -> (..., 3, 3)."""
     w, x, y, z = q.unbind(-1)
     return torch.stack(
@@ -63,14 +65,15 @@ def _qmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     ], -1)
 
 
-def rigid_to_dual_quaternion(T: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def rigid_to_dual_quaternion(T: Float[Tensor, "*B 4 4"]) -> tuple[Float[Tensor, "*B 4"], Float[Tensor, "*B 4"]]:
     """(..., 4, 4) rigid transforms -> real part (..., 4) and dual part (..., 4)."""
     real = matrix_to_quaternion(T[..., :3, :3])
     t = torch.cat([torch.zeros_like(T[..., :1, 3]), T[..., :3, 3]], -1)
     return real, 0.5 * _qmul(t, real)
 
 
-def lbs(rest_verts: ArrayLike, weights: ArrayLike, bone_transforms: ArrayLike) -> ArrayLike:
+def lbs(rest_verts: Float[ArrayLike, "V 3"], weights: Float[ArrayLike, "V Bn"],
+        bone_transforms: Float[ArrayLike, "B Bn 4 4"]) -> Float[ArrayLike, "B V 3"]:
     """Linear blend skinning: v' = (Σ_b w_vb M_b) v.
 
     Args:
@@ -94,12 +97,12 @@ def lbs(rest_verts: ArrayLike, weights: ArrayLike, bone_transforms: ArrayLike) -
 
 
 def dqs(
-    rest_verts: ArrayLike,
-    indices: ArrayLike,
-    weights: ArrayLike,
-    bone_transforms: ArrayLike,
+    rest_verts: Float[ArrayLike, "V 3"],
+    indices: Integer[ArrayLike, "V K"],
+    weights: Float[ArrayLike, "V K"],
+    bone_transforms: Float[ArrayLike, "B Bn 4 4"],
     chunk: int = 64,
-) -> ArrayLike:
+) -> Float[ArrayLike, "B V 3"]:
     """Dual-quaternion skinning as the C++ reference (formats doc 2.1).
 
     Each influence after the first has its dual quaternion negated when its real part's dot product

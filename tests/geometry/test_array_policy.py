@@ -101,7 +101,7 @@ def test_lbs_and_dqs(kind, dtype, device):
 
 
 # ------------------------------------------------------------------------------------ posing
-def test_template_pose_is_torch_only_and_pose_frames_is_the_numpy_boundary(procedural_character_path, tmp_path):
+def test_template_pose_is_torch_only_and_pose_frames_is_the_numpy_boundary(procedural_character_path, unchecked):
     from deliffas.data.posing import pose_frames
     from deliffas.geometry.motion_gen import procedural_motion
     from deliffas.geometry.templates import build_template, ddc_spec
@@ -115,7 +115,9 @@ def test_template_pose_is_torch_only_and_pose_frames_is_the_numpy_boundary(proce
         assert template.pose(torch.as_tensor(dofs, dtype=torch.float32)).dtype == torch.float64  # the template's
         posed = template.pose(torch.as_tensor(dofs))
     assert isinstance(posed, torch.Tensor) and posed.dtype == torch.float64
-    with pytest.raises(TypeError, match="dofs.*pose_frames"):
+    with pytest.raises(TypeError, match="dofs"):  # the test run's annotation check
+        template.pose(dofs)
+    with unchecked(), pytest.raises(TypeError, match="dofs.*pose_frames"):  # the library's own
         template.pose(dofs)
     # frame numbers, not rows: a motion starting at frame 100
     motion = Motion(np.array([100, 101, 102]), dofs)
@@ -207,7 +209,7 @@ def test_sample_uv_is_torch_only(dtype, device):
     index = torch.tensor([0, 1, 1], device=device)
     uv = torch.rand(3, 2, dtype=dtype, device=device)
     _assert_kind(sample_uv(maps, index, uv), "torch", dtype, device)
-    with pytest.raises(TypeError, match="uv"):
+    with unchecked(), pytest.raises(TypeError, match="uv: expected a torch.Tensor"):
         sample_uv(maps, index, uv.cpu().numpy())
 
 
@@ -225,3 +227,28 @@ def test_smpl_maths_is_torch_only_in_the_inputs_dtype(dtype, device):
     _assert_kind(verts, "torch", dtype, device)
     _assert_kind(joints, "torch", dtype, device)
     _assert_kind(batch_rodrigues(t(rng.normal(size=(5, 3)))), "torch", dtype, device)
+
+
+# ------------------------------------------------------------------------------------ mis-shaped calls
+def _typechecked(fn) -> bool:
+    """Whether the test run's jaxtyping import hook wrapped ``fn`` (``--jaxtyping-packages``)."""
+    return hasattr(fn, "__wrapped__")
+
+
+@pytest.mark.parametrize("call", ["offset_shell", "lbs", "vertex_normals"])
+def test_mis_shaped_vertices_raise_an_error_naming_the_argument(sphere, call, unchecked):
+    v, f, _ = sphere
+    flat = v[:, :2]  # (V, 2) vertices
+    calls = {"offset_shell": (offset_shell, lambda: offset_shell(flat, f, 30.0), "verts"),
+             "lbs": (lbs, lambda: lbs(flat, np.ones((len(v), 1)), np.tile(np.eye(4), (1, 1, 1, 1))), "rest_verts"),
+             "vertex_normals": (vertex_normals, lambda: vertex_normals(torch.as_tensor(flat), f), "verts")}
+    fn, bad_call, name = calls[call]
+    # the library's own check, what every caller gets: a ValueError naming the argument and the shapes
+    with unchecked(), pytest.raises(ValueError, match=rf"^{name}: expected shape \(.*3\), got \({len(v)}, 2\)"):
+        bad_call()
+    if not _typechecked(fn):
+        pytest.skip("the jaxtyping checks are off in this run (no --jaxtyping-packages)")
+    # the test run's annotation check comes first: jaxtyping's TypeCheckError names the parameter
+    with pytest.raises(TypeError, match=rf"parameter '{name}'") as err:
+        bad_call()
+    assert type(err.value).__name__ == "TypeCheckError" and "V 3" in str(err.value)
