@@ -322,7 +322,7 @@ class ShardFile:
         bgr = cv2.imdecode(f["jpeg"][row, col], cv2.IMREAD_COLOR)
         return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), f["masks"][row, col]
 
-    def geometry(self, name: str, rows: np.ndarray | Sequence[int]) -> np.ndarray:
+    def geometry(self, name: str, rows: np.ndarray | Sequence[int | np.integer]) -> np.ndarray:
         """Rows of a geometry dataset (``dofs``, ``inner_verts``, ``normal_maps_outer``, …), in the given order."""
         rows = np.asarray(rows, np.int64)
         uniq, inverse = np.unique(rows, return_inverse=True)  # h5py wants increasing indices

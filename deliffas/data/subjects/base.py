@@ -19,7 +19,7 @@ from jaxtyping import Integer
 
 from deliffas.io.cameras import Camera
 from deliffas.io.dynacap import Motion
-from deliffas.io.frames import FrameSource, ImageFolderSource, open_frame_source
+from deliffas.io.frames import FrameSource, FramesSpec, ImageFolderSource, open_frame_source
 from deliffas.geometry.templates import Skinning, TemplateSpec
 
 __all__ = [
@@ -71,7 +71,7 @@ class SubjectSequence:
         first_frame: the sequence's first frame number (temporal windows clamp to it).
         width: image width in pixels.
         height: image height in pixels.
-        images: where its images and masks are.
+        images: where its images and masks are (a ``FrameSourceSpec`` or a format's own spec).
         poses: per-frame template pose parameters (``frames`` (M,) int64 frame numbers, ``dofs``
             (M, D) float64 in the template's units: DOF units for ``ddc``, [transl m, axis-angle rad,
             betas] for ``smpl``), or None.
@@ -84,7 +84,7 @@ class SubjectSequence:
     first_frame: int
     width: int
     height: int
-    images: FrameSourceSpec
+    images: FramesSpec
     poses: Motion | None = None
     surfaces: Path | None = None
 
