@@ -28,11 +28,14 @@ __all__ = ["FrameGeometry", "FrameGeometryBuilder"]
 class FrameGeometry:
     """Geometry of B frames.
 
+    numpy vertices (what shards store) beside torch normal maps (what the model reads).
+
     Attributes:
-        inner: (B, V, 3) float32 mm, posed template (inner surface).
-        outer: (B, V, 3) float32 mm, offset shell (outer surface).
-        normal_maps_inner: (B, 3, S, S) world-space unit normals per texel (0 off the atlas).
-        normal_maps_outer: (B, 3, S, S).
+        inner: (B, V, 3) float32 numpy, mm, world frame, posed template (inner surface).
+        outer: (B, V, 3) float32 numpy, mm, world frame, offset shell (outer surface).
+        normal_maps_inner: (B, 3, S, S) tensor of the builder's dtype, world-space unit normals per
+            texel in [-1, 1] (0 off the atlas).
+        normal_maps_outer: (B, 3, S, S), the same for the outer surface.
     """
 
     inner: Float[np.ndarray, "B V 3"]

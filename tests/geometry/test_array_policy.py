@@ -204,7 +204,7 @@ def test_uv_ray_casting_and_rasterising_take_tensors_and_give_numpy(sphere, dtyp
 
 # ------------------------------------------------------------------------------------ sampling
 @DTYPES
-def test_sample_uv_is_torch_only(dtype, device):
+def test_sample_uv_is_torch_only(dtype, device, unchecked):
     maps = torch.rand(2, 4, 8, 8, dtype=dtype, device=device)
     index = torch.tensor([0, 1, 1], device=device)
     uv = torch.rand(3, 2, dtype=dtype, device=device)
