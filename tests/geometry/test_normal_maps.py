@@ -193,13 +193,13 @@ def test_temporal_window_stacks_and_clamps():
     assert temporal_window(maps, np.array([4]), 0).shape == (1, 3, 4, 4)
 
 
-def test_temporal_window_checks():
+def test_temporal_window_checks(unchecked):
     maps = _frames()
-    with pytest.raises(ValueError, match="rows"):
+    with unchecked(), pytest.raises(ValueError, match="rows"):
         temporal_window(maps, np.array([5]), 2)
-    with pytest.raises(ValueError, match="maps_per_frame"):
+    with unchecked(), pytest.raises(ValueError, match="maps_per_frame"):
         temporal_window(maps[:, :2], np.array([1]), 2)
-    with pytest.raises(ValueError, match="window"):
+    with unchecked(), pytest.raises(ValueError, match="window"):
         temporal_window(maps, np.array([1]), -1)
 
 
