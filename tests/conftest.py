@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import pytest
@@ -31,6 +32,29 @@ def _single_thread():
 @pytest.fixture
 def device(request):
     return request.config.getoption("--device")
+
+
+@pytest.fixture
+def unchecked():
+    """A context manager that turns the test run's jaxtyping checks off inside it.
+
+    The test run checks every deliffas annotation (``--jaxtyping-packages`` in pyproject.toml), so a
+    mis-typed or mis-shaped argument raises jaxtyping's TypeCheckError before the function runs.
+    Tests of a function's own run-time errors (what a user without the checker gets, e.g.
+    ``check_shape``'s ValueError) call it inside ``with unchecked():``.
+    """
+    import jaxtyping
+
+    @contextlib.contextmanager
+    def off():
+        before = jaxtyping.config.jaxtyping_disable
+        jaxtyping.config.update("jaxtyping_disable", True)
+        try:
+            yield
+        finally:
+            jaxtyping.config.update("jaxtyping_disable", before)
+
+    return off
 
 
 @pytest.fixture(scope="session")

@@ -38,8 +38,11 @@ def wheel_venv(tmp_path_factory):
                                            text=True).strip())
     deps = [sysconfig.get_paths()["purelib"], *site.getsitepackages()]
     (purelib / "zz_test_dependencies.pth").write_text("\n".join(dict.fromkeys(deps)) + "\n")
+    # without PYTHONPATH: a checkout on it (PYTHONPATH=<repo> runs) shows pip the deliffas.egg-info that
+    # `pip wheel` just wrote there, and pip then skips the wheel as "already installed"
+    clean = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
     install = subprocess.run([sys.executable, "-m", "pip", "--python", str(py), "install", "--no-deps", "-q", str(wheel)],
-                             capture_output=True, text=True, timeout=300)
+                             capture_output=True, text=True, timeout=300, env=clean)
     if install.returncode != 0:
         pytest.fail(f"installing the wheel failed: {install.stderr[-2000:]}")
     return env_dir, wheel

@@ -19,6 +19,8 @@ from typing import Literal, NamedTuple, Sequence
 import numpy as np
 import torch
 from torch.utils.data import Dataset, Sampler
+from jaxtyping import Float, Integer, UInt8
+from torch import Tensor
 
 from deliffas.data.shards import ShardReadError, ShardSet
 
@@ -38,27 +40,28 @@ class FrameItem(NamedTuple):
         images: (K, H, W, 3) uint8 RGB (as stored; divide by 255 where the model runs, e.g. on the GPU).
         masks: (K, H, W) uint8 foreground coverage (255 = covered).
         intrinsics: (K, 3, 3) float32, pixels, for the stored image size (pixel-corner convention).
-        world_to_cam: (K, 4, 4) float32, mm.
+        world_to_cam: (K, 4, 4) float32, world mm -> camera mm.
         camera_ids: (K,) int64 calibration indices.
-        inner_verts: (V, 3) float32 mm, posed inner surface of the frame.
-        outer_verts: (V, 3) float32 mm, outer surface.
-        normal_maps_inner: (3 (T + 1), S, S) float16 as stored, frames f, f-1, ..., f-T (clamped), world space.
-        normal_maps_outer: (3 (T + 1), S, S) float16.
-        dofs: (D,) float32 motion DOFs of the frame.
-        frame: () int64 capture frame index.
+        inner_verts: (V, 3) float32 mm, world frame, posed inner surface of the frame.
+        outer_verts: (V, 3) float32 mm, world frame, outer surface (offset shell).
+        normal_maps_inner: (3 (T + 1), S, S) float16 as stored, unit world-space normals in [-1, 1]
+            (0 off the atlas), frames f, f-1, ..., f-T (clamped at the sequence's first frame).
+        normal_maps_outer: (3 (T + 1), S, S) float16, the same for the outer surface.
+        dofs: (D,) float32 pose parameters of the frame (the template's units).
+        frame: () int64 capture frame number (not a row).
     """
 
-    images: torch.Tensor
-    masks: torch.Tensor
-    intrinsics: torch.Tensor
-    world_to_cam: torch.Tensor
-    camera_ids: torch.Tensor
-    inner_verts: torch.Tensor
-    outer_verts: torch.Tensor
-    normal_maps_inner: torch.Tensor
-    normal_maps_outer: torch.Tensor
-    dofs: torch.Tensor
-    frame: torch.Tensor
+    images: UInt8[Tensor, "K H W 3"]
+    masks: UInt8[Tensor, "K H W"]
+    intrinsics: Float[Tensor, "K 3 3"]
+    world_to_cam: Float[Tensor, "K 4 4"]
+    camera_ids: Integer[Tensor, "K"]
+    inner_verts: Float[Tensor, "V 3"]
+    outer_verts: Float[Tensor, "V 3"]
+    normal_maps_inner: Float[Tensor, "C S S"]
+    normal_maps_outer: Float[Tensor, "C S S"]
+    dofs: Float[Tensor, "D"]
+    frame: Integer[Tensor, ""]
 
 
 def protocol_frames(frames: Sequence[int], first_frame: int, protocol: Protocol) -> list[int]:

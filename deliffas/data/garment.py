@@ -150,7 +150,7 @@ def garment_deformation(posed: np.ndarray, faces: np.ndarray, rest_verts: np.nda
     direction /= np.maximum(np.linalg.norm(direction, axis=-1, keepdims=True), 1e-9)
     lower = core & (hem > 0.5)
 
-    def spread(v: np.ndarray) -> np.ndarray:  # (..., V, 3) -> (...) RMS horizontal radius of the lower region
+    def spread(v: np.ndarray) -> np.ndarray | float:  # (..., V, 3) -> (...) RMS horizontal radius of the lower region
         c = v[..., lower, :].mean(axis=-2, keepdims=True)
         d = v[..., lower, :] - c
         return np.sqrt((d[..., 0] ** 2 + d[..., 2] ** 2).mean(axis=-1))

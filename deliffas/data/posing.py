@@ -3,6 +3,9 @@
 The template is a ``.character`` (DDC, with a ``.motion``) or an SMPL model file (with an AMASS-style
 ``.npz`` motion); frames are the frame numbers the motion file gives (row ``i`` of an AMASS file is
 frame ``i``).
+
+This is posing's numpy boundary: templates are torch modules (``Template.pose`` takes and returns
+tensors); ``pose_frames`` reads files, poses in torch and returns numpy vertices.
 """
 
 from __future__ import annotations
@@ -12,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from jaxtyping import Float, Real
 
 from deliffas.io.dynacap import Motion
 from deliffas.io.mesh_files import write_mesh
@@ -23,16 +27,19 @@ __all__ = ["pose_frames", "write_posed_mesh"]
 
 def pose_frames(template: TemplateSpec | str | os.PathLike, motion: Motion | str | os.PathLike,
                 frames: list[int] | None = None, skinning: Skinning = "dqs",
-                dtype: torch.dtype = torch.float64) -> tuple[np.ndarray, Template]:
+                dtype: torch.dtype = torch.float64) -> tuple[Float[np.ndarray, "N V 3"], Template]:
     """Posed vertices of ``template`` for the given frame numbers of ``motion``.
 
     Args:
         template: a spec, or a template file (``.character`` or SMPL model, :func:`spec_from_file`).
         motion: pose parameters, or a motion file of the template's kind.
         frames: frame numbers as written in the motion file (not row numbers); None = all frames.
+        skinning: a DDC template's skinning (when ``template`` is a file).
+        dtype: the precision the template poses in, and the dtype of the returned vertices.
 
     Returns:
-        verts (N, V, 3) float64 mm in template vertex order, and the template.
+        verts (N, V, 3) numpy mm in template vertex order, of ``dtype`` (float64 by default), and
+        the template.
 
     Raises:
         ValueError: a frame the motion lacks, a motion of another kind or size, or non-finite output.
@@ -51,14 +58,14 @@ def pose_frames(template: TemplateSpec | str | os.PathLike, motion: Motion | str
         except KeyError as err:
             raise ValueError(str(err.args[0])) from None
     with torch.no_grad():
-        verts = posable.pose(torch.as_tensor(motion.dofs[rows], dtype=dtype)).cpu().numpy().astype(np.float64)
+        verts = posable.pose(torch.as_tensor(motion.dofs[rows], dtype=dtype)).cpu().numpy()
     if not np.isfinite(verts).all():
         raise ValueError(f"posing gave non-finite vertices (frames {[int(f) for f in motion.frames[rows]][:5]}); "
                          "check the motion's values")
     return verts, posable
 
 
-def write_posed_mesh(path: str | os.PathLike, verts: np.ndarray, template: Template) -> Path:
+def write_posed_mesh(path: str | os.PathLike, verts: Real[np.ndarray, "V 3"], template: Template) -> Path:
     """Write one posed mesh as ``.obj`` (with the template's per-corner uvs) or ``.ply``, template order."""
     return write_mesh(path, verts, template.faces.cpu().numpy(), template.uvs.cpu().numpy(),
                       template.face_uvs.cpu().numpy())

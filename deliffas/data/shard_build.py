@@ -13,7 +13,7 @@ import contextlib
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Mapping, Sequence
+from typing import Mapping, Sequence, no_type_check
 
 import numpy as np
 import torch
@@ -92,7 +92,10 @@ class ShardBuilder:
     meshes: Mapping[str, MeshSequence]
     """Tracked surfaces by sequence (those the subject gives)."""
 
+    # no_type_check: Dask ships this bound classmethod by value (cloudpickle), and the test run's
+    # type-check wrapper (jaxtyping's import hook) holds weakrefs, which do not pickle.
     @classmethod
+    @no_type_check
     def create(cls, subject: Subject, settings: ShardSettings) -> "ShardBuilder":
         with single_thread_torch():
             template = build_template(subject.template, dtype=torch.float64)

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from jaxtyping import Bool, Float, Integer
 
 from deliffas.io.cameras import Camera
 from deliffas.io.files import durable_replace, sha256_file, temp_path
@@ -28,8 +29,9 @@ class ShardMeta:
 
     Attributes:
         camera_names: calibration names of every calibrated camera (C_all).
-        K: (C_all, 3, 3) float64 intrinsics for the stored image size.
-        world_to_cam: (C_all, 4, 4) float64.
+        K: (C_all, 3, 3) float64 intrinsics in pixels for the stored image size (pixel corners at
+            integers).
+        world_to_cam: (C_all, 4, 4) float64, world mm -> camera mm.
         sizes: (C_all, 2) int64 (W, H) of the stored images.
         converted_cameras: (C,) int64 calibration indices whose images the shards hold.
         train_cameras / test_cameras: calibration indices (subsets of ``converted_cameras``).
@@ -43,22 +45,22 @@ class ShardMeta:
     """
 
     camera_names: list[str]
-    K: np.ndarray
-    world_to_cam: np.ndarray
-    sizes: np.ndarray
-    converted_cameras: np.ndarray
-    train_cameras: np.ndarray
-    test_cameras: np.ndarray
+    K: Float[np.ndarray, "Call 3 3"]
+    world_to_cam: Float[np.ndarray, "Call 4 4"]
+    sizes: Integer[np.ndarray, "Call 2"]
+    converted_cameras: Integer[np.ndarray, "C"]
+    train_cameras: Integer[np.ndarray, "Ctrain"]
+    test_cameras: Integer[np.ndarray, "Ctest"]
     sequence_frames: dict[str, np.ndarray]
     first_frames: dict[str, int]
-    faces: np.ndarray
-    uvs: np.ndarray
-    face_uvs: np.ndarray
-    rest_verts: np.ndarray
-    outer_offsets: np.ndarray
-    texel_face: np.ndarray
-    texel_bary: np.ndarray
-    texel_valid: np.ndarray
+    faces: Integer[np.ndarray, "F 3"]
+    uvs: Float[np.ndarray, "T 2"]
+    face_uvs: Integer[np.ndarray, "F 3"]
+    rest_verts: Float[np.ndarray, "V 3"]
+    outer_offsets: Float[np.ndarray, "V"]
+    texel_face: Integer[np.ndarray, "S S"]
+    texel_bary: Float[np.ndarray, "S S 3"]
+    texel_valid: Bool[np.ndarray, "S S"]
     attrs: dict = field(default_factory=dict)
 
     def cameras(self) -> list[Camera]:

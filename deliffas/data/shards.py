@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Literal, Sequence
 
 import numpy as np
+from jaxtyping import Float, Integer
 
 from deliffas.io.files import durable_replace, sha256_file, temp_path
 from deliffas.data.shard_meta import SCHEMA_VERSION, ShardMeta, read_meta
@@ -116,20 +117,20 @@ class ShardGeometry:
     """Per-frame geometry of a shard: its frames and their temporal-window predecessors.
 
     Attributes:
-        frames: (G,) int64 sorted capture frames.
-        dofs: (G, D) float64 motion DOFs (zeros when the source had none).
-        inner_verts: (G, V, 3) float32 mm, posed inner surface.
-        outer_verts: (G, V, 3) float32 mm, outer surface (inner + d * vertex normal).
-        normal_maps_inner: (G, 3, S, S) float16, world-space, 0 off the atlas.
-        normal_maps_outer: (G, 3, S, S) float16.
+        frames: (G,) int64 sorted capture frame numbers.
+        dofs: (G, D) float64 pose parameters in the template's units (zeros when the source had none).
+        inner_verts: (G, V, 3) float32 mm, world frame, posed inner surface.
+        outer_verts: (G, V, 3) float32 mm, world frame, outer surface (inner + d * vertex normal).
+        normal_maps_inner: (G, 3, S, S) float16 unit world-space normals in [-1, 1], 0 off the atlas.
+        normal_maps_outer: (G, 3, S, S) float16, the same for the outer surface.
     """
 
-    frames: np.ndarray
-    dofs: np.ndarray
-    inner_verts: np.ndarray
-    outer_verts: np.ndarray
-    normal_maps_inner: np.ndarray
-    normal_maps_outer: np.ndarray
+    frames: Integer[np.ndarray, "G"]
+    dofs: Float[np.ndarray, "G D"]
+    inner_verts: Float[np.ndarray, "G V 3"]
+    outer_verts: Float[np.ndarray, "G V 3"]
+    normal_maps_inner: Float[np.ndarray, "G 3 S S"]
+    normal_maps_outer: Float[np.ndarray, "G 3 S S"]
 
 
 class ShardWriter:
@@ -322,7 +323,7 @@ class ShardFile:
         bgr = cv2.imdecode(f["jpeg"][row, col], cv2.IMREAD_COLOR)
         return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), f["masks"][row, col]
 
-    def geometry(self, name: str, rows: np.ndarray | Sequence[int]) -> np.ndarray:
+    def geometry(self, name: str, rows: np.ndarray | Sequence[int | np.integer]) -> np.ndarray:
         """Rows of a geometry dataset (``dofs``, ``inner_verts``, ``normal_maps_outer``, …), in the given order."""
         rows = np.asarray(rows, np.int64)
         uniq, inverse = np.unique(rows, return_inverse=True)  # h5py wants increasing indices

@@ -7,6 +7,9 @@ the top (v = 1).
 
 The texel table is computed once per atlas and resolution; per-frame normal maps are then a
 gather through it (``deliffas.geometry.normal_maps``).
+
+Arrays: the atlas and its tables are numpy records. ``UVAtlas`` takes numpy arrays or torch
+tensors and stores read-only numpy copies (the one conversion); everything here returns numpy.
 """
 
 from __future__ import annotations
@@ -15,8 +18,10 @@ import logging
 from dataclasses import dataclass, field
 
 import numpy as np
+from jaxtyping import Bool, Float, Integer, Real
 
 from deliffas.checks import check_shape
+from deliffas.geometry.arrays import ArrayLike, to_numpy
 
 __all__ = [
     "UVAtlas",
@@ -56,34 +61,34 @@ class UVAtlas:
         face_uvs: (F, 3) int64, face_uvs[f, k] indexes the uv of corner k of face f.
     """
 
-    uvs: np.ndarray
-    face_uvs: np.ndarray
+    uvs: Float[ArrayLike, "T 2"]
+    face_uvs: Integer[ArrayLike, "F 3"]
 
     def __post_init__(self) -> None:
         sizes = check_shape("uvs", self.uvs, "T 2")
         check_shape("face_uvs", self.face_uvs, "F 3")
-        fu = np.asarray(self.face_uvs)
+        fu = to_numpy(self.face_uvs)
         if fu.size and (fu.min() < 0 or fu.max() >= sizes["T"]):
             raise ValueError(f"face_uvs: indices must be in [0, {sizes['T']}), got [{fu.min()}, {fu.max()}]")
-        object.__setattr__(self, "uvs", _readonly(np.asarray(self.uvs, dtype=np.float64)))
-        object.__setattr__(self, "face_uvs", _readonly(np.asarray(self.face_uvs, dtype=np.int64)))
+        object.__setattr__(self, "uvs", _readonly(to_numpy(self.uvs, np.float64)))
+        object.__setattr__(self, "face_uvs", _readonly(to_numpy(self.face_uvs, np.int64)))
 
     @property
     def num_faces(self) -> int:
         return int(self.face_uvs.shape[0])
 
     @property
-    def corner_uvs(self) -> np.ndarray:
+    def corner_uvs(self) -> Float[np.ndarray, "F 3 2"]:
         """(F, 3, 2) float64 uv of every face corner."""
         return self.uvs[self.face_uvs]
 
     @classmethod
     def from_mesh(
         cls,
-        verts: np.ndarray,
-        faces: np.ndarray,
-        uvs: np.ndarray | None = None,
-        face_uvs: np.ndarray | None = None,
+        verts: Real[ArrayLike, "V 3"] | None,
+        faces: Integer[ArrayLike, "F 3"],
+        uvs: Float[ArrayLike, "T 2"] | None = None,
+        face_uvs: Integer[ArrayLike, "F 3"] | None = None,
         *,
         resolution: int = 1024,
         padding: int = 4,
@@ -105,19 +110,19 @@ class UVAtlas:
             xatlas's uvs are rescaled by (width, height) / max(width, height) so texels are square.
         """
         check_shape("faces", faces, "F 3")
-        faces = np.asarray(faces, dtype=np.int64)
+        faces = to_numpy(faces, np.int64)
         if (uvs is None) != (face_uvs is None):
             raise ValueError("UVAtlas.from_mesh: give both uvs and face_uvs, or neither")
         if uvs is not None:
             check_shape("face_uvs", face_uvs, "F 3", {"F": len(faces)})
-            return cls(np.asarray(uvs, dtype=np.float64), np.asarray(face_uvs, dtype=np.int64))
+            return cls(uvs, face_uvs)
         check_shape("verts", verts, "V 3")
         try:
             import xatlas
         except ImportError as exc:  # pragma: no cover - hard dependency
             raise ImportError("UVAtlas.from_mesh without uvs needs the 'xatlas' package") from exc
         atlas = xatlas.Atlas()
-        atlas.add_mesh(np.ascontiguousarray(verts, dtype=np.float32), np.ascontiguousarray(faces, dtype=np.uint32))
+        atlas.add_mesh(np.ascontiguousarray(to_numpy(verts), dtype=np.float32), np.ascontiguousarray(faces, dtype=np.uint32))
         pack = xatlas.PackOptions()
         pack.resolution = int(resolution)
         pack.padding = int(padding)
@@ -148,11 +153,11 @@ class TexelTable:
         degenerate_faces: (K,) int64, faces with zero UV area (they cover no texel).
     """
 
-    face: np.ndarray
-    bary: np.ndarray
-    covered: np.ndarray
-    valid: np.ndarray
-    degenerate_faces: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    face: Integer[np.ndarray, "S S"]
+    bary: Float[np.ndarray, "S S 3"]
+    covered: Bool[np.ndarray, "S S"]
+    valid: Bool[np.ndarray, "S S"]
+    degenerate_faces: Integer[np.ndarray, "K"] = field(default_factory=lambda: np.zeros(0, np.int64))
 
     @property
     def size(self) -> int:
@@ -160,7 +165,7 @@ class TexelTable:
         return int(self.face.shape[0])
 
 
-def texel_centers_uv(size: int) -> np.ndarray:
+def texel_centers_uv(size: int) -> Float[np.ndarray, "S S 2"]:
     """uv of every texel centre of an S x S atlas image.
 
     Returns:

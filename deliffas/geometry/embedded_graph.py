@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
+from jaxtyping import Float, Integer
 import torch
 from torch import nn
 
@@ -67,13 +68,13 @@ class EmbeddedGraph:
         num_unattached: template vertices within no node radius (given the hop-nearest node).
     """
 
-    node_verts: np.ndarray
-    node_positions: np.ndarray
-    node_radius: np.ndarray
-    edges: np.ndarray
-    vertex_nodes: np.ndarray
-    vertex_weights: np.ndarray
-    rigidity: np.ndarray | None = None
+    node_verts: Integer[np.ndarray, "K"]
+    node_positions: Float[np.ndarray, "K 3"]
+    node_radius: Integer[np.ndarray, "K"]
+    edges: Integer[np.ndarray, "E 2"]
+    vertex_nodes: Integer[np.ndarray, "V M"]
+    vertex_weights: Float[np.ndarray, "V M"]
+    rigidity: Float[np.ndarray, "K"] | None = None
     num_unattached: int = 0
 
     @property

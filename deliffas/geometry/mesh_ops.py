@@ -4,39 +4,25 @@ Vertex normals follow the original DELIFFAS renderer (dynacap-formats.md 3.3): t
 sum of the *unnormalised* face normals cross(v1 - v0, v2 - v0) of the faces around a vertex
 (area-weighted; outward for counter-clockwise faces).
 
-Both functions accept numpy arrays or torch tensors and return the same kind. torch inputs keep
-their device and dtype; numpy inputs are computed in torch and converted back (float64 stays
-float64).
+Both functions follow the geometry array policy (``deliffas.geometry.arrays``): numpy arrays or
+torch tensors in, the same kind out; torch inputs keep their device and dtype; numpy inputs are
+computed in torch and converted back (float64 stays float64).
 """
 
 from __future__ import annotations
 
-from typing import Union
-
-import numpy as np
 import torch
+from jaxtyping import Bool, Float, Integer
 
 from deliffas.checks import check_shape
+from deliffas.geometry.arrays import ArrayLike, is_numpy, to_numpy, to_torch
 
 __all__ = ["face_normals", "vertex_normals", "ZERO_NORMAL_EPS"]
-
-ArrayLike = Union[np.ndarray, torch.Tensor]
 
 ZERO_NORMAL_EPS = 1e-12
 """A summed vertex normal whose length is <= this (mm^2) is treated as zero: the unit normal is
 (0, 0, 0) and ``valid`` is False. This happens for isolated vertices (no faces) and for vertices
 whose faces are all degenerate or cancel exactly."""
-
-
-def _as_torch(x: ArrayLike) -> tuple[torch.Tensor, bool]:
-    if isinstance(x, torch.Tensor):
-        return x, False
-    return torch.from_numpy(np.ascontiguousarray(x)), True
-
-
-def _faces_like(faces: ArrayLike, device: torch.device) -> torch.Tensor:
-    f = faces if isinstance(faces, torch.Tensor) else torch.from_numpy(np.ascontiguousarray(faces))
-    return f.to(device=device, dtype=torch.long)
 
 
 def _face_normals_t(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
@@ -46,7 +32,7 @@ def _face_normals_t(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     return torch.cross(v1 - v0, v2 - v0, dim=-1)
 
 
-def face_normals(verts: ArrayLike, faces: ArrayLike) -> ArrayLike:
+def face_normals(verts: Float[ArrayLike, "*B V 3"], faces: Integer[ArrayLike, "F 3"]) -> Float[ArrayLike, "*B F 3"]:
     """Unnormalised face normals cross(v1 - v0, v2 - v0) (length = 2 x face area).
 
     Args:
@@ -58,12 +44,13 @@ def face_normals(verts: ArrayLike, faces: ArrayLike) -> ArrayLike:
     """
     check_shape("verts", verts, "* V 3")
     check_shape("faces", faces, "F 3")
-    v, was_np = _as_torch(verts)
-    out = _face_normals_t(v, _faces_like(faces, v.device))
-    return out.numpy() if was_np else out
+    v = to_torch(verts)
+    out = _face_normals_t(v, to_torch(faces, torch.long, v.device))
+    return to_numpy(out) if is_numpy(verts) else out
 
 
-def vertex_normals(verts: ArrayLike, faces: ArrayLike, *, return_valid: bool = False):
+def vertex_normals(verts: Float[ArrayLike, "*B V 3"], faces: Integer[ArrayLike, "F 3"], *, return_valid: bool = False
+                   ) -> Float[ArrayLike, "*B V 3"] | tuple[Float[ArrayLike, "*B V 3"], Bool[ArrayLike, "*B V"]]:
     """Unit vertex normals: normalised sum of the unnormalised normals of the incident faces.
 
     Args:
@@ -78,8 +65,8 @@ def vertex_normals(verts: ArrayLike, faces: ArrayLike, *, return_valid: bool = F
     """
     check_shape("verts", verts, "* V 3")
     check_shape("faces", faces, "F 3")
-    v, was_np = _as_torch(verts)
-    f = _faces_like(faces, v.device)
+    v = to_torch(verts)
+    f = to_torch(faces, torch.long, v.device)
     lead = v.shape[:-2]
     num_verts = v.shape[-2]
     vb = v.reshape(-1, num_verts, 3)  # (B, V, 3)
@@ -92,6 +79,6 @@ def vertex_normals(verts: ArrayLike, faces: ArrayLike, *, return_valid: bool = F
     normals = torch.where(valid[..., None], acc / length.clamp_min(ZERO_NORMAL_EPS), torch.zeros_like(acc))
     normals = normals.reshape(*lead, num_verts, 3)
     valid = valid.reshape(*lead, num_verts)
-    if was_np:
-        normals, valid = normals.numpy(), valid.numpy()
+    if is_numpy(verts):
+        normals, valid = to_numpy(normals), to_numpy(valid)
     return (normals, valid) if return_valid else normals

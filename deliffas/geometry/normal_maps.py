@@ -14,6 +14,11 @@ it is needed in a process, into a temporary directory that is deleted once the l
 and called through ``ctypes``. Without a compiler (or with ``DELIFFAS_NATIVE=0``) ``apply`` falls
 back to the sparse-matrix product, with the reason logged once; ``fused_kernel_status`` reports
 which path is in use and how long the build took.
+
+Arrays (``deliffas.geometry.arrays``): ``normal_maps``, ``NormalMapGather.apply``, ``temporal_window``
+and ``rasterize_normal_map_naive`` return numpy for numpy input and a tensor on the input's device
+for a tensor; the maps' dtype is the ``dtype`` argument, else the input's. ``NormalMapGather`` holds
+its tables as CPU tensors (``to(device)`` moves them).
 """
 
 from __future__ import annotations
@@ -25,8 +30,11 @@ from typing import Literal, Union
 
 import numpy as np
 import torch
+from jaxtyping import Float, Integer, Real, Shaped
+from torch import Tensor
 
 from deliffas.checks import check_shape
+from deliffas.geometry.arrays import ArrayLike, is_numpy, to_numpy, to_torch
 from deliffas.geometry.atlas import TexelTable, UVAtlas, uv_texel_table
 from deliffas.native import LazyLibrary
 
@@ -39,8 +47,6 @@ __all__ = [
     "rasterize_normal_map_naive",
     "NORMAL_EPS",
 ]
-
-ArrayLike = Union[np.ndarray, torch.Tensor]
 
 
 NORMAL_EPS = 1e-8
@@ -196,12 +202,12 @@ class NormalMapGather:
     """
 
     size: int
-    vert_index: torch.Tensor
-    weights: torch.Tensor
-    matrix: torch.Tensor
+    vert_index: Integer[Tensor, "S2 3"]
+    weights: Float[Tensor, "S2 3"]
+    matrix: Tensor
 
     @classmethod
-    def from_table(cls, table: TexelTable, faces: ArrayLike, num_verts: int | None = None) -> "NormalMapGather":
+    def from_table(cls, table: TexelTable, faces: Integer[ArrayLike, "F 3"], num_verts: int | None = None) -> "NormalMapGather":
         """Flatten a texel table against the mesh's faces.
 
         Args:
@@ -211,8 +217,7 @@ class NormalMapGather:
                 vertices are ignored by ``apply``).
         """
         check_shape("faces", faces, "F 3")
-        faces_np = faces.cpu().numpy() if isinstance(faces, torch.Tensor) else np.asarray(faces)
-        faces_np = faces_np.astype(np.int64)
+        faces_np = to_numpy(faces, np.int64)
         if faces_np.min(initial=0) < 0:
             raise ValueError(f"faces: vertex indices must be >= 0, got {faces_np.min()}")
         face = table.face.reshape(-1)
@@ -260,28 +265,32 @@ class NormalMapGather:
         return tables
 
     def apply(
-        self, vertex_normals: ArrayLike, dtype: torch.dtype | None = None,
+        self, vertex_normals: Real[ArrayLike, "*B V 3"], dtype: torch.dtype | np.dtype | type | None = None,
         method: Literal["auto", "fused", "sparse", "gather"] = "auto",
-    ) -> torch.Tensor:
+    ) -> Float[ArrayLike, "*B 3 S S"]:
         """Normal maps of one or more frames.
 
         Args:
             vertex_normals: (..., V, 3) float, unit world-space vertex normals (torch or numpy).
-            dtype: output dtype (e.g. ``torch.float16`` for storage); default: input dtype.
-                Interpolation runs in the input dtype (float32 at least).
+            dtype: output dtype, torch or numpy (e.g. ``torch.float16`` / ``np.float16`` for
+                storage); default: input dtype. Interpolation runs in the input dtype (float32 at least).
             method: "fused" (one C loop per frame, CPU only; see the module docstring), "sparse"
                 (one sparse-dense product), "gather" (index + weighted sum), or "auto": fused on
                 CPU when the kernel is available, else sparse. Same result within ~1e-7 (fused
                 and gather agree to the last bit on most texels).
 
         Returns:
-            (..., 3, S, S) tensor on the input's device: barycentric interpolation of the three
-            vertex normals of each valid texel's face, re-normalised; 0 where not valid.
+            (..., 3, S, S) barycentric interpolation of the three vertex normals of each valid
+            texel's face, re-normalised; 0 where not valid. numpy for numpy input, else a tensor on
+            the input's device.
         """
         check_shape("vertex_normals", vertex_normals, "* V 3")
         if method not in ("auto", "fused", "sparse", "gather"):
             raise ValueError(f"method: expected 'auto', 'fused', 'sparse' or 'gather', got {method!r}")
-        vn = vertex_normals if isinstance(vertex_normals, torch.Tensor) else torch.from_numpy(np.asarray(vertex_normals))
+        out = self._apply(to_torch(vertex_normals), _torch_dtype(dtype), method)
+        return to_numpy(out) if is_numpy(vertex_normals) else out
+
+    def _apply(self, vn: torch.Tensor, dtype: torch.dtype | None, method: str) -> torch.Tensor:
         out_dtype = dtype or vn.dtype
         if not vn.dtype.is_floating_point or vn.dtype in (torch.float16, torch.bfloat16):
             vn = vn.float()
@@ -336,43 +345,54 @@ class NormalMapGather:
         return out if out_dtype == out.dtype else out.to(out_dtype)  # the cast of the eager paths
 
 
-def normal_maps(vertex_normals: ArrayLike, faces: ArrayLike, table: TexelTable, dtype: torch.dtype | None = None) -> torch.Tensor:
+def _torch_dtype(dtype: torch.dtype | np.dtype | type | None) -> torch.dtype | None:
+    """A torch dtype for a torch or numpy one (None stays None)."""
+    if dtype is None or isinstance(dtype, torch.dtype):
+        return dtype
+    return torch.from_numpy(np.zeros(0, dtype)).dtype
+
+
+def normal_maps(vertex_normals: Real[ArrayLike, "*B V 3"], faces: Integer[ArrayLike, "F 3"], table: TexelTable,
+                dtype: torch.dtype | np.dtype | type | None = None) -> Float[ArrayLike, "*B 3 S S"]:
     """Normal maps (B, 3, S, S) of vertex normals (B, V, 3) through ``table``.
 
     One-shot convenience over ``NormalMapGather.from_table(table, faces).apply(...)``; build the
-    gather once and reuse it when converting many frames.
+    gather once and reuse it when converting many frames. numpy for numpy input, else a tensor on
+    the input's device.
     """
     check_shape("vertex_normals", vertex_normals, "* V 3")
     gather = NormalMapGather.from_table(table, faces, num_verts=vertex_normals.shape[-2])
     return gather.apply(vertex_normals, dtype=dtype)
 
 
-def temporal_window(maps_per_frame: ArrayLike, frame_indices: ArrayLike, window: int) -> ArrayLike:
+def temporal_window(maps_per_frame: Shaped[ArrayLike, "F 3 S S"], rows: Integer[ArrayLike, "B"],
+                    window: int) -> Shaped[ArrayLike, "B C S S"]:
     """Stack frames f, f-1, ..., f-T along channels, clamped at the first frame.
 
     Args:
-        maps_per_frame: (F, 3, S, S) normal maps of consecutive frames 0..F-1 (torch or numpy).
-        frame_indices: (B,) int, the current frame f of each batch item (index into axis 0).
+        maps_per_frame: (F, 3, S, S) normal maps of consecutive frames (torch or numpy).
+        rows: (B,) int, the row of ``maps_per_frame`` holding the current frame of each batch item
+            (a position, not a capture frame number: row 0 is the first frame given).
         window: T, the number of previous frames (T = 2 in DELIFFAS: t, t-1, t-2).
 
     Returns:
-        (B, 3 (T + 1), S, S), same kind as ``maps_per_frame``; channels [3k:3k+3] hold frame
-        max(f - k, 0).
+        (B, 3 (T + 1), S, S), same kind as ``maps_per_frame``; channels [3k:3k+3] hold row
+        max(r - k, 0).
     """
     sizes = check_shape("maps_per_frame", maps_per_frame, "F 3 S S")
-    check_shape("frame_indices", frame_indices, "B")
+    check_shape("rows", rows, "B")
     if window < 0:
         raise ValueError(f"temporal_window: window must be >= 0, got {window}")
     if isinstance(maps_per_frame, torch.Tensor):
-        fi = torch.as_tensor(frame_indices, device=maps_per_frame.device, dtype=torch.long)
+        fi = to_torch(rows, torch.long, maps_per_frame.device)
         if fi.numel() and (fi.min() < 0 or fi.max() >= sizes["F"]):
-            raise ValueError(f"frame_indices: must be in [0, {sizes['F']}), got [{int(fi.min())}, {int(fi.max())}]")
+            raise ValueError(f"rows: must be in [0, {sizes['F']}), got [{int(fi.min())}, {int(fi.max())}]")
         idx = (fi[:, None] - torch.arange(window + 1, device=fi.device)).clamp_min(0)  # (B, T+1)
         out = maps_per_frame[idx]  # (B, T+1, 3, S, S)
     else:
-        fi = np.asarray(frame_indices, dtype=np.int64)
+        fi = to_numpy(rows, np.int64)
         if fi.size and (fi.min() < 0 or fi.max() >= sizes["F"]):
-            raise ValueError(f"frame_indices: must be in [0, {sizes['F']}), got [{fi.min()}, {fi.max()}]")
+            raise ValueError(f"rows: must be in [0, {sizes['F']}), got [{fi.min()}, {fi.max()}]")
         idx = np.maximum(fi[:, None] - np.arange(window + 1), 0)
         out = np.asarray(maps_per_frame)[idx]
     S = sizes["S"]
@@ -380,8 +400,8 @@ def temporal_window(maps_per_frame: ArrayLike, frame_indices: ArrayLike, window:
 
 
 def rasterize_normal_map_naive(
-    vertex_normals: ArrayLike, faces: ArrayLike, atlas: UVAtlas, size: int, gutter: int = 2
-) -> torch.Tensor:
+    vertex_normals: Real[ArrayLike, "B V 3"], faces: Integer[ArrayLike, "F 3"], atlas: UVAtlas, size: int, gutter: int = 2
+) -> Float[ArrayLike, "B 3 S S"]:
     """Baseline for benchmarks: re-rasterise the atlas for every frame, then interpolate.
 
     Same result as ``NormalMapGather.apply`` but pays ``uv_texel_table`` per frame, as a
@@ -395,12 +415,13 @@ def rasterize_normal_map_naive(
         gutter: dilation rings.
 
     Returns:
-        (B, 3, S, S) float tensor.
+        (B, 3, S, S) float, numpy or torch as ``vertex_normals``.
     """
     check_shape("vertex_normals", vertex_normals, "B V 3")
-    vn = vertex_normals if isinstance(vertex_normals, torch.Tensor) else torch.from_numpy(np.asarray(vertex_normals))
+    vn = to_torch(vertex_normals)
     frames = []
     for b in range(vn.shape[0]):  # per frame, by design of this baseline
         table = uv_texel_table(atlas, size, gutter)
         frames.append(NormalMapGather.from_table(table, faces, num_verts=vn.shape[1]).apply(vn[b]))
-    return torch.stack(frames)
+    out = torch.stack(frames)
+    return to_numpy(out) if is_numpy(vertex_normals) else out

@@ -34,8 +34,10 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
+from jaxtyping import Bool, Float, Integer, Real
 
 from deliffas.checks import check_shape
+from deliffas.geometry.arrays import ArrayLike, to_numpy
 from deliffas.geometry.atlas import UVAtlas
 from deliffas.geometry.raycast import PEEL_EPS_REL, projected_pixel_window
 from deliffas.io.cameras import Camera
@@ -363,11 +365,11 @@ class ShadedPixels:
         viewdir: (N, 3) float32 unit ray directions, world frame; None when not asked for.
     """
 
-    pixels: np.ndarray
-    uv_inner: np.ndarray
-    inner_from_outer: np.ndarray
-    uv_outer: np.ndarray
-    viewdir: np.ndarray | None
+    pixels: Integer[np.ndarray, "N"]
+    uv_inner: Float[np.ndarray, "N 2"]
+    inner_from_outer: Bool[np.ndarray, "N"]
+    uv_outer: Float[np.ndarray, "N 2"]
+    viewdir: Float[np.ndarray, "N 3"] | None
 
     @property
     def num_rays(self) -> int:
@@ -390,6 +392,9 @@ class UVRasterizer:
     """One frame's inner and outer surfaces, rasterised per camera (scratch buffers reused across calls, one set per
     thread).
 
+    numpy inside: vertices and faces may be numpy arrays or torch tensors (copied to numpy here, the
+    one conversion); the results (:class:`ShadedPixels`) are numpy.
+
     Args:
         inner_verts: (V, 3) float, mm, the posed mesh.
         faces: (F, 3) int, shared by both surfaces.
@@ -398,8 +403,8 @@ class UVRasterizer:
         method: "auto" (the C kernel when available, else numpy), "native" or "numpy".
     """
 
-    def __init__(self, inner_verts: np.ndarray, faces: np.ndarray, outer_verts: np.ndarray, atlas: UVAtlas,
-                 method: Method = "auto") -> None:
+    def __init__(self, inner_verts: Real[ArrayLike, "V 3"], faces: Integer[ArrayLike, "F 3"],
+                 outer_verts: Real[ArrayLike, "V 3"], atlas: UVAtlas, method: Method = "auto") -> None:
         sizes = check_shape("inner_verts", inner_verts, "V 3")
         sizes = check_shape("faces", faces, "F 3", sizes)
         check_shape("outer_verts", outer_verts, "V 3", sizes)
@@ -408,9 +413,9 @@ class UVRasterizer:
         if method not in ("auto", "native", "numpy"):
             raise ValueError(f"method: expected 'auto', 'native' or 'numpy', got {method!r}")
         self.method = method
-        self.inner = np.asarray(inner_verts, np.float64)
-        self.outer = np.asarray(outer_verts, np.float64)
-        self.faces = np.ascontiguousarray(faces, np.int32)
+        self.inner = to_numpy(inner_verts, np.float64)  # the numpy boundary: tensors (any device) come to the CPU
+        self.outer = to_numpy(outer_verts, np.float64)
+        self.faces = np.ascontiguousarray(to_numpy(faces), np.int32)
         self.corner_uvs = np.ascontiguousarray(atlas.uvs.astype(np.float32)[atlas.face_uvs].reshape(-1, 6))  # (F, 6)
         diag = float(np.linalg.norm(self.outer.max(0) - self.outer.min(0))) if len(self.outer) else 1.0
         self.peel_eps = PEEL_EPS_REL * max(diag, 1e-6)
@@ -424,7 +429,7 @@ class UVRasterizer:
             buf = scratch[name] = np.empty(max(size, 1), dtype)
         return buf[:size]
 
-    def depth_pass(self, camera: Camera) -> np.ndarray | None:
+    def depth_pass(self, camera: Camera) -> Integer[np.ndarray, "h w"] | None:
         """Face index (h, w) int32 (-1 = none) of the outer surface's nearest fragment per pixel of the
         projected window: one plain z-buffer pass, no peeling and no uvs (C kernel only; the benchmarks'
         baseline). None when a vertex is behind the camera."""

@@ -12,6 +12,10 @@ point (1 - b1 - b2) v0 + b1 v1 + b2 v2, so ``bary = (1 - b1 - b2, b1, b2)`` (che
 Per-corner uv at a hit: uv = sum_k bary_k * uvs[face_uvs[face, k]].
 
 open3d is imported at call time, only here (shell.py reaches it through these functions).
+
+Arrays: open3d works on numpy, so this module is numpy inside. ``build_scene`` and ``UVRaycaster``
+take numpy arrays or torch tensors (any device; converted once, on entry) and every result
+(``RaycastHits``, hit arrays) is numpy.
 """
 
 from __future__ import annotations
@@ -22,9 +26,11 @@ from dataclasses import dataclass, fields
 from typing import Literal, Sequence
 
 import numpy as np
+from jaxtyping import Bool, Float, Integer, Real, Shaped
 
 from deliffas.checks import check_finite, check_shape
 from deliffas.io.cameras import Camera
+from deliffas.geometry.arrays import ArrayLike, to_numpy
 from deliffas.geometry.atlas import UVAtlas
 
 __all__ = [
@@ -67,7 +73,7 @@ def _o3d():
     return o3d
 
 
-def build_scene(verts: np.ndarray, faces: np.ndarray):
+def build_scene(verts: Real[ArrayLike, "V 3"], faces: Integer[ArrayLike, "F 3"]):
     """An open3d ``RaycastingScene`` holding one triangle mesh (float32 positions).
 
     Args:
@@ -79,6 +85,7 @@ def build_scene(verts: np.ndarray, faces: np.ndarray):
     check_finite("verts", verts)  # open3d would silently drop the faces of a NaN vertex
     if len(faces) and (int(np.min(faces)) < 0 or int(np.max(faces)) >= sizes["V"]):
         raise ValueError(f"faces: indices must be in [0, {sizes['V']}), got [{int(np.min(faces))}, {int(np.max(faces))}]")
+    verts, faces = to_numpy(verts), to_numpy(faces)
     o3d = _o3d()
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(
@@ -115,7 +122,8 @@ def _cast(scene, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return t, face, bary
 
 
-def first_hits(scene, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def first_hits(scene, origins: Real[np.ndarray, "N 3"], directions: Real[np.ndarray, "N 3"]
+               ) -> tuple[Float[np.ndarray, "N"], Integer[np.ndarray, "N"], Float[np.ndarray, "N 3"]]:
     """First intersection of each ray.
 
     Args:
@@ -132,7 +140,8 @@ def first_hits(scene, origins: np.ndarray, directions: np.ndarray) -> tuple[np.n
     return _cast(scene, _rays(origins, directions))
 
 
-def all_hits(scene, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def all_hits(scene, origins: Real[np.ndarray, "N 3"], directions: Real[np.ndarray, "N 3"]
+             ) -> tuple[Integer[np.ndarray, "M"], Float[np.ndarray, "M"], Integer[np.ndarray, "M"], Float[np.ndarray, "M 3"]]:
     """Every intersection of every ray (open3d ``list_intersections``), sorted by (ray, t).
 
     Returns:
@@ -180,22 +189,22 @@ class RaycastHits:
         pixels: (N, 2) int64 (col, row) of the cast pixels for a subset, None for a full image.
     """
 
-    inner_hit: np.ndarray
-    inner_face: np.ndarray
-    inner_bary: np.ndarray
-    uv_inner: np.ndarray
-    inner_depth: np.ndarray
-    outer_hit: np.ndarray
-    outer_face: np.ndarray
-    outer_bary: np.ndarray
-    uv_outer: np.ndarray
-    outer_depth: np.ndarray
-    outer_exit_hit: np.ndarray
-    outer_exit_face: np.ndarray
-    outer_exit_bary: np.ndarray
-    uv_outer_exit: np.ndarray
-    outer_exit_depth: np.ndarray
-    pixels: np.ndarray | None = None
+    inner_hit: Bool[np.ndarray, "*R"]
+    inner_face: Integer[np.ndarray, "*R"]
+    inner_bary: Float[np.ndarray, "*R 3"]
+    uv_inner: Float[np.ndarray, "*R 2"]
+    inner_depth: Float[np.ndarray, "*R"]
+    outer_hit: Bool[np.ndarray, "*R"]
+    outer_face: Integer[np.ndarray, "*R"]
+    outer_bary: Float[np.ndarray, "*R 3"]
+    uv_outer: Float[np.ndarray, "*R 2"]
+    outer_depth: Float[np.ndarray, "*R"]
+    outer_exit_hit: Bool[np.ndarray, "*R"]
+    outer_exit_face: Integer[np.ndarray, "*R"]
+    outer_exit_bary: Float[np.ndarray, "*R 3"]
+    uv_outer_exit: Float[np.ndarray, "*R 2"]
+    outer_exit_depth: Float[np.ndarray, "*R"]
+    pixels: Integer[np.ndarray, "N 2"] | None = None
 
     def reshaped(self, shape: tuple[int, ...]) -> "RaycastHits":
         """The same hits with the ray dimensions reshaped to ``shape`` (pixels kept)."""
@@ -210,7 +219,7 @@ class RaycastHits:
         return RaycastHits(**out)
 
 
-def uv_inner_or_exit(hits: RaycastHits) -> tuple[np.ndarray, np.ndarray]:
+def uv_inner_or_exit(hits: RaycastHits) -> tuple[Float[np.ndarray, "*R 2"], Bool[np.ndarray, "*R"]]:
     """The DELIFFAS inner sample: the inner hit's uv, or the outer exit's uv where the ray misses.
 
     A ray that misses the inner surface but crosses the outer shell samples the shell's second
@@ -256,7 +265,8 @@ def _box_candidates(origins: np.ndarray, directions: np.ndarray, lo: np.ndarray,
     return np.flatnonzero(keep)
 
 
-def projected_pixel_window(camera: Camera, points: np.ndarray, pad: float = 1.0) -> tuple[int, int, int, int] | None:
+def projected_pixel_window(camera: Camera, points: Real[np.ndarray, "N 3"], pad: float = 1.0
+                           ) -> tuple[int, int, int, int] | None:
     """The pixels whose ray can meet the convex hull of ``points``: a window [c0, c1) x [r0, r1).
 
     For a pinhole camera and points strictly in front of it (camera z > 0), a triangle projects
@@ -347,9 +357,9 @@ class UVRaycaster:
 
     def __init__(
         self,
-        inner_verts: np.ndarray,
-        faces: np.ndarray,
-        outer_verts: np.ndarray,
+        inner_verts: Real[ArrayLike, "V 3"],
+        faces: Integer[ArrayLike, "F 3"],
+        outer_verts: Real[ArrayLike, "V 3"],
         atlas: UVAtlas,
         *,
         peel: PeelMethod = "recast",
@@ -361,6 +371,7 @@ class UVRaycaster:
             raise ValueError(f"atlas: face_uvs has {atlas.num_faces} rows, faces has {sizes['F']}")
         if peel not in ("recast", "list"):
             raise ValueError(f"peel: expected 'recast' or 'list', got {peel!r}")
+        inner_verts, faces, outer_verts = to_numpy(inner_verts), to_numpy(faces), to_numpy(outer_verts)
         self.peel = peel
         # the frame's surfaces as given (read by engine/realtime's rasteriser of the same frame)
         self.inner_verts, self.outer_verts, self.faces, self.atlas = inner_verts, outer_verts, faces, atlas
@@ -395,7 +406,7 @@ class UVRaycaster:
         """The open3d ray casting scene of the outer surface (built on first use)."""
         return self._built_scenes()[1]
 
-    def cast_rays(self, origins: np.ndarray, directions: np.ndarray) -> RaycastHits:
+    def cast_rays(self, origins: Real[np.ndarray, "N 3"], directions: Real[np.ndarray, "N 3"]) -> RaycastHits:
         """Hits of arbitrary rays: origins (N, 3) mm and unit directions (N, 3); flat (N,) hits.
 
         Only the rays that meet the (padded) bounding box of both surfaces are handed to open3d;
@@ -476,7 +487,7 @@ class UVRaycaster:
             out += [tt, ff, bb]
         return out
 
-    def cast(self, camera: Camera, mask: np.ndarray | None = None) -> RaycastHits:
+    def cast(self, camera: Camera, mask: Shaped[np.ndarray, "H W"] | None = None) -> RaycastHits:
         """Hits of the rays through pixel centres of ``camera``.
 
         Args:

@@ -17,15 +17,18 @@ import logging
 
 import torch
 import torch.nn.functional as F
+from jaxtyping import Float, Integer
+from torch import Tensor
 
 from deliffas.checks import check_shape
+from deliffas.geometry.arrays import require_tensor
 
 __all__ = ["sample_uv", "uv_to_grid"]
 
 logger = logging.getLogger(__name__)
 
 
-def uv_to_grid(uv: torch.Tensor) -> torch.Tensor:
+def uv_to_grid(uv: Float[Tensor, "*N 2"]) -> Float[Tensor, "*N 2"]:
     """Map uv in [0, 1]^2 (OBJ convention, v up) to grid_sample coordinates in [-1, 1]^2.
 
     Args:
@@ -44,7 +47,8 @@ def _sample_one(feature_map: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     return out[0, :, 0, :].transpose(0, 1)  # (1, C, 1, M) -> (M, C)
 
 
-def sample_uv(feature_maps: torch.Tensor, batch_index: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+def sample_uv(feature_maps: Float[Tensor, "B C Sh Sw"], batch_index: Integer[Tensor, "N"], uv: Float[Tensor, "N 2"]
+              ) -> Float[Tensor, "N C"]:
     """Bilinearly sample per-item atlas maps at per-ray uv coordinates.
 
     One ``grid_sample`` call per batch item present (a (1, 1, M, 2) grid each), so the cost is
@@ -67,8 +71,12 @@ def sample_uv(feature_maps: torch.Tensor, batch_index: torch.Tensor, uv: torch.T
         ``uv``. The result may be a non-contiguous (transposed) view.
 
     Raises:
+        TypeError: an argument is not a tensor (torch-only: it is differentiable and runs where the
+            maps are; ``torch.as_tensor`` converts numpy).
         ValueError: on shape mismatch, non-integer ``batch_index`` or an index outside [0, B).
     """
+    for name, x in (("feature_maps", feature_maps), ("batch_index", batch_index), ("uv", uv)):
+        require_tensor(name, x, "torch.as_tensor converts numpy")
     sizes = check_shape("feature_maps", feature_maps, "B C _ _")
     sizes = check_shape("uv", uv, "N 2", sizes)
     check_shape("batch_index", batch_index, "N", sizes)

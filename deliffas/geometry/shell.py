@@ -7,19 +7,26 @@ crosses itself; ``safe_offsets`` limits d per vertex there, and ``shell_report``
 left.
 
 Ray casting goes through ``deliffas.geometry.raycast`` (open3d, imported at call time).
+
+Arrays: every function takes numpy arrays or torch tensors. The mesh processing runs in numpy
+float64; the per-vertex results (offsets, fold distances, face ids) come back in the kind of
+``verts``, in its floating dtype and on its device (``deliffas.geometry.arrays``). ``shell_report``
+returns a plain record.
 """
 
 from __future__ import annotations
 
 import logging
 from dataclasses import asdict, dataclass, field
-from typing import Sequence, Union
+from typing import Sequence
 
 import numpy as np
 import torch
+from jaxtyping import Float, Integer, Real
 
 from deliffas.checks import check_shape
 from deliffas.io.cameras import Camera
+from deliffas.geometry.arrays import ArrayLike, like, to_numpy, to_torch
 from deliffas.geometry.mesh_ops import vertex_normals
 from deliffas.geometry.raycast import all_hits, build_scene, first_hits
 
@@ -37,8 +44,6 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
-
-ArrayLike = Union[np.ndarray, torch.Tensor]
 
 _RAY_START_REL = 1e-5  # rays from a vertex start this far (x bbox diagonal) along the normal
 _MAX_RECASTS = 16  # hits in a vertex's own neighbourhood are skipped at most this many times
@@ -114,7 +119,8 @@ class ShellReport:
         return asdict(self)
 
 
-def offset_shell(verts: ArrayLike, faces: ArrayLike, offsets: Union[float, ArrayLike]) -> ArrayLike:
+def offset_shell(verts: Float[ArrayLike, "*B V 3"], faces: Integer[ArrayLike, "F 3"],
+                 offsets: float | Real[ArrayLike, "... V"]) -> Float[ArrayLike, "*B V 3"]:
     """Outer surface vertices = inner + d * unit vertex normal (same faces, same uvs).
 
     Args:
@@ -128,33 +134,34 @@ def offset_shell(verts: ArrayLike, faces: ArrayLike, offsets: Union[float, Array
     sizes = check_shape("verts", verts, "* V 3")
     normals = vertex_normals(verts, faces)
     if isinstance(verts, torch.Tensor):
-        d = torch.as_tensor(offsets, dtype=verts.dtype, device=verts.device)
+        d = to_torch(offsets, verts.dtype, verts.device)
     else:
-        d = np.asarray(offsets, dtype=np.asarray(verts).dtype)
+        d = to_numpy(offsets, np.asarray(verts).dtype)
     if d.ndim:
         check_shape("offsets", d, "* V", sizes)
         d = d[..., None]
     return verts + d * normals
 
 
-def mesh_edges(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def mesh_edges(faces: Integer[ArrayLike, "F 3"]
+               ) -> tuple[Integer[ArrayLike, "E 2"], Integer[ArrayLike, "E"], Integer[ArrayLike, "F 3"]]:
     """Unique undirected edges of a triangle mesh.
 
     Returns:
         edges (E, 2) int64 sorted pairs, counts (E,) faces per edge, edge_of_corner (F, 3) int64:
-        the edge of face f from corner k to corner k + 1.
+        the edge of face f from corner k to corner k + 1; numpy or torch as ``faces``.
     """
-    f = np.asarray(faces, dtype=np.int64)
+    f = to_numpy(faces, np.int64)
     pairs = np.stack([f, np.roll(f, -1, axis=1)], axis=-1).reshape(-1, 2)  # (3F, 2)
     pairs = np.sort(pairs, axis=1)
     edges, inverse, counts = np.unique(pairs, axis=0, return_inverse=True, return_counts=True)
-    return edges, counts, inverse.reshape(-1, 3)
+    return like(edges, faces), like(counts, faces), like(inverse.reshape(-1, 3), faces)
 
 
-def boundary_edges(faces: np.ndarray) -> np.ndarray:
-    """(K, 2) int64 edges used by exactly one face (a hole's rim)."""
-    edges, counts, _ = mesh_edges(faces)
-    return edges[counts == 1]
+def boundary_edges(faces: Integer[ArrayLike, "F 3"]) -> Integer[ArrayLike, "K 2"]:
+    """(K, 2) int64 edges used by exactly one face (a hole's rim), numpy or torch as ``faces``."""
+    edges, counts, _ = mesh_edges(to_numpy(faces, np.int64))
+    return like(edges[counts == 1], faces)
 
 
 def _bbox_diag(verts: np.ndarray) -> float:
@@ -180,7 +187,7 @@ def _segment_crosses_triangle(p: np.ndarray, q: np.ndarray, tri: np.ndarray) -> 
     return ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > _SEGMENT_EPS) & (t < 1 - _SEGMENT_EPS)
 
 
-def self_intersecting_faces(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
+def self_intersecting_faces(verts: Real[ArrayLike, "V 3"], faces: Integer[ArrayLike, "F 3"]) -> Integer[ArrayLike, "K"]:
     """Faces crossed by an edge of a non-adjacent face (a vectorised triangle-pair test).
 
     Two triangles in general position intersect iff an edge of one pierces the other. Every
@@ -195,12 +202,14 @@ def self_intersecting_faces(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
         faces: (F, 3) int.
 
     Returns:
-        (K,) int64 sorted face ids.
+        (K,) int64 sorted face ids, numpy or torch as ``verts``.
     """
     check_shape("verts", verts, "V 3")
     check_shape("faces", faces, "F 3")
-    verts = np.asarray(verts, np.float64)
-    faces = np.asarray(faces, np.int64)
+    return like(_self_intersecting_faces(to_numpy(verts, np.float64), to_numpy(faces, np.int64)), verts)
+
+
+def _self_intersecting_faces(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
     edges, _, edge_of_corner = mesh_edges(faces)
     scene = build_scene(verts, faces)
     a, b = edges[:, 0], edges[:, 1]
@@ -215,7 +224,7 @@ def self_intersecting_faces(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.union1d(np.unique(face[crossing]), edge_faces).astype(np.int64)
 
 
-def fold_distances(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
+def fold_distances(verts: Real[ArrayLike, "V 3"], faces: Integer[ArrayLike, "F 3"]) -> Float[ArrayLike, "V"]:
     """Per-vertex offset at which the shell first folds locally.
 
     For a uniform offset d, face f of the shell has normal N(d) = (e1 + d g1) x (e2 + d g2) with
@@ -227,12 +236,15 @@ def fold_distances(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
         faces: (F, 3) int.
 
     Returns:
-        (V,) float64, min over the incident faces, mm (inf when none folds).
+        (V,) min over the incident faces, mm (inf when none folds); numpy or torch as ``verts``, in
+        its floating dtype (float64 for integer input).
     """
     check_shape("verts", verts, "V 3")
     check_shape("faces", faces, "F 3")
-    verts = np.asarray(verts, np.float64)
-    faces = np.asarray(faces, np.int64)
+    return like(_fold_distances(to_numpy(verts, np.float64), to_numpy(faces, np.int64)), verts)
+
+
+def _fold_distances(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
     normals = vertex_normals(verts, faces)
     p, q = verts[faces], normals[faces]  # (F, 3, 3)
     e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
@@ -319,8 +331,8 @@ def _lipschitz_envelope(verts: np.ndarray, edges: np.ndarray, d: np.ndarray, slo
 
 
 def safe_offsets(
-    verts: np.ndarray,
-    faces: np.ndarray,
+    verts: Real[ArrayLike, "V 3"],
+    faces: Integer[ArrayLike, "F 3"],
     offset_mm: float,
     *,
     fraction: float = 0.45,
@@ -331,7 +343,7 @@ def safe_offsets(
     fold_fraction: float | None = None,
     repair_iterations: int = 16,
     repair_shrink: float = 0.8,
-) -> np.ndarray:
+) -> Float[ArrayLike, "V"]:
     """Per-vertex offsets that keep the shell from crossing other body parts and itself.
 
     1. Cast a ray from each vertex along its unit normal against the inner mesh; skip hits on
@@ -357,7 +369,8 @@ def safe_offsets(
         offset_mm: nominal d.
 
     Returns:
-        (V,) float64 offsets in mm, in [floor, offset_mm].
+        (V,) offsets in mm, in [floor, offset_mm]; numpy or torch as ``verts``, in its floating dtype
+        (float64 for integer input).
     """
     check_shape("verts", verts, "V 3")
     check_shape("faces", faces, "F 3")
@@ -367,8 +380,9 @@ def safe_offsets(
         raise ValueError(f"repair_shrink: expected in (0, 1), got {repair_shrink}")
     from scipy import sparse
 
-    verts = np.asarray(verts, np.float64)
-    faces = np.asarray(faces, np.int64)
+    given = verts
+    verts = to_numpy(verts, np.float64)
+    faces = to_numpy(faces, np.int64)
     floor = min(float(min_offset_mm), float(offset_mm))
     normals = vertex_normals(verts, faces)
     dist = _distance_to_other_parts(verts, faces, normals, rings)
@@ -412,14 +426,17 @@ def safe_offsets(
     clamped = d < offset_mm - 1e-9
     if clamped.any():
         log.info("safe_offsets: %d of %d vertices clamped, min %.3g mm", int(clamped.sum()), len(d), float(d.min()))
-    return d
+    return like(d, given)
 
 
-def shell_offsets(verts: np.ndarray, faces: np.ndarray, config: ShellConfig) -> np.ndarray:
-    """(V,) float64 per-vertex offsets for ``config``: constant, or ``safe_offsets`` in safe mode."""
+def shell_offsets(verts: Real[ArrayLike, "V 3"], faces: Integer[ArrayLike, "F 3"], config: ShellConfig) -> Float[ArrayLike, "V"]:
+    """(V,) per-vertex offsets in mm for ``config``: constant, or ``safe_offsets`` in safe mode.
+
+    Numpy or torch as ``verts``, in its floating dtype and on its device (float64 for integer input).
+    """
     check_shape("verts", verts, "V 3")
     if not config.safe:
-        return np.full(len(verts), float(config.offset_mm))
+        return like(np.full(len(verts), float(config.offset_mm)), verts)
     return safe_offsets(
         verts,
         faces,
@@ -436,11 +453,11 @@ def shell_offsets(verts: np.ndarray, faces: np.ndarray, config: ShellConfig) -> 
 
 
 def shell_report(
-    inner_verts: np.ndarray,
-    faces: np.ndarray,
-    outer_verts: np.ndarray,
+    inner_verts: Real[ArrayLike, "V 3"],
+    faces: Integer[ArrayLike, "F 3"],
+    outer_verts: Real[ArrayLike, "V 3"],
     cameras: Sequence[Camera] | None = None,
-    offsets: np.ndarray | None = None,
+    offsets: Real[ArrayLike, "V"] | None = None,
     *,
     offset_mm: float | None = None,
     depth_tol_mm: float = 1e-3,
@@ -462,9 +479,9 @@ def shell_report(
     sizes = check_shape("inner_verts", inner_verts, "V 3")
     sizes = check_shape("faces", faces, "F 3", sizes)
     check_shape("outer_verts", outer_verts, "V 3", sizes)
-    inner = np.asarray(inner_verts, np.float64)
-    outer = np.asarray(outer_verts, np.float64)
-    faces = np.asarray(faces, np.int64)
+    inner = to_numpy(inner_verts, np.float64)
+    outer = to_numpy(outer_verts, np.float64)
+    faces = to_numpy(faces, np.int64)
     edges, counts, _ = mesh_edges(faces)
     boundary = edges[counts == 1]
     nonmanifold = int((counts > 2).sum())
@@ -501,7 +518,7 @@ def shell_report(
         if not n_inner:
             report.notes.append("no camera ray hits the inner surface")
     if offsets is not None:
-        off = np.asarray(offsets, np.float64)
+        off = to_numpy(offsets, np.float64)
         check_shape("offsets", off, "V", sizes)
         nominal = float(offset_mm) if offset_mm is not None else float(off.max(initial=0.0))
         report.offset_nominal_mm = nominal

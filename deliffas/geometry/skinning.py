@@ -1,10 +1,18 @@
-"""Linear blend skinning and dual-quaternion skinning (formats doc 2.1), batched plain functions."""
+"""Linear blend skinning and dual-quaternion skinning (formats doc 2.1), batched plain functions.
+
+``lbs`` and ``dqs`` follow the geometry array policy (numpy in -> numpy out, torch in -> torch out
+in the rest vertices' dtype and device; ``deliffas.geometry.arrays``); the quaternion helpers are
+torch-only maths.
+"""
 
 from __future__ import annotations
 
 import torch
+from jaxtyping import Float, Integer
+from torch import Tensor
 
 from deliffas.checks import check_shape
+from deliffas.geometry.arrays import ArrayLike, like, to_torch
 
 __all__ = [
     "matrix_to_quaternion", "quaternion_to_matrix", "rigid_to_dual_quaternion",
@@ -12,7 +20,7 @@ __all__ = [
 ]
 
 
-def matrix_to_quaternion(R: torch.Tensor) -> torch.Tensor:
+def matrix_to_quaternion(R: Float[Tensor, "*B 3 3"]) -> Float[Tensor, "*B 4"]:
     """(..., 3, 3) rotations -> (..., 4) unit quaternions (w, x, y, z), numerically stable branch choice."""
     m = R
     tr = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
@@ -33,7 +41,7 @@ def matrix_to_quaternion(R: torch.Tensor) -> torch.Tensor:
     return q * torch.where(q[..., :1] < 0, -1.0, 1.0).to(q.dtype)
 
 
-def quaternion_to_matrix(q: torch.Tensor) -> torch.Tensor:
+def quaternion_to_matrix(q: Float[Tensor, "*B 4"]) -> Float[Tensor, "*B 3 3"]:
     """(..., 4) unit quaternions (w, x, y, z) -> (..., 3, 3)."""
     w, x, y, z = q.unbind(-1)
     return torch.stack(
@@ -57,14 +65,15 @@ def _qmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     ], -1)
 
 
-def rigid_to_dual_quaternion(T: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def rigid_to_dual_quaternion(T: Float[Tensor, "*B 4 4"]) -> tuple[Float[Tensor, "*B 4"], Float[Tensor, "*B 4"]]:
     """(..., 4, 4) rigid transforms -> real part (..., 4) and dual part (..., 4)."""
     real = matrix_to_quaternion(T[..., :3, :3])
     t = torch.cat([torch.zeros_like(T[..., :1, 3]), T[..., :3, 3]], -1)
     return real, 0.5 * _qmul(t, real)
 
 
-def lbs(rest_verts: torch.Tensor, weights: torch.Tensor, bone_transforms: torch.Tensor) -> torch.Tensor:
+def lbs(rest_verts: Float[ArrayLike, "V 3"], weights: Float[ArrayLike, "V Bn"],
+        bone_transforms: Float[ArrayLike, "B Bn 4 4"]) -> Float[ArrayLike, "B V 3"]:
     """Linear blend skinning: v' = (Σ_b w_vb M_b) v.
 
     Args:
@@ -73,23 +82,27 @@ def lbs(rest_verts: torch.Tensor, weights: torch.Tensor, bone_transforms: torch.
         bone_transforms: (B, Bn, 4, 4) per-bone transforms relative to the rest pose.
 
     Returns:
-        (B, V, 3) posed vertices, mm.
+        (B, V, 3) posed vertices, mm; numpy or torch as ``rest_verts``, in its dtype and on its device.
     """
     check_shape("rest_verts", rest_verts, "V 3")
     sizes = check_shape("weights", weights, "V Bn", {"V": rest_verts.shape[0]})
     check_shape("bone_transforms", bone_transforms, "B Bn 4 4", sizes)
+    if not isinstance(rest_verts, torch.Tensor):
+        return like(lbs(to_torch(rest_verts), to_torch(weights), to_torch(bone_transforms)), rest_verts)
+    weights = to_torch(weights, rest_verts.dtype, rest_verts.device)
+    bone_transforms = to_torch(bone_transforms, rest_verts.dtype, rest_verts.device)
     B, Bn = bone_transforms.shape[:2]
     blended = (weights @ bone_transforms[..., :3, :].reshape(B, Bn, 12)).reshape(B, -1, 3, 4)  # (B, V, 3, 4)
     return torch.einsum("bvij,vj->bvi", blended[..., :3], rest_verts) + blended[..., 3]
 
 
 def dqs(
-    rest_verts: torch.Tensor,
-    indices: torch.Tensor,
-    weights: torch.Tensor,
-    bone_transforms: torch.Tensor,
+    rest_verts: Float[ArrayLike, "V 3"],
+    indices: Integer[ArrayLike, "V K"],
+    weights: Float[ArrayLike, "V K"],
+    bone_transforms: Float[ArrayLike, "B Bn 4 4"],
     chunk: int = 64,
-) -> torch.Tensor:
+) -> Float[ArrayLike, "B V 3"]:
     """Dual-quaternion skinning as the C++ reference (formats doc 2.1).
 
     Each influence after the first has its dual quaternion negated when its real part's dot product
@@ -103,12 +116,18 @@ def dqs(
         chunk: frames processed at once (bounds memory at chunk·V·K·8 values).
 
     Returns:
-        (B, V, 3) posed vertices, mm.
+        (B, V, 3) posed vertices, mm; numpy or torch as ``rest_verts``, in its dtype and on its device.
     """
     check_shape("rest_verts", rest_verts, "V 3")
     check_shape("indices", indices, "V K", {"V": rest_verts.shape[0]})
     check_shape("weights", weights, "V K", {"V": rest_verts.shape[0], "K": indices.shape[1]})
     check_shape("bone_transforms", bone_transforms, "B Bn 4 4")
+    if not isinstance(rest_verts, torch.Tensor):
+        return like(dqs(to_torch(rest_verts), to_torch(indices), to_torch(weights), to_torch(bone_transforms), chunk),
+                    rest_verts)
+    indices = to_torch(indices, torch.long, rest_verts.device)
+    weights = to_torch(weights, rest_verts.dtype, rest_verts.device)
+    bone_transforms = to_torch(bone_transforms, rest_verts.dtype, rest_verts.device)
     real, dual = rigid_to_dual_quaternion(bone_transforms)  # (B, Bn, 4) each
     idx = indices.clamp(min=0)
     w = weights * (indices >= 0)

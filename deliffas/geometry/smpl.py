@@ -9,11 +9,13 @@ the arrays is :class:`deliffas.geometry.templates.smpl.SMPLTemplate`; the model 
 from __future__ import annotations
 
 import torch
+from jaxtyping import Float, Integer
+from torch import Tensor
 
 __all__ = ["batch_rodrigues", "blend_shapes", "batch_rigid_transform", "smpl_lbs"]
 
 
-def batch_rodrigues(rot_vecs: torch.Tensor) -> torch.Tensor:
+def batch_rodrigues(rot_vecs: Float[Tensor, "N 3"]) -> Float[Tensor, "N 3 3"]:
     """(N, 3) axis-angle vectors -> (N, 3, 3) rotation matrices (zero vector -> identity)."""
     angle = torch.linalg.norm(rot_vecs + 1e-8, dim=1, keepdim=True)  # (N, 1), as smplx
     axis = rot_vecs / angle
@@ -25,13 +27,13 @@ def batch_rodrigues(rot_vecs: torch.Tensor) -> torch.Tensor:
     return eye + sin * K + (1 - cos) * torch.bmm(K, K)
 
 
-def blend_shapes(betas: torch.Tensor, shapedirs: torch.Tensor) -> torch.Tensor:
+def blend_shapes(betas: Float[Tensor, "B NB"], shapedirs: Float[Tensor, "V 3 NB"]) -> Float[Tensor, "B V 3"]:
     """(B, NB) betas, (V, 3, NB) shapedirs -> (B, V, 3) displacements."""
     return torch.einsum("bl,mkl->bmk", betas, shapedirs)
 
 
-def batch_rigid_transform(rot_mats: torch.Tensor, joints: torch.Tensor,
-                          parents: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def batch_rigid_transform(rot_mats: Float[Tensor, "B J 3 3"], joints: Float[Tensor, "B J 3"],
+                          parents: Integer[Tensor, "J"]) -> tuple[Float[Tensor, "B J 3"], Float[Tensor, "B J 4 4"]]:
     """Global joint transforms of a kinematic tree (parents precede children).
 
     Args:
@@ -59,9 +61,10 @@ def batch_rigid_transform(rot_mats: torch.Tensor, joints: torch.Tensor,
     return posed_joints, rel_T
 
 
-def smpl_lbs(betas: torch.Tensor, pose: torch.Tensor, v_template: torch.Tensor, shapedirs: torch.Tensor,
-             posedirs: torch.Tensor, J_regressor: torch.Tensor, parents: torch.Tensor,
-             lbs_weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def smpl_lbs(betas: Float[Tensor, "B NB"], pose: Float[Tensor, "B P"], v_template: Float[Tensor, "V 3"],
+             shapedirs: Float[Tensor, "V 3 NB"], posedirs: Float[Tensor, "207 V3"], J_regressor: Float[Tensor, "J V"],
+             parents: Integer[Tensor, "J"], lbs_weights: Float[Tensor, "V J"]
+             ) -> tuple[Float[Tensor, "B V 3"], Float[Tensor, "B J 3"]]:
     """SMPL: shape blend shapes, joint regression, pose blend shapes, linear blend skinning.
 
     Args:

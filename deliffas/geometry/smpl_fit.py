@@ -23,6 +23,8 @@ import logging
 from dataclasses import dataclass
 
 import torch
+from jaxtyping import Float
+from torch import Tensor
 
 from deliffas.checks import check_finite, check_shape
 from deliffas.io.smpl import NUM_JOINTS
@@ -76,9 +78,9 @@ class SMPLFitResult:
         loss: final value of the objective E (module docstring).
     """
 
-    params: torch.Tensor
-    betas: torch.Tensor
-    residual_mm: torch.Tensor
+    params: Float[Tensor, "N P"]
+    betas: Float[Tensor, "NB"]
+    residual_mm: Float[Tensor, "N"]
     loss: float
 
 

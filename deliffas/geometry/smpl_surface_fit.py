@@ -15,6 +15,7 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+from jaxtyping import Float
 import torch
 from scipy.spatial import cKDTree
 from tqdm import tqdm
@@ -55,8 +56,8 @@ class SurfaceFitResult:
         residual_mm: (N,) mean symmetric closest-point distance per frame, world units (mm).
     """
 
-    params: np.ndarray
-    residual_mm: np.ndarray
+    params: Float[np.ndarray, "N P"]
+    residual_mm: Float[np.ndarray, "N"]
 
 
 def _distances(tree_target: cKDTree, target: np.ndarray, verts: np.ndarray) -> np.ndarray:

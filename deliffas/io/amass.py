@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from jaxtyping import Float, Integer
 
 from deliffas.io.files import durable_replace, temp_path
 
@@ -50,12 +51,12 @@ class SMPLMotion:
             SMPL fitted to a capture); None = rows are frames 0..N-1, as AMASS files have it.
     """
 
-    poses: np.ndarray
-    trans: np.ndarray
-    betas: np.ndarray
+    poses: Float[np.ndarray, "N P"]
+    trans: Float[np.ndarray, "N 3"]
+    betas: Float[np.ndarray, "NB"]
     fps: float | None = None
     gender: str | None = None
-    frames: np.ndarray | None = None
+    frames: Integer[np.ndarray, "N"] | None = None
 
     def __post_init__(self) -> None:
         for key in ("poses", "trans", "betas"):

@@ -11,8 +11,10 @@ casts rays goes through them.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from typing import Sequence
 
 import numpy as np
+from jaxtyping import Float, Real
 
 from deliffas.checks import check_finite, check_shape
 
@@ -23,7 +25,7 @@ ROTATION_TOLERANCE = 1e-4
 print ~10 significant digits; a scaled or mirrored R is an error, not rounding."""
 
 
-def pixel_centers(width: int, height: int) -> np.ndarray:
+def pixel_centers(width: int, height: int) -> Float[np.ndarray, "H W 2"]:
     """Continuous image coordinates of every pixel centre.
 
     Returns:
@@ -33,7 +35,8 @@ def pixel_centers(width: int, height: int) -> np.ndarray:
     return np.stack([cols, rows], axis=-1)
 
 
-def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, 1.0, 0.0)) -> np.ndarray:
+def look_at(eye: Real[np.ndarray, "3"] | Sequence[float], target: Real[np.ndarray, "3"] | Sequence[float],
+            up: Real[np.ndarray, "3"] | Sequence[float] = (0.0, 1.0, 0.0)) -> Float[np.ndarray, "4 4"]:
     """The (4, 4) ``world_to_cam`` of a camera at ``eye`` looking at ``target``.
 
     The camera looks along +z; image y points along world -``up`` (image up = world up) and
@@ -68,18 +71,21 @@ class Camera:
 
     Attributes:
         name: the calibration's ``name`` token.
-        K: (3, 3) float64 intrinsics in pixels for an image of ``width`` x ``height``.
-        world_to_cam: (4, 4) float64 rigid transform, world mm -> camera mm.
+        K: (3, 3) float64 intrinsics in pixels for an image of ``width`` x ``height``, integer
+            coordinates on pixel corners (pixel (col, row) is sampled at (col + 0.5, row + 0.5)).
+        world_to_cam: (4, 4) float64 rigid transform, world mm -> camera mm (x_cam = R X + t; the
+            camera looks along +z, image x right, y down).
         width: image width in pixels.
         height: image height in pixels.
         sensor: sensor size (w, h) in mm as the file states it, or None.
         radial: the single radial coefficient of a DynaCap file (unused by the projection).
-        extra: format-specific values (e.g. ``distortion``), not compared by ``==``.
+        extra: format-specific values (e.g. ``distortion``: OpenCV's (k1, k2, p1, p2, k3)), not
+            compared by ``==``.
     """
 
     name: str
-    K: np.ndarray
-    world_to_cam: np.ndarray
+    K: Real[np.ndarray, "3 3"]
+    world_to_cam: Real[np.ndarray, "4 4"]
     width: int
     height: int
     sensor: tuple[float, float] | None = None
@@ -104,29 +110,29 @@ class Camera:
                              f"{ROTATION_TOLERANCE}); got |R R^T - I| = {orth:.2g}, det = {det:.6g}")
 
     @property
-    def R(self) -> np.ndarray:
+    def R(self) -> Float[np.ndarray, "3 3"]:
         """(3, 3) world -> camera rotation."""
         return self.world_to_cam[:3, :3]
 
     @property
-    def t(self) -> np.ndarray:
+    def t(self) -> Float[np.ndarray, "3"]:
         """(3,) world -> camera translation, mm."""
         return self.world_to_cam[:3, 3]
 
     @property
-    def center(self) -> np.ndarray:
+    def center(self) -> Float[np.ndarray, "3"]:
         """(3,) camera centre in world mm (= -R^T t)."""
         return -self.R.T @ self.t
 
     @property
-    def cam_to_world(self) -> np.ndarray:
+    def cam_to_world(self) -> Float[np.ndarray, "4 4"]:
         """(4, 4) inverse of ``world_to_cam``."""
         out = np.eye(4)
         out[:3, :3] = self.R.T
         out[:3, 3] = self.center
         return out
 
-    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def project(self, points: Real[np.ndarray, "N 3"]) -> tuple[Float[np.ndarray, "N 2"], Float[np.ndarray, "N"]]:
         """Project world points to continuous image coordinates.
 
         Args:
@@ -151,7 +157,7 @@ class Camera:
         K[1, :] *= sy
         return replace(self, K=K, width=int(width), height=int(height))
 
-    def rays(self, pixels: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def rays(self, pixels: Real[np.ndarray, "N 2"] | None = None) -> tuple[Float[np.ndarray, "N 3"], Float[np.ndarray, "N 3"]]:
         """World-space rays through pixel centres.
 
         Args:

@@ -74,7 +74,7 @@ def require_array(path: str | os.PathLike, key: str, value: Any, shape: tuple[in
     return arr
 
 
-def require_rotation(path: str | os.PathLike, key: str, R: np.ndarray) -> np.ndarray:
+def require_rotation(path: str | os.PathLike, key: str, R: Any) -> np.ndarray:
     """``R`` (3, 3) checked to be a rotation within ``ROTATION_TOLERANCE`` (orthonormal, det +1): the
     tolerance every ``Camera`` is held to, so a file accepted here makes a valid camera.
 

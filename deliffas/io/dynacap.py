@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from jaxtyping import Float, Integer
 
 from deliffas.io.obj import ObjData, read_obj, write_obj
 from deliffas.io.skeleton import Skeleton, read_skeleton, write_skeleton
@@ -42,12 +43,13 @@ class Motion:
     """A Skeletool motion: per line a frame index and D DOF values (DOF units).
 
     Attributes:
-        frames: (N,) int64 frame index of each row (absolute, as written).
-        dofs: (N, D) float64 DOF values in the skeleton's DOF order.
+        frames: (N,) int64 frame number of each row (absolute, as written; ``row_of`` maps back).
+        dofs: (N, D) float64 DOF values in the skeleton's DOF order (DOF units: metres for root
+            translations, radians for angles).
     """
 
-    frames: np.ndarray
-    dofs: np.ndarray
+    frames: Integer[np.ndarray, "N"]
+    dofs: Float[np.ndarray, "N D"]
 
     @property
     def num_frames(self) -> int:
@@ -119,14 +121,14 @@ class Skin:
     """
 
     bones: tuple[str, ...]
-    indices: np.ndarray
-    weights: np.ndarray
+    indices: Integer[np.ndarray, "V K"]
+    weights: Float[np.ndarray, "V K"]
 
     @property
     def num_verts(self) -> int:
         return int(self.indices.shape[0])
 
-    def dense(self) -> np.ndarray:
+    def dense(self) -> Float[np.ndarray, "V B"]:
         """(V, B) float64 dense weight matrix."""
         W = np.zeros((self.num_verts, len(self.bones)))
         rows = np.repeat(np.arange(self.num_verts), self.indices.shape[1])
@@ -222,7 +224,7 @@ def write_skin(path: PathLike, skin: Skin, crlf: bool = False) -> None:
 
 
 # --------------------------------------------------------------------------------------------- segmentation
-def read_segmentation(path: PathLike, num_verts: int | None = None) -> np.ndarray:
+def read_segmentation(path: PathLike, num_verts: int | None = None) -> Integer[np.ndarray, "V"]:
     """(V,) int64 per-vertex labels, one integer per line in vertex order (formats doc 1.8)."""
     t = TextLines(path, what="segmentation file")
     labels = []
@@ -234,7 +236,7 @@ def read_segmentation(path: PathLike, num_verts: int | None = None) -> np.ndarra
     return np.asarray(labels, dtype=np.int64)
 
 
-def write_segmentation(path: PathLike, labels: np.ndarray, crlf: bool = False) -> None:
+def write_segmentation(path: PathLike, labels: Integer[np.ndarray, "V"], crlf: bool = False) -> None:
     write_text_atomic(path, "\n".join(str(int(x)) for x in labels) + "\n", crlf)
 
 
@@ -255,12 +257,22 @@ class Character:
     """A DynaCap character: skeleton, template mesh (in the rest pose), skin, rest pose and extras.
 
     Attributes:
-        rest_dofs: (D,) float64 DOF values of the rest pose (frame 0 of the ``pose`` motion;
-            zeros when the character names none).
+        path: the ``.character`` file.
+        files: the files it names.
+        skeleton: joints, DOFs and scaling groups (``deliffas.io.skeleton``).
+        mesh: the template mesh in the rest pose: ``mesh.verts`` (V, 3) float64 mm, ``mesh.faces``
+            (F, 3) int64, ``mesh.uvs`` (T, 2) float64 and ``mesh.face_uvs`` (F, 3) int64 per-corner
+            uv indices (see :class:`~deliffas.io.obj.ObjData`). Its ``v`` order is the vertex order
+            everywhere.
+        skin: per-vertex bone influences, (V, K) indices and weights.
+        rest_dofs: (D,) float64 DOF values of the rest pose, DOF units (frame 0 of the ``pose``
+            motion; zeros when the character names none).
         segmentation: (V,) int64 labels from ``segmentation.txt`` next to the mesh, or None.
         hand_segmentation: (V,) int64 from ``hand_segmentation.txt``, or None.
-        graph: the embedded graph ``<mesh stem>_graph.obj`` next to the mesh, or None.
+        graph: the embedded graph ``<mesh stem>_graph.obj`` next to the mesh (its vertices are
+            graph nodes, mm), or None.
         texture: path of the texture image (``map_Kd`` of the mesh's material), or None.
+        extra: anything else a reader keeps, not compared by ``==``.
     """
 
     path: Path
@@ -268,9 +280,9 @@ class Character:
     skeleton: Skeleton
     mesh: ObjData
     skin: Skin
-    rest_dofs: np.ndarray
-    segmentation: np.ndarray | None = None
-    hand_segmentation: np.ndarray | None = None
+    rest_dofs: Float[np.ndarray, "D"]
+    segmentation: Integer[np.ndarray, "V"] | None = None
+    hand_segmentation: Integer[np.ndarray, "V"] | None = None
     graph: ObjData | None = None
     texture: Path | None = None
     extra: dict = field(default_factory=dict, compare=False)

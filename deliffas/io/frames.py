@@ -30,6 +30,7 @@ from deliffas.io.files import temp_path
 
 __all__ = [
     "FrameSource",
+    "FramesSpec",
     "ImageFolderSource",
     "VideoSource",
     "MaskFolderSource",
@@ -71,6 +72,18 @@ class FrameSource(Protocol):
         ...
 
     def close(self) -> None: ...
+
+
+@runtime_checkable
+class FramesSpec(Protocol):
+    """Where a sequence's frames are, picklable: ``open`` gives its ``FrameSource`` in the process that
+    reads (``data.subjects.FrameSourceSpec``, ``io.capture_frames.FileFramesSpec``, ``SmcFramesSpec``)."""
+
+    def open(self) -> FrameSource: ...
+
+    def image_frames(self) -> set[int] | None:
+        """Frame numbers that have images (None: every frame of a video has one)."""
+        ...
 
 
 # --------------------------------------------------------------------------------------------- image folders

@@ -6,6 +6,7 @@ import os
 from pathlib import Path
 
 import numpy as np
+from jaxtyping import Float, Integer, Real
 
 from deliffas.io.files import durable_replace, temp_path
 from deliffas.io.obj import ObjData, write_obj
@@ -15,8 +16,8 @@ __all__ = ["MESH_SUFFIXES", "write_mesh"]
 MESH_SUFFIXES = (".obj", ".ply")
 
 
-def write_mesh(path: str | os.PathLike, verts: np.ndarray, faces: np.ndarray, uvs: np.ndarray | None = None,
-               face_uvs: np.ndarray | None = None) -> Path:
+def write_mesh(path: str | os.PathLike, verts: Real[np.ndarray, "V 3"], faces: Integer[np.ndarray, "F 3"],
+               uvs: Float[np.ndarray, "T 2"] | None = None, face_uvs: Integer[np.ndarray, "F 3"] | None = None) -> Path:
     """Write ``verts`` (V, 3) and ``faces`` (F, 3); ``.obj`` keeps ``uvs`` (T, 2) / ``face_uvs`` (F, 3).
 
     Raises:

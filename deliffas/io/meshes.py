@@ -6,6 +6,7 @@ import os
 from dataclasses import dataclass
 
 import numpy as np
+from jaxtyping import Float, Integer
 
 from deliffas.io.text_lines import DynaCapFormatError, TextLines, write_text_atomic
 
@@ -21,12 +22,13 @@ class MeshSequence:
     """A ``.meshes`` sequence: per frame the template's vertices (template order, mm).
 
     Attributes:
-        frames: (N,) int64 frame indices.
-        verts: (N, V, 3) float32.
+        frames: (N,) int64 frame numbers (v2.0 files: 0..N-1).
+        verts: (N, V, 3) float32 mm, template vertex order.
+        version: the file's format version (``v2.1`` or ``v2.0``).
     """
 
-    frames: np.ndarray
-    verts: np.ndarray
+    frames: Integer[np.ndarray, "N"]
+    verts: Float[np.ndarray, "N V 3"]
     version: str = "v2.1"
 
 

@@ -9,8 +9,10 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import no_type_check
 
 import numpy as np
+from jaxtyping import Float, Integer
 
 from deliffas.io.text_lines import DynaCapFormatError, read_text, write_text_atomic
 
@@ -22,24 +24,25 @@ class ObjData:
     """A triangle mesh as an OBJ file holds it.
 
     Attributes:
-        verts: (V, 3) float64, file units (mm for DynaCap).
+        verts: (V, 3) float64, file units (mm for DynaCap), in the file's ``v`` order.
         faces: (F, 3) int64, 0-based indices into ``verts``.
-        uvs: (T, 2) float64 texture coordinates (OBJ convention, v up); (0, 2) when absent.
-        face_uvs: (F, 3) int64 indices into ``uvs``; -1 when the file gives none.
+        uvs: (T, 2) float64 texture coordinates in [0, 1]^2 (OBJ convention, v up); (0, 2) when absent.
+        face_uvs: (F, 3) int64 per-corner indices into ``uvs`` (seams live here); -1 when the file
+            gives none; None when no face has any.
         colors: (V, 3) float64 per-vertex colours in [0, 1], or None.
-        normals: (N, 3) float64 ``vn`` vectors, or None.
-        face_normals_idx: (F, 3) int64 indices into ``normals``, -1 when absent.
+        normals: (N, 3) float64 ``vn`` vectors (file units, not necessarily unit length), or None.
+        face_normals_idx: (F, 3) int64 indices into ``normals``, -1 when absent; or None.
         mtllib: the ``mtllib`` argument, or None.
         material: the first ``usemtl`` argument, or None.
     """
 
-    verts: np.ndarray
-    faces: np.ndarray
-    uvs: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
-    face_uvs: np.ndarray | None = None
-    colors: np.ndarray | None = None
-    normals: np.ndarray | None = None
-    face_normals_idx: np.ndarray | None = None
+    verts: Float[np.ndarray, "V 3"]
+    faces: Integer[np.ndarray, "F 3"]
+    uvs: Float[np.ndarray, "T 2"] = field(default_factory=lambda: np.zeros((0, 2)))
+    face_uvs: Integer[np.ndarray, "F 3"] | None = None
+    colors: Float[np.ndarray, "V 3"] | None = None
+    normals: Float[np.ndarray, "N 3"] | None = None
+    face_normals_idx: Integer[np.ndarray, "F 3"] | None = None
     mtllib: str | None = None
     material: str | None = None
 
@@ -123,6 +126,7 @@ def read_obj(path: str | os.PathLike) -> ObjData:
                     raise DynaCapFormatError(p, line_no, f"face index out of range in corner '{c[:30]}'")
                 corners.append(idx)
             # OBJ indices are 1-based; negative ones count back from the current end; 0 = absent (-1 here).
+            @no_type_check  # defined per face line: kept out of the test run's type checks (~1 ms per definition)
             def resolve(i: int, n: int, what: str) -> int:
                 if i > 0:
                     return i - 1

@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
+from jaxtyping import Float, Integer
 
 from deliffas.io.text_lines import DynaCapFormatError, TextLines, write_text_atomic
 
@@ -32,8 +33,8 @@ class Joint:
     name: str
     type: JointType
     parent: str
-    offset: np.ndarray
-    axis: np.ndarray
+    offset: Float[np.ndarray, "3"]
+    axis: Float[np.ndarray, "3"]
     scale: float = 1.0
 
 
@@ -100,12 +101,12 @@ class Skeleton:
                 return i
         raise KeyError(bone)
 
-    def parent_indices(self) -> np.ndarray:
+    def parent_indices(self) -> Integer[np.ndarray, "J"]:
         """(J,) int64 parent index of every joint, -1 for the root."""
         index = {j.name: i for i, j in enumerate(self.joints)}
         return np.array([index.get(j.parent, -1) for j in self.joints], dtype=np.int64)
 
-    def dof_weights(self, match: Literal["exact", "prefix"] = "prefix") -> np.ndarray:
+    def dof_weights(self, match: Literal["exact", "prefix"] = "prefix") -> Float[np.ndarray, "D J"]:
         """(D, J) float64 matrix W with joint parameters p = x @ W for DOF values x (D,).
 
         ``prefix`` (default) resolves DOF joint references like the original tools; the two rules

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from jaxtyping import Float, Integer
 
 from deliffas.io.files import durable_replace, temp_path
 
@@ -94,13 +95,13 @@ class SMPLModelData:
         faces: (F, 3) int64.
     """
 
-    v_template: np.ndarray
-    shapedirs: np.ndarray
-    posedirs: np.ndarray
-    J_regressor: np.ndarray
-    weights: np.ndarray
-    parents: np.ndarray
-    faces: np.ndarray
+    v_template: Float[np.ndarray, "V 3"]
+    shapedirs: Float[np.ndarray, "V 3 NB"]
+    posedirs: Float[np.ndarray, "V 3 207"]
+    J_regressor: Float[np.ndarray, "24 V"]
+    weights: Float[np.ndarray, "V 24"]
+    parents: Integer[np.ndarray, "24"]
+    faces: Integer[np.ndarray, "F 3"]
 
     @property
     def num_verts(self) -> int:

@@ -11,7 +11,7 @@ import logging
 import os
 from fractions import Fraction
 from pathlib import Path
-from typing import Iterable
+from typing import Any, Iterable
 
 import numpy as np
 
@@ -25,7 +25,9 @@ VIDEO_SUFFIXES = {".mp4": ("libx264", "yuv420p"), ".avi": ("mjpeg", "yuvj420p")}
 """Suffix -> (PyAV codec, pixel format) of the videos deliffas writes."""
 
 
-def write_video(path: str | os.PathLike, frames: Iterable[np.ndarray], fps: float, crf: int = 18) -> int:
+# frames: Iterable[Any], not Iterable[np.ndarray]: beartype checks the first item of an iterable that
+# looks re-iterable, and a tqdm over a generator does look so (the check would eat a frame).
+def write_video(path: str | os.PathLike, frames: Iterable[Any], fps: float, crf: int = 18) -> int:
     """Write (H, W, 3) uint8 RGB frames as a video chosen by ``path``'s suffix; returns the frame count.
 
     Raises:

@@ -5,6 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+from jaxtyping import Bool, Float, Integer
+from torch import Tensor
 
 from deliffas.checks import check_shape
 
@@ -16,19 +18,20 @@ class RayQuery:
     """N rays to shade: which frame each belongs to and where it meets the surfaces.
 
     Fields a variant does not read may be None (:class:`~deliffas.models.variants.VariantSpec`
-    says which it reads; :meth:`DeliffasModel.shade` raises when one it needs is missing).
+    says which it reads; :meth:`DeliffasModel.shade` raises when one it needs is missing). All
+    fields are tensors on the model's device.
     """
 
-    batch_index: torch.Tensor
-    """(N,) long: which frame (row of the ``FrameFeatures`` batch) each ray belongs to."""
-    uv_inner: torch.Tensor
-    """(N, 2) float in [0, 1]^2: inner-surface hit uv; for rays that miss the inner surface, the
-    outer surface's exit (second) hit uv (see ``inner_from_outer``)."""
-    uv_outer: torch.Tensor | None = None
-    """(N, 2) float: outer-surface first-hit uv, or None."""
-    viewdir: torch.Tensor | None = None
-    """(N, 3) float: unit ray directions, world frame, or None."""
-    inner_from_outer: torch.Tensor | None = None
+    batch_index: Integer[Tensor, "N"]
+    """(N,) int64: which frame (row of the ``FrameFeatures`` batch) each ray belongs to."""
+    uv_inner: Float[Tensor, "N 2"]
+    """(N, 2) float32 atlas uv in [0, 1]^2 (OBJ convention, v up; unitless): inner-surface hit uv; for
+    rays that miss the inner surface, the outer surface's exit (second) hit uv (see ``inner_from_outer``)."""
+    uv_outer: Float[Tensor, "N 2"] | None = None
+    """(N, 2) float32 atlas uv in [0, 1]^2: outer-surface first-hit uv, or None."""
+    viewdir: Float[Tensor, "N 3"] | None = None
+    """(N, 3) float32 unit ray directions (dimensionless), world frame, or None."""
+    inner_from_outer: Bool[Tensor, "N"] | None = None
     """(N,) bool: True where ``uv_inner`` is an outer exit hit, so the inner feature is read from the
     outer map; None = all False."""
 

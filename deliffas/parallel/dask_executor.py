@@ -15,7 +15,7 @@ from __future__ import annotations
 import logging
 import threading
 import uuid
-from typing import Any, Callable
+from typing import Any, Callable, no_type_check
 
 from deliffas.parallel.dask_target import parse_dask_target
 
@@ -39,6 +39,9 @@ def _import_distributed():
 def _make_plugin(name: str, setup: Callable, setup_args: tuple):
     from distributed.diagnostics.plugin import WorkerPlugin
 
+    # no_type_check: Dask pickles this local class by value, and the test run's type-check wrappers
+    # (jaxtyping's import hook) hold weakrefs, which do not pickle.
+    @no_type_check
     class _SetupPlugin(WorkerPlugin):
         """Carries one run's per-worker setup; the state is built lazily by the first task."""
 

@@ -9,7 +9,7 @@ so a pipeline opens it before writing anything (an unreachable scheduler then wr
 from __future__ import annotations
 
 import logging
-from typing import Any, Callable, Iterator, Protocol, Sequence
+from typing import Any, Callable, Iterator, Protocol, Sequence, runtime_checkable
 
 from deliffas.parallel.pool import process_map
 
@@ -18,6 +18,7 @@ __all__ = ["TaskExecutor", "InProcessExecutor", "PoolExecutor", "open_executor"]
 log = logging.getLogger(__name__)
 
 
+@runtime_checkable  # isinstance-able, so annotations of it can be checked at run time
 class TaskExecutor(Protocol):
     """Runs ``fn(state, *task)`` for every task, ``state`` built by ``setup(*setup_args)`` once per worker."""
 

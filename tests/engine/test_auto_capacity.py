@@ -92,15 +92,15 @@ def test_auto_capacity_records_all_and_chooses_by_rule(tiny_shards, tmp_path):
     assert chosen.resolve() == Path(record["chosen_run"]).resolve()
 
 
-def test_config_validation():
-    with pytest.raises(ValueError, match="tolerance_db"):
+def test_config_validation(unchecked):
+    with unchecked(), pytest.raises(ValueError, match="tolerance_db"):
         AutoCapacityConfig(tolerance_db=-1)
     for test_split in ("novel_view", "novel_pose"):
-        with pytest.raises(ValueError, match="test split"):
+        with unchecked(), pytest.raises(ValueError, match="test split"):
             AutoCapacityConfig(split=test_split)
-    with pytest.raises(ValueError, match="split"):
+    with unchecked(), pytest.raises(ValueError, match="split"):
         AutoCapacityConfig(split="everything")
-    with pytest.raises(ValueError, match="validation_cameras"):
+    with unchecked(), pytest.raises(ValueError, match="validation_cameras"):
         AutoCapacityConfig(validation_cameras=0)
 
 

@@ -25,6 +25,7 @@ from deliffas.engine.view.renderer import (VIEW_MODES, RenderWorker, ViewRendere
                                            compose_panels, panel_grid)
 from deliffas.engine.view.scene import ViewScene
 from deliffas.geometry.raycast import UVRaycaster
+from deliffas.io.cameras import Camera
 
 REPO = Path(__file__).resolve().parents[2]
 CHROMIUM = shutil.which("chromium") or ("/usr/bin/chromium" if Path("/usr/bin/chromium").exists() else None)
@@ -85,7 +86,10 @@ def test_worker_drops_stale_requests():
     started, release = threading.Event(), threading.Event()
     seen: list[int] = []
 
-    class Slow:
+    class Slow(ViewRenderer):  # a stand-in renderer: only render() is used
+        def __init__(self):
+            pass
+
         def render(self, request):
             started.set()
             release.wait(5)
@@ -93,7 +97,7 @@ def test_worker_drops_stale_requests():
 
     worker = RenderWorker(Slow(), lambda r: seen.append(r.request.serial))
     try:
-        cam = object()
+        cam = Camera("c", np.eye(3), np.eye(4), 1, 1)  # never looked at by the stand-in
         worker.submit(ViewRequest(cam, 0, serial=1))
         assert started.wait(5)
         for serial in (2, 3, 4):  # the first is rendering: 2 and 3 become stale, 4 is the newest

@@ -68,8 +68,8 @@ def test_zero_normals_are_zero_and_flagged():
     assert np.all(np.isfinite(n))
 
 
-def test_shape_checks():
-    with pytest.raises(ValueError, match="verts"):
+def test_shape_checks(unchecked):
+    with unchecked(), pytest.raises(ValueError, match="verts"):
         vertex_normals(np.zeros((4, 2)), np.zeros((1, 3), np.int64))
-    with pytest.raises(ValueError, match="faces"):
+    with unchecked(), pytest.raises(ValueError, match="faces"):
         face_normals(np.zeros((4, 3)), np.zeros((1, 4), np.int64))

@@ -75,13 +75,13 @@ def test_limits_respected(proc):
             assert m.dofs[:, d].min() >= min(lo, rest[d]) - 1e-12 and m.dofs[:, d].max() <= max(hi, rest[d]) + 1e-12
 
 
-def test_bad_arguments(proc):
+def test_bad_arguments(proc, unchecked):
     skel, rest = proc
-    with pytest.raises(ValueError, match="style"):
+    with unchecked(), pytest.raises(ValueError, match="style"):
         procedural_motion(skel, 5, style="jog")
-    with pytest.raises(ValueError, match="rest_dofs"):
+    with unchecked(), pytest.raises(ValueError, match="rest_dofs"):
         procedural_motion(skel, 5, rest_dofs=np.zeros(3))
-    with pytest.raises(ValueError, match="num_frames"):
+    with unchecked(), pytest.raises(ValueError, match="num_frames"):
         procedural_motion(skel, 0)
 
 

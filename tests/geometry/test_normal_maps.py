@@ -65,7 +65,7 @@ def test_sphere_normal_map_is_radial():
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_sparse_and_gather_methods_agree(dtype, device):
+def test_sparse_and_gather_methods_agree(dtype, device, unchecked):
     v, f, atlas = _small_mesh(3)
     table = uv_texel_table(atlas, 16)
     gather = NormalMapGather.from_table(table, f).to(device)
@@ -74,9 +74,9 @@ def test_sparse_and_gather_methods_agree(dtype, device):
     b = gather.apply(vn, method="gather")
     assert a.dtype == dtype and a.shape == (3, 3, 16, 16)
     torch.testing.assert_close(a, b)
-    with pytest.raises(ValueError, match="method"):
+    with unchecked(), pytest.raises(ValueError, match="method"):
         gather.apply(vn, method="scatter")
-    with pytest.raises(ValueError, match="vertex_normals"):
+    with unchecked(), pytest.raises(ValueError, match="vertex_normals"):
         gather.apply(vn[:, :-1])
     extra = torch.cat([vn, torch.randn(3, 2, 3, dtype=dtype, device=device)], dim=1)  # unused trailing vertices
     torch.testing.assert_close(gather.apply(extra), a)
@@ -105,7 +105,7 @@ def test_fused_kernel_equals_eager_paths(size, dtype):
     assert torch.equal(gather.apply(strided, method="fused"), fused)
     half = gather.apply(vn, dtype=torch.float16, method="fused")
     assert half.dtype == torch.float16 and torch.equal(half, fused.to(torch.float16))
-    assert torch.equal(gather.apply(vn[2].numpy(), method="fused"), fused[2])
+    assert np.array_equal(gather.apply(vn[2].numpy(), method="fused"), fused[2].numpy())
     # a zero interpolated normal and NaN normals follow the sparse path: 0, resp. NaN on the texels they touch
     zero = gather.apply(torch.zeros(len(v), 3, dtype=dtype), method="fused")
     assert torch.all(zero == 0)
@@ -144,8 +144,9 @@ def test_float16_output_and_numpy_input():
     gather = NormalMapGather.from_table(table, f)
     out16 = gather.apply(vn[None].astype(np.float32), dtype=torch.float16)
     out32 = gather.apply(vn[None].astype(np.float32))
-    assert out16.dtype == torch.float16 and out32.dtype == torch.float32
-    np.testing.assert_allclose(out16.float().numpy(), out32.numpy(), atol=1e-3)
+    assert out16.dtype == np.float16 and out32.dtype == np.float32  # numpy in, numpy out
+    assert gather.apply(vn[None], dtype=np.float16).dtype == np.float16  # a numpy dtype works too
+    np.testing.assert_allclose(out16.astype(np.float32), out32, atol=1e-3)
     # unbatched (V, 3) input gives (3, S, S)
     assert gather.apply(vn).shape == (3, 8, 8)
 
@@ -156,7 +157,8 @@ def test_naive_per_frame_rasterisation_equals_gather():
     table = uv_texel_table(atlas, 16)
     fast = normal_maps(vn, f, table)
     slow = rasterize_normal_map_naive(vn, f, atlas, 16)
-    torch.testing.assert_close(fast, slow)
+    assert isinstance(fast, np.ndarray) and isinstance(slow, np.ndarray)
+    np.testing.assert_allclose(fast, slow, rtol=1.3e-6, atol=1e-5)
 
 
 def test_zero_interpolated_normal_is_zero():
@@ -164,7 +166,7 @@ def test_zero_interpolated_normal_is_zero():
     table = uv_texel_table(atlas, 16, gutter=0)
     vn = np.zeros((len(v), 3))
     out = normal_maps(vn, f, table)
-    assert torch.all(out == 0) and torch.all(torch.isfinite(out))
+    assert np.all(out == 0) and np.all(np.isfinite(out))
 
 
 def test_gather_rejects_mismatched_faces():
@@ -191,13 +193,13 @@ def test_temporal_window_stacks_and_clamps():
     assert temporal_window(maps, np.array([4]), 0).shape == (1, 3, 4, 4)
 
 
-def test_temporal_window_checks():
+def test_temporal_window_checks(unchecked):
     maps = _frames()
-    with pytest.raises(ValueError, match="frame_indices"):
+    with unchecked(), pytest.raises(ValueError, match="rows"):
         temporal_window(maps, np.array([5]), 2)
-    with pytest.raises(ValueError, match="maps_per_frame"):
+    with unchecked(), pytest.raises(ValueError, match="maps_per_frame"):
         temporal_window(maps[:, :2], np.array([1]), 2)
-    with pytest.raises(ValueError, match="window"):
+    with unchecked(), pytest.raises(ValueError, match="window"):
         temporal_window(maps, np.array([1]), -1)
 
 

@@ -129,11 +129,11 @@ def test_disabled_native_falls_back(blob, monkeypatch):
         UVRasterizer(v, f, outer, atlas, method="native").shaded_pixels(cam)
 
 
-def test_rasterizer_checks(blob):
+def test_rasterizer_checks(blob, unchecked):
     v, f, outer, atlas = blob
-    with pytest.raises(ValueError, match="method"):
+    with unchecked(), pytest.raises(ValueError, match="method"):
         UVRasterizer(v, f, outer, atlas, method="gpu")
-    with pytest.raises(ValueError, match="outer_verts"):
+    with unchecked(), pytest.raises(ValueError, match="outer_verts"):
         UVRasterizer(v, f, outer[:-1], atlas)
 
 

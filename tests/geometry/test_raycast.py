@@ -166,15 +166,15 @@ def test_mask_subset_and_batch_match_full_image(sphere):
         rc.cast(cams[0], mask=np.ones((3, 3), bool))
 
 
-def test_raycaster_checks(sphere):
+def test_raycaster_checks(sphere, unchecked):
     v, f, outer, atlas = sphere
-    with pytest.raises(ValueError, match="outer_verts"):
+    with unchecked(), pytest.raises(ValueError, match="outer_verts"):
         UVRaycaster(v, f, outer[:-1], atlas)
-    with pytest.raises(ValueError, match="peel"):
+    with unchecked(), pytest.raises(ValueError, match="peel"):
         UVRaycaster(v, f, outer, atlas, peel="zbuffer")
-    with pytest.raises(ValueError, match="exits"):
+    with unchecked(), pytest.raises(ValueError, match="exits"):
         UVRaycaster(v, f, outer, atlas).cast_foreground(ref.look_at([0, 0, 3000], [0, 0, 0], 8, 8, 10.0), exits="some")
-    with pytest.raises(ValueError, match="atlas"):
+    with unchecked(), pytest.raises(ValueError, match="atlas"):
         UVRaycaster(v, f[:-1], outer, atlas)
 
 

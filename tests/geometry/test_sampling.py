@@ -96,14 +96,14 @@ def test_gradients_reach_maps_and_uv():
     assert uv.grad is not None and torch.isfinite(uv.grad).all() and uv.grad.abs().sum() > 0
 
 
-def test_empty_and_errors():
+def test_empty_and_errors(unchecked):
     maps = torch.randn(2, 3, 8, 8)
     assert sample_uv(maps, torch.zeros(0, dtype=torch.long), torch.zeros(0, 2)).shape == (0, 3)
-    with pytest.raises(ValueError, match="batch_index"):
+    with unchecked(), pytest.raises(ValueError, match="batch_index"):
         sample_uv(maps, torch.tensor([0, 2]), torch.rand(2, 2))
-    with pytest.raises(ValueError, match="integer"):
+    with unchecked(), pytest.raises(ValueError, match="integer"):
         sample_uv(maps, torch.tensor([0.0, 1.0]), torch.rand(2, 2))
-    with pytest.raises(ValueError, match="uv"):
+    with unchecked(), pytest.raises(ValueError, match="uv"):
         sample_uv(maps, torch.tensor([0, 1]), torch.rand(2, 3))
-    with pytest.raises(ValueError, match="batch_index"):
+    with unchecked(), pytest.raises(ValueError, match="batch_index"):
         sample_uv(maps[:1], torch.tensor([0, 1]), torch.rand(2, 2))

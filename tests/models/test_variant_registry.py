@@ -45,8 +45,8 @@ def test_duplicate_registration_is_refused():
     (dict(inner_from_outer=True), "inner_from_outer needs outer_unet"),
     (dict(inner_from_outer=True, outer_unet=True, inner_unets=2), "inner_from_outer needs"),
 ])
-def test_spec_checks(kwargs, match):
-    with pytest.raises(ValueError, match=match):
+def test_spec_checks(kwargs, match, unchecked):
+    with unchecked(), pytest.raises(ValueError, match=match):
         VariantSpec("bad", **kwargs)
 
 
@@ -72,21 +72,21 @@ def test_a_registered_spec_builds_a_model():
         unregister_variant(spec.name)
 
 
-def test_ray_query_shape_checks():
+def test_ray_query_shape_checks(unchecked):
     bi, uv = torch.zeros(4, dtype=torch.long), torch.rand(4, 2)
     q = RayQuery(bi, uv, uv, torch.rand(4, 3), torch.zeros(4, dtype=torch.bool))
     assert q.num_rays == 4 and q[1:3].num_rays == 2 and q[1:3].viewdir.shape == (2, 3)
     assert [c.num_rays for c in q.chunks(3)] == [3, 1]
     assert [c.num_rays for c in RayQuery(bi[:0], uv[:0]).chunks(3)] == [0]
-    with pytest.raises(ValueError, match=r"uv_inner: expected shape \(N, 2\)"):
+    with unchecked(), pytest.raises(ValueError, match=r"uv_inner: expected shape \(N, 2\)"):
         RayQuery(bi, torch.rand(4, 3))
-    with pytest.raises(ValueError, match="batch_index: dimension N should be 4"):
+    with unchecked(), pytest.raises(ValueError, match="batch_index: dimension N should be 4"):
         RayQuery(bi[:3], uv)
-    with pytest.raises(ValueError, match="uv_outer: dimension N should be 4"):
+    with unchecked(), pytest.raises(ValueError, match="uv_outer: dimension N should be 4"):
         RayQuery(bi, uv, uv_outer=torch.rand(5, 2))
-    with pytest.raises(ValueError, match=r"viewdir: expected shape \(N, 3\)"):
+    with unchecked(), pytest.raises(ValueError, match=r"viewdir: expected shape \(N, 3\)"):
         RayQuery(bi, uv, viewdir=torch.rand(4, 2))
-    with pytest.raises(ValueError, match="inner_from_outer: expected dtype bool"):
+    with unchecked(), pytest.raises(ValueError, match="inner_from_outer: expected dtype bool"):
         RayQuery(bi, uv, inner_from_outer=torch.zeros(4))
-    with pytest.raises(ValueError, match="chunk_size"):
+    with unchecked(), pytest.raises(ValueError, match="chunk_size"):
         next(q.chunks(0))

@@ -55,15 +55,15 @@ def test_load_from_env_and_hub_cache(vgg_files, no_weights, monkeypatch):
     _assert_loaded(model, vgg_files["state"])
 
 
-def test_missing_imagenet_weights_raise_with_locations(no_weights, tmp_path):
-    with pytest.raises(PerceptualWeightsUnavailable) as info:
+def test_missing_imagenet_weights_raise_with_locations(no_weights, tmp_path, unchecked):
+    with unchecked(), pytest.raises(PerceptualWeightsUnavailable) as info:
         load_vgg16_weights("vgg16-imagenet")
     message = str(info.value)
     assert str(no_weights / "hub" / "checkpoints" / "vgg16-397923af.pth") in message
     assert "--perceptual vgg16-random" in message
-    with pytest.raises(PerceptualWeightsUnavailable, match="nowhere.pth"):
+    with unchecked(), pytest.raises(PerceptualWeightsUnavailable, match="nowhere.pth"):
         load_vgg16_weights("vgg16-imagenet", path=tmp_path / "nowhere.pth")
-    with pytest.raises(ValueError, match="source"):
+    with unchecked(), pytest.raises(ValueError, match="source"):
         load_vgg16_weights("vgg19-imagenet")  # type: ignore[arg-type]
 
 

@@ -45,20 +45,20 @@ def test_paper_small_tiny_sizes():
     assert get_config("single_surface", "tiny").atlas_res == 32
 
 
-def test_unknown_names_and_duplicate_registration(monkeypatch):
-    with pytest.raises(KeyError, match="registered"):
+def test_unknown_names_and_duplicate_registration(monkeypatch, unchecked):
+    with unchecked(), pytest.raises(KeyError, match="registered"):
         get_config("three_surface")
-    with pytest.raises(KeyError, match="presets"):
+    with unchecked(), pytest.raises(KeyError, match="presets"):
         get_config("two_surface", "huge")
     monkeypatch.setattr(zoo, "_REGISTRY", dict(zoo._REGISTRY))
     cfg = ModelConfig(atlas_res=16)
     register("mine", {"tiny": cfg})
     assert get_config("mine", "tiny") is cfg and "mine" in list_models()
-    with pytest.raises(ValueError, match="already registered"):
+    with unchecked(), pytest.raises(ValueError, match="already registered"):
         register("mine", {"tiny": cfg})
     register("mine", {"x": cfg}, overwrite=True)
     assert list_presets("mine") == ["x"]
-    with pytest.raises(ValueError, match="ModelConfig"):
+    with unchecked(), pytest.raises(ValueError, match="ModelConfig"):
         register("other", {"x": {"atlas_res": 16}})  # type: ignore[dict-item]
 
 

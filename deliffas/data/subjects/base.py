@@ -15,10 +15,11 @@ from pathlib import Path
 from typing import Callable, Literal, Mapping
 
 import numpy as np
+from jaxtyping import Integer
 
 from deliffas.io.cameras import Camera
 from deliffas.io.dynacap import Motion
-from deliffas.io.frames import FrameSource, ImageFolderSource, open_frame_source
+from deliffas.io.frames import FrameSource, FramesSpec, ImageFolderSource, open_frame_source
 from deliffas.geometry.templates import Skinning, TemplateSpec
 
 __all__ = [
@@ -65,20 +66,25 @@ class SubjectSequence:
 
     Attributes:
         name: sequence name; shards and splits refer to it.
-        frames: (N,) int64 sorted frame numbers that have a surface (pose parameters or a tracked mesh).
+        frames: (N,) int64 sorted frame numbers (capture frame numbers, not rows) that have a surface
+            (pose parameters or a tracked mesh).
         first_frame: the sequence's first frame number (temporal windows clamp to it).
-        width, height: image size in pixels.
-        images: where its images and masks are.
-        poses: per-frame template pose parameters (``frames`` (N,), ``dofs`` (N, D)), or None.
-        surfaces: a tracked ``.meshes`` file giving the surface per frame instead of the posed template.
+        width: image width in pixels.
+        height: image height in pixels.
+        images: where its images and masks are (a ``FrameSourceSpec`` or a format's own spec).
+        poses: per-frame template pose parameters (``frames`` (M,) int64 frame numbers, ``dofs``
+            (M, D) float64 in the template's units: DOF units for ``ddc``, [transl m, axis-angle rad,
+            betas] for ``smpl``), or None.
+        surfaces: a tracked ``.meshes`` file giving the surface per frame (mm, template vertex
+            order) instead of the posed template, or None.
     """
 
     name: str
-    frames: np.ndarray
+    frames: Integer[np.ndarray, "N"]
     first_frame: int
     width: int
     height: int
-    images: FrameSourceSpec
+    images: FramesSpec
     poses: Motion | None = None
     surfaces: Path | None = None
 
@@ -90,8 +96,9 @@ class Subject:
     Attributes:
         root: the capture folder.
         format: the registered format that parsed it.
-        cameras: every calibrated camera, calibration order, deliffas convention.
-        template: the template the pose parameters drive.
+        cameras: every calibrated camera in calibration order, deliffas convention (world mm,
+            world -> camera, pixel centres at +0.5; :class:`~deliffas.io.cameras.Camera`).
+        template: the template the pose parameters drive (its spec; ``build_template`` builds it).
         sequences: name -> sequence, in the order they are converted.
         test_cameras: calibration indices held out for evaluation (sorted).
     """

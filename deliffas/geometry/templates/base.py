@@ -16,6 +16,8 @@ from pathlib import Path
 from typing import Any, Callable, Mapping, Protocol, runtime_checkable
 
 import torch
+from jaxtyping import Float, Integer
+from torch import Tensor
 
 from deliffas.io.files import sha256_file
 
@@ -35,15 +37,18 @@ __all__ = [
 class Template(Protocol):
     """What the rest of deliffas needs from a template: posing plus fixed topology and uvs.
 
+    Templates are torch modules: ``pose`` takes and returns tensors in the template's dtype and on
+    its device (``deliffas.data.posing.pose_frames`` is the numpy boundary).
+
     Attributes:
         faces: (F, 3) int64 vertex indices.
-        uvs: (T, 2) float uv coordinates in [0, 1]^2.
+        uvs: (T, 2) float uv coordinates in [0, 1]^2 (OBJ convention, v up).
         face_uvs: (F, 3) int64 per-corner indices into ``uvs`` (UV seams live here).
     """
 
-    faces: torch.Tensor
-    uvs: torch.Tensor
-    face_uvs: torch.Tensor
+    faces: Integer[Tensor, "F 3"]
+    uvs: Float[Tensor, "T 2"]
+    face_uvs: Integer[Tensor, "F 3"]
 
     @property
     def num_verts(self) -> int: ...
@@ -54,11 +59,11 @@ class Template(Protocol):
         ...
 
     @property
-    def rest_verts(self) -> torch.Tensor:
+    def rest_verts(self) -> Float[Tensor, "V 3"]:
         """(V, 3) vertices of the template mesh as its file has them (mm, world frame)."""
         ...
 
-    def pose(self, dofs: torch.Tensor) -> torch.Tensor:
+    def pose(self, dofs: Float[Tensor, "B D"]) -> Float[Tensor, "B V 3"]:
         """(B, D) pose parameters -> (B, V, 3) posed vertices, mm, world frame, template vertex order."""
         ...
 
@@ -72,10 +77,12 @@ class TemplateSpec:
     """A template as recorded in shards, runs and avatars: its kind, source files and options.
 
     Attributes:
-        kind: registered template kind (``template_kinds()``).
-        files: role -> absolute path of every source file (e.g. ``character``, ``mesh``, ``model``).
+        kind: registered template kind (``template_kinds()``): ``ddc``, ``ddc_graph``, ``smpl``, ...
+        files: role -> absolute path (str) of every source file (e.g. ``character``, ``mesh``,
+            ``model``, ``outer``).
         sha256: role -> hex sha256 of that file's bytes when the spec was made.
-        options: kind-specific JSON values (e.g. ``skinning``, ``num_betas``).
+        options: kind-specific JSON values (e.g. ``skinning``: ``dqs``/``lbs``; ``num_betas``: int;
+            ``scale``: model units -> mm, float).
     """
 
     kind: str

@@ -13,9 +13,12 @@ from typing import Literal
 import numpy as np
 import torch
 from torch import nn
+from jaxtyping import Float
+from torch import Tensor
 
 from deliffas.checks import check_finite, check_shape
 from deliffas.io.dynacap import Character, read_character, read_character_files
+from deliffas.geometry.arrays import require_tensor
 from deliffas.geometry.skeleton import SkeletonFK
 from deliffas.geometry.skinning import dqs, lbs
 from deliffas.geometry.templates.base import TemplateSpec, make_spec, register_template_kind
@@ -88,12 +91,12 @@ class DDCTemplate(nn.Module):
     def num_dofs(self) -> int:
         return self.fk.num_dofs
 
-    def bone_transforms(self, dofs: torch.Tensor) -> torch.Tensor:
+    def bone_transforms(self, dofs: Float[Tensor, "B D"]) -> Float[Tensor, "B Bn 4 4"]:
         """(B, D) -> (B, Bn, 4, 4) per-bone M_b = G_j(θ) · S_b · G_j(θ_rest)⁻¹."""
         glob = self.fk(dofs)[:, self.bone_joints]  # (B, Bn, 4, 4)
         return glob @ self.bone_scale @ self.rest_inverse
 
-    def pose(self, dofs: torch.Tensor, skinning: Skinning | None = None) -> torch.Tensor:
+    def pose(self, dofs: Float[Tensor, "B D"], skinning: Skinning | None = None) -> Float[Tensor, "B V 3"]:
         """Posed template vertices.
 
         Args:
@@ -101,8 +104,10 @@ class DDCTemplate(nn.Module):
             skinning: override the template's skinning mode.
 
         Returns:
-            (B, V, 3) vertices in the template's vertex order, mm, world frame.
+            (B, V, 3) vertices in the template's vertex order, mm, world frame, in the template's
+            dtype and on its device (torch-only: numpy motions go through ``deliffas.data.posing``).
         """
+        require_tensor("dofs", dofs, "torch.as_tensor(dofs), or deliffas.data.posing.pose_frames for numpy")
         check_shape("dofs", dofs, "B D", {"D": self.num_dofs})
         check_finite("dofs", dofs)
         dofs = dofs.to(device=self.rest_verts.device, dtype=self.rest_verts.dtype)
@@ -114,7 +119,7 @@ class DDCTemplate(nn.Module):
             return dqs(self.rest_verts, self.skin_indices, self.skin_weights, M)
         raise ValueError(f"skinning must be 'dqs' or 'lbs', got {mode!r}")
 
-    def forward(self, dofs: torch.Tensor) -> torch.Tensor:
+    def forward(self, dofs: Float[Tensor, "B D"]) -> Float[Tensor, "B V 3"]:
         return self.pose(dofs)
 
 

@@ -14,10 +14,13 @@ import os
 import numpy as np
 import torch
 from torch import nn
+from jaxtyping import Float
+from torch import Tensor
 
 from deliffas.checks import check_finite, check_shape
 from deliffas.io.obj import read_obj
 from deliffas.io.smpl import NUM_JOINTS, NUM_POSE_BASIS, SMPLModelData, SMPLModelError, load_smpl_model
+from deliffas.geometry.arrays import require_tensor
 from deliffas.geometry.atlas import UVAtlas
 from deliffas.geometry.smpl import smpl_lbs
 from deliffas.geometry.templates.base import TemplateSpec, make_spec, register_template_kind
@@ -88,12 +91,14 @@ class SMPLTemplate(nn.Module):
         """3 (translation) + 72 (pose) + num_betas."""
         return 3 + 3 * NUM_JOINTS + self.num_betas
 
-    def rest_params(self, batch: int = 1) -> torch.Tensor:
+    def rest_params(self, batch: int = 1) -> Float[Tensor, "B D"]:
         """(B, num_dofs) zeros: the T-pose with mean shape at the origin."""
         return torch.zeros(batch, self.num_dofs, dtype=self.v_template.dtype, device=self.v_template.device)
 
-    def pose_with_joints(self, params: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Vertices (B, V, 3) and joints (B, 24, 3), world units (mm with the default scale)."""
+    def pose_with_joints(self, params: Float[Tensor, "B D"]) -> tuple[Float[Tensor, "B V 3"], Float[Tensor, "B 24 3"]]:
+        """Vertices (B, V, 3) and joints (B, 24, 3), world units (mm with the default scale), in the
+        template's dtype and on its device (torch-only: numpy motions go through ``deliffas.data.posing``)."""
+        require_tensor("params", params, "torch.as_tensor(params), or deliffas.data.posing.pose_frames for numpy")
         check_shape("params", params, "B D", {"D": self.num_dofs})
         check_finite("params", params)
         params = params.to(self.v_template)
@@ -104,11 +109,11 @@ class SMPLTemplate(nn.Module):
                                  self.parents, self.lbs_weights)
         return verts + transl[:, None], joints + transl[:, None]
 
-    def pose(self, params: torch.Tensor) -> torch.Tensor:
+    def pose(self, params: Float[Tensor, "B D"]) -> Float[Tensor, "B V 3"]:
         """(B, 3 + 72 + num_betas) [transl (model units), axis-angle pose, betas] -> (B, V, 3) vertices."""
         return self.pose_with_joints(params)[0]
 
-    def forward(self, params: torch.Tensor) -> torch.Tensor:
+    def forward(self, params: Float[Tensor, "B D"]) -> Float[Tensor, "B V 3"]:
         return self.pose(params)
 
 
