@@ -99,7 +99,7 @@ class RayBatch:
     uv_inner: torch.Tensor
     uv_outer: torch.Tensor
     inner_from_outer: torch.Tensor
-    viewdir: torch.Tensor
+    viewdir: torch.Tensor | None
 
     def to(self, device: torch.device | str) -> "RayBatch":
         return RayBatch(*(getattr(self, f).to(device) for f in self.__dataclass_fields__))
