@@ -345,7 +345,8 @@ def load_checkpoint(path_dir: str | os.PathLike, device: str | torch.device = "c
     blob = weights_path.read_bytes()
     if len(blob) != meta["weights_bytes"]:
         raise CheckpointError(
-            f"{weights_path}: truncated or wrong file: expected {meta['weights_bytes']} bytes, got {len(blob)}"
+            f"{weights_path}: truncated or wrong file: {config_path.name} records {meta['weights_bytes']} bytes, "
+            f"the file has {len(blob)}"
         )
     if hashlib.sha256(blob).hexdigest() != meta["weights_sha256"]:
         raise CheckpointError(f"{weights_path}: corrupted: SHA-256 differs from the one recorded in {config_path.name}")
