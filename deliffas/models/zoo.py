@@ -354,7 +354,10 @@ def load_checkpoint(path_dir: str | os.PathLike, device: str | torch.device = "c
         state = safetensors_load(blob)
     except Exception as exc:  # noqa: BLE001 - safetensors raises its own error types
         raise CheckpointError(f"{weights_path}: unreadable safetensors data ({exc})") from exc
-    model = DeliffasModel(config)
+    try:
+        model = DeliffasModel(config)
+    except ValueError as exc:  # a config that parses but describes no buildable model (e.g. atlas side 22)
+        raise CheckpointError(f"{config_path}: config: {exc}") from exc
     try:
         model.load_state_dict(state, strict=True)
     except RuntimeError as exc:
