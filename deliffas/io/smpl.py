@@ -2,8 +2,8 @@
 
 The model file layout is the official one: ``v_template`` (V, 3), ``shapedirs`` (V, 3, >= num_betas),
 ``posedirs`` (V, 3, 207), ``J_regressor`` (24, V) dense or scipy-sparse, ``weights`` (V, 24),
-``kintree_table`` (2, 24), ``f`` (F, 3). ``.pkl`` files are read with a restricted unpickler that only
-constructs numpy arrays and scipy sparse matrices (never arbitrary code); the official chumpy pickles
+``kintree_table`` (2, 24), ``f`` (F, 3). ``.pkl`` files are read with ``safe_pickle``, which only
+constructs numpy arrays (from checked arguments) and scipy sparse matrices (never arbitrary code); the official chumpy pickles
 are refused with a hint to convert them to ``.npz``. Units stay the file's (metres for SMPL).
 :func:`write_smpl_model` writes the same layout as ``.npz`` (atomically), so a model deliffas makes
 loads through the same reader as a user's file.
@@ -11,9 +11,7 @@ loads through the same reader as a user's file.
 
 from __future__ import annotations
 
-import io
 import os
-import pickle
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,6 +19,7 @@ import numpy as np
 
 from deliffas.io.capture_format import CaptureFormatError, read_npz, require_numbers
 from deliffas.io.files import durable_replace, temp_path
+from deliffas.io.safe_pickle import UnsafePickleError, load_numpy_pickle
 
 __all__ = ["SMPL_NOT_SHIPPED", "SMPLModelError", "SMPLModelData", "load_smpl_model", "write_smpl_model", "NUM_JOINTS",
            "NUM_POSE_BASIS"]
@@ -40,48 +39,29 @@ class SMPLModelError(ValueError):
     """An SMPL model file that cannot be used (wrong layout, refused pickle content)."""
 
 
-_ALLOWED_PICKLE = {
-    ("numpy", "ndarray"), ("numpy", "dtype"),
-    ("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multiarray", "_reconstruct"),
-    ("numpy.core.multiarray", "scalar"), ("numpy._core.multiarray", "scalar"),
-    ("numpy.core.numeric", "_frombuffer"), ("numpy._core.numeric", "_frombuffer"),
-    ("copy_reg", "_reconstructor"), ("copyreg", "_reconstructor"),
-    ("__builtin__", "object"), ("builtins", "object"), ("_codecs", "encode"),
-}
 _ALLOWED_SPARSE = {"csc_matrix", "csr_matrix", "coo_matrix", "csc_array", "csr_array", "coo_array"}
 
 
-class _RestrictedUnpickler(pickle.Unpickler):
-    """Only numpy arrays/dtypes/scalars and scipy sparse matrices may be constructed."""
-
-    def find_class(self, module: str, name: str):
-        if module.split(".")[0] == "chumpy":
-            raise SMPLModelError(
-                f"{self.path}: the pickle holds chumpy objects ({module}.{name}); deliffas does not import chumpy. "
+def _pickle_class(module: str, name: str) -> type | str | None:
+    """The scipy sparse classes an SMPL pickle may hold; a hint for chumpy pickles."""
+    if module.split(".")[0] == "chumpy":
+        return (f"the pickle holds chumpy objects ({module}.{name}); deliffas does not import chumpy. "
                 "Convert the model to .npz in an environment with chumpy, e.g. "
                 "np.savez(out, **{k: np.asarray(v.r if hasattr(v, 'r') else v) for k, v in pkl.items()}) "
                 "(J_regressor via .toarray()).")
-        if (module, name) in _ALLOWED_PICKLE:
-            return super().find_class(module, name)
-        if module.startswith("scipy.sparse") and name in _ALLOWED_SPARSE:
-            return super().find_class(module, name)
-        raise SMPLModelError(
-            f"{self.path}: refusing to load '{module}.{name}' from a pickle; only numpy arrays and scipy "
-            "sparse matrices are allowed (convert the model to .npz)")
+    if module.startswith("scipy.sparse") and name in _ALLOWED_SPARSE:
+        import scipy.sparse as sp
+
+        return getattr(sp, name)
+    return (f"refusing to load '{module}.{name}' from a pickle; only numpy arrays and scipy sparse matrices are "
+            "allowed (convert the model to .npz)")
 
 
 def _restricted_pickle_load(path: Path) -> dict:
-    with open(path, "rb") as fh:
-        data = fh.read()
-    unpickler = _RestrictedUnpickler(io.BytesIO(data), encoding="latin1")
-    unpickler.path = path
     try:
-        obj = unpickler.load()
-    except SMPLModelError:
-        raise
-    except Exception as err:  # a damaged pickle fails in many ways (EOFError, LookupError, OverflowError, ...)
-        raise SMPLModelError(f"{path}: expected a complete pickled dict of arrays ({type(err).__name__}: "
-                             f"{str(err)[:200]})") from None
+        obj = load_numpy_pickle(path.read_bytes(), _pickle_class)
+    except UnsafePickleError as err:
+        raise SMPLModelError(f"{path}: {err}") from None
     if not isinstance(obj, dict):
         raise SMPLModelError(f"{path}: expected a pickled dict of arrays, got {type(obj).__name__}")
     return obj

@@ -23,15 +23,13 @@ Conventions, worked out from Neural Body (zju3dv/neuralbody @3c516b9), which def
   else a ``camera_names`` list, which deliffas adds when it writes (neuralbody ignores unknown keys),
   else "0".."C-1".
 
-``.npy`` files holding a dict are pickles. They are read with a restricted unpickler that can build
-only numpy arrays, dtypes and scalars (never arbitrary objects).
+``.npy`` files holding a dict are pickles. They are read with ``deliffas.io.safe_pickle``, which builds
+only numpy arrays, dtypes and scalars from checked arguments (never arbitrary objects).
 """
 
 from __future__ import annotations
 
-import io
 import os
-import pickle
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import Any, Sequence
@@ -43,6 +41,7 @@ from deliffas.io.camera_conventions import from_camera, require_distortion_fits,
 from deliffas.io.capture_format import CaptureFormatError, require_array, require_rotation, require_rows, require_vector
 from deliffas.io.easymocap import EasyMocapSmpl
 from deliffas.io.files import durable_replace, temp_path
+from deliffas.io.safe_pickle import UnsafePickleError, load_numpy_pickle
 
 __all__ = [
     "ZjuCamera",
@@ -58,15 +57,6 @@ __all__ = [
 ]
 
 PathLike = str | os.PathLike
-
-_ALLOWED_PICKLE = {
-    ("numpy", "ndarray"), ("numpy", "dtype"),
-    ("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multiarray", "_reconstruct"),
-    ("numpy.core.multiarray", "scalar"), ("numpy._core.multiarray", "scalar"),
-    ("numpy.core.numeric", "_frombuffer"), ("numpy._core.numeric", "_frombuffer"),
-    ("copy_reg", "_reconstructor"), ("copyreg", "_reconstructor"), ("builtins", "object"), ("_codecs", "encode"),
-}
-
 
 @dataclass(frozen=True)
 class ZjuCamera:
@@ -100,15 +90,6 @@ class ZjuAnnots:
     ims: tuple[tuple[str, ...], ...] = ()
 
 
-class _RestrictedUnpickler(pickle.Unpickler):
-    """Builds only numpy arrays, dtypes and scalars, besides pickle's own dicts, lists and strings."""
-
-    def find_class(self, module: str, name: str):
-        if (module, name) in _ALLOWED_PICKLE:
-            return super().find_class(module, name)
-        raise pickle.UnpicklingError(f"refusing to build '{module}.{name}' (only numpy arrays are allowed)")
-
-
 def load_npy_dict(path: PathLike) -> dict:
     """The dict inside an ``np.save``-d object ``.npy`` file, unpickled with numpy types only.
 
@@ -129,10 +110,9 @@ def load_npy_dict(path: PathLike) -> dict:
         if dtype != np.dtype(object) or shape != ():
             raise CaptureFormatError(p, "NPY header", f"expected a saved dict (0-d object array), got {dtype} {shape}")
         try:
-            obj = _RestrictedUnpickler(io.BytesIO(fh.read()), encoding="latin1").load()
-        except Exception as err:  # damaged pickles fail in many ways (EOFError, OverflowError, SystemError, ...)
-            raise CaptureFormatError(p, "pickle", f"expected a complete pickled dict of numpy arrays "
-                                                  f"({type(err).__name__}: {str(err)[:200]})") from None
+            obj = load_numpy_pickle(fh.read())
+        except UnsafePickleError as err:
+            raise CaptureFormatError(p, "pickle", f"expected a complete pickled dict of numpy arrays ({err})") from None
     obj = obj.item() if isinstance(obj, np.ndarray) and obj.shape == () else obj
     if not isinstance(obj, dict):
         raise CaptureFormatError(p, "(top level)", f"expected a dict, got {type(obj).__name__}")
