@@ -117,6 +117,8 @@ def _open_storage(path: Path):
         raise CaptureFormatError(path, "YAML", f"expected an OpenCV FileStorage file; OpenCV: {detail[-200:]}") from None
     if not fs.isOpened():
         raise CaptureFormatError(path, "YAML", "OpenCV could not open the file")
+    if not fs.root().isMap():  # FileStorage.getNode asserts a map at the top level
+        raise CaptureFormatError(path, "YAML", "expected keys (names, K_<cam>, ...) at the top level")
     return fs
 
 
