@@ -33,8 +33,8 @@ docs: setup
 # The reliability suite at soak scale: >= 10,000 fuzz cases per reader, >= 20 SIGKILLs of conversion.
 soak: setup
 	DELIFFAS_SOAK=1 $(PY) -m pytest -q tests/reliability/test_fuzz_readers.py \
-		tests/reliability/test_fuzz_artifacts.py tests/reliability/test_convert_crash.py \
-		tests/reliability/test_checkpoints.py $(PYTEST_ARGS)
+		tests/reliability/test_fuzz_artifacts.py tests/reliability/test_fuzz_capture_readers.py \
+		tests/reliability/test_convert_crash.py tests/reliability/test_checkpoints.py $(PYTEST_ARGS)
 
 demo: setup
 	$(VENV)/bin/deliffas demo --out $(DEMO_OUT)

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 from jaxtyping import Float, Integer
 
+from deliffas.io.capture_format import CaptureFormatError, read_npz
 from deliffas.io.files import durable_replace, temp_path
 
 __all__ = ["SMPLMotion", "SMPLMotionError", "read_smpl_motion", "write_smpl_motion", "SMPL_POSE_DIM",
@@ -102,22 +103,16 @@ def _check_arrays(where: str, poses: np.ndarray, trans: np.ndarray, betas: np.nd
             raise SMPLMotionError(f"{where}: '{key}' holds {bad} NaN or inf values")
 
 
-def _float_array(path: Path, z, key: str) -> np.ndarray:
-    try:
-        a = z[key]
-    except ValueError as err:  # an object array (pickled) is refused by allow_pickle=False
-        raise SMPLMotionError(f"{path}: '{key}' is not a numeric array ({err})") from None
+def _float_array(path: Path, z: dict, key: str) -> np.ndarray:
+    a = z[key]
     if a.dtype.kind not in "fiu":
         raise SMPLMotionError(f"{path}: '{key}' expected a float array, got dtype {a.dtype}")
     return np.asarray(a, np.float64)
 
 
-def _optional_text(z, key: str) -> str | None:
-    if key not in z.files:
-        return None
-    try:
-        a = z[key]
-    except ValueError:  # pickled object array: not needed for posing, so not fatal
+def _optional_text(z: dict, key: str) -> str | None:
+    a = z.get(key)  # read_npz leaves a pickled entry out: not needed for posing, so not fatal
+    if a is None:
         return None
     value = a.item() if a.shape == () else (a.ravel()[0] if a.size else None)
     if isinstance(value, bytes):
@@ -130,37 +125,36 @@ def read_smpl_motion(path: str | os.PathLike) -> SMPLMotion:
 
     Raises:
         FileNotFoundError: the file does not exist.
-        SMPLMotionError: a missing key, a wrong shape, a pose length that is not 72 or 3k (k >= 24),
-            a different frame count in ``poses`` and ``trans``, NaN/inf values, or a bad frame rate;
-            the message names the file and the key.
+        SMPLMotionError: a damaged archive, a missing key, a wrong shape, a pose length that is not 72 or 3k
+            (k >= 24), no frames, a different frame count in ``poses`` and ``trans``, NaN/inf values, or a bad
+            frame rate; the message names the file and the key.
     """
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"SMPL motion file not found: {p}")
     try:
-        z = np.load(p, allow_pickle=False)
-    except (ValueError, OSError) as err:
-        raise SMPLMotionError(f"{p}: not an .npz archive ({err})") from None
-    with z:
-        missing = [k for k in ("poses", "trans", "betas") if k not in z.files]
-        if missing:
-            raise SMPLMotionError(f"{p}: missing keys {missing} (has {sorted(z.files)})")
-        poses, trans, betas = (_float_array(p, z, k) for k in ("poses", "trans", "betas"))
-        _check_arrays(str(p), poses, trans, betas.ravel() if betas.ndim == 2 and betas.shape[0] == 1 else betas)
-        fps = None
-        for key in _FPS_KEYS:
-            if key in z.files:
-                value = _float_array(p, z, key)
-                if value.size != 1 or not np.isfinite(value).all() or float(value.ravel()[0]) <= 0:
-                    raise SMPLMotionError(f"{p}: '{key}' expected one positive frame rate, got shape {value.shape}")
-                fps = float(value.ravel()[0])
-                break
-        gender = _optional_text(z, "gender")
-        frames = None
-        if "frames" in z.files:
-            frames = z["frames"]
-            if frames.dtype.kind not in "iu":
-                raise SMPLMotionError(f"{p}: 'frames' expected integer frame numbers, got dtype {frames.dtype}")
+        z = read_npz(p, text_keys=("gender",))
+    except CaptureFormatError as err:
+        raise SMPLMotionError(f"{p}: '{err.key}' {err.expectation}") from None
+    missing = [k for k in ("poses", "trans", "betas") if k not in z]
+    if missing:
+        raise SMPLMotionError(f"{p}: missing keys {missing} (has {sorted(z)})")
+    poses, trans, betas = (_float_array(p, z, k) for k in ("poses", "trans", "betas"))
+    _check_arrays(str(p), poses, trans, betas.ravel() if betas.ndim == 2 and betas.shape[0] == 1 else betas)
+    if poses.shape[0] == 0:
+        raise SMPLMotionError(f"{p}: 'poses' expected at least one frame, got none")
+    fps = None
+    for key in _FPS_KEYS:
+        if key in z:
+            value = _float_array(p, z, key)
+            if value.size != 1 or not np.isfinite(value).all() or float(value.ravel()[0]) <= 0:
+                raise SMPLMotionError(f"{p}: '{key}' expected one positive frame rate, got shape {value.shape}")
+            fps = float(value.ravel()[0])
+            break
+    gender = _optional_text(z, "gender")
+    frames = z.get("frames")
+    if frames is not None and frames.dtype.kind not in "iu":
+        raise SMPLMotionError(f"{p}: 'frames' expected integer frame numbers, got dtype {frames.dtype}")
     try:
         return SMPLMotion(poses, trans, betas.ravel(), fps, gender, frames)
     except SMPLMotionError as err:

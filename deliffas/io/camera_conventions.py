@@ -113,7 +113,8 @@ def to_camera(name: str, K: np.ndarray, world_to_cam: np.ndarray, width: int, he
         K[1, 2] += 0.5
     E = np.array(world_to_cam, np.float64)
     if units == "m":
-        E[:3, 3] *= MM_PER_M  # deliffas worlds are millimetres; rotations are unit-free
+        with np.errstate(over="ignore"):  # a translation beyond float64 in mm becomes inf, which Camera refuses
+            E[:3, 3] *= MM_PER_M  # deliffas worlds are millimetres; rotations are unit-free
     extra = {}
     if distortion is not None:
         d = np.zeros(5)

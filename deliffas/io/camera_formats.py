@@ -32,12 +32,13 @@ from deliffas.io.actorshq import actorshq_to_camera, camera_to_actorshq, read_ac
 from deliffas.io.calibration import read_calibration, write_calibration
 from deliffas.io.camera_conventions import require_distortion_fits
 from deliffas.io.cameras import Camera
-from deliffas.io.capture_format import read_json
+from deliffas.io.capture_format import naming_file, read_json
 from deliffas.io.colmap import cameras_from_colmap, cameras_to_colmap
 from deliffas.io.dna_rendering import cameras_to_smc, smc_to_cameras, write_smc
 from deliffas.io.easymocap import camera_to_easymocap, easymocap_to_camera, read_easymocap_cameras, write_easymocap_cameras
 from deliffas.io.nerfstudio import camera_to_nerfstudio, nerfstudio_to_camera, read_transforms, write_transforms
-from deliffas.io.thuman4 import camera_to_thuman4, read_thuman4_calibration, thuman4_to_camera, write_thuman4_calibration
+from deliffas.io.thuman4 import (camera_to_thuman4, read_thuman4_calibration, thuman4_calibration_path, thuman4_to_camera,
+                                 write_thuman4_calibration)
 from deliffas.io.zju_mocap import cameras_to_zju, read_zju_annots, write_zju_annots, zju_to_cameras
 
 __all__ = ["CAMERA_FORMATS", "CameraFormat", "detect_camera_format", "read_cameras", "write_cameras"]
@@ -107,20 +108,31 @@ def read_cameras(path: PathLike, fmt: str = "auto", size: tuple[int, int] | None
         return cameras_from_colmap(p if p.is_dir() else p.parent)
     if fmt == "easymocap":
         intri = p / "intri.yml" if p.is_dir() else p.with_name("intri.yml")
-        return [easymocap_to_camera(c, size) for c in read_easymocap_cameras(intri)]
+        return _converted(intri, read_easymocap_cameras(intri), lambda c: easymocap_to_camera(c, size))
     if fmt == "zju":
         annots = read_zju_annots(p)
-        return zju_to_cameras(annots, _need_size("zju", size))
+        with naming_file(p / "annots.npy" if p.is_dir() else p, "cams"):
+            return zju_to_cameras(annots, _need_size("zju", size))
     if fmt == "nerfstudio":
-        return [nerfstudio_to_camera(f) for f in read_transforms(p)]
+        return _converted(p / "transforms.json" if p.is_dir() else p, read_transforms(p), nerfstudio_to_camera)
     if fmt == "thuman4":
-        return [thuman4_to_camera(c) for c in read_thuman4_calibration(p)]
+        return _converted(thuman4_calibration_path(p), read_thuman4_calibration(p), thuman4_to_camera)
     if fmt == "actorshq":
         csv_path = p / "calibration.csv" if p.is_dir() else p
-        return [actorshq_to_camera(c, csv_path) for c in read_actorshq_calibration(csv_path)]
+        return _converted(csv_path, read_actorshq_calibration(csv_path), lambda c: actorshq_to_camera(c, csv_path))
     if fmt == "dna":
         return smc_to_cameras(p, size)
     raise ValueError(f"unknown camera format {fmt!r}; expected one of {', '.join(CAMERA_FORMATS)} or 'auto'")
+
+
+def _converted(path: Path, records: Sequence, convert) -> list[Camera]:
+    """``convert`` of each record, a refused value (singular K, a translation that overflows in mm) named
+    with the file and the camera."""
+    out = []
+    for r in records:
+        with naming_file(path, f"camera {r.name}"):
+            out.append(convert(r))
+    return out
 
 
 def write_cameras(cameras: Sequence[Camera], out: PathLike, fmt: str, drop_distortion: bool = False,

@@ -102,9 +102,10 @@ class Camera:
         if self.width <= 0 or self.height <= 0:
             raise ValueError(f"camera {self.name}: image size must be positive, got {self.width}x{self.height}")
         R = np.asarray(self.world_to_cam, np.float64)[:3, :3]
-        orth = float(np.abs(R @ R.T - np.eye(3)).max())
-        det = float(np.linalg.det(R))
-        if orth > ROTATION_TOLERANCE or abs(det - 1) > ROTATION_TOLERANCE:
+        with np.errstate(over="ignore", invalid="ignore"):  # a huge R overflows: NaN/inf fail the test below
+            orth = float(np.abs(R @ R.T - np.eye(3)).max())
+            det = float(np.linalg.det(R))
+        if not (orth <= ROTATION_TOLERANCE and abs(det - 1) <= ROTATION_TOLERANCE):
             # a scaled or mirrored R projects differently in every other format (COLMAP stores a quaternion)
             raise ValueError(f"camera {self.name} world_to_cam: R must be a rotation (R R^T = I, det +1 within "
                              f"{ROTATION_TOLERANCE}); got |R R^T - I| = {orth:.2g}, det = {det:.6g}")

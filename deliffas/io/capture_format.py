@@ -1,7 +1,8 @@
 """Checks shared by the capture-format readers, raising one error that names the file and the key.
 
 Every reader of a capture dataset's files (EasyMocap, ZJU-MoCap, THuman4.0, DNA-Rendering,
-ActorsHQ, nerfstudio) validates values through these functions, so a bad file always reads
+ActorsHQ, nerfstudio, COLMAP; AMASS motions and SMPL models read their ``.npz`` through ``read_npz``)
+validates values through these functions, so a bad file always reads
 ``<file>: <key>: expected …, got …`` and never as a numpy broadcasting error three layers up.
 """
 
@@ -9,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -18,10 +20,9 @@ from deliffas.io.cameras import ROTATION_TOLERANCE
 from deliffas.io.files import durable_replace, temp_path
 
 __all__ = [
-    "CaptureFormatError", "require_array", "require_rotation", "require_size", "read_json",
-    "write_json_atomic",
+    "CaptureFormatError", "require_numbers", "require_array", "require_rows", "require_vector", "require_rotation",
+    "require_size", "read_json", "read_npz", "write_json_atomic", "naming_file",
 ]
-
 
 
 class CaptureFormatError(ValueError):
@@ -43,6 +44,38 @@ class CaptureFormatError(ValueError):
         super().__init__(f"{self.path}: {self.key}: {expectation}")
 
 
+@contextmanager
+def naming_file(path: str | os.PathLike, key: str):
+    """Re-raise a ValueError of building a record from ``path`` (e.g. a ``Camera`` refusing a singular K or a
+    translation that overflows to inf in millimetres) as a ``CaptureFormatError`` naming the file and ``key``."""
+    try:
+        yield
+    except CaptureFormatError:
+        raise
+    except ValueError as err:
+        raise CaptureFormatError(path, key, str(err)) from None
+
+
+def require_numbers(path: str | os.PathLike, key: str, value: Any, what: str = "") -> np.ndarray:
+    """``value`` as a float64 array of any shape, from real numbers only: text, booleans, complex numbers,
+    nested objects, ragged lists and integers beyond float64 are refused rather than converted.
+
+    Raises:
+        CaptureFormatError: naming ``what`` was expected (e.g. " of shape (3, 3)") and what was found.
+    """
+    try:
+        raw = np.asarray(value)
+        if raw.dtype.kind == "O" and all(isinstance(x, (int, float, np.integer, np.floating))
+                                         and not isinstance(x, (bool, np.bool_)) for x in raw.flat):
+            return raw.astype(np.float64)  # e.g. JSON integers too large for int64
+        if raw.dtype.kind in "iuf":
+            return raw.astype(np.float64)
+        found = f"{raw.dtype} values" if raw.dtype.kind != "O" else f"{type(value).__name__} holding non-numbers"
+    except (TypeError, ValueError, OverflowError) as err:  # ragged lists; integers beyond float64
+        found = f"{type(value).__name__} ({str(err).splitlines()[0][:80]})"
+    raise CaptureFormatError(path, key, f"expected real numbers{what}, got {found}")
+
+
 def require_array(path: str | os.PathLike, key: str, value: Any, shape: tuple[int, ...],
                   reshape: bool = False) -> np.ndarray:
     """``value`` as a finite float64 array of ``shape``.
@@ -60,10 +93,7 @@ def require_array(path: str | os.PathLike, key: str, value: Any, shape: tuple[in
     """
     if value is None:
         raise CaptureFormatError(path, key, f"expected an array of shape {shape}, got nothing (missing)")
-    try:
-        arr = np.array(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise CaptureFormatError(path, key, f"expected numbers of shape {shape}, got {type(value).__name__}") from None
+    arr = require_numbers(path, key, value, f" of shape {shape}")
     if reshape and -1 not in shape and arr.size == int(np.prod(shape)):
         arr = arr.reshape(shape)
     if arr.ndim != len(shape) or any(s != -1 and s != a for s, a in zip(shape, arr.shape)):
@@ -72,6 +102,21 @@ def require_array(path: str | os.PathLike, key: str, value: Any, shape: tuple[in
     if bad:
         raise CaptureFormatError(path, key, f"expected finite numbers, got {bad} NaN/inf of {arr.size}")
     return arr
+
+
+def require_rows(path: str | os.PathLike, key: str, value: Any, rows: int = -1) -> np.ndarray:
+    """``value`` as a finite (rows, N) float64 array, a 1-D value taken as one row (``np.atleast_2d``), as the
+    SMPL records store (1, 72) poses and (10,) or (1, 10) betas."""
+    if value is None:
+        raise CaptureFormatError(path, key, "expected an array, got nothing (missing)")
+    return require_array(path, key, np.atleast_2d(require_numbers(path, key, value)), (rows, -1))
+
+
+def require_vector(path: str | os.PathLike, key: str, value: Any) -> np.ndarray:
+    """``value`` flattened to a finite 1-D float64 array (distortion stored as (5,), (1, 5) or (5, 1))."""
+    if value is None:
+        raise CaptureFormatError(path, key, "expected an array, got nothing (missing)")
+    return require_array(path, key, require_numbers(path, key, value).ravel(), (-1,))
 
 
 def require_rotation(path: str | os.PathLike, key: str, R: Any) -> np.ndarray:
@@ -83,9 +128,10 @@ def require_rotation(path: str | os.PathLike, key: str, R: Any) -> np.ndarray:
             |R R^T - I| of the scale's square minus one).
     """
     R = require_array(path, key, R, (3, 3), reshape=True)
-    orth = float(np.abs(R @ R.T - np.eye(3)).max())
-    det = float(np.linalg.det(R))
-    if orth > ROTATION_TOLERANCE or abs(det - 1.0) > ROTATION_TOLERANCE:
+    with np.errstate(over="ignore", invalid="ignore"):  # a huge R overflows to inf/NaN, which fails the check below
+        orth = float(np.abs(R @ R.T - np.eye(3)).max())
+        det = float(np.linalg.det(R))
+    if not (orth <= ROTATION_TOLERANCE and abs(det - 1.0) <= ROTATION_TOLERANCE):
         raise CaptureFormatError(path, key, f"expected a rotation (R R^T = I and det R = +1 within {ROTATION_TOLERANCE:g}), "
                                             f"got max |R R^T - I| = {orth:.3g}, det R = {det:.9g}")
     return R
@@ -99,7 +145,7 @@ def require_size(path: str | os.PathLike, key: str, width: Any, height: Any) -> 
     """
     try:
         w, h = float(width), float(height)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise CaptureFormatError(path, key, f"expected an integer image size, got {width!r} x {height!r}") from None
     if not (w.is_integer() and h.is_integer() and w > 0 and h > 0):
         raise CaptureFormatError(path, key, f"expected a positive integer image size, got {width!r} x {height!r}")
@@ -121,6 +167,61 @@ def read_json(path: str | os.PathLike):
         raise CaptureFormatError(p, "JSON", "expected UTF-8 JSON text, got binary bytes") from None
     except json.JSONDecodeError as err:
         raise CaptureFormatError(p, f"JSON line {err.lineno}", f"expected valid JSON ({err.msg})") from None
+
+
+def read_npz(path: str | os.PathLike, text_keys: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
+    """Every member of the ``.npz`` archive ``path`` as an array, never unpickling.
+
+    Each member's ``.npy`` header is checked before its data is read: a shape whose bytes exceed what
+    the member holds is refused instead of allocated. Members must hold real numbers (bool, int, uint,
+    float); members named in ``text_keys`` may also hold text, and are left out when pickled.
+
+    Raises:
+        CaptureFormatError: a missing file, not a zip archive, or a damaged, truncated, pickled or
+            non-numeric member (the key is the member's name).
+    """
+    import zipfile
+    from numpy.lib import format as npy
+
+    p = Path(path)
+    if not p.is_file():
+        raise CaptureFormatError(p, "file", "not found")
+    try:
+        archive = zipfile.ZipFile(p)
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError, NotImplementedError) as err:
+        # (NotImplementedError: a damaged "version needed to extract" field)
+        raise CaptureFormatError(p, "NPZ", f"expected an .npz (zip) archive ({err})") from None
+    out = {}
+    with archive:
+        for info in archive.infolist():
+            key = (info.filename[:-4] if info.filename.endswith(".npy") else info.filename) or "(a member without a name)"
+            try:
+                with archive.open(info) as fh:
+                    version = npy.read_magic(fh)
+                    if version not in ((1, 0), (2, 0)):
+                        raise ValueError(f"unsupported .npy format version {version}")
+                    read_header = npy.read_array_header_1_0 if version == (1, 0) else npy.read_array_header_2_0
+                    shape, fortran, dtype = read_header(fh)
+                    if dtype.kind == "O" and key in text_keys:
+                        continue  # a pickled text entry: left out rather than unpickled
+                    kinds = "biufSU" if key in text_keys else "biuf"
+                    if dtype.kind not in kinds or dtype.itemsize == 0 or dtype.fields is not None:
+                        raise CaptureFormatError(p, key, f"expected an array of real numbers, got dtype {dtype}")
+                    count = int(np.prod(shape, dtype=object))
+                    if count * dtype.itemsize > info.file_size:
+                        raise CaptureFormatError(p, key, f"shape {shape} of {dtype} needs {count * dtype.itemsize} "
+                                                         f"bytes, the member holds {info.file_size}")
+                    data = fh.read(count * dtype.itemsize)
+                    if len(data) != count * dtype.itemsize:
+                        raise CaptureFormatError(p, key, f"truncated: {len(data)} of {count * dtype.itemsize} bytes")
+                    arr = np.frombuffer(data, dtype, count).reshape(shape, order="F" if fortran else "C").copy()
+            except CaptureFormatError:
+                raise
+            except Exception as err:  # zipfile, zlib and numpy's header parser fail in many ways on damaged bytes
+                raise CaptureFormatError(p, key, f"unreadable .npz member ({type(err).__name__}: "
+                                                 f"{str(err)[:200]})") from None
+            out[key] = arr
+    return out
 
 
 def write_json_atomic(path: str | os.PathLike, data: Any) -> None:

@@ -20,6 +20,7 @@ from typing import Literal, Mapping
 
 import numpy as np
 
+from deliffas.io.capture_format import CaptureFormatError
 from deliffas.io.dna_rendering import SmcFile
 from deliffas.io.files import durable_replace, temp_path
 
@@ -224,6 +225,9 @@ class SmcFrameSource:
         cid = self.spec.camera_ids[camera]
         rgb = self._smc.image(cid, frame, self.spec.group)
         mask = self._masks.mask(cid, frame)
+        if mask.shape != rgb.shape[:2]:
+            raise CaptureFormatError(self._masks.path, f"Mask/{int(cid)}/mask/{int(frame)}",
+                                     f"mask is {mask.shape[1]}x{mask.shape[0]}, its image {rgb.shape[1]}x{rgb.shape[0]}")
         return self._undistort(camera, rgb, mask)
 
     def close(self) -> None:

@@ -17,7 +17,8 @@ Extrinsics: COLMAP's ``cam_from_world`` is the same world -> camera map as ``Cam
 millimetres (COLMAP is scale-free). Camera and image ids are 1-based calibration indices; image
 names are the calibration names.
 
-pycolmap is imported here only, at call time (docs/conventions.md).
+pycolmap is imported here only, at call time (docs/conventions.md), and only to write: models are read by
+``deliffas.io.colmap_model``, which checks every count of a binary model before trusting it.
 """
 
 from __future__ import annotations
@@ -29,6 +30,8 @@ from typing import Sequence
 import numpy as np
 
 from deliffas.io.cameras import Camera
+from deliffas.io.capture_format import CaptureFormatError, naming_file
+from deliffas.io.colmap_model import read_colmap_model
 
 __all__ = [
     "cameras_to_colmap",
@@ -77,39 +80,43 @@ def cameras_to_colmap(cameras: Sequence[Camera], out_dir: str | os.PathLike, tex
 
 
 def cameras_from_colmap(model_dir: str | os.PathLike) -> list[Camera]:
-    """Read the images of a COLMAP model as Cameras (ordered by image id).
+    """Read the images of a COLMAP model as Cameras (ordered by image id), through ``read_colmap_model``.
 
     Only pinhole-type models without distortion are accepted (PINHOLE, SIMPLE_PINHOLE).
+
+    Raises:
+        FileNotFoundError: ``model_dir`` is not a folder.
+        CaptureFormatError: a malformed model, an image with another camera model, or a camera that is not
+            a valid pinhole (zero focal length), naming the file and the record.
     """
-    pycolmap = _pycolmap()
     d = Path(model_dir)
-    if not d.is_dir():
-        raise FileNotFoundError(f"{d}: COLMAP model folder not found")
-    if not any((d / f"cameras{ext}").is_file() for ext in (".bin", ".txt")):
-        raise ValueError(f"{d}: not a COLMAP model (no cameras.bin or cameras.txt)")
-    try:
-        rec = pycolmap.Reconstruction(str(d))
-    except Exception as err:  # pycolmap raises its own (C++) exception types on unreadable files
-        raise ValueError(f"{d}: unreadable COLMAP model ({type(err).__name__}: {str(err).splitlines()[0][:200] if str(err) else ''})") from None
+    cameras, images = read_colmap_model(d)
+    ext = ".bin" if (d / "cameras.bin").is_file() else ".txt"
     out = []
-    for image_id in sorted(rec.images):
-        img = rec.images[image_id]
-        cc = rec.cameras[img.camera_id]
-        model = str(cc.model.name if hasattr(cc.model, "name") else cc.model)
-        p = np.asarray(cc.params, np.float64)
-        if model.endswith("PINHOLE") and model.startswith("SIMPLE"):
+    for image_id in sorted(images):
+        img = images[image_id]
+        cc = cameras[img.camera_id]
+        p = cc.params
+        if cc.model == "SIMPLE_PINHOLE":
             fx = fy = p[0]
             cx, cy = p[1], p[2]
-        elif model == "PINHOLE":
+        elif cc.model == "PINHOLE":
             fx, fy, cx, cy = p
         else:
-            raise ValueError(f"{d}: image {img.name} uses camera model {model}; only PINHOLE/SIMPLE_PINHOLE are supported")
+            raise CaptureFormatError(d / f"cameras{ext}", f"camera {cc.camera_id}",
+                                     f"image {img.name} uses camera model {cc.model}; only PINHOLE/SIMPLE_PINHOLE are supported")
         K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-        pose = img.cam_from_world() if callable(img.cam_from_world) else img.cam_from_world
         E = np.eye(4)
-        E[:3, :3] = pose.rotation.matrix()
-        E[:3, 3] = pose.translation
-        out.append(Camera(str(img.name), K, E, int(cc.width), int(cc.height)))
-    if not out:
-        raise ValueError(f"{d}: the COLMAP model has no images")
+        E[:3, :3] = _quaternion_matrix(img.qvec)
+        E[:3, 3] = img.tvec
+        with naming_file(d / f"images{ext}", f"image {image_id}"):
+            out.append(Camera(img.name, K, E, cc.width, cc.height))
     return out
+
+
+def _quaternion_matrix(q: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation of the unit quaternion (w, x, y, z)."""
+    w, x, y, z = q
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])

@@ -30,6 +30,7 @@ that need exact pixels can pass ``jpeg_quality=100`` and compare with a toleranc
 from __future__ import annotations
 
 import os
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Mapping, Sequence
@@ -38,7 +39,8 @@ import numpy as np
 
 from deliffas.io.cameras import Camera
 from deliffas.io.camera_conventions import from_camera, invert_rigid, require_distortion_fits, to_camera
-from deliffas.io.capture_format import CaptureFormatError, require_array, require_rotation
+from deliffas.io.capture_format import (CaptureFormatError, naming_file, require_array, require_rotation, require_rows,
+                                        require_vector)
 from deliffas.io.files import durable_replace, temp_path
 
 __all__ = [
@@ -100,7 +102,8 @@ class SmcFile:
     Use as a context manager (``with SmcFile(path) as smc: ...``); it holds the HDF5 file open.
 
     Raises:
-        CaptureFormatError: the file is missing, truncated or not HDF5.
+        CaptureFormatError: the file is missing, truncated or not HDF5; every method raises it too for a missing,
+            mistyped (a dataset where a group belongs) or damaged entry, naming the entry.
     """
 
     def __init__(self, path: PathLike):
@@ -111,7 +114,7 @@ class SmcFile:
             raise CaptureFormatError(self.path, "file", "not found")
         try:
             self._h5 = h5py.File(self.path, "r")
-        except OSError as err:
+        except (OSError, RuntimeError, ValueError) as err:
             raise CaptureFormatError(self.path, "HDF5", f"expected a complete HDF5 (.smc) file ({err})") from None
 
     def __enter__(self) -> "SmcFile":
@@ -123,28 +126,49 @@ class SmcFile:
     def close(self) -> None:
         self._h5.close()
 
-    def _node(self, key: str):
+    @contextmanager
+    def _reading(self, key: str):
+        """h5py's errors on a damaged file (OSError, RuntimeError, or a KeyError for an object whose header does not
+        parse) raised as ``CaptureFormatError`` naming the file and ``key``."""
         try:
-            return self._h5[key]
-        except KeyError:
-            raise CaptureFormatError(self.path, key, "missing") from None
-        except (OSError, RuntimeError) as err:  # truncated data inside a readable header
-            raise CaptureFormatError(self.path, key, f"unreadable (truncated file?): {err}") from None
+            yield
+        except CaptureFormatError:
+            raise
+        except KeyError as err:
+            detail = "missing" if "doesn't exist" in str(err) else f"unreadable (damaged file?): {err}"
+            raise CaptureFormatError(self.path, key, detail) from None
+        except (OSError, RuntimeError, ValueError) as err:  # ValueError: e.g. a name h5py cannot decode
+            raise CaptureFormatError(self.path, key, f"unreadable (damaged file?): {err}") from None
+
+    def _node(self, key: str, kind: str | None = None):
+        """The group (``kind`` "group") or dataset ("dataset") at ``key``."""
+        import h5py
+
+        with self._reading(key):
+            node = self._h5[key]
+        want = {"group": h5py.Group, "dataset": h5py.Dataset}.get(kind)
+        if want is not None and not isinstance(node, want):
+            raise CaptureFormatError(self.path, key, f"expected a {kind}, got a {type(node).__name__}")
+        return node
 
     def _data(self, key: str):
-        try:
-            return self._node(key)[()]
-        except (OSError, RuntimeError) as err:
-            raise CaptureFormatError(self.path, key, f"unreadable (truncated file?): {err}") from None
+        node = self._node(key, "dataset")
+        with self._reading(key):
+            return node[()]
 
     def calibration(self) -> list[SmcCalibration]:
         """Every camera of ``Camera_Parameter``, ordered by id."""
-        group = self._node("Camera_Parameter")
+        group = self._node("Camera_Parameter", "group")
         out = []
-        for cid in sorted(group.keys(), key=lambda k: (len(k), k)):
+        with self._reading("Camera_Parameter"):
+            ids = sorted(group.keys(), key=lambda k: (len(k), k))
+        for cid in ids:
             base = f"Camera_Parameter/{cid}"
+            if not (cid.isascii() and cid.isdigit()):
+                raise CaptureFormatError(self.path, base, "expected a numeric camera id (00, 01, ...)")
+            cam = self._node(base, "group")
             K = require_array(self.path, f"{base}/K", self._data(f"{base}/K"), (3, 3))
-            D = require_array(self.path, f"{base}/D", np.ravel(self._data(f"{base}/D")), (-1,))
+            D = require_vector(self.path, f"{base}/D", self._data(f"{base}/D"))
             if D.size not in (4, 5):
                 raise CaptureFormatError(self.path, f"{base}/D", f"expected 4 or 5 OpenCV coefficients, got {D.size}")
             D5 = np.zeros(5)
@@ -154,30 +178,44 @@ class SmcFile:
             if np.abs(RT[3] - [0, 0, 0, 1]).max() > 1e-9:
                 raise CaptureFormatError(self.path, f"{base}/RT", "expected a last row 0 0 0 1")
             cc = np.eye(3)
-            if "Color_Calibration" in group[cid]:
+            if self.has(f"{base}/Color_Calibration"):
                 cc = require_array(self.path, f"{base}/Color_Calibration", self._data(f"{base}/Color_Calibration"), (3, 3))
-            name = group[cid].attrs.get("name", cid)
-            out.append(SmcCalibration(cid, K, D5, RT, cc, name.decode() if isinstance(name, bytes) else str(name)))
+            with self._reading(f"{base}@name"):
+                name = cam.attrs.get("name", cid)
+            if isinstance(name, bytes):
+                try:
+                    name = name.decode("utf-8")
+                except UnicodeDecodeError:
+                    raise CaptureFormatError(self.path, f"{base}@name", "expected a UTF-8 camera name") from None
+            if not isinstance(name, str):
+                raise CaptureFormatError(self.path, f"{base}@name", f"expected a camera name, got {type(name).__name__}")
+            out.append(SmcCalibration(cid, K, D5, RT, cc, name))
         if not out:
             raise CaptureFormatError(self.path, "Camera_Parameter", "expected at least one camera, got none")
         return out
 
     def has(self, key: str) -> bool:
         """Whether the file holds the group or dataset ``key`` (e.g. ``Mask``, ``SMPLx``)."""
-        return key in self._h5
+        with self._reading(key):
+            return key in self._h5
 
     def frame_count(self, camera: str | int, group: str = "Camera_5mp", kind: str = "color") -> int:
         """Number of frames stored for ``camera`` (``kind`` "color" in ``group``, or "mask")."""
         key = f"Mask/{int(camera)}/mask" if kind == "mask" else f"{group}/{int(camera)}/{kind}"
-        return len(self._node(key).keys())
+        node = self._node(key, "group")
+        with self._reading(key):
+            return len(node)
 
     def _jpeg(self, key: str) -> np.ndarray:
         import cv2
 
         buf = np.asarray(self._data(key))
-        if buf.dtype != np.uint8 or buf.ndim != 1:
+        if buf.dtype != np.uint8 or buf.ndim != 1 or buf.size == 0:
             raise CaptureFormatError(self.path, key, f"expected a 1-D uint8 JPEG buffer, got {buf.dtype} {buf.shape}")
-        img = cv2.imdecode(buf, cv2.IMREAD_COLOR)
+        try:
+            img = cv2.imdecode(buf, cv2.IMREAD_COLOR)
+        except cv2.error:
+            img = None
         if img is None:
             raise CaptureFormatError(self.path, key, "expected a decodable JPEG, got corrupt or truncated bytes")
         return img
@@ -193,22 +231,27 @@ class SmcFile:
     def image_size(self, camera: str | int, group: str = "Camera_5mp") -> tuple[int, int] | None:
         """(width, height) of ``camera``'s first colour image or mask, or None when the file has neither."""
         for key in (f"{group}/{int(camera)}/color", f"Mask/{int(camera)}/mask"):
-            if key in self._h5 and len(self._h5[key]):
-                first = min(self._h5[key].keys(), key=int)
-                h, w = self._jpeg(f"{key}/{first}").shape[:2]
-                return w, h
+            if self.has(key):
+                node = self._node(key, "group")
+                with self._reading(key):
+                    frames = [k for k in node.keys() if k.isascii() and k.isdigit()]
+                if frames:
+                    h, w = self._jpeg(f"{key}/{min(frames, key=int)}").shape[:2]
+                    return w, h
         return None
 
     def smplx(self) -> SmcSmplx:
         """The ``SMPLx`` group."""
-        for key in ("betas", "expression", "fullpose", "transl"):
-            self._node(f"SMPLx/{key}")
         fullpose = require_array(self.path, "SMPLx/fullpose", self._data("SMPLx/fullpose"), (-1, 55, 3))
         n = fullpose.shape[0]
+        if n == 0:
+            raise CaptureFormatError(self.path, "SMPLx/fullpose", "expected at least one frame, got none")
         transl = require_array(self.path, "SMPLx/transl", self._data("SMPLx/transl"), (n, 3))
-        betas = require_array(self.path, "SMPLx/betas", np.atleast_2d(self._data("SMPLx/betas")), (-1, -1))
-        expr = require_array(self.path, "SMPLx/expression", np.atleast_2d(self._data("SMPLx/expression")), (n, -1))
-        scale = float(self._data("SMPLx/scale")) if "SMPLx/scale" in self._h5 else 1.0
+        betas = require_rows(self.path, "SMPLx/betas", self._data("SMPLx/betas"))
+        expr = require_rows(self.path, "SMPLx/expression", self._data("SMPLx/expression"), rows=n)
+        scale = 1.0
+        if self.has("SMPLx/scale"):
+            scale = float(require_array(self.path, "SMPLx/scale", self._data("SMPLx/scale"), (), reshape=True))
         return SmcSmplx(betas, expr, fullpose, transl, scale)
 
 
@@ -236,8 +279,9 @@ def smc_to_cameras(path: PathLike, size: tuple[int, int] | None = None, group: s
             wh = frames.image_size(c.camera_id, group) or smc.image_size(c.camera_id, group) or size
             if wh is None:
                 raise ValueError(f"{path}: camera {c.camera_id} has no image or mask to take its size from; pass size=(w, h)")
-            out.append(to_camera(c.name or c.camera_id, c.K, invert_rigid(c.RT), wh[0], wh[1], units="m",
-                                 pixel_centre="integer", distortion=c.D))
+            with naming_file(smc.path, f"Camera_Parameter/{c.camera_id}"):
+                out.append(to_camera(c.name or c.camera_id, c.K, invert_rigid(c.RT), wh[0], wh[1], units="m",
+                                     pixel_centre="integer", distortion=c.D))
     return out
 
 

@@ -35,8 +35,8 @@ import numpy as np
 
 from deliffas.io.cameras import Camera
 from deliffas.io.camera_conventions import from_camera, require_distortion_fits, to_camera
-from deliffas.io.capture_format import (CaptureFormatError, read_json, require_array, require_rotation, require_size,
-                                        write_json_atomic)
+from deliffas.io.capture_format import (CaptureFormatError, read_json, require_array, require_rotation, require_rows,
+                                        require_size, write_json_atomic)
 from deliffas.io.files import durable_replace, temp_path
 
 __all__ = [
@@ -117,10 +117,19 @@ def _open_storage(path: Path):
         raise CaptureFormatError(path, "YAML", f"expected an OpenCV FileStorage file; OpenCV: {detail[-200:]}") from None
     if not fs.isOpened():
         raise CaptureFormatError(path, "YAML", "OpenCV could not open the file")
+    if not fs.root().isMap():  # FileStorage.getNode asserts a map at the top level
+        raise CaptureFormatError(path, "YAML", "expected keys (names, K_<cam>, ...) at the top level")
     return fs
 
 
+_MAX_MATRIX = 4096
+"""Most numbers a matrix of these files may hold (the largest, K or Rot_, holds 9)."""
+
+
 def _mat(fs, path: Path, key: str, shape: tuple[int, ...], required: bool = True) -> np.ndarray | None:
+    """The !!opencv-matrix ``key`` read field by field (rows, cols, data) rather than with ``FileNode.mat()``,
+    which sizes a buffer from ``rows``/``cols`` before checking them against the data (fuzzing crashed the
+    process through it)."""
     node = fs.getNode(key)
     if node.isNone():
         if required:
@@ -128,13 +137,19 @@ def _mat(fs, path: Path, key: str, shape: tuple[int, ...], required: bool = True
         return None
     if not node.isMap():
         raise CaptureFormatError(path, key, "expected an !!opencv-matrix (rows, cols, dt, data)")
-    try:
-        m = node.mat()
-    except Exception as err:  # cv2.error on a malformed matrix map
-        raise CaptureFormatError(path, key, f"expected an !!opencv-matrix; OpenCV: {str(err).strip()[-150:]}") from None
-    if m is None:
-        raise CaptureFormatError(path, key, "expected an !!opencv-matrix whose data has rows x cols numbers")
-    return require_array(path, key, m, shape, reshape=True)
+    rows, cols, data = node.getNode("rows"), node.getNode("cols"), node.getNode("data")
+    if not (rows.isInt() and cols.isInt() and data.isSeq()):
+        raise CaptureFormatError(path, key, "expected an !!opencv-matrix with integer rows and cols and a data list")
+    r, c, n = int(rows.real()), int(cols.real()), data.size()
+    if not (r > 0 and c > 0 and r * c == n <= _MAX_MATRIX):
+        raise CaptureFormatError(path, key, f"expected rows x cols = the {n} numbers of data, got {r} x {c}")
+    values = []
+    for i in range(n):
+        item = data.at(i)
+        if not (item.isInt() or item.isReal()):
+            raise CaptureFormatError(path, f"{key}/data[{i}]", "expected a number")
+        values.append(item.real())
+    return require_array(path, key, np.reshape(values, (r, c)), shape, reshape=True)
 
 
 def _names(fs, path: Path) -> list[str]:
@@ -145,11 +160,14 @@ def _names(fs, path: Path) -> list[str]:
     for i in range(node.size()):
         item = node.at(i)
         if item.isString():
-            out.append(item.string())
-        elif item.isInt() or item.isReal():
+            try:
+                out.append(item.string())
+            except UnicodeDecodeError:
+                raise CaptureFormatError(path, f"names[{i}]", "expected a UTF-8 camera name") from None
+        elif (item.isInt() or item.isReal()) and float(item.real()).is_integer():
             out.append(str(int(item.real())))  # EasyMocap: unquoted numbers are camera names too
         else:
-            raise CaptureFormatError(path, f"names[{i}]", "expected a camera name (string or number)")
+            raise CaptureFormatError(path, f"names[{i}]", "expected a camera name (string or integer)")
     if not out:
         raise CaptureFormatError(path, "names", "expected at least one camera name, got an empty list")
     if len(set(out)) != len(out):
@@ -308,11 +326,14 @@ def read_easymocap_smpl(path: PathLike) -> list[EasyMocapSmpl]:
                 raise CaptureFormatError(p, f"[{i}].{key}", "missing")
         Rh = require_array(p, f"[{i}].Rh", person["Rh"], (1, 3), reshape=True)
         Th = require_array(p, f"[{i}].Th", person["Th"], (1, 3), reshape=True)
-        poses = require_array(p, f"[{i}].poses", np.atleast_2d(person["poses"]), (1, -1))
-        shapes = require_array(p, f"[{i}].shapes", np.atleast_2d(person["shapes"]), (1, -1))
+        poses = require_rows(p, f"[{i}].poses", person["poses"], rows=1)
+        shapes = require_rows(p, f"[{i}].shapes", person["shapes"], rows=1)
         expr = person.get("expression")
-        expr = None if expr is None else require_array(p, f"[{i}].expression", np.atleast_2d(expr), (1, -1))
-        out.append(EasyMocapSmpl(int(person.get("id", i)), Rh, Th, poses, shapes, expr))
+        expr = None if expr is None else require_rows(p, f"[{i}].expression", expr, rows=1)
+        pid = person.get("id", i)
+        if isinstance(pid, bool) or not (isinstance(pid, int) or (isinstance(pid, float) and pid.is_integer())):
+            raise CaptureFormatError(p, f"[{i}].id", f"expected an integer person id, got {pid!r}"[:120])
+        out.append(EasyMocapSmpl(int(pid), Rh, Th, poses, shapes, expr))
     return out
 
 

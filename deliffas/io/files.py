@@ -1,7 +1,7 @@
 """Files on disk: their identity (sha256, recorded by manifests, runs and template specs) and atomic replacement.
 
 Every writer in deliffas writes under :func:`temp_path` next to the final name and renames it into
-place, so a crash never leaves a half-written file under a final name; ``.<name>.tmp-<pid>`` files
+place (:func:`atomic_path` does both and cleans up after a failure), so a crash never leaves a half-written file under a final name; ``.<name>.tmp-<pid>`` files
 left by a crash are recognisable (``TMP_MARK``) and removed by the next run.
 """
 
@@ -10,10 +10,12 @@ from __future__ import annotations
 import hashlib
 import os
 import shutil
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Iterator
 
-__all__ = ["sha256_file", "temp_path", "durable_replace", "write_bytes_atomic", "claim_output", "claim_output_file",
-           "TMP_MARK"]
+__all__ = ["sha256_file", "temp_path", "durable_replace", "atomic_path", "write_bytes_atomic", "claim_output",
+           "claim_output_file", "TMP_MARK"]
 
 TMP_MARK = ".tmp-"
 """Part of every temporary file name (``.<name>.tmp-<pid>``)."""
@@ -49,17 +51,28 @@ def durable_replace(tmp: str | os.PathLike, final: str | os.PathLike) -> None:
     os.replace(tmp, final)
 
 
-def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> Path:
-    """Write ``data`` under :func:`temp_path`, fsync and rename it to ``path`` (no partial file on a crash)."""
+@contextmanager
+def atomic_path(path: str | os.PathLike, keep_suffix: bool = False) -> Iterator[Path]:
+    """Yield the :func:`temp_path` to write ``path`` under; when the block ends normally, fsync it and rename it
+    to ``path`` (:func:`durable_replace`); whatever happens, no temporary file is left behind.
+
+    Example: ``with atomic_path(out) as tmp: tmp.write_bytes(data)``.
+    """
     p = Path(path)
-    tmp = temp_path(p)
+    tmp = temp_path(p, keep_suffix)
     try:
-        tmp.write_bytes(data)
+        yield tmp
         durable_replace(tmp, p)
     finally:
         if tmp.exists():
             tmp.unlink()
-    return p
+
+
+def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> Path:
+    """Write ``data`` under :func:`temp_path`, fsync and rename it to ``path`` (no partial file on a crash)."""
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+    return Path(path)
 
 
 def claim_output(path: str | os.PathLike, overwrite: bool, marker: str, what: str) -> Path:

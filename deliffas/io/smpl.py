@@ -2,8 +2,8 @@
 
 The model file layout is the official one: ``v_template`` (V, 3), ``shapedirs`` (V, 3, >= num_betas),
 ``posedirs`` (V, 3, 207), ``J_regressor`` (24, V) dense or scipy-sparse, ``weights`` (V, 24),
-``kintree_table`` (2, 24), ``f`` (F, 3). ``.pkl`` files are read with a restricted unpickler that only
-constructs numpy arrays and scipy sparse matrices (never arbitrary code); the official chumpy pickles
+``kintree_table`` (2, 24), ``f`` (F, 3). ``.pkl`` files are read with ``safe_pickle``, which only
+constructs numpy arrays (from checked arguments) and scipy sparse matrices (never arbitrary code); the official chumpy pickles
 are refused with a hint to convert them to ``.npz``. Units stay the file's (metres for SMPL).
 :func:`write_smpl_model` writes the same layout as ``.npz`` (atomically), so a model deliffas makes
 loads through the same reader as a user's file.
@@ -11,16 +11,16 @@ loads through the same reader as a user's file.
 
 from __future__ import annotations
 
-import io
 import os
-import pickle
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from jaxtyping import Float, Integer
 
+from deliffas.io.capture_format import CaptureFormatError, read_npz, require_numbers
 from deliffas.io.files import durable_replace, temp_path
+from deliffas.io.safe_pickle import UnsafePickleError, load_numpy_pickle
 
 __all__ = ["SMPL_NOT_SHIPPED", "SMPLModelError", "SMPLModelData", "load_smpl_model", "write_smpl_model", "NUM_JOINTS",
            "NUM_POSE_BASIS"]
@@ -40,42 +40,29 @@ class SMPLModelError(ValueError):
     """An SMPL model file that cannot be used (wrong layout, refused pickle content)."""
 
 
-_ALLOWED_PICKLE = {
-    ("numpy", "ndarray"), ("numpy", "dtype"),
-    ("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multiarray", "_reconstruct"),
-    ("numpy.core.multiarray", "scalar"), ("numpy._core.multiarray", "scalar"),
-    ("numpy.core.numeric", "_frombuffer"), ("numpy._core.numeric", "_frombuffer"),
-    ("copy_reg", "_reconstructor"), ("copyreg", "_reconstructor"),
-    ("__builtin__", "object"), ("builtins", "object"), ("_codecs", "encode"),
-}
 _ALLOWED_SPARSE = {"csc_matrix", "csr_matrix", "coo_matrix", "csc_array", "csr_array", "coo_array"}
 
 
-class _RestrictedUnpickler(pickle.Unpickler):
-    """Only numpy arrays/dtypes/scalars and scipy sparse matrices may be constructed."""
-
-    def find_class(self, module: str, name: str):
-        if module.split(".")[0] == "chumpy":
-            raise SMPLModelError(
-                f"{self.path}: the pickle holds chumpy objects ({module}.{name}); deliffas does not import chumpy. "
+def _pickle_class(module: str, name: str) -> type | str | None:
+    """The scipy sparse classes an SMPL pickle may hold; a hint for chumpy pickles."""
+    if module.split(".")[0] == "chumpy":
+        return (f"the pickle holds chumpy objects ({module}.{name}); deliffas does not import chumpy. "
                 "Convert the model to .npz in an environment with chumpy, e.g. "
                 "np.savez(out, **{k: np.asarray(v.r if hasattr(v, 'r') else v) for k, v in pkl.items()}) "
                 "(J_regressor via .toarray()).")
-        if (module, name) in _ALLOWED_PICKLE:
-            return super().find_class(module, name)
-        if module.startswith("scipy.sparse") and name in _ALLOWED_SPARSE:
-            return super().find_class(module, name)
-        raise pickle.UnpicklingError(
-            f"{self.path}: refusing to load '{module}.{name}' from a pickle; only numpy arrays and scipy "
-            "sparse matrices are allowed (convert the model to .npz)")
+    if module.startswith("scipy.sparse") and name in _ALLOWED_SPARSE:
+        import scipy.sparse as sp
+
+        return getattr(sp, name)
+    return (f"refusing to load '{module}.{name}' from a pickle; only numpy arrays and scipy sparse matrices are "
+            "allowed (convert the model to .npz)")
 
 
 def _restricted_pickle_load(path: Path) -> dict:
-    with open(path, "rb") as fh:
-        data = fh.read()
-    unpickler = _RestrictedUnpickler(io.BytesIO(data), encoding="latin1")
-    unpickler.path = path
-    obj = unpickler.load()
+    try:
+        obj = load_numpy_pickle(path.read_bytes(), _pickle_class)
+    except UnsafePickleError as err:
+        raise SMPLModelError(f"{path}: {err}") from None
     if not isinstance(obj, dict):
         raise SMPLModelError(f"{path}: expected a pickled dict of arrays, got {type(obj).__name__}")
     return obj
@@ -112,10 +99,32 @@ class SMPLModelData:
         return int(self.shapedirs.shape[2])
 
 
-def _dense(x) -> np.ndarray:
-    if hasattr(x, "toarray"):
-        return np.asarray(x.toarray(), np.float64)
-    return np.asarray(x, np.float64)
+def _checked_sparse(x):
+    """``x`` after scipy's full consistency check: an unpickled matrix with indices outside its shape would make
+    ``toarray`` write out of bounds (fuzzing crashed the process through it)."""
+    import scipy.sparse as sp
+
+    if x.format in ("csr", "csc"):
+        x.check_format(full_check=True)
+    else:
+        x = sp.coo_matrix(x)
+        x._check()
+        rows, cols = np.asarray(x.row), np.asarray(x.col)
+        if rows.size and (rows.min() < 0 or rows.max() >= x.shape[0] or cols.min() < 0 or cols.max() >= x.shape[1]):
+            raise ValueError("indices outside the matrix")
+    return x
+
+
+def _dense(path: Path, key: str, x) -> np.ndarray:
+    """``x`` (an array or a scipy sparse matrix) as a float64 array of real numbers."""
+    import scipy.sparse as sp
+
+    try:
+        return require_numbers(path, key, _checked_sparse(x).toarray() if sp.issparse(x) else x)
+    except CaptureFormatError as err:
+        raise SMPLModelError(f"{path}: '{key}' {err.expectation}") from None
+    except Exception as err:  # a sparse matrix unpickled with inconsistent parts
+        raise SMPLModelError(f"{path}: '{key}' is not a usable array ({type(err).__name__}: {str(err)[:120]})") from None
 
 
 def load_smpl_model(path: str | os.PathLike) -> SMPLModelData:
@@ -123,16 +132,18 @@ def load_smpl_model(path: str | os.PathLike) -> SMPLModelData:
 
     Raises:
         FileNotFoundError: the file does not exist (the message says SMPL is not shipped and where to get it).
-        SMPLModelError: a missing key, a wrong shape, an invalid kinematic tree or refused pickle content.
-        pickle.UnpicklingError: the pickle asks for a class that is not allowed.
+        SMPLModelError: a damaged file, a missing key, a wrong shape, an invalid kinematic tree, or pickle
+            content that is not allowed (a class other than numpy arrays and scipy sparse matrices).
     """
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"SMPL model file not found: {p}. {SMPL_NOT_SHIPPED}")
     suffix = p.suffix.lower()
     if suffix == ".npz":
-        with np.load(p, allow_pickle=False) as z:
-            raw = {k: z[k] for k in z.files}
+        try:
+            raw = read_npz(p)
+        except CaptureFormatError as err:
+            raise SMPLModelError(f"{p}: '{err.key}' {err.expectation}") from None
     elif suffix in (".pkl", ".pickle"):
         raw = _restricted_pickle_load(p)
     else:
@@ -140,13 +151,16 @@ def load_smpl_model(path: str | os.PathLike) -> SMPLModelData:
     missing = [k for k in ("v_template", "shapedirs", "posedirs", "J_regressor", "weights", "kintree_table", "f")
                if k not in raw]
     if missing:
-        raise SMPLModelError(f"{p}: missing arrays {missing} (have {sorted(raw)[:12]})")
-    v = _dense(raw["v_template"])
+        raise SMPLModelError(f"{p}: missing arrays {missing} (have {sorted(map(str, raw))[:12]})")
+    v = _dense(p, "v_template", raw["v_template"])
     V = v.shape[0] if v.ndim == 2 else -1
     expect = {"v_template": (V, 3), "J_regressor": (NUM_JOINTS, V), "weights": (V, NUM_JOINTS),
               "kintree_table": (2, NUM_JOINTS)}
     keys = ("v_template", "shapedirs", "posedirs", "J_regressor", "weights", "kintree_table")
-    arrays = {k: _dense(raw[k]) for k in keys}
+    arrays = {k: _dense(p, k, raw[k]) for k in keys}
+    for k, a in arrays.items():
+        if not np.isfinite(a).all():
+            raise SMPLModelError(f"{p}: '{k}' holds NaN or inf")
     for k, shape in expect.items():
         if arrays[k].shape != shape:
             raise SMPLModelError(f"{p}: '{k}' expected shape {shape}, got {arrays[k].shape}")
@@ -156,16 +170,15 @@ def load_smpl_model(path: str | os.PathLike) -> SMPLModelData:
     pd = arrays["posedirs"]
     if pd.shape != (V, 3, NUM_POSE_BASIS):
         raise SMPLModelError(f"{p}: 'posedirs' expected shape ({V}, 3, {NUM_POSE_BASIS}), got {pd.shape}")
-    faces = np.asarray(raw["f"]).astype(np.int64)
-    if faces.ndim != 2 or faces.shape[1] != 3 or faces.min(initial=0) < 0 or faces.max(initial=0) >= V:
-        raise SMPLModelError(f"{p}: 'f' expected (F, 3) indices in [0, {V}), got shape {faces.shape}")
+    f = _dense(p, "f", raw["f"])
+    if (f.ndim != 2 or f.shape[1] != 3 or not np.isfinite(f).all() or np.any(f != np.round(f))
+            or f.min(initial=0) < 0 or f.max(initial=0) >= V):
+        raise SMPLModelError(f"{p}: 'f' expected (F, 3) integer indices in [0, {V}), got shape {f.shape}")
+    faces = f.astype(np.int64)
     parents = arrays["kintree_table"][0].astype(np.int64)
     parents[(parents < 0) | (parents >= NUM_JOINTS)] = -1  # the root's parent is stored as 2^32 - 1
     if parents[0] != -1 or not all(0 <= parents[j] < j for j in range(1, NUM_JOINTS)):
         raise SMPLModelError(f"{p}: 'kintree_table' must have the root first and every parent before its child")
-    for k, a in arrays.items():
-        if not np.isfinite(a).all():
-            raise SMPLModelError(f"{p}: '{k}' holds NaN or inf")
     return SMPLModelData(v, sd, pd, arrays["J_regressor"], arrays["weights"], parents, faces)
 
 

@@ -27,7 +27,6 @@ ZhengZerong/THUman4.0-Dataset @0cfc834: ``Readme.md``):
 from __future__ import annotations
 
 import os
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -36,14 +35,15 @@ import numpy as np
 
 from deliffas.io.cameras import Camera
 from deliffas.io.camera_conventions import from_camera, require_distortion_fits, to_camera
-from deliffas.io.capture_format import (CaptureFormatError, read_json, require_array, require_rotation, require_size,
-                                        write_json_atomic)
+from deliffas.io.capture_format import (CaptureFormatError, read_json, read_npz, require_array, require_rotation,
+                                        require_rows, require_size, require_vector, write_json_atomic)
 from deliffas.io.files import durable_replace, temp_path
 
 __all__ = [
     "Thuman4Camera",
     "Thuman4Smplx",
     "read_thuman4_calibration",
+    "thuman4_calibration_path",
     "write_thuman4_calibration",
     "thuman4_to_camera",
     "camera_to_thuman4",
@@ -107,6 +107,14 @@ class Thuman4Smplx:
         return int(self.global_orient.shape[0])
 
 
+def thuman4_calibration_path(path: PathLike) -> Path:
+    """The calibration file ``path`` names: itself, or in a folder ``calibration.json`` (else ``calibration_full.json``)."""
+    p = Path(path)
+    if p.is_dir():
+        return p / "calibration.json" if (p / "calibration.json").is_file() else p / "calibration_full.json"
+    return p
+
+
 def read_thuman4_calibration(path: PathLike) -> list[Thuman4Camera]:
     """Read ``calibration.json`` (or ``calibration_full.json``; a folder: whichever it holds), in file order.
 
@@ -114,9 +122,7 @@ def read_thuman4_calibration(path: PathLike) -> list[Thuman4Camera]:
         CaptureFormatError: naming ``<cam>.<K|R|T|imgSize>`` for a missing key, wrong shape, NaN/inf,
             non-rotation or bad size, and the JSON line for a truncated file.
     """
-    p = Path(path)
-    if p.is_dir():
-        p = p / "calibration.json" if (p / "calibration.json").is_file() else p / "calibration_full.json"
+    p = thuman4_calibration_path(path)
     data = read_json(p)
     if not isinstance(data, dict) or not data:
         raise CaptureFormatError(p, "(top level)", "expected an object of cameras keyed by name")
@@ -137,7 +143,7 @@ def read_thuman4_calibration(path: PathLike) -> list[Thuman4Camera]:
         dist = None
         for key in _DISTORTION_KEYS:
             if key in entry:
-                d = require_array(p, f"{name}.{key}", np.ravel(entry[key]), (-1,))
+                d = require_vector(p, f"{name}.{key}", entry[key])
                 if d.size not in (4, 5):
                     raise CaptureFormatError(p, f"{name}.{key}", f"expected 4 or 5 OpenCV coefficients, got {d.size}")
                 dist = np.zeros(5)
@@ -193,22 +199,20 @@ def read_thuman4_smplx(path: PathLike) -> Thuman4Smplx:
         CaptureFormatError: missing/truncated file, a missing key, inconsistent frame counts, NaN/inf.
     """
     p = Path(path)
-    if not p.is_file():
-        raise CaptureFormatError(p, "file", "not found")
-    try:
-        with np.load(p, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in z.files}
-    except (zipfile.BadZipFile, OSError, EOFError, ValueError) as err:
-        raise CaptureFormatError(p, "NPZ", f"expected a complete .npz of numeric arrays ({err})") from None
+    arrays = read_npz(p)
     for key in _SMPLX_REQUIRED:
         if key not in arrays:
             raise CaptureFormatError(p, key, "missing")
     go = require_array(p, "global_orient", arrays["global_orient"], (-1, 3))
     n = go.shape[0]
+    if n == 0:
+        raise CaptureFormatError(p, "global_orient", "expected at least one frame, got none")
     transl = require_array(p, "transl", arrays["transl"], (n, 3))
     bp = arrays["body_pose"]
-    body = require_array(p, "body_pose", bp.reshape(bp.shape[0], -1) if bp.ndim >= 2 else bp, (n, 63))  # (N, 21, 3) too
-    betas = require_array(p, "betas", np.atleast_2d(arrays["betas"]), (-1, -1))
+    if bp.shape == (n, 21, 3):  # (N, 21, 3) is stored too
+        bp = bp.reshape(n, 63)
+    body = require_array(p, "body_pose", bp, (n, 63))
+    betas = require_rows(p, "betas", arrays["betas"])
     others = {}
     for key in _SMPLX_OPTIONAL:
         if key in arrays:

@@ -15,7 +15,7 @@ from typing import Any, Iterable
 
 import numpy as np
 
-from deliffas.io.files import durable_replace, temp_path
+from deliffas.io.files import atomic_path
 
 __all__ = ["VIDEO_SUFFIXES", "write_video", "read_video_info"]
 
@@ -41,40 +41,34 @@ def write_video(path: str | os.PathLike, frames: Iterable[Any], fps: float, crf:
     if not fps > 0:
         raise ValueError(f"fps: expected a positive number, got {fps}")
     codec, pix_fmt = VIDEO_SUFFIXES[out.suffix.lower()]
-    tmp = temp_path(out, keep_suffix=True)
     count, shape = 0, None
-    try:
-        with av.open(str(tmp), "w") as container:
-            stream = None
-            for frame in frames:
-                frame = np.asarray(frame)
-                if frame.dtype != np.uint8 or frame.ndim != 3 or frame.shape[2] != 3:
-                    raise ValueError(f"{out}: frame {count}: expected (H, W, 3) uint8, got {frame.shape} {frame.dtype}")
-                if stream is None:
-                    shape = frame.shape
-                    h, w = shape[0] + shape[0] % 2, shape[1] + shape[1] % 2
-                    if (h, w) != shape[:2]:
-                        logger.info("%s: %dx%d padded to %dx%d (the codec needs even sides)", out, shape[1],
-                                    shape[0], w, h)
-                    stream = container.add_stream(codec, rate=Fraction(fps).limit_denominator(1001))
-                    stream.width, stream.height, stream.pix_fmt = w, h, pix_fmt
-                    if codec == "libx264":
-                        stream.options = {"crf": str(crf), "preset": "medium"}
-                if frame.shape != shape:
-                    raise ValueError(f"{out}: frame {count}: shape {frame.shape}, the first was {shape}")
-                padded = np.zeros((stream.height, stream.width, 3), np.uint8)
-                padded[:shape[0], :shape[1]] = frame
-                for packet in stream.encode(av.VideoFrame.from_ndarray(padded, format="rgb24")):
-                    container.mux(packet)
-                count += 1
+    with atomic_path(out, keep_suffix=True) as tmp, av.open(str(tmp), "w") as container:
+        stream = None
+        for frame in frames:
+            frame = np.asarray(frame)
+            if frame.dtype != np.uint8 or frame.ndim != 3 or frame.shape[2] != 3:
+                raise ValueError(f"{out}: frame {count}: expected (H, W, 3) uint8, got {frame.shape} {frame.dtype}")
             if stream is None:
-                raise ValueError(f"{out}: no frames to write")
-            for packet in stream.encode():
+                shape = frame.shape
+                h, w = shape[0] + shape[0] % 2, shape[1] + shape[1] % 2
+                if (h, w) != shape[:2]:
+                    logger.info("%s: %dx%d padded to %dx%d (the codec needs even sides)", out, shape[1],
+                                shape[0], w, h)
+                stream = container.add_stream(codec, rate=Fraction(fps).limit_denominator(1001))
+                stream.width, stream.height, stream.pix_fmt = w, h, pix_fmt
+                if codec == "libx264":
+                    stream.options = {"crf": str(crf), "preset": "medium"}
+            if frame.shape != shape:
+                raise ValueError(f"{out}: frame {count}: shape {frame.shape}, the first was {shape}")
+            padded = np.zeros((stream.height, stream.width, 3), np.uint8)
+            padded[:shape[0], :shape[1]] = frame
+            for packet in stream.encode(av.VideoFrame.from_ndarray(padded, format="rgb24")):
                 container.mux(packet)
-        durable_replace(tmp, out)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+            count += 1
+        if stream is None:
+            raise ValueError(f"{out}: no frames to write")
+        for packet in stream.encode():
+            container.mux(packet)
     return count
 
 

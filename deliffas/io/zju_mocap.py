@@ -23,15 +23,13 @@ Conventions, worked out from Neural Body (zju3dv/neuralbody @3c516b9), which def
   else a ``camera_names`` list, which deliffas adds when it writes (neuralbody ignores unknown keys),
   else "0".."C-1".
 
-``.npy`` files holding a dict are pickles. They are read with a restricted unpickler that can build
-only numpy arrays, dtypes and scalars (never arbitrary objects).
+``.npy`` files holding a dict are pickles. They are read with ``deliffas.io.safe_pickle``, which builds
+only numpy arrays, dtypes and scalars from checked arguments (never arbitrary objects).
 """
 
 from __future__ import annotations
 
-import io
 import os
-import pickle
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import Any, Sequence
@@ -40,9 +38,10 @@ import numpy as np
 
 from deliffas.io.cameras import Camera
 from deliffas.io.camera_conventions import from_camera, require_distortion_fits, to_camera
-from deliffas.io.capture_format import CaptureFormatError, require_array, require_rotation
+from deliffas.io.capture_format import CaptureFormatError, require_array, require_rotation, require_rows, require_vector
 from deliffas.io.easymocap import EasyMocapSmpl
 from deliffas.io.files import durable_replace, temp_path
+from deliffas.io.safe_pickle import UnsafePickleError, load_numpy_pickle
 
 __all__ = [
     "ZjuCamera",
@@ -58,15 +57,6 @@ __all__ = [
 ]
 
 PathLike = str | os.PathLike
-
-_ALLOWED_PICKLE = {
-    ("numpy", "ndarray"), ("numpy", "dtype"),
-    ("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multiarray", "_reconstruct"),
-    ("numpy.core.multiarray", "scalar"), ("numpy._core.multiarray", "scalar"),
-    ("numpy.core.numeric", "_frombuffer"), ("numpy._core.numeric", "_frombuffer"),
-    ("copy_reg", "_reconstructor"), ("copyreg", "_reconstructor"), ("builtins", "object"), ("_codecs", "encode"),
-}
-
 
 @dataclass(frozen=True)
 class ZjuCamera:
@@ -100,15 +90,6 @@ class ZjuAnnots:
     ims: tuple[tuple[str, ...], ...] = ()
 
 
-class _RestrictedUnpickler(pickle.Unpickler):
-    """Builds only numpy arrays, dtypes and scalars, besides pickle's own dicts, lists and strings."""
-
-    def find_class(self, module: str, name: str):
-        if (module, name) in _ALLOWED_PICKLE:
-            return super().find_class(module, name)
-        raise pickle.UnpicklingError(f"refusing to build '{module}.{name}' (only numpy arrays are allowed)")
-
-
 def load_npy_dict(path: PathLike) -> dict:
     """The dict inside an ``np.save``-d object ``.npy`` file, unpickled with numpy types only.
 
@@ -123,14 +104,14 @@ def load_npy_dict(path: PathLike) -> dict:
             version = np.lib.format.read_magic(fh)
             header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
                       else np.lib.format.read_array_header_2_0)(fh)
-        except ValueError as err:
-            raise CaptureFormatError(p, "NPY header", f"expected a .npy file ({err})") from None
+        except Exception as err:  # numpy's header parser raises ValueError, SyntaxError or tokenize errors on damage
+            raise CaptureFormatError(p, "NPY header", f"expected a .npy file ({type(err).__name__}: {err})") from None
         shape, _, dtype = header
         if dtype != np.dtype(object) or shape != ():
             raise CaptureFormatError(p, "NPY header", f"expected a saved dict (0-d object array), got {dtype} {shape}")
         try:
-            obj = _RestrictedUnpickler(io.BytesIO(fh.read()), encoding="latin1").load()
-        except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, IndexError) as err:
+            obj = load_numpy_pickle(fh.read())
+        except UnsafePickleError as err:
             raise CaptureFormatError(p, "pickle", f"expected a complete pickled dict of numpy arrays ({err})") from None
     obj = obj.item() if isinstance(obj, np.ndarray) and obj.shape == () else obj
     if not isinstance(obj, dict):
@@ -147,9 +128,9 @@ def _save_npy_dict(path: Path, data: dict) -> None:
 
 
 def _list(p: Path, key: str, value: Any, n: int | None) -> list:
-    if isinstance(value, np.ndarray) and value.dtype != object and value.ndim >= 1:
+    if isinstance(value, np.ndarray) and value.ndim >= 1:
         value = list(value)
-    if not isinstance(value, (list, tuple, np.ndarray)):
+    if not isinstance(value, (list, tuple)):
         raise CaptureFormatError(p, key, f"expected a list with one entry per camera, got {type(value).__name__}")
     if n is not None and len(value) != n:
         raise CaptureFormatError(p, key, f"expected {n} entries (one per camera, as cams/K), got {len(value)}")
@@ -190,7 +171,7 @@ def read_zju_annots(path: PathLike) -> ZjuAnnots:
     out = []
     for i in range(n):
         K = require_array(p, f"cams/K[{i}]", Ks[i], (3, 3), reshape=True)
-        D = require_array(p, f"cams/D[{i}]", Ds[i], (-1,) * max(1, np.ndim(Ds[i]))).ravel()  # (5, 1) or (5,)
+        D = require_vector(p, f"cams/D[{i}]", Ds[i])  # (5, 1) or (5,)
         if D.size not in (4, 5):
             raise CaptureFormatError(p, f"cams/D[{i}]", f"expected 4 or 5 OpenCV distortion coefficients, got {D.size}")
         D5 = np.zeros(5)
@@ -275,8 +256,8 @@ def read_zju_params(path: PathLike) -> EasyMocapSmpl:
         0,
         require_array(p, "Rh", d["Rh"], (1, 3), reshape=True),
         require_array(p, "Th", d["Th"], (1, 3), reshape=True),
-        require_array(p, "poses", np.atleast_2d(d["poses"]), (1, -1)),
-        require_array(p, "shapes", np.atleast_2d(d["shapes"]), (1, -1)),
+        require_rows(p, "poses", d["poses"], rows=1),
+        require_rows(p, "shapes", d["shapes"], rows=1),
     )
 
 

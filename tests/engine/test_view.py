@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import shutil
-import socket
 import subprocess
 import sys
 import threading
@@ -27,10 +25,9 @@ from deliffas.engine.view.scene import ViewScene
 from deliffas.geometry.raycast import UVRaycaster
 from deliffas.io.cameras import Camera
 
+from view_browser import needs_chromium, viewer_page
+
 REPO = Path(__file__).resolve().parents[2]
-CHROMIUM = shutil.which("chromium") or ("/usr/bin/chromium" if Path("/usr/bin/chromium").exists() else None)
-CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                 "--disable-background-networking", "--disable-component-update", "--disable-sync"]
 TEST_CAMERA = 3  # the tiny capture's held-out camera, where the viewer opens
 
 
@@ -136,24 +133,6 @@ def test_viewer_camera_round_trip(tiny_shards):
     np.testing.assert_allclose(back.K[1, 1], cam.K[1, 1], rtol=1e-9)
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _wait_port(port: int, proc, timeout: float) -> None:
-    deadline = time.time() + timeout
-    while time.time() < deadline:
-        if proc.poll() is not None:
-            raise AssertionError(f"deliffas view exited with {proc.returncode}")
-        with socket.socket() as s:
-            if s.connect_ex(("127.0.0.1", port)) == 0:
-                return
-        time.sleep(0.2)
-    raise AssertionError(f"deliffas view did not listen on {port} within {timeout} s")
-
-
 def _first_panel(shot: np.ndarray, panel: tuple[int, int], n_panels: int) -> np.ndarray:
     """The first panel of the viewer's grid in a canvas screenshot, resampled to ``panel`` (W, H)."""
     import cv2
@@ -166,66 +145,38 @@ def _first_panel(shot: np.ndarray, panel: tuple[int, int], n_panels: int) -> np.
     return cv2.resize(crop, panel, interpolation=cv2.INTER_AREA).astype(np.float32) / 255
 
 
-@pytest.mark.skipif(CHROMIUM is None, reason="no Chromium (Debian package 'chromium', scripts/system_deps.sh installs it)")
+@needs_chromium
 def test_browser_shows_the_avatar_and_the_timeline_moves_it(tiny_run, tiny_shards, tmp_path):
     pytest.importorskip("viser")
-    pw = pytest.importorskip("playwright.sync_api")
     import cv2
 
     ref = _reference(tiny_run, tiny_shards)  # (48, 48, 3)
     fg = ref.max(-1) > 0.02
-    port = _free_port()
-    log = open(tmp_path / "view.log", "w")
-    proc = subprocess.Popen([sys.executable, "-m", "deliffas", "view", str(tiny_run), "--port", str(port)],
-                            stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ, PYTHONPATH=str(REPO)))
-    ctx = None
-    try:
-        _wait_port(port, proc, 90)
-        with pw.sync_playwright() as p:
-            ctx = p.chromium.launch_persistent_context(str(tmp_path / "chromium-profile"), executable_path=CHROMIUM,
-                                                       args=CHROMIUM_ARGS, headless=True,
-                                                       viewport={"width": 800, "height": 500})
-            page = ctx.new_page()
-            page.set_default_timeout(30_000)
-            page.goto(f"http://127.0.0.1:{port}")
-            canvas = page.locator("canvas").first
+    with viewer_page([tiny_run], tmp_path, (800, 500)) as page:
+        canvas = page.locator("canvas").first
 
-            def panel_after(predicate, timeout: float):
-                deadline, last = time.time() + timeout, None
-                while time.time() < deadline:
-                    shot = cv2.cvtColor(cv2.imdecode(np.frombuffer(canvas.screenshot(), np.uint8), cv2.IMREAD_COLOR),
-                                        cv2.COLOR_BGR2RGB)
-                    last = _first_panel(shot, (ref.shape[1], ref.shape[0]), 3)  # prediction | ground truth | error
-                    if predicate(last):
-                        return shot, last
-                    time.sleep(0.5)
-                return shot, last
+        def panel_after(predicate, timeout: float):
+            deadline, last = time.time() + timeout, None
+            while time.time() < deadline:
+                shot = cv2.cvtColor(cv2.imdecode(np.frombuffer(canvas.screenshot(), np.uint8), cv2.IMREAD_COLOR),
+                                    cv2.COLOR_BGR2RGB)
+                last = _first_panel(shot, (ref.shape[1], ref.shape[0]), 3)  # prediction | ground truth | error
+                if predicate(last):
+                    return shot, last
+                time.sleep(0.5)
+            return shot, last
 
-            def matches(panel):  # the software-WebGL notice (top left) and bilinear display blur: robust checks
-                err = np.abs(panel - ref).max(-1)
-                return float(np.median(err[fg])) < 0.06 and float((err[fg] < 0.15).mean()) > 0.8
+        def matches(panel):  # the software-WebGL notice (top left) and bilinear display blur: robust checks
+            err = np.abs(panel - ref).max(-1)
+            return float(np.median(err[fg])) < 0.06 and float((err[fg] < 0.15).mean()) > 0.8
 
-            shot, first = panel_after(matches, 60)
-            cv2.imwrite(str(tmp_path / "viewer.png"), cv2.cvtColor(shot, cv2.COLOR_RGB2BGR))
-            err = np.abs(first - ref).max(-1)
-            assert matches(first), (f"avatar pixels differ from render_frame: median {np.median(err[fg]):.3f}, "
-                                    f"within 0.15: {(err[fg] < 0.15).mean():.2f}; screenshot {tmp_path / 'viewer.png'}")
-            slider = page.locator('[role="slider"]').first  # the timeline's frame slider
-            slider.focus()
-            page.keyboard.press("ArrowRight")
-            _, moved = panel_after(lambda p: float(np.abs(p - first).mean()) > 0.003 and not matches(p), 30)
-            assert float(np.abs(moved - first).mean()) > 0.003, "the image did not change with the timeline"
-            ctx.close()
-            ctx = None
-    finally:
-        try:
-            if ctx is not None:
-                ctx.close()
-        finally:  # the server goes even when closing the browser fails (a loaded machine can time it out)
-            proc.terminate()
-            try:
-                proc.wait(10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(10)
-            log.close()
+        shot, first = panel_after(matches, 60)
+        cv2.imwrite(str(tmp_path / "viewer.png"), cv2.cvtColor(shot, cv2.COLOR_RGB2BGR))
+        err = np.abs(first - ref).max(-1)
+        assert matches(first), (f"avatar pixels differ from render_frame: median {np.median(err[fg]):.3f}, "
+                                f"within 0.15: {(err[fg] < 0.15).mean():.2f}; screenshot {tmp_path / 'viewer.png'}")
+        slider = page.locator('[role="slider"]').first  # the timeline's frame slider
+        slider.focus()
+        page.keyboard.press("ArrowRight")
+        _, moved = panel_after(lambda p: float(np.abs(p - first).mean()) > 0.003 and not matches(p), 30)
+        assert float(np.abs(moved - first).mean()) > 0.003, "the image did not change with the timeline"

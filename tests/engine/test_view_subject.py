@@ -17,9 +17,9 @@ from deliffas.data.subjects import parse_subject
 from deliffas.engine.view import SubjectViewConfig
 from deliffas.engine.view.subject import SubjectView, is_capture
 
+from view_browser import needs_chromium, viewer_page
+
 REPO = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(Path(__file__).parent))
-from test_view import CHROMIUM, CHROMIUM_ARGS, _free_port, _wait_port  # noqa: E402
 
 SIZE = 48
 
@@ -103,10 +103,9 @@ def test_config_detection_and_cli_errors(capture, tmp_path):
         assert len(errors) == 1 and needle in errors[0], res.stderr
 
 
-@pytest.mark.skipif(CHROMIUM is None, reason="no Chromium (Debian package 'chromium', scripts/system_deps.sh installs it)")
+@needs_chromium
 def test_browser_camera_menu_shows_the_overlay(capture, subject_view, tmp_path):
     pytest.importorskip("viser")
-    pw = pytest.importorskip("playwright.sync_api")
     import cv2
 
     cam = 2
@@ -114,53 +113,30 @@ def test_browser_camera_menu_shows_the_overlay(capture, subject_view, tmp_path):
     ref = expected.image.astype(np.float32) / 255  # what the background must show
     fg = ref.max(-1) > 0.05  # silhouette, mask edge and the darkened image (the capture's background is black)
     assert fg.mean() > 0.05
-    port = _free_port()
-    log = open(tmp_path / "view.log", "w")
-    proc = subprocess.Popen([sys.executable, "-m", "deliffas", "view", str(capture), "--port", str(port),
-                             "--resolution", str(SIZE)],
-                            stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ, PYTHONPATH=str(REPO)))
-    try:
-        _wait_port(port, proc, 90)
-        with pw.sync_playwright() as p:
-            # 1200 px wide: the centred capture image clears the GUI panel (right) and the WebGL notice (left)
-            ctx = p.chromium.launch_persistent_context(str(tmp_path / "chromium-profile"), executable_path=CHROMIUM,
-                                                       args=CHROMIUM_ARGS, headless=True,
-                                                       viewport={"width": 1200, "height": 500})
-            try:
-                page = ctx.new_page()
-                page.set_default_timeout(30_000)
-                page.goto(f"http://127.0.0.1:{port}")
-                page.locator("input[value='free camera']").first.click()  # the capture camera menu
-                page.get_by_role("option", name=subject_view.camera_label(cam), exact=True).click()
-                canvas = page.locator("canvas").first
+    # 1200 px wide: the centred capture image clears the GUI panel (right) and the WebGL notice (left)
+    with viewer_page([capture, "--resolution", SIZE], tmp_path, (1200, 500)) as page:
+        page.locator("input[value='free camera']").first.click()  # the capture camera menu
+        page.get_by_role("option", name=subject_view.camera_label(cam), exact=True).click()
+        canvas = page.locator("canvas").first
 
-                def matches(panel):  # on the overlay's non-black pixels (the rest would match an empty canvas)
-                    err = np.abs(panel - ref).max(-1)
-                    return float(np.median(err[fg])) < 0.06 and float((err[fg] < 0.15).mean()) > 0.9
+        def matches(panel):  # on the overlay's non-black pixels (the rest would match an empty canvas)
+            err = np.abs(panel - ref).max(-1)
+            return float(np.median(err[fg])) < 0.06 and float((err[fg] < 0.15).mean()) > 0.9
 
-                deadline, panel, shot = time.time() + 60, None, None
-                while time.time() < deadline:
-                    shot = cv2.cvtColor(cv2.imdecode(np.frombuffer(canvas.screenshot(), np.uint8), cv2.IMREAD_COLOR),
-                                        cv2.COLOR_BGR2RGB)
-                    panel = _texel_centres(shot, (SIZE, SIZE))
-                    if matches(panel):
-                        break
-                    time.sleep(0.5)
-                cv2.imwrite(str(tmp_path / "viewer.png"), cv2.cvtColor(shot, cv2.COLOR_RGB2BGR))
-                err = np.abs(panel - ref).max(-1)[fg]
-                assert matches(panel), (f"background differs from the overlay: median {np.median(err):.3f}, "
-                                        f"within 0.15: {(err < 0.15).mean():.2f}; screenshot {tmp_path / 'viewer.png'}")
-                field = page.locator(f"input[value^='{expected.iou:.3f} (']")  # the IoU text field
-                deadline = time.time() + 20
-                while field.count() != 1 and time.time() < deadline:
-                    time.sleep(0.25)
-                assert field.count() == 1, "the IoU field does not show the camera's IoU"
-            finally:
-                ctx.close()
-    finally:
-        proc.terminate()
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-        log.close()
+        deadline, panel, shot = time.time() + 60, None, None
+        while time.time() < deadline:
+            shot = cv2.cvtColor(cv2.imdecode(np.frombuffer(canvas.screenshot(), np.uint8), cv2.IMREAD_COLOR),
+                                cv2.COLOR_BGR2RGB)
+            panel = _texel_centres(shot, (SIZE, SIZE))
+            if matches(panel):
+                break
+            time.sleep(0.5)
+        cv2.imwrite(str(tmp_path / "viewer.png"), cv2.cvtColor(shot, cv2.COLOR_RGB2BGR))
+        err = np.abs(panel - ref).max(-1)[fg]
+        assert matches(panel), (f"background differs from the overlay: median {np.median(err):.3f}, "
+                                f"within 0.15: {(err < 0.15).mean():.2f}; screenshot {tmp_path / 'viewer.png'}")
+        field = page.locator(f"input[value^='{expected.iou:.3f} (']")  # the IoU text field
+        deadline = time.time() + 20
+        while field.count() != 1 and time.time() < deadline:
+            time.sleep(0.25)
+        assert field.count() == 1, "the IoU field does not show the camera's IoU"

@@ -48,7 +48,7 @@ def test_smplx_npz(tmp_path):
     with pytest.raises(CaptureFormatError, match=r"bad\.npz: transl: missing"):
         read_thuman4_smplx(tmp_path / "bad.npz")
     (tmp_path / "cut.npz").write_bytes((tmp_path / "smpl_params.npz").read_bytes()[:100])
-    with pytest.raises(CaptureFormatError, match=r"cut\.npz: NPZ: expected a complete \.npz"):
+    with pytest.raises(CaptureFormatError, match=r"cut\.npz: NPZ: expected an \.npz \(zip\) archive"):
         read_thuman4_smplx(tmp_path / "cut.npz")
 
 

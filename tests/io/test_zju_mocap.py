@@ -54,7 +54,7 @@ def test_pickles_build_numpy_only(tmp_path):
     with open(tmp_path / "annots.npy", "wb") as fh:
         np.lib.format.write_array_header_1_0(fh, {"descr": "|O", "fortran_order": False, "shape": ()})
         pickle.dump({"cams": Evil()}, fh)
-    with pytest.raises(CaptureFormatError, match=r"annots\.npy: pickle: .*refusing to build 'builtins\.print'"):
+    with pytest.raises(CaptureFormatError, match=r"annots\.npy: pickle: .*refusing to load 'builtins\.print'"):
         read_zju_annots(tmp_path)
 
 

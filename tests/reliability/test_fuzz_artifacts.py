@@ -18,6 +18,7 @@ import pytest
 import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from fuzz_mutations import bytes_cases
 from reliability_support import COUNTS, FUZZ_EXAMPLES
 
 from deliffas.data.shards import ShardSet
@@ -29,22 +30,6 @@ pytestmark = pytest.mark.timeout(300 if FUZZ_EXAMPLES <= 1000 else 3600)
 
 SETTINGS = settings(max_examples=FUZZ_EXAMPLES, deadline=None, derandomize=True,
                     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
-
-
-def _flip(valid: bytes, positions: list[tuple[int, int]]) -> bytes:
-    data = bytearray(valid)
-    for pos, bit in positions:
-        data[pos % len(data)] ^= 1 << bit
-    return bytes(data)
-
-
-def _bytes_cases(valid: bytes):
-    n = len(valid)
-    return st.one_of(st.integers(0, max(n - 1, 0)).map(lambda k: valid[:k]),
-                     st.lists(st.tuples(st.integers(0, n - 1), st.integers(0, 7)), min_size=1, max_size=4)
-                     .map(lambda p: _flip(valid, p)),
-                     st.tuples(st.integers(0, n), st.binary(max_size=64)).map(lambda t: valid[:t[0]] + t[1] + valid[t[0]:]),
-                     st.binary(max_size=256))
 
 
 _DIR = Path(tempfile.mkdtemp(prefix="deliffas-fuzz-artifacts-"))
@@ -65,7 +50,7 @@ def test_avatar_file_fuzz(tmp_path):
     cases = 0
 
     @SETTINGS
-    @given(data=_bytes_cases(AVATAR))
+    @given(data=bytes_cases(AVATAR))
     def run(data):
         nonlocal cases
         cases += 1
@@ -88,7 +73,7 @@ def test_checkpoint_fuzz(tmp_path, which):
     valid = WEIGHTS if which == "weights.safetensors" else CONFIG_JSON
 
     @SETTINGS
-    @given(data=_bytes_cases(valid))
+    @given(data=bytes_cases(valid))
     def run(data):
         nonlocal cases
         cases += 1
@@ -106,7 +91,7 @@ def test_manifest_fuzz(tmp_path):
     cases = 0
 
     @SETTINGS
-    @given(data=st.one_of(_bytes_cases(MANIFEST), st.recursive(
+    @given(data=st.one_of(bytes_cases(MANIFEST), st.recursive(
         st.none() | st.booleans() | st.integers() | st.text(max_size=8),
         lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.sampled_from(
             ["format", "meta", "shards", "planned", "name", "sha256", "frames", "sequence", "bytes", "complete"]),
