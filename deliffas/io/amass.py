@@ -153,8 +153,9 @@ def read_smpl_motion(path: str | os.PathLike) -> SMPLMotion:
             break
     gender = _optional_text(z, "gender")
     frames = z.get("frames")
-    if frames is not None and frames.dtype.kind not in "iu":
-        raise SMPLMotionError(f"{p}: 'frames' expected integer frame numbers, got dtype {frames.dtype}")
+    if frames is not None and (frames.dtype.kind not in "iu" or frames.shape != (poses.shape[0],)):
+        raise SMPLMotionError(f"{p}: 'frames' expected {poses.shape[0]} integer frame numbers (one per row of 'poses'), "
+                              f"got shape {frames.shape}, dtype {frames.dtype}")
     try:
         return SMPLMotion(poses, trans, betas.ravel(), fps, gender, frames)
     except SMPLMotionError as err:
