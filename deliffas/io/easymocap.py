@@ -2,7 +2,8 @@
 
 Conventions, worked out from EasyMocap itself (zju3dv/EasyMocap @d2a0a2d):
 
-- Files: OpenCV FileStorage YAML. ``easymocap/mytools/camera_utils.py`` (``read_camera``,
+- Files: OpenCV FileStorage YAML (read with PyYAML's pure-Python loader: OpenCV's own parser hangs on
+  some damaged files). ``easymocap/mytools/camera_utils.py`` (``read_camera``,
   ``write_camera``) reads ``names`` (a list, in both files), per camera ``K_<cam>`` (3, 3) and
   ``dist_<cam>`` (1, 5) (``D_<cam>`` as a fallback), optional ``H_<cam>``/``W_<cam>`` image size in
   ``intri.yml``; ``R_<cam>`` (3, 1) Rodrigues vector, ``Rot_<cam>`` (3, 3) matrix and ``T_<cam>``
@@ -26,6 +27,7 @@ header EasyMocap writes (``%YAML:1.0``), which every OpenCV version parses.
 
 from __future__ import annotations
 
+import functools
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -102,70 +104,91 @@ class EasyMocapSmpl:
     expression: np.ndarray | None = None
 
 
-def _open_storage(path: Path):
-    import cv2  # opencv is a dependency; imported at call time like the other image/video readers
+@functools.lru_cache(maxsize=1)
+def _yaml_loader():
+    """PyYAML's pure-Python safe loader, taught OpenCV's ``!!opencv-matrix`` tag (a plain mapping) and floats
+    without a dot such as ``1e-05`` (YAML 1.1 reads them as text; OpenCV and Python's repr write them)."""
+    import re
+
+    import yaml
+
+    class Loader(yaml.SafeLoader):
+        pass
+
+    Loader.add_constructor("tag:yaml.org,2002:opencv-matrix", lambda loader, node: loader.construct_mapping(node))
+    Loader.add_implicit_resolver("tag:yaml.org,2002:float", re.compile(r"^[-+]?[0-9]+[eE][-+]?[0-9]+$"),
+                                 list("-+0123456789"))
+    return Loader
+
+
+def _open_storage(path: Path) -> dict:
+    """The top-level mapping of an OpenCV FileStorage YAML file.
+
+    Parsed with PyYAML's pure-Python loader, not ``cv2.FileStorage``: OpenCV's parser loops forever on
+    some damaged files (an indented mapping, ``---``, an indented list: found by fuzzing) and sized
+    matrix buffers from unchecked ``rows``/``cols`` (the process crashed).
+    """
+    import yaml
 
     if not path.is_file():
         raise CaptureFormatError(path, "file", "not found")
-    if path.stat().st_size == 0:
+    raw = path.read_bytes()
+    if not raw:
         raise CaptureFormatError(path, "YAML", "expected an OpenCV FileStorage file, got an empty file")
     try:
-        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    except (cv2.error, SystemError) as err:  # OpenCV raises SystemError wrapping its parse error
-        cause = err.__cause__ if err.__cause__ is not None else err
-        detail = str(cause).strip().splitlines()[-1] if str(cause).strip() else type(cause).__name__
-        raise CaptureFormatError(path, "YAML", f"expected an OpenCV FileStorage file; OpenCV: {detail[-200:]}") from None
-    if not fs.isOpened():
-        raise CaptureFormatError(path, "YAML", "OpenCV could not open the file")
-    if not fs.root().isMap():  # FileStorage.getNode asserts a map at the top level
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError:
+        raise CaptureFormatError(path, "YAML", "expected an OpenCV FileStorage file, got non-UTF-8 bytes") from None
+    if text.startswith("%YAML:"):  # OpenCV's directive, which is not YAML's "%YAML 1.x"
+        text = text.split("\n", 1)[1] if "\n" in text else ""
+    try:
+        doc = yaml.load(text, Loader=_yaml_loader())
+    except (yaml.YAMLError, RecursionError, ValueError, TypeError) as err:  # TypeError/ValueError: e.g. an
+        detail = " ".join(str(err).split())  # unhashable key, a date YAML cannot build
+        raise CaptureFormatError(path, "YAML", f"expected an OpenCV FileStorage file; YAML: {detail[:200]}") from None
+    if not isinstance(doc, dict):
         raise CaptureFormatError(path, "YAML", "expected keys (names, K_<cam>, ...) at the top level")
-    return fs
+    return doc
 
 
 _MAX_MATRIX = 4096
 """Most numbers a matrix of these files may hold (the largest, K or Rot_, holds 9)."""
 
 
-def _mat(fs, path: Path, key: str, shape: tuple[int, ...], required: bool = True) -> np.ndarray | None:
-    """The !!opencv-matrix ``key`` read field by field (rows, cols, data) rather than with ``FileNode.mat()``,
-    which sizes a buffer from ``rows``/``cols`` before checking them against the data (fuzzing crashed the
-    process through it)."""
-    node = fs.getNode(key)
-    if node.isNone():
+def _number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _mat(doc: dict, path: Path, key: str, shape: tuple[int, ...], required: bool = True) -> np.ndarray | None:
+    """The !!opencv-matrix ``key`` (rows, cols, data), checked before any array is made."""
+    node = doc.get(key)
+    if node is None:
         if required:
             raise CaptureFormatError(path, key, f"expected an !!opencv-matrix of shape {shape}, got no such key")
         return None
-    if not node.isMap():
+    if not isinstance(node, dict):
         raise CaptureFormatError(path, key, "expected an !!opencv-matrix (rows, cols, dt, data)")
-    rows, cols, data = node.getNode("rows"), node.getNode("cols"), node.getNode("data")
-    if not (rows.isInt() and cols.isInt() and data.isSeq()):
+    r, c, data = node.get("rows"), node.get("cols"), node.get("data")
+    if not (type(r) is int and type(c) is int and isinstance(data, list)):
         raise CaptureFormatError(path, key, "expected an !!opencv-matrix with integer rows and cols and a data list")
-    r, c, n = int(rows.real()), int(cols.real()), data.size()
-    if not (r > 0 and c > 0 and r * c == n <= _MAX_MATRIX):
-        raise CaptureFormatError(path, key, f"expected rows x cols = the {n} numbers of data, got {r} x {c}")
-    values = []
-    for i in range(n):
-        item = data.at(i)
-        if not (item.isInt() or item.isReal()):
-            raise CaptureFormatError(path, f"{key}/data[{i}]", "expected a number")
-        values.append(item.real())
-    return require_array(path, key, np.reshape(values, (r, c)), shape, reshape=True)
+    if not (r > 0 and c > 0 and r * c == len(data) <= _MAX_MATRIX):
+        raise CaptureFormatError(path, key, f"expected rows x cols = the {len(data)} numbers of data, got {r} x {c}")
+    for i, v in enumerate(data):
+        if not _number(v):
+            raise CaptureFormatError(path, f"{key}/data[{i}]", f"expected a number, got {v!r}"[:120])
+    return require_array(path, key, np.reshape(data, (r, c)), shape, reshape=True)
 
 
-def _names(fs, path: Path) -> list[str]:
-    node = fs.getNode("names")
-    if node.isNone() or not node.isSeq():
+def _names(doc: dict, path: Path) -> list[str]:
+    node = doc.get("names")
+    if not isinstance(node, list):
         raise CaptureFormatError(path, "names", "expected a list of camera names")
     out = []
-    for i in range(node.size()):
-        item = node.at(i)
-        if item.isString():
-            try:
-                out.append(item.string())
-            except UnicodeDecodeError:
-                raise CaptureFormatError(path, f"names[{i}]", "expected a UTF-8 camera name") from None
-        elif (item.isInt() or item.isReal()) and float(item.real()).is_integer():
-            out.append(str(int(item.real())))  # EasyMocap: unquoted numbers are camera names too
+    for i, item in enumerate(node):
+        if isinstance(item, str):
+            out.append(item)
+        elif _number(item) and float(item).is_integer():
+            out.append(str(int(item)))  # EasyMocap: unquoted numbers are camera names too
         else:
             raise CaptureFormatError(path, f"names[{i}]", "expected a camera name (string or integer)")
     if not out:
@@ -175,13 +198,13 @@ def _names(fs, path: Path) -> list[str]:
     return out
 
 
-def _int(fs, path: Path, key: str) -> float | None:
-    node = fs.getNode(key)
-    if node.isNone():
+def _int(doc: dict, path: Path, key: str) -> float | None:
+    node = doc.get(key)
+    if node is None:
         return None
-    if not (node.isInt() or node.isReal()):
+    if not _number(node):
         raise CaptureFormatError(path, key, "expected an integer image size")
-    return node.real()
+    return node
 
 
 def read_easymocap_cameras(intri: PathLike, extri: PathLike | None = None) -> list[EasyMocapCamera]:

@@ -80,7 +80,7 @@ def test_smpl_json(tmp_path):
     ("nan", r"extri\.yml: T_1: expected finite numbers, got 1 NaN/inf"),
     ("non-rotation", r"extri\.yml: Rot_1: expected a rotation .* det R = -1"),
     ("disagree", r"extri\.yml: Rot_1: expected Rodrigues\(R_1\) within"),
-    ("truncated", r"intri\.yml: YAML: expected an OpenCV FileStorage file; OpenCV: .*"),
+    ("truncated", r"intri\.yml: YAML: expected an OpenCV FileStorage file; YAML: .*"),
     ("empty", r"intri\.yml: YAML: expected an OpenCV FileStorage file, got an empty file"),
     ("no names", r"extri\.yml: names: expected every camera of intri\.yml, missing \['1'\]"),
 ])
@@ -113,3 +113,27 @@ def test_malformed(tmp_path, case, pattern):
         extri.write_text(extri.read_text().replace('- "1"', '- "2"'))
     with pytest.raises(CaptureFormatError, match=pattern):
         read_easymocap_cameras(intri)
+
+
+def test_files_written_by_opencv_read_back(tmp_path):
+    """EasyMocap writes with cv2.FileStorage; deliffas parses the YAML itself (OpenCV's parser hangs on some
+    damaged files), so a file OpenCV wrote must read back bit-exact: wrapped data lines, "0.", "1e-05"."""
+    K = np.array([[1151.0286864154, 0.0, 509.19], [0.0, 1150.5, 383.25], [0.0, 0.0, 1.0]])
+    dist = np.array([[-0.16, 1e-05, 0.0, -2.5e-7, 3.0]])
+    R = cv2.Rodrigues(RVEC)[0]
+    for name, pairs in (("intri.yml", (("K_01", K), ("dist_01", dist))),
+                        ("extri.yml", (("R_01", RVEC), ("Rot_01", R), ("T_01", T_M)))):
+        fs = cv2.FileStorage(str(tmp_path / name), cv2.FILE_STORAGE_WRITE)
+        fs.write("names", ["01"])
+        for key, m in pairs:
+            fs.write(key, m)
+        if name == "intri.yml":
+            fs.write("H_01", 768)
+            fs.write("W_01", 1024)
+        fs.release()
+    (cam,) = read_easymocap_cameras(tmp_path)
+    assert cam.name == "01" and (cam.width, cam.height) == (1024, 768)
+    np.testing.assert_array_equal(cam.K, K)
+    np.testing.assert_array_equal(cam.dist, dist.ravel())
+    np.testing.assert_array_equal(cam.T, T_M.ravel())
+    np.testing.assert_allclose(cam.R, R, atol=1e-12)
