@@ -187,8 +187,10 @@ def _names(doc: dict, path: Path) -> list[str]:
     for i, item in enumerate(node):
         if isinstance(item, str):
             out.append(item)
+        elif isinstance(item, int) and not isinstance(item, bool):
+            out.append(str(item))  # EasyMocap: unquoted numbers are camera names too (any size: YAML ints are exact)
         elif _number(item) and float(item).is_integer():
-            out.append(str(int(item)))  # EasyMocap: unquoted numbers are camera names too
+            out.append(str(int(item)))
         else:
             raise CaptureFormatError(path, f"names[{i}]", "expected a camera name (string or integer)")
     if not out:
