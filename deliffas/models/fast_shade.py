@@ -262,19 +262,14 @@ static void encode_tile(const float *uv, int64_t m, int L, int include_input, fl
     }
 }
 
-/* encode_tile in float32 for the bf16 hidden layers, whose inputs are rounded to bf16 (8 bits) anyway: sin and cos
-   of a = float(x pi) by a two-part pi reduction and Taylor series to degree 11 / 12 (error < 1e-7), the higher
-   frequencies by the double-angle recurrence in float32 (its error doubles per step: about 3e-5 at the 10th
-   frequency, against bf16's 2e-3), 16 lanes a vector instead of 8 in float64. */
-static void encode_tile_f32(const float *uv, int64_t m, int L, int include_input, float *xt) {
+/* A tile's uvs (the last ray repeated past m) and sin/cos of pi * uv in float32: Cody-Waite reduction by pi, then
+   odd/even polynomials on [-pi/2, pi/2]; the base frequency of both fp32 encoders (the others follow by doubling). */
+static inline void base_sin_cos(const float *uv, int64_t m, float u[2][TILE], float s[2][TILE], float c[2][TILE]) {
     const float pi = (float)3.14159265358979323846, pi_hi = 3.140625f, pi_lo = 9.67653589793e-4f,
                 shift = 12582912.0f;  /* 1.5 2^23: adding and subtracting it rounds to an integer */
-    float s[2][TILE], c[2][TILE], u[2][TILE];
     for (int64_t i = 0; i < TILE; i++)
         for (int d = 0; d < 2; d++) u[d][i] = uv[2 * (i < m ? i : m - 1) + d];
-    for (int d = 0; d < 2; d++) {
-        if (include_input)
-            for (int64_t i = 0; i < TILE; i++) xt[d * TILE + i] = u[d][i];
+    for (int d = 0; d < 2; d++)
         for (int64_t i = 0; i < TILE; i++) {
             float a = u[d][i] * pi;
             float k = (a * (1.0f / pi) + shift) - shift;
@@ -287,7 +282,18 @@ static void encode_tile_f32(const float *uv, int64_t m, int L, int include_input
             s[d][i] = sign * sn;
             c[d][i] = sign * cs;
         }
-    }
+}
+
+/* encode_tile in float32 for the bf16 hidden layers, whose inputs are rounded to bf16 (8 bits) anyway: sin and cos
+   of a = float(x pi) by a two-part pi reduction and Taylor series to degree 11 / 12 (error < 1e-7), the higher
+   frequencies by the double-angle recurrence in float32 (its error doubles per step: about 3e-5 at the 10th
+   frequency, against bf16's 2e-3), 16 lanes a vector instead of 8 in float64. */
+static void encode_tile_f32(const float *uv, int64_t m, int L, int include_input, float *xt) {
+    float s[2][TILE], c[2][TILE], u[2][TILE];
+    base_sin_cos(uv, m, u, s, c);
+    for (int d = 0; d < 2; d++)
+        if (include_input)
+            for (int64_t i = 0; i < TILE; i++) xt[d * TILE + i] = u[d][i];
     float *o = xt + (include_input ? 2 : 0) * TILE;
     for (int k = 0; k < L; k++, o += 4 * TILE) {
         for (int64_t i = 0; i < TILE; i++) {
@@ -400,24 +406,8 @@ static void pair_tile(const v16 *x, int64_t K, __m512bh *xp) {
 /* encode_tile_f32 straight into row pairs: (u, v), then per frequency (sin u, sin v) and (cos u, cos v), which is
    how the encoding's rows pair up (each uv's rows are even in number); no fp32 rows stored and read back. */
 static void encode_pairs(const float *uv, int64_t m, int L, int include_input, __m512bh *xp) {
-    const float pi = (float)3.14159265358979323846, pi_hi = 3.140625f, pi_lo = 9.67653589793e-4f,
-                shift = 12582912.0f;
     float s[2][TILE], c[2][TILE], u[2][TILE];
-    for (int64_t i = 0; i < TILE; i++)
-        for (int d = 0; d < 2; d++) u[d][i] = uv[2 * (i < m ? i : m - 1) + d];
-    for (int d = 0; d < 2; d++)
-        for (int64_t i = 0; i < TILE; i++) {  /* as encode_tile_f32 */
-            float a = u[d][i] * pi;
-            float k = (a * (1.0f / pi) + shift) - shift;
-            float r = (a - k * pi_hi) - k * pi_lo, r2 = r * r;
-            float sn = r * (1.0f + r2 * (-1.0f / 6 + r2 * (1.0f / 120 + r2 * (-1.0f / 5040 + r2 * (1.0f / 362880
-                         + r2 * (-1.0f / 39916800))))));
-            float cs = 1.0f + r2 * (-0.5f + r2 * (1.0f / 24 + r2 * (-1.0f / 720 + r2 * (1.0f / 40320
-                         + r2 * (-1.0f / 3628800 + r2 * (1.0f / 479001600))))));
-            float sign = 1.0f - 2.0f * (float)((int32_t)k & 1);
-            s[d][i] = sign * sn;
-            c[d][i] = sign * cs;
-        }
+    base_sin_cos(uv, m, u, s, c);
     v16 s0, s1, c0, c1, u0, u1;
     memcpy(&s0, s[0], 64); memcpy(&s1, s[1], 64); memcpy(&c0, c[0], 64); memcpy(&c1, c[1], 64);
     memcpy(&u0, u[0], 64); memcpy(&u1, u[1], 64);
