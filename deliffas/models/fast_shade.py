@@ -16,11 +16,12 @@
 runs every product in bf16 with fp32 output (colours in fp32). Use it where the CPU has native
 bf16 (:func:`native_bf16`); elsewhere bf16 is several times slower than fp32.
 
-:meth:`FastShader.shade_fused` does all of it in one C pass instead (16 rays at a time in the vector lanes,
-each colour written straight to its pixel); the engine's fast path uses it by default. Its hidden layers run
-in bf16 with native bf16 dot products (AVX512-BF16's ``vdpbf16ps``, fp32 sums) when the shader's dtype is bf16
-and the kernel was built with them for this CPU (:meth:`FastShader.fused_bf16`), else in fp32; encodings,
-samples, the output layer and its sigmoid are fp32 either way.
+:meth:`FastShader.shade_fused` does all of it in one C pass instead (a tile of rays in the vector lanes: 16
+with AVX-512, 8 elsewhere; each colour written straight to its pixel); the engine's fast path uses it by
+default. Its hidden layers run in bf16 with native bf16 dot products (AVX512-BF16's ``vdpbf16ps``, fp32
+sums) when the shader's dtype is bf16 and the kernel was built with them for this CPU
+(:meth:`FastShader.fused_bf16`), else in fp32; encodings, samples, the output layer and its sigmoid are
+fp32 either way.
 
 Supported variants: no view direction and one inner U-Net (``two_surface``, ``single_surface``);
 :func:`supports` says so, and callers use ``DeliffasModel.shade`` otherwise. Without the C kernel
@@ -208,18 +209,24 @@ void deliffas_ray_inputs(int64_t start, int64_t stop, const float *uv_in, const 
 """
 
 
-# The whole shading of a ray in one pass, 16 rays at a time with the rays in the vector lanes (GCC/clang vector
-# extensions: AVX-512 or two AVX2 halves under -march=native): encodings and samples (the pass above, into a
+# The whole shading of a ray in one pass, a tile of rays at a time with the rays in the vector lanes (GCC/clang
+# vector extensions: 16 rays in AVX-512 registers, 8 in AVX2's under -march=native): encodings and samples (the pass above, into a
 # transposed tile), every hidden layer (bias, products, ReLU) in fp32 from tile to tile in L1, the output layer,
 # its sigmoid and the write into the canvas. Nothing per ray reaches memory but its colour. FMA contraction is on
 # here (a separate build), so values differ from torch's fp32 in the last bits.
 _FUSED_SOURCE = _SOURCE + r"""
 #include <stdlib.h>
 
-typedef float v16 __attribute__((vector_size(64)));
-typedef float v8 __attribute__((vector_size(32)));
-typedef int32_t v16i __attribute__((vector_size(64)));
+/* Rays per tile = float lanes of the widest vector registers: 16 with AVX-512, else 8. A 16-lane tile on AVX2 is
+   emulated with register pairs, and dense()'s 8 accumulators then spill: the fp32 pass ran 5 x slower than with 8. */
+#ifdef __AVX512F__
 #define TILE 16
+#else
+#define TILE 8
+#endif
+typedef float v16 __attribute__((vector_size(4 * TILE)));  /* one tile row: TILE floats */
+typedef float v8 __attribute__((vector_size(32)));
+typedef int32_t v16i __attribute__((vector_size(4 * TILE)));
 
 /* The positional encoding of uvs [0, m) of a tile into xt (features, TILE), as encode_f32 per ray (a partial
    tile repeats its last uv): sin and cos by the same reduction and series, written so the compiler vectorises

@@ -170,3 +170,21 @@ def test_fused_pass_built_without_native_bf16_runs_fp32(monkeypatch):
         shader = FastShader(model, torch.bfloat16)
         assert shader.fused_available() and not shader.fused_bf16()
         torch.testing.assert_close(shader.shade_fused(feats, query), model.shade(feats, query), atol=2e-6, rtol=0)
+
+
+@pytest.mark.parametrize("preset", ["realtime", "small"])
+def test_fused_pass_in_eight_ray_tiles(monkeypatch, preset):
+    """The tile width without AVX-512: a kernel built with -mno-avx512f shades 8 rays a tile (16 emulated in AVX2
+    register pairs spilled and ran 5 x slower) and agrees with ``shade`` as the native build does, on partial
+    tiles too (500 rays)."""
+    lib = LazyLibrary("fused_shade_avx2", fast_shade._FUSED_SOURCE, (*fast_shade._FUSED.flags, "-mno-avx512f"),
+                      setup=fast_shade._declare_fused, fallback="none")
+    if lib.get() is None:  # no compiler, or one that does not know the flag (not x86)
+        pytest.skip(f"kernel not built: {lib.load().reason}")
+    monkeypatch.setattr(fast_shade, "_FUSED", lib)
+    assert not lib.get().deliffas_fused_bf16()
+    model, feats, query = _case("two_surface", preset, n=500)
+    with torch.no_grad():
+        shader = FastShader(model, torch.float32)
+        assert shader.fused_available()
+        torch.testing.assert_close(shader.shade_fused(feats, query), model.shade(feats, query), atol=2e-6, rtol=0)
