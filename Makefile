@@ -8,7 +8,7 @@ STAMP := $(VENV)/.setup-stamp
 DEMO_OUT ?= demo_out
 PYTEST_ARGS ?=
 
-.PHONY: setup test docs soak demo bench clean
+.PHONY: setup test docs soak demo bench dist clean
 
 setup: $(STAMP)
 
@@ -42,5 +42,9 @@ demo: setup
 bench: setup
 	$(PY) -m benchmarks.run
 
+# The sdist and the wheel (python -m build; the wheel is built from the sdist) into dist/.
+dist: setup
+	$(PY) -m build --outdir dist
+
 clean:
-	rm -rf $(VENV) $(DEMO_OUT) bench_out site .pytest_cache .import_linter_cache
+	rm -rf $(VENV) $(DEMO_OUT) bench_out site dist .pytest_cache .import_linter_cache

@@ -1,9 +1,11 @@
-"""The package as a user installs it: a wheel built from the repository, in a fresh venv outside it.
+"""The package as a user installs it: ``python -m build`` (the sdist, then the wheel built from the sdist), the
+wheel in a fresh venv outside the repository.
 
 The wheel goes into a new venv with ``--no-deps``; the dependencies come from this test run's
 environment through a path entry (its ``.pth`` files, e.g. an editable deliffas, are not processed),
-so the venv's deliffas is the wheel's. Then ``deliffas --version``, ``deliffas demo --quick`` and an
-example run from another folder.
+so the venv's deliffas is the wheel's. Then ``deliffas --version``, ``deliffas demo --quick`` and the three
+examples run from another folder. ``--no-isolation``: the build uses this environment's setuptools instead
+of installing one from the package index into a build environment.
 """
 
 from __future__ import annotations
@@ -26,11 +28,14 @@ REPO = Path(__file__).resolve().parents[1]
 @pytest.fixture(scope="module")
 def wheel_venv(tmp_path_factory):
     root = tmp_path_factory.mktemp("wheel")
-    build = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(root / "dist"), str(REPO)],
+    pytest.importorskip("build", reason="the build package (dev extra) makes the sdist and the wheel")
+    build = subprocess.run([sys.executable, "-m", "build", "--no-isolation", "--outdir", str(root / "dist"), str(REPO)],
                            capture_output=True, text=True, timeout=600)
     if build.returncode != 0:
-        pytest.fail(f"pip wheel failed: {build.stderr[-2000:]}")
-    wheel = next((root / "dist").glob("deliffas-*.whl"))
+        pytest.fail(f"python -m build failed: {(build.stdout + build.stderr)[-2000:]}")
+    sdists, wheels = list((root / "dist").glob("deliffas-*.tar.gz")), list((root / "dist").glob("deliffas-*.whl"))
+    assert len(sdists) == 1 and len(wheels) == 1, sorted(p.name for p in (root / "dist").iterdir())
+    wheel = wheels[0]
     env_dir = root / "venv"
     venv.EnvBuilder(with_pip=False).create(env_dir)
     py = env_dir / "bin" / "python"
@@ -53,6 +58,27 @@ def _run(env_dir: Path, args: list[str], cwd: Path, timeout: int = 600) -> subpr
     return subprocess.run(args, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
 
 
+def _example_args(tmp_path: Path) -> list[list[str]]:
+    """Command lines of the three examples on small data made here (cameras in EasyMocap's files, shards)."""
+    import numpy as np
+
+    from deliffas.data.convert import ConvertConfig, convert
+    from deliffas.data.synth import SynthConfig, synthesize_capture
+    from deliffas.io.camera_formats import write_cameras
+    from deliffas.io.cameras import Camera, look_at
+
+    cams = [Camera(f"c{i}", np.array([[40.0, 0, 24], [0, 40, 24], [0, 0, 1]]),
+                   look_at(np.array([3000.0 * np.sin(i), 900, 3000 * np.cos(i)]), np.array([0.0, 900, 0])), 48, 48)
+            for i in range(2)]
+    write_cameras(cams, tmp_path / "emc", "easymocap")
+    synthesize_capture(tmp_path / "s", SynthConfig(num_frames=2, num_test_frames=1, num_cameras=3, width=32, height=32))
+    convert(tmp_path / "s", tmp_path / "shards", ConvertConfig(atlas_res=16, progress=False))
+    ex = REPO / "examples"
+    return [[str(ex / "01_geometry.py"), str(tmp_path / "ex1"), "--frames", "2", "--atlas", "16"],
+            [str(ex / "02_uv_maps.py"), str(tmp_path / "ex2"), "--cameras", str(tmp_path / "emc")],
+            [str(ex / "03_custom_training.py"), str(tmp_path / "shards"), "--steps", "3"]]
+
+
 def test_wheel_installs_and_runs_from_another_folder(wheel_venv, tmp_path):
     env_dir, wheel = wheel_venv
     py = str(env_dir / "bin" / "python")
@@ -62,9 +88,9 @@ def test_wheel_installs_and_runs_from_another_folder(wheel_venv, tmp_path):
     version = _run(env_dir, [str(env_dir / "bin" / "deliffas"), "--version"], tmp_path)  # the console script
     assert version.stdout.strip() == f"deliffas {deliffas.__version__}" and wheel.name.startswith(
         f"deliffas-{deliffas.__version__}-")
-    example = _run(env_dir, [py, str(REPO / "examples" / "01_geometry.py"), str(tmp_path / "ex"), "--frames", "2",
-                             "--atlas", "16"], tmp_path)
-    assert example.returncode == 0, example.stderr[-2000:]
+    for argv in _example_args(tmp_path):
+        example = _run(env_dir, [py, *argv], tmp_path)
+        assert example.returncode == 0, f"{argv[0]}: {example.stderr[-2000:]}"
     demo = _run(env_dir, [str(env_dir / "bin" / "deliffas"), "demo", "--quick", "--out", str(tmp_path / "demo")], tmp_path)
     assert demo.returncode == 0, demo.stderr[-2000:]
     assert (tmp_path / "demo" / "report.md").is_file()
