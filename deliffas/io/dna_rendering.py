@@ -151,6 +151,15 @@ class SmcFile:
             raise CaptureFormatError(self.path, key, f"expected a {kind}, got a {type(node).__name__}")
         return node
 
+    def _names(self, node, key: str) -> list[str]:
+        """The member names of the group ``node`` at ``key``; h5py gives a name that is not UTF-8 as bytes."""
+        with self._reading(key):
+            names = list(node.keys())
+        bad = [n for n in names if not isinstance(n, str)]
+        if bad:
+            raise CaptureFormatError(self.path, key, f"member name {bad[0]!r} is not UTF-8 (damaged file?)")
+        return names
+
     def _data(self, key: str):
         node = self._node(key, "dataset")
         with self._reading(key):
@@ -160,8 +169,7 @@ class SmcFile:
         """Every camera of ``Camera_Parameter``, ordered by id."""
         group = self._node("Camera_Parameter", "group")
         out = []
-        with self._reading("Camera_Parameter"):
-            ids = sorted(group.keys(), key=lambda k: (len(k), k))
+        ids = sorted(self._names(group, "Camera_Parameter"), key=lambda k: (len(k), k))
         for cid in ids:
             base = f"Camera_Parameter/{cid}"
             if not (cid.isascii() and cid.isdigit()):
@@ -233,8 +241,7 @@ class SmcFile:
         for key in (f"{group}/{int(camera)}/color", f"Mask/{int(camera)}/mask"):
             if self.has(key):
                 node = self._node(key, "group")
-                with self._reading(key):
-                    frames = [k for k in node.keys() if k.isascii() and k.isdigit()]
+                frames = [k for k in self._names(node, key) if k.isascii() and k.isdigit()]
                 if frames:
                     h, w = self._jpeg(f"{key}/{min(frames, key=int)}").shape[:2]
                     return w, h

@@ -78,3 +78,16 @@ def test_malformed(tmp_path, over, pattern):
         _smc(path, **over)
     with pytest.raises(CaptureFormatError, match=pattern):
         read_smc_calibration(path)
+
+
+def test_member_names_that_are_not_utf8(tmp_path):
+    """h5py lists a member name that is not UTF-8 as bytes (found by the soak-scale fuzz: a damaged name in
+    Camera_Parameter raised TypeError while sorting); it is a CaptureFormatError naming the group."""
+    path = _smc(tmp_path / "x.smc")
+    with h5py.File(path, "a") as h5:
+        h5["Camera_Parameter"].create_group(b"\xff1")
+        h5["Mask/0/mask"].create_group(b"\xfe2")
+    with pytest.raises(CaptureFormatError, match=r"x\.smc: Camera_Parameter: member name b'\\xff1' is not UTF-8"):
+        read_smc_calibration(path)
+    with SmcFile(path) as smc, pytest.raises(CaptureFormatError, match=r"x\.smc: Mask/0/mask: member name"):
+        smc.image_size(0)
