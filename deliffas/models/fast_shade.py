@@ -210,10 +210,10 @@ void deliffas_ray_inputs(int64_t start, int64_t stop, const float *uv_in, const 
 
 
 # The whole shading of a ray in one pass, a tile of rays at a time with the rays in the vector lanes (GCC/clang
-# vector extensions: 16 rays in AVX-512 registers, 8 in AVX2's under -march=native): encodings and samples (the pass above, into a
-# transposed tile), every hidden layer (bias, products, ReLU) in fp32 from tile to tile in L1, the output layer,
-# its sigmoid and the write into the canvas. Nothing per ray reaches memory but its colour. FMA contraction is on
-# here (a separate build), so values differ from torch's fp32 in the last bits.
+# vector extensions: 16 rays in AVX-512 registers, 8 in AVX2's under -march=native): encodings and samples (the
+# pass above, into a transposed tile), every hidden layer (bias, products, ReLU) in fp32 from tile to tile in L1,
+# the output layer, its sigmoid and the write into the canvas. Nothing per ray reaches memory but its colour. FMA
+# contraction is on here (a separate build), so values differ from torch's fp32 in the last bits.
 _FUSED_SOURCE = _SOURCE + r"""
 #include <stdlib.h>
 
@@ -224,9 +224,9 @@ _FUSED_SOURCE = _SOURCE + r"""
 #else
 #define TILE 8
 #endif
-typedef float v16 __attribute__((vector_size(4 * TILE)));  /* one tile row: TILE floats */
+typedef float vtile __attribute__((vector_size(4 * TILE)));  /* one tile row: TILE floats */
 typedef float v8 __attribute__((vector_size(32)));
-typedef int32_t v16i __attribute__((vector_size(4 * TILE)));
+typedef int32_t vtilei __attribute__((vector_size(4 * TILE)));
 
 /* The positional encoding of uvs [0, m) of a tile into xt (features, TILE), as encode_f32 per ray (a partial
    tile repeats its last uv): sin and cos by the same reduction and series, written so the compiler vectorises
@@ -364,23 +364,23 @@ static void sample_tile(const float *map, const float *map_alt, const uint8_t *a
 }
 
 /* y (N, TILE) = relu?(b + x (K, TILE) W (K, N) + f (F, TILE) Wf (F, N)); N a multiple of 8. */
-static void dense(const v16 *x, int64_t K, const float *w, const float *b, const v16 *f, int64_t F, const float *wf,
-                  int64_t N, v16 *y, int relu) {
+static void dense(const vtile *x, int64_t K, const float *w, const float *b, const vtile *f, int64_t F, const float *wf,
+                  int64_t N, vtile *y, int relu) {
     for (int64_t n0 = 0; n0 < N; n0 += 8) {
-        v16 acc[8];
-        for (int j = 0; j < 8; j++) acc[j] = (v16){0} + b[n0 + j];
+        vtile acc[8];
+        for (int j = 0; j < 8; j++) acc[j] = (vtile){0} + b[n0 + j];
         for (int64_t k = 0; k < K; k++) {
-            v16 xv = x[k];
+            vtile xv = x[k];
             const float *wr = w + k * N + n0;
             for (int j = 0; j < 8; j++) acc[j] += xv * wr[j];
         }
         for (int64_t k = 0; k < F; k++) {
-            v16 fv = f[k];
+            vtile fv = f[k];
             const float *wr = wf + k * N + n0;
             for (int j = 0; j < 8; j++) acc[j] += fv * wr[j];
         }
         for (int j = 0; j < 8; j++) {
-            if (relu) acc[j] = (v16)((v16i)acc[j] & (acc[j] > (v16){0}));
+            if (relu) acc[j] = (vtile)((vtilei)acc[j] & (acc[j] > (vtile){0}));
             y[n0 + j] = acc[j];
         }
     }
@@ -404,7 +404,7 @@ static inline __m512bh pair_rows(__m512 a, __m512 b) {
 }
 
 /* (K, TILE) fp32 rows as ceil(K/2) pair vectors (an odd last row paired with 0) */
-static void pair_tile(const v16 *x, int64_t K, __m512bh *xp) {
+static void pair_tile(const vtile *x, int64_t K, __m512bh *xp) {
     int64_t k = 0;
     for (; k + 1 < K; k += 2) xp[k / 2] = pair_rows((__m512)x[k], (__m512)x[k + 1]);
     if (k < K) xp[k / 2] = pair_rows((__m512)x[k], _mm512_setzero_ps());
@@ -415,14 +415,14 @@ static void pair_tile(const v16 *x, int64_t K, __m512bh *xp) {
 static void encode_pairs(const float *uv, int64_t m, int L, int include_input, __m512bh *xp) {
     float s[2][TILE], c[2][TILE], u[2][TILE];
     base_sin_cos(uv, m, u, s, c);
-    v16 s0, s1, c0, c1, u0, u1;
+    vtile s0, s1, c0, c1, u0, u1;
     memcpy(&s0, s[0], 64); memcpy(&s1, s[1], 64); memcpy(&c0, c[0], 64); memcpy(&c1, c[1], 64);
     memcpy(&u0, u[0], 64); memcpy(&u1, u[1], 64);
     if (include_input) *xp++ = pair_rows((__m512)u0, (__m512)u1);
     for (int k = 0; k < L; k++) {
         *xp++ = pair_rows((__m512)s0, (__m512)s1);
         *xp++ = pair_rows((__m512)c0, (__m512)c1);
-        v16 t0 = 2.0f * s0 * c0, t1 = 2.0f * s1 * c1;
+        vtile t0 = 2.0f * s0 * c0, t1 = 2.0f * s1 * c1;
         c0 = c0 * c0 - s0 * s0; c1 = c1 * c1 - s1 * s1; s0 = t0; s1 = t1;
     }
 }
@@ -430,7 +430,7 @@ static void encode_pairs(const float *uv, int64_t m, int L, int include_input, _
 /* relu(b + x W + f Wf) for N outputs (a multiple of 8): x (K2 pairs), W (K2, N) and Wf (F2, N) weight pairs; into
    yp as pairs, or into yf as fp32 rows when yf is given (the last hidden layer, read by the fp32 output layer). */
 static void dense_bf16(const __m512bh *x, int64_t K2, const uint32_t *w, const float *b, const __m512bh *f, int64_t F2,
-                       const uint32_t *wf, int64_t N, __m512bh *yp, v16 *yf) {
+                       const uint32_t *wf, int64_t N, __m512bh *yp, vtile *yf) {
     for (int64_t n0 = 0; n0 < N; n0 += 8) {
         __m512 acc[8];
         for (int j = 0; j < 8; j++) acc[j] = _mm512_set1_ps(b[n0 + j]);
@@ -446,7 +446,7 @@ static void dense_bf16(const __m512bh *x, int64_t K2, const uint32_t *w, const f
         }
         for (int j = 0; j < 8; j++) acc[j] = _mm512_max_ps(acc[j], _mm512_setzero_ps());  /* NaN -> 0, as dense */
         if (yf)
-            for (int j = 0; j < 8; j++) yf[n0 + j] = (v16)acc[j];
+            for (int j = 0; j < 8; j++) yf[n0 + j] = (vtile)acc[j];
         else
             for (int j = 0; j < 8; j += 2) yp[(n0 + j) / 2] = pair_rows(acc[j], acc[j + 1]);
     }
@@ -480,10 +480,10 @@ int deliffas_fused_shade(int64_t n, const float *uv_in, const uint8_t *from_oute
     if (C > 512) return -2;
     if (bf16 && !FUSED_BF16) return -3;
     /* fp32 tiles: E + Fd input rows, two hidden layers; bf16: the inputs' and two hidden layers' pairs besides */
-    size_t tiles = (size_t)(E + Fd + 2 * wmax + (bf16 ? (E + 1) / 2 + (Fd + 1) / 2 + wmax : 0)) * sizeof(v16);
+    size_t tiles = (size_t)(E + Fd + 2 * wmax + (bf16 ? (E + 1) / 2 + (Fd + 1) / 2 + wmax : 0)) * sizeof(vtile);
     char *mem = aligned_alloc(64, tiles);
     if (!mem) return -1;
-    v16 *xe = (v16 *)mem, *xf = xe + E, *h0 = xf + Fd, *h1 = h0 + wmax, *pairs = h1 + wmax;
+    vtile *xe = (vtile *)mem, *xf = xe + E, *h0 = xf + Fd, *h1 = h0 + wmax, *pairs = h1 + wmax;
     const int64_t *od = dims + 5 * nh;
     const float *wo = params + od[0], *bo = wo + 3 * od[1];
     for (int64_t r0 = 0; r0 < n; r0 += TILE) {
@@ -499,7 +499,7 @@ int deliffas_fused_shade(int64_t n, const float *uv_in, const uint8_t *from_oute
         float *ft = (float *)xf;
         if (map_out) { sample_tile(map_out, map_out, 0, uv_out + 2 * r0, m, S, C, ft); ft += C * TILE; }
         sample_tile(map_in, map_out, (map_out && from_outer) ? from_outer + r0 : 0, uv_in + 2 * r0, m, S, C, ft);
-        const v16 *x = xe;
+        const vtile *x = xe;
         int64_t K = E;
         if (bf16 && nh > 0) {
 #if FUSED_BF16
@@ -522,7 +522,7 @@ int deliffas_fused_shade(int64_t n, const float *uv_in, const uint8_t *from_oute
             x = h0;
 #endif
         } else {
-            v16 *bufs[2] = {h0, h1};
+            vtile *bufs[2] = {h0, h1};
             for (int64_t l = 0; l < nh; l++) {
                 const int64_t *d = dims + 5 * l;
                 const float *w = params + d[3], *wf = params + d[4];
@@ -531,8 +531,8 @@ int deliffas_fused_shade(int64_t n, const float *uv_in, const uint8_t *from_oute
                 K = d[1];
             }
         }
-        v16 acc[3];
-        for (int j = 0; j < 3; j++) acc[j] = (v16){0} + bo[j];
+        vtile acc[3];
+        for (int j = 0; j < 3; j++) acc[j] = (vtile){0} + bo[j];
         for (int64_t k = 0; k < K; k++)
             for (int j = 0; j < 3; j++) acc[j] += x[k] * wo[j * K + k];
         float rgb[3][TILE];
