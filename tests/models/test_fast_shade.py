@@ -156,14 +156,21 @@ def test_bf16_weight_pairs():
     assert fast_shade._bf16_pairs(torch.zeros(0, 8)).shape == (0, 8)
 
 
+def _fused_built_with(flag: str, monkeypatch) -> LazyLibrary:
+    """The fused kernel built with one more compiler ``flag``, patched in as ``fast_shade._FUSED`` (skips when there
+    is no compiler, or one that does not know the flag)."""
+    lib = LazyLibrary(f"fused_shade{flag.replace('-', '_')}", fast_shade._FUSED_SOURCE,
+                      (*fast_shade._FUSED.flags, flag), setup=fast_shade._declare_fused, fallback="none")
+    if lib.get() is None:
+        pytest.skip(f"kernel not built with {flag}: {lib.load().reason}")
+    monkeypatch.setattr(fast_shade, "_FUSED", lib)
+    return lib
+
+
 def test_fused_pass_built_without_native_bf16_runs_fp32(monkeypatch):
     """The fallback of the bf16 hidden layers: a kernel built without AVX512-BF16 (here: -mno-avx512bf16) reports
     none, and a bf16 shader's fused pass then computes in fp32."""
-    lib = LazyLibrary("fused_shade_nobf16", fast_shade._FUSED_SOURCE, (*fast_shade._FUSED.flags, "-mno-avx512bf16"),
-                      setup=fast_shade._declare_fused, fallback="none")
-    if lib.get() is None:  # no compiler, or one that does not know the flag
-        pytest.skip(f"kernel not built: {lib.load().reason}")
-    monkeypatch.setattr(fast_shade, "_FUSED", lib)
+    lib = _fused_built_with("-mno-avx512bf16", monkeypatch)
     assert not lib.get().deliffas_fused_bf16()
     model, feats, query = _case("two_surface", "realtime", n=500)
     with torch.no_grad():
@@ -177,11 +184,7 @@ def test_fused_pass_in_eight_ray_tiles(monkeypatch, preset):
     """The tile width without AVX-512: a kernel built with -mno-avx512f shades 8 rays a tile (16 emulated in AVX2
     register pairs spilled and ran 5 x slower) and agrees with ``shade`` as the native build does, on partial
     tiles too (500 rays)."""
-    lib = LazyLibrary("fused_shade_avx2", fast_shade._FUSED_SOURCE, (*fast_shade._FUSED.flags, "-mno-avx512f"),
-                      setup=fast_shade._declare_fused, fallback="none")
-    if lib.get() is None:  # no compiler, or one that does not know the flag (not x86)
-        pytest.skip(f"kernel not built: {lib.load().reason}")
-    monkeypatch.setattr(fast_shade, "_FUSED", lib)
+    lib = _fused_built_with("-mno-avx512f", monkeypatch)
     assert not lib.get().deliffas_fused_bf16()
     model, feats, query = _case("two_surface", preset, n=500)
     with torch.no_grad():
