@@ -19,6 +19,7 @@ import venv
 from pathlib import Path
 
 import pytest
+from example_data import easymocap_rig, small_shards
 
 import deliffas
 
@@ -60,23 +61,10 @@ def _run(env_dir: Path, args: list[str], cwd: Path, timeout: int = 600) -> subpr
 
 def _example_args(tmp_path: Path) -> list[list[str]]:
     """Command lines of the three examples on small data made here (cameras in EasyMocap's files, shards)."""
-    import numpy as np
-
-    from deliffas.data.convert import ConvertConfig, convert
-    from deliffas.data.synth import SynthConfig, synthesize_capture
-    from deliffas.io.camera_formats import write_cameras
-    from deliffas.io.cameras import Camera, look_at
-
-    cams = [Camera(f"c{i}", np.array([[40.0, 0, 24], [0, 40, 24], [0, 0, 1]]),
-                   look_at(np.array([3000.0 * np.sin(i), 900, 3000 * np.cos(i)]), np.array([0.0, 900, 0])), 48, 48)
-            for i in range(2)]
-    write_cameras(cams, tmp_path / "emc", "easymocap")
-    synthesize_capture(tmp_path / "s", SynthConfig(num_frames=2, num_test_frames=1, num_cameras=3, width=32, height=32))
-    convert(tmp_path / "s", tmp_path / "shards", ConvertConfig(atlas_res=16, progress=False))
     ex = REPO / "examples"
     return [[str(ex / "01_geometry.py"), str(tmp_path / "ex1"), "--frames", "2", "--atlas", "16"],
-            [str(ex / "02_uv_maps.py"), str(tmp_path / "ex2"), "--cameras", str(tmp_path / "emc")],
-            [str(ex / "03_custom_training.py"), str(tmp_path / "shards"), "--steps", "3"]]
+            [str(ex / "02_uv_maps.py"), str(tmp_path / "ex2"), "--cameras", str(easymocap_rig(tmp_path / "emc"))],
+            [str(ex / "03_custom_training.py"), str(small_shards(tmp_path)), "--steps", "3"]]
 
 
 def test_wheel_installs_and_runs_from_another_folder(wheel_venv, tmp_path):
