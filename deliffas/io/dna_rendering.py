@@ -42,6 +42,7 @@ from deliffas.io.camera_conventions import from_camera, invert_rigid, require_di
 from deliffas.io.capture_format import (CaptureFormatError, naming_file, require_array, require_rotation, require_rows,
                                         require_vector)
 from deliffas.io.files import durable_replace, temp_path
+from deliffas.io.hdf5_heaps import looping_global_heap
 
 __all__ = [
     "SmcCalibration",
@@ -112,6 +113,9 @@ class SmcFile:
         self.path = Path(path)
         if not self.path.is_file():
             raise CaptureFormatError(self.path, "file", "not found")
+        looping = looping_global_heap(self.path)  # libhdf5 would hang reading it, not raise
+        if looping is not None:
+            raise CaptureFormatError(self.path, "HDF5 global heap", f"damaged: {looping}")
         try:
             self._h5 = h5py.File(self.path, "r")
         except (OSError, RuntimeError, ValueError) as err:

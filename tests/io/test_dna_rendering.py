@@ -91,3 +91,44 @@ def test_member_names_that_are_not_utf8(tmp_path):
         read_smc_calibration(path)
     with SmcFile(path) as smc, pytest.raises(CaptureFormatError, match=r"x\.smc: Mask/0/mask: member name"):
         smc.image_size(0)
+
+
+def _heap_objects(data: bytes, collection: int) -> list[tuple[int, int, int]]:
+    """(byte offset, index, size) of the objects of the global heap collection at ``collection``."""
+    import struct
+
+    size = struct.unpack_from("<Q", data, collection + 8)[0]
+    p, out = collection + 16, []
+    while p + 16 <= collection + size:
+        index, obj_size = struct.unpack_from("<H", data, p)[0], struct.unpack_from("<Q", data, p + 8)[0]
+        out.append((p, index, obj_size))
+        if index == 0:
+            break
+        p += 16 + (obj_size + 7) // 8 * 8
+    return out
+
+
+def test_damaged_global_heap_is_refused_not_a_hang(tmp_path):
+    """A variable-length attribute (a camera name) lives in a global heap; an object size damaged so that the
+    next object header is zeros made libhdf5 2.0 loop forever reading the name (found by the soak). The file
+    is refused before h5py reads it, naming the heap and the object."""
+    from deliffas.io.hdf5_heaps import looping_global_heap
+
+    path = _smc(tmp_path / "x.smc")
+    with h5py.File(path, "a") as h5:
+        h5["Camera_Parameter/00"].attrs["name"] = "cam 00"  # a variable-length string: the global heap
+    assert read_smc_calibration(path)[0].name == "cam 00"
+    assert looping_global_heap(path) is None
+    data = bytearray(path.read_bytes())
+    collection = data.find(b"GCOL\x01\x00\x00\x00")
+    offset, index, size = _heap_objects(bytes(data), collection)[0]
+    assert index > 0 and size < 64
+    data[offset + 8:offset + 16] = (1024).to_bytes(8, "little")  # the next header falls in the zeroed free space
+    path.write_bytes(bytes(data))
+    assert "does not advance" in looping_global_heap(path)
+    with pytest.raises(CaptureFormatError, match=rf"x\.smc: HDF5 global heap: damaged: global heap collection at "
+                                                 rf"byte {collection}: object 0 at byte \d+ records size 0"):
+        SmcFile(path)
+    data[offset + 8:offset + 16] = (1 << 40).to_bytes(8, "little")
+    path.write_bytes(bytes(data))
+    assert "runs past the collection" in looping_global_heap(path)
