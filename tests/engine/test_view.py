@@ -133,6 +133,23 @@ def test_viewer_camera_round_trip(tiny_shards):
     np.testing.assert_allclose(back.K[1, 1], cam.K[1, 1], rtol=1e-9)
 
 
+def test_capture_hold_leaves_only_after_the_pose_was_reported():
+    """The browser reports the move to a capture camera field by field, late on a loaded machine:
+    intermediate cameras do not leave it however late they come; a move after the pose was shown does."""
+    from deliffas.engine.view.server import ECHO_TIMEOUT_S, CaptureHold
+
+    wxyz, position = np.array([1.0, 0, 0, 0]), np.array([0.1, 0.2, 3.0])
+    hold = CaptureHold(2, wxyz, position, entered=0.0)
+    old_wxyz, old_position = np.array([0.0, 1, 0, 0]), np.zeros(3)
+    assert not hold.left(old_wxyz, position, now=5.0)  # position applied, orientation not yet
+    assert not hold.left(-wxyz, position + 5e-4, now=6.0)  # the pose (q and -q are one rotation)
+    assert hold.reached
+    assert hold.left(old_wxyz, old_position, now=6.1)  # the user dragged away
+    never = CaptureHold(2, wxyz, position, entered=0.0)
+    assert not never.left(old_wxyz, old_position, now=ECHO_TIMEOUT_S - 0.1)
+    assert never.left(old_wxyz, old_position, now=ECHO_TIMEOUT_S)  # no echo at all: the user's camera wins
+
+
 def _first_panel(shot: np.ndarray, panel: tuple[int, int], n_panels: int) -> np.ndarray:
     """The first panel of the viewer's grid in a canvas screenshot, resampled to ``panel`` (W, H)."""
     import cv2

@@ -134,7 +134,8 @@ def test_browser_camera_menu_shows_the_overlay(capture, subject_view, tmp_path):
         cv2.imwrite(str(tmp_path / "viewer.png"), cv2.cvtColor(shot, cv2.COLOR_RGB2BGR))
         err = np.abs(panel - ref).max(-1)[fg]
         assert matches(panel), (f"background differs from the overlay: median {np.median(err):.3f}, "
-                                f"within 0.15: {(err < 0.15).mean():.2f}; screenshot {tmp_path / 'viewer.png'}")
+                                f"within 0.15: {(err < 0.15).mean():.2f}; screenshot {tmp_path / 'viewer.png'}; server log:\n"
+                                f"{(tmp_path / 'view.log').read_text()[-2000:]}")
         field = page.locator(f"input[value^='{expected.iou:.3f} (']")  # the IoU text field
         deadline = time.time() + 20
         while field.count() != 1 and time.time() < deadline:

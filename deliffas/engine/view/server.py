@@ -32,7 +32,8 @@ from deliffas.engine.view.renderer import (
 from deliffas.engine.view.scene import ViewScene
 from deliffas.io.cameras import Camera
 
-__all__ = ["serve", "viewer_camera", "capture_camera_pose", "import_viser", "MM_PER_UNIT", "SETTLE_S"]
+__all__ = ["serve", "viewer_camera", "capture_camera_pose", "import_viser", "CaptureHold", "MM_PER_UNIT",
+           "ECHO_TIMEOUT_S"]
 
 logger = logging.getLogger(__name__)
 
@@ -40,8 +41,9 @@ MM_PER_UNIT = 1000.0
 """deliffas world millimetres per viser scene unit (the scene is in metres)."""
 _FREE = "free camera"
 _TICK_S = 0.03
-SETTLE_S = 0.5
-"""Seconds after a move to a capture camera before camera updates count as the user leaving it."""
+ECHO_TIMEOUT_S = 10.0
+"""Seconds after a move to a capture camera within which the browser must report that pose back; a
+camera that never showed it by then counts as moved away by the user (see :class:`CaptureHold`)."""
 
 
 def import_viser():
@@ -79,17 +81,42 @@ def capture_camera_pose(camera: Camera) -> tuple[np.ndarray, np.ndarray, float]:
 
 
 @dataclass
+class CaptureHold:
+    """A browser view sent to a capture camera's pose, and whether the browser has reported that pose back.
+
+    The browser applies the pose field by field (position, look-at, orientation) and reports each
+    intermediate camera, so a camera away from the pose means "the user moved away" only after the
+    pose itself was reported once. A timer alone misjudges this on a loaded machine, where the
+    reports arrive late (a CI run saw the overlay dropped that way)."""
+
+    camera: int
+    wxyz: np.ndarray
+    position: np.ndarray
+    entered: float
+    """When the view was sent to the pose (perf_counter seconds)."""
+    reached: bool = False
+
+    def at_pose(self, wxyz, position) -> bool:
+        return bool(np.abs(np.asarray(position) - self.position).max() < 1e-3  # 1 mm
+                    and 1 - abs(float(np.dot(np.asarray(wxyz), self.wxyz))) < 2e-5)  # about 0.7 degrees
+
+    def left(self, wxyz, position, now: float) -> bool:
+        """Whether a reported camera (``wxyz``, ``position`` in scene units) at ``now`` leaves the pose."""
+        if self.at_pose(wxyz, position):
+            self.reached = True
+            return False
+        return self.reached or now - self.entered >= ECHO_TIMEOUT_S
+
+
+@dataclass
 class _ClientView:
     """What the viewer keeps per browser tab."""
 
     client: object
     worker: RenderWorker | None = None
-    capture_camera: int | None = None
-    pose: tuple | None = None
-    """(wxyz, position) set for ``capture_camera``; a camera away from it is a free camera."""
+    hold: CaptureHold | None = None
+    """The capture camera the view looks through; None for a free camera."""
     last_move: float = 0.0
-    entered: float = 0.0
-    """When the view moved to ``capture_camera`` (perf_counter seconds)."""
     refined: bool = True
     serial: int = 0
     lock: threading.Lock = field(default_factory=threading.Lock)
@@ -181,7 +208,7 @@ class _Viewer:
 
     def _toggle_frustums(self) -> None:
         """Frustums shown when asked, except those a browser looks through (they would frame its view)."""
-        inside = {v.capture_camera for v in list(self.clients.values())}
+        inside = {hold.camera for hold in [v.hold for v in list(self.clients.values())] if hold is not None}
         for cam_id, h in self.frustums.items():
             visible = bool(self.show_frustums.value) and cam_id not in inside
             if h.visible != visible:
@@ -234,7 +261,7 @@ class _Viewer:
         cam = self.scene.cameras[cam_id]
         wxyz, position, fov = capture_camera_pose(cam)
         with view.lock:
-            view.capture_camera, view.pose, view.entered = cam_id, (wxyz, position), time.perf_counter()
+            view.hold = CaptureHold(cam_id, np.asarray(wxyz), np.asarray(position), time.perf_counter())
         self._toggle_frustums()
         with client.atomic():
             client.camera.fov = fov
@@ -243,21 +270,11 @@ class _Viewer:
             client.camera.wxyz = wxyz
         self._submit(view, moving=False)
 
-    def _at_capture_pose(self, view: _ClientView) -> bool:
-        if view.pose is None:
-            return False
-        wxyz, position = view.pose
-        cam = view.client.camera
-        return (np.abs(np.asarray(cam.position) - position).max() < 1e-3  # 1 mm
-                and 1 - abs(float(np.dot(np.asarray(cam.wxyz), wxyz))) < 2e-5)  # about 0.7 degrees
-
     def _moved(self, view: _ClientView) -> None:
-        # the browser reports the move to a capture camera field by field (position, look-at, wxyz):
-        # judge "left the capture camera" only once that move has settled
-        settled = time.perf_counter() - view.entered >= SETTLE_S
-        if view.capture_camera is not None and settled and not self._at_capture_pose(view):
+        cam, hold = view.client.camera, view.hold
+        if hold is not None and hold.left(cam.wxyz, cam.position, time.perf_counter()):
             with view.lock:
-                view.capture_camera, view.pose = None, None
+                view.hold = None
             self._toggle_frustums()
             self.camera_menu.value = _FREE  # so that choosing the same camera again moves back to it
         with view.lock:
@@ -284,7 +301,7 @@ class _Viewer:
         runs = tuple(range(len(names))) if run == "side by side" else (names.index(run),)
         with view.lock:
             view.serial += 1
-            capture = view.capture_camera
+            capture = view.hold.camera if view.hold is not None else None
             serial = view.serial
         if capture is not None:  # the capture camera itself (its own intrinsics), at most the still size
             side = self.max_res.value

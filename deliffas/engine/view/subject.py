@@ -27,7 +27,7 @@ from deliffas.data.check_report import overlay
 from deliffas.data.subjects import Subject, SubjectOptions, parse_subject
 from deliffas.engine.view.config import SubjectViewConfig
 from deliffas.engine.view.renderer import compose_panels
-from deliffas.engine.view.server import MM_PER_UNIT, SETTLE_S, capture_camera_pose, import_viser
+from deliffas.engine.view.server import MM_PER_UNIT, CaptureHold, capture_camera_pose, import_viser
 from deliffas.geometry.templates import build_template
 
 __all__ = ["CameraOverlay", "SubjectView", "serve_subject", "is_capture"]
@@ -167,8 +167,8 @@ class _SubjectViewer:
 
         self.cfg, self.view, self.server = cfg, view, server
         self._pose_of, self._mm = capture_camera_pose, MM_PER_UNIT
-        self.inside: dict[int, tuple] = {}  # client id -> (camera, (wxyz, position), time) it looks through
-        self.dirty: dict[int, object] = {}  # clients whose camera moved since the last tick
+        self.inside: dict[int, CaptureHold] = {}  # client id -> the capture camera it looks through
+        self.leaving: dict[int, object] = {}  # clients that moved away from their capture camera since the last tick
         self.update_lock = threading.Lock()
         gui = server.gui
         with gui.add_folder("Camera"):
@@ -230,16 +230,16 @@ class _SubjectViewer:
                 side="double", visible=self._mesh_visible())
             for c, h in self.frustums.items():
                 h.image = self.view.frame_image(index, c, self.cfg.texture_resolution)[0]
-        for client_id, held in list(self.inside.items()):
+        for client_id, hold in list(self.inside.items()):
             client = self.server.get_clients().get(client_id)
             if client is not None:
-                self._background(client, held[0])
+                self._background(client, hold.camera)
 
     def _mesh_visible(self) -> bool:
         return bool(self.show_mesh.value) and not self.inside  # the overlay shows the silhouette already
 
     def _visibility(self) -> None:
-        looking = {held[0] for held in self.inside.values()}
+        looking = {hold.camera for hold in list(self.inside.values())}
         for c, h in self.frustums.items():
             h.visible = bool(self.show_frustums.value) and c not in looking
         if self.mesh is not None:
@@ -249,7 +249,7 @@ class _SubjectViewer:
         """Move ``client``'s view to capture camera ``cam`` and show its overlay as the background."""
         camera = self.view.cameras[cam]
         wxyz, position, fov = self._pose_of(camera)
-        self.inside[client.client_id] = (cam, (wxyz, position), time.perf_counter())
+        self.inside[client.client_id] = CaptureHold(cam, np.asarray(wxyz), np.asarray(position), time.perf_counter())
         self._visibility()
         with client.atomic():
             client.camera.fov = fov
@@ -269,30 +269,18 @@ class _SubjectViewer:
                           f"{self.view.label(result.index)})")
 
     def moved(self, client) -> None:
-        """Note a camera update; :meth:`tick` decides whether it left its capture camera."""
-        if client.client_id in self.inside:
-            self.dirty[client.client_id] = client
+        """Note a camera update that leaves the capture camera (judged on the camera as reported, see
+        :class:`CaptureHold`); :meth:`tick` turns the client into a free camera."""
+        hold = self.inside.get(client.client_id)
+        if hold is not None and hold.left(client.camera.wxyz, client.camera.position, time.perf_counter()):
+            self.leaving[client.client_id] = client
 
     def tick(self) -> None:
-        """A camera away from the capture camera it looked through becomes a free camera (no background).
-
-        Judged ``SETTLE_S`` after the move to the capture camera: the browser reports the intermediate
-        states of that move (position, look-at, orientation) one by one."""
-        now = time.perf_counter()
-        for client_id, client in list(self.dirty.items()):
-            held = self.inside.get(client_id)
-            if held is None:
-                self.dirty.pop(client_id, None)
-                continue
-            if now - held[2] < SETTLE_S:
-                continue
-            self.dirty.pop(client_id, None)
-            wxyz, position = held[1]
-            cam = client.camera
-            if (np.abs(np.asarray(cam.position) - position).max() < 1e-3
-                    and 1 - abs(float(np.dot(np.asarray(cam.wxyz), wxyz))) < 2e-5):
-                continue
-            self._leave(client)
+        """A client that moved away from the capture camera it looked through becomes a free camera (no background)."""
+        for client_id, client in list(self.leaving.items()):
+            self.leaving.pop(client_id, None)
+            if client_id in self.inside:
+                self._leave(client)
 
     def _leave(self, client) -> None:
         self.inside.pop(client.client_id, None)
@@ -301,7 +289,7 @@ class _SubjectViewer:
         self.camera_menu.value = _FREE  # choosing the same camera again moves back to it
 
     def disconnect(self, client) -> None:
-        self.dirty.pop(client.client_id, None)
+        self.leaving.pop(client.client_id, None)
         if self.inside.pop(client.client_id, None) is not None:
             self._visibility()
 
