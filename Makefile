@@ -8,7 +8,7 @@ STAMP := $(VENV)/.setup-stamp
 DEMO_OUT ?= demo_out
 PYTEST_ARGS ?=
 
-.PHONY: setup test docs soak demo bench dist clean
+.PHONY: setup test test-slow docs soak demo bench dist clean
 
 setup: $(STAMP)
 
@@ -20,10 +20,16 @@ $(STAMP): pyproject.toml scripts/system_deps.sh
 	$(PY) -m pip install --quiet -e ".[dev]"
 	touch $(STAMP)
 
+# The suite without the tests marked slow (about 10 min on 2 cores); CI runs both targets.
 test: setup
 	$(VENV)/bin/lint-imports --no-cache
 	$(MAKE) docs
-	$(PY) -m pytest -q $(PYTEST_ARGS)
+	$(PY) -m pytest -q -m "not slow" $(PYTEST_ARGS)
+
+# The long integration tests (recipe quick runs, the wheel in a fresh venv, SIGKILL chains, memory
+# bounds; about 10 min).
+test-slow: setup
+	$(PY) -m pytest -q -m slow $(PYTEST_ARGS)
 
 # The documentation site (docs/*.md and the API reference from the docstrings) into site/; --strict:
 # a broken link or cross-reference fails. Open site/index.html.

@@ -67,6 +67,7 @@ def _example_args(tmp_path: Path) -> list[list[str]]:
             [str(ex / "03_custom_training.py"), str(small_shards(tmp_path)), "--steps", "3"]]
 
 
+@pytest.mark.slow
 def test_wheel_installs_and_runs_from_another_folder(wheel_venv, tmp_path):
     env_dir, wheel = wheel_venv
     py = str(env_dir / "bin" / "python")

@@ -69,6 +69,7 @@ def _check_outputs(out: Path, payload: dict, num_rows: int, charts: tuple[str, .
     return data
 
 
+@pytest.mark.slow
 def test_ablation_coarse_mesh_quick(tiny_recipe_capture, tmp_path):
     """From existing shards: the subject recorded in their manifest is re-converted per template variant."""
     from recipes import ablation_coarse_mesh
@@ -100,6 +101,7 @@ def test_ablation_coarse_mesh_quick(tiny_recipe_capture, tmp_path):
         assert json.loads((out / f"shards_{variant}" / "manifest.json").read_text())["config"]["template"].endswith(variant)
 
 
+@pytest.mark.slow
 def test_ablation_perceptual_quick(tiny_recipe_capture, tmp_path, capsys):
     from recipes import ablation_perceptual
 
@@ -144,6 +146,7 @@ def test_ablation_perceptual_rejects_bad_start(tmp_path):
         ablation_perceptual.main(["--quick", "--out", str(tmp_path), "--perceptual-start", "1.5"])
 
 
+@pytest.mark.slow
 def test_ablation_template_quick_standin(tiny_recipe_capture, tmp_path, capsys):
     """Without --smpl-model: the DDC-style template against the decimated + smoothed stand-in, said so."""
     from recipes import ablation_template
@@ -187,6 +190,7 @@ def test_ablation_template_missing_smpl_file(tmp_path, capsys):
     assert "not shipped" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_ablation_template_quick_smpl_through_shards(tiny_recipe_capture, tmp_path):
     """--smpl-model procedural: SMPL fitted to every frame, the same images converted with the smpl template
     and the fitted per-frame parameters, single and two surfaces trained on both templates."""

@@ -32,6 +32,7 @@ def test_aggregate_and_orderings():
     assert table[2].startswith("| single | 3 | 21.00 ± 1.00 |") and len(table) == 4
 
 
+@pytest.mark.slow
 def test_ablation_single_surface_quick(tiny_recipe_capture, tmp_path):
     from recipes import ablation_single_surface
 
@@ -55,6 +56,7 @@ def test_ablation_single_surface_quick(tiny_recipe_capture, tmp_path):
             ablation_single_surface.main(["--quick", "--out", str(tmp_path / "x"), *bad])
 
 
+@pytest.mark.slow
 def test_viewdir_investigation_options(tmp_path):
     """--rows a,b --cameras N --viewdir-pe-freqs 0 --unet-dropout 0.1: only the two rows train, on a capture with
     N cameras, with the raw direction and dropout 0.1, and the report says so."""

@@ -53,6 +53,7 @@ def stability(tiny_recipe_capture, tmp_path_factory):
     return out, stability.main(_args(tiny_recipe_capture, out) + ["--variants", variants])
 
 
+@pytest.mark.slow
 def test_speed_accuracy_rows_and_pareto(speed, tiny_recipe_capture):
     from deliffas.engine.report import pareto_front
     from recipes.speed_accuracy import HEADLINE, VARIANTS, SweepPlan
@@ -105,6 +106,7 @@ def test_mark_pareto_skips_errors():
     assert [r["pareto"] for r in rows] == [True, True, False, None, None]
 
 
+@pytest.mark.slow
 def test_stability_structure_and_fail_rule(stability):
     from recipes.stability import HEADLINE, SWEEPS, StabilityPlan
 

@@ -237,6 +237,7 @@ def _chains_round(num_shards: int, rng: random.Random) -> list[list[KillPlan]]:
     return [chain_jobs1, chain_jobs2]
 
 
+@pytest.mark.slow
 def test_sigkill_then_resume_equals_uninterrupted(rel_subject, rel_reference, tmp_path):
     ref_manifest = (rel_reference / "manifest.json").read_bytes()
     m = read_manifest(rel_reference)

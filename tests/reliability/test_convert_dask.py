@@ -136,6 +136,7 @@ def _dask_cmd(subject: Path, out: Path, resume: bool, dask: str | None = "local:
     return cmd + (["--resume"] if resume else [])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("resume_on", ["dask", "jobs1"])
 def test_client_sigkilled_then_resume_equals_reference(resume_on, rel_subject, rel_reference, tmp_path):
     m = read_manifest(rel_reference)

@@ -51,6 +51,7 @@ def probe(rel_reference) -> dict:
     return out
 
 
+@pytest.mark.slow
 def test_render_frame_peak_stays_under_the_bound(probe):
     r = probe["render"]
     chunk, rays = r["render_chunk"], r["rays"]
@@ -66,6 +67,7 @@ def test_render_frame_peak_stays_under_the_bound(probe):
     COUNTS["memory: bounds checked"] += 4
 
 
+@pytest.mark.slow
 def test_train_step_peak_stays_under_the_bound_with_a_ray_chunk(probe):
     t = probe["train"]
     chunk, rays = int(TRAIN[-1][0]), t["rays"]
