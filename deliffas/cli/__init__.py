@@ -84,14 +84,23 @@ def _video_or_folder(text: str) -> Path:
     return p
 
 
-def _positive_float(text: str) -> float:
+def _finite_float(text: str, positive: bool) -> float:
     try:
         value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not value > 0 or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"expected a positive finite number, got {text!r}")
+    if not (value > 0 if positive else value >= 0) or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a {'positive' if positive else 'non-negative'} finite number, "
+                                         f"got {text!r}")
     return value
+
+
+def _positive_float(text: str) -> float:
+    return _finite_float(text, positive=True)
+
+
+def _non_negative_float(text: str) -> float:
+    return _finite_float(text, positive=False)
 
 
 def _int_list(text: str) -> tuple[int, ...]:
@@ -317,6 +326,9 @@ def _add_engine_commands(sub) -> None:
                    help="rays per backward pass (bounds training memory; single process)")
     p.add_argument("--checkpoint-every", type=_positive_int, default=None)
     p.add_argument("--preview-every", type=_non_negative_int, default=None)
+    p.add_argument("--saturation-weight", type=_non_negative_float, default=None,
+                   help="weight of the penalty on U-Net feature logits beyond +-4, which keeps feature maps off "
+                        "the rails of their sigmoid (default 0.01; 0 = off)")
     p.add_argument("--protocol", choices=["auto", "paper", "all"], default=None,
                    help="frames used: paper = every 10th (DELIFFAS), all = every frame, auto (default) = paper "
                         "from 100 training frames on, else all; stated at start")

@@ -35,7 +35,7 @@ from deliffas.engine.samples import FrameSample, composite_target
 from deliffas.engine.train_config import TrainConfig, TrainResult, resolve_model_config
 from deliffas.engine.train_step import balance_weight, render_sample_images, train_step
 from deliffas.models.deliffas import DeliffasModel
-from deliffas.models.losses import PerceptualLoss
+from deliffas.models.losses import PerceptualLoss, SaturationTerm
 from deliffas.io.files import claim_output
 from deliffas.models.zoo import config_to_dict
 
@@ -166,6 +166,8 @@ class Trainer:
         self.stage2_at = int(cfg.perceptual_start * cfg.iters) if self.perceptual is not None else cfg.iters + 1
         self.perceptual_weight: float | None = state.get("perceptual_weight", cfg.perceptual_weight)
         self.generator = torch.Generator().manual_seed(cfg.seed + 7919 * self.rank)
+        self.saturation = (SaturationTerm(cfg.saturation_weight, cfg.saturation_margin)
+                           if cfg.saturation_weight > 0 else None)
         if self.rank == 0:
             self._write_record()
 
@@ -197,7 +199,7 @@ class Trainer:
         tb = time.perf_counter()
         weight = self._stage_weight(it, sample)
         out = train_step(self.model, sample, self.optimizer, self.device, self.perceptual, weight, net=self.net,
-                         generator=self.generator, ray_chunk=self.cfg.ray_chunk)
+                         generator=self.generator, ray_chunk=self.cfg.ray_chunk, saturation=self.saturation)
         record = {"iteration": it + 1, **out, "lr": lr, "stage": 2 if weight > 0 else 1, "perceptual_weight": weight,
                   "frame": sample.frame, "rays": int(sum(r.num_rays for r in sample.rays)),
                   "data_s": tb - ta, "step_s": time.perf_counter() - tb}

@@ -64,6 +64,11 @@ class TrainConfig:
     """Fraction of ``iters`` after which stage 2 (L1 + perceptual) starts."""
     perceptual_weight: float | None = None
     """Fixed weight of the perceptual term; None = balance it with L1 at the start of stage 2."""
+    saturation_weight: float = 0.01
+    """Weight of the penalty on U-Net feature logits beyond ±``saturation_margin`` (0 = off): a feature
+    map driven to the rails of its sigmoid has no gradient left (``models.losses.saturation_penalty``)."""
+    saturation_margin: float = 4.0
+    """|logit| allowed without penalty (4: features within 0.018 of 0 or 1 are penalised)."""
     vgg16_path: str | None = None
     """ImageNet VGG-16 weight file for ``vgg16-imagenet`` (else env / torch hub cache)."""
     seed: int = 0
@@ -90,6 +95,10 @@ class TrainConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
                 raise ValueError(f"{name}: expected a whole number >= {minimum}, got {value!r}")
+        if not (math.isfinite(self.saturation_weight) and self.saturation_weight >= 0):
+            raise ValueError(f"saturation_weight: expected a finite number >= 0, got {self.saturation_weight!r}")
+        if not (math.isfinite(self.saturation_margin) and self.saturation_margin > 0):
+            raise ValueError(f"saturation_margin: expected a finite number > 0, got {self.saturation_margin!r}")
         if self.ray_chunk is not None and (not isinstance(self.ray_chunk, int) or self.ray_chunk < 1):
             raise ValueError(f"ray_chunk: expected None or a whole number >= 1, got {self.ray_chunk!r}")
         resolve_device(self.device)

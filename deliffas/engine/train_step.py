@@ -15,7 +15,7 @@ from deliffas.engine.rays import RayBatch, paint_images, ray_query, stack_rays
 from deliffas.engine.samples import FrameSample, composite_target
 from deliffas.engine.timing import StageTimer
 from deliffas.models.deliffas import DeliffasModel, FrameFeatures
-from deliffas.models.losses import step_loss
+from deliffas.models.losses import SaturationTerm, step_loss
 from deliffas.models.ray_query import RayQuery
 
 __all__ = ["train_step", "render_sample_images", "balance_weight"]
@@ -63,7 +63,8 @@ def render_sample_images(model: DeliffasModel, sample: FrameSample, device: torc
 
 def _chunked_backward(model: DeliffasModel, sample: FrameSample, device: torch.device,
                       perceptual: torch.nn.Module | None, perceptual_weight: float,
-                      generator: torch.Generator | None, ray_chunk: int) -> tuple[dict[str, float], float]:
+                      generator: torch.Generator | None, ray_chunk: int,
+                      saturation: SaturationTerm | None) -> tuple[dict[str, float], float]:
     """Gradients of one step's loss, shading at most ``ray_chunk`` rays per graph (same gradient).
 
     The U-Nets run once and keep their graph; the light field's gradient w.r.t. the feature maps is
@@ -103,16 +104,24 @@ def _chunked_backward(model: DeliffasModel, sample: FrameSample, device: torch.d
         sq_sum += float((pred.detach() - target_rays[sl]).square().sum())
     roots = [(f, leaf.grad) for f, leaf in ((features.inner, leaves.inner), (features.outer, leaves.outer))
              if f is not None and leaf.grad is not None]
+    out = terms or {"loss": l1_sum, "l1": l1_sum}
+    if saturation is not None:  # through the U-Nets' graph, with the light field's gradient
+        penalty = saturation.penalty(model)
+        roots.append((saturation.weight * penalty, None))
+        out = {**out, "saturation": float(penalty.detach())}
     if roots:
         torch.autograd.backward([f for f, _ in roots], [g for _, g in roots])
-    return terms or {"loss": l1_sum, "l1": l1_sum}, sq_sum / (3 * n)
+    return out, sq_sum / (3 * n)
 
 
 def train_step(model: DeliffasModel, sample: FrameSample, optimizer: torch.optim.Optimizer, device: torch.device,
                perceptual: torch.nn.Module | None = None, perceptual_weight: float = 0.0,
                net: torch.nn.Module | None = None, generator: torch.Generator | None = None,
-               ray_chunk: int | None = None) -> dict[str, float]:
+               ray_chunk: int | None = None, saturation: SaturationTerm | None = None) -> dict[str, float]:
     """One optimisation step on one frame; returns the loss terms and the step's PSNR (on shaded rays).
+
+    ``saturation`` adds its weighted penalty on the U-Nets' feature logits to the loss (logged as
+    ``saturation``, unweighted; ``loss`` stays the image loss).
 
     ``ray_chunk`` bounds the rays shaded in one graph (single process only): the U-Nets run once,
     the light field chunk by chunk, and the gradient equals the unchunked one up to float
@@ -135,7 +144,8 @@ def train_step(model: DeliffasModel, sample: FrameSample, optimizer: torch.optim
     model.train()
     optimizer.zero_grad(set_to_none=True)
     if ray_chunk is not None and num_rays > ray_chunk:
-        out, mse = _chunked_backward(model, sample, device, perceptual, perceptual_weight, generator, ray_chunk)
+        out, mse = _chunked_backward(model, sample, device, perceptual, perceptual_weight, generator, ray_chunk,
+                                     saturation)
         optimizer.step()
         return {**out, "skipped": 0.0, "psnr_rays": _psnr(mse)}
     K = sample.num_cameras
@@ -149,8 +159,13 @@ def train_step(model: DeliffasModel, sample: FrameSample, optimizer: torch.optim
         pred_images = paint_images(pred, batch, K, H, W) if perceptual is not None and perceptual_weight > 0 else None
         loss = step_loss(pred, target_rays, perceptual=perceptual, weight=perceptual_weight, pred_images=pred_images,
                          target_images=target, masks=torch.from_numpy(sample.masks).to(device), generator=generator)
-        loss.loss.backward()
         out = loss.terms()
+        total = loss.loss
+        if saturation is not None:
+            penalty = saturation.penalty(model)
+            total = total + saturation.weight * penalty
+            out["saturation"] = float(penalty.detach())
+        total.backward()
     else:  # DDP only: a zero loss that reaches every parameter, so every gradient hook (all-reduce) fires
         zero = pred.sum() * 0.0 + sum(p.sum() for p in model.parameters() if p.requires_grad) * 0.0
         zero.backward()

@@ -181,6 +181,11 @@ class DeliffasModel(nn.Module):
         """The U-Nets on the inner normal maps, in the order their maps are concatenated."""
         return [self.unet_inner] + [getattr(self, f"unet_inner_{i}") for i in range(2, self.spec.inner_unets + 1)]
 
+    def feature_logits(self) -> list[torch.Tensor]:
+        """The sigmoid inputs of every U-Net's last forward with autograd on (``UNet.last_logits``)."""
+        nets = self.inner_unets() + ([self.unet_outer] if self.unet_outer is not None else [])
+        return [net.last_logits for net in nets if net.last_logits is not None]
+
     # ------------------------------------------------------------------ stage 1: per frame
     def encode(self, normal_inner: torch.Tensor, normal_outer: torch.Tensor | None = None) -> FrameFeatures:
         """Run the U-Net(s) on a batch of temporal normal maps.

@@ -13,7 +13,7 @@ from __future__ import annotations
 import logging
 import os
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -22,7 +22,7 @@ from torch import nn
 from deliffas.models.vgg import VGG16_LAYERS, BackboneName, BackboneRecord, VGG16Features, load_vgg16_weights
 
 __all__ = ["IMAGENET_MEAN", "IMAGENET_STD", "l1_foreground", "PerceptualLoss", "foreground_patches", "StepLoss",
-           "step_loss"]
+           "SaturationTerm", "saturation_penalty", "step_loss"]
 
 logger = logging.getLogger(__name__)
 
@@ -238,6 +238,45 @@ class StepLoss:
         if self.perceptual is not None:
             out["perceptual"] = float(self.perceptual.detach())
         return out
+
+
+def saturation_penalty(logits: Sequence[torch.Tensor], margin: float) -> torch.Tensor:
+    """Penalty on feature maps driven to the rails of their sigmoid: sum over maps of mean(relu(|s| - margin)^2).
+
+    A U-Net's features are sigmoid(s); a map whose logits s sit far out has no gradient left, and
+    the light field cannot pull it back (one seed of the ``realtime`` preset stalled that way with 98 %
+    of its features at the rails, 5 dB below the others; docs/performance.md). The penalty is zero
+    inside ``[-margin, margin]`` (margin 4: features within 0.018 of a rail are penalised).
+
+    Args:
+        logits: the maps' sigmoid inputs (``DeliffasModel.feature_logits()``), any shapes.
+        margin: |s| allowed without penalty (> 0).
+
+    Returns:
+        () the penalty (0 for no maps).
+    """
+    if margin <= 0:
+        raise ValueError(f"saturation_penalty: margin must be > 0, got {margin}")
+    terms = [torch.relu(s.abs() - margin).square().mean() for s in logits]
+    return torch.stack(terms).sum() if terms else torch.zeros(())
+
+
+@dataclass(frozen=True)
+class SaturationTerm:
+    """A run's saturation penalty: ``weight`` x :func:`saturation_penalty` of the model's U-Net logits."""
+
+    weight: float
+    """Its weight in the step loss (> 0)."""
+    margin: float = 4.0
+    """|logit| allowed without penalty."""
+
+    def __post_init__(self) -> None:
+        if not (self.weight > 0 and self.margin > 0):
+            raise ValueError(f"SaturationTerm: weight and margin must be > 0, got {self.weight}, {self.margin}")
+
+    def penalty(self, model) -> torch.Tensor:
+        """() the unweighted penalty of ``model`` (a DeliffasModel) after its training forward."""
+        return saturation_penalty(model.feature_logits(), self.margin)
 
 
 def step_loss(

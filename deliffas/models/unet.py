@@ -200,6 +200,9 @@ class UNet(nn.Module):
             prev = 2 * ch  # after concatenation with the skip
         self.final = ConvTranspose2d(prev, config.out_channels, kernel_size=4, stride=2, padding=1, bias=True)
         self._prepacked: PrepackCache | None = None  # set by optimize_for_inference: the fused forward
+        self.last_logits: torch.Tensor | None = None
+        """(B, out_channels, H, W) the final sigmoid's inputs of the last forward with autograd on
+        (None after one without): what :func:`deliffas.models.losses.saturation_penalty` reads."""
         self.reset_parameters()
 
     @property
@@ -239,6 +242,7 @@ class UNet(nn.Module):
         if self._prepacked is not None and not torch.is_grad_enabled() and x.device.type == "cpu":
             epilogues = self._epilogues()
             if epilogues is not None:
+                self.last_logits = None
                 return self._forward_fused(x, *epilogues)
         skips = []
         for block in self.down:
@@ -251,7 +255,9 @@ class UNet(nn.Module):
         # (tanh(y) + 1) / 2 == sigmoid(2 y) exactly in real arithmetic (within 1.2e-7 in float32);
         # sigmoid is ~5x cheaper than tanh on CPU and needs one pass less
         if torch.is_grad_enabled():
-            return torch.sigmoid(2.0 * y)
+            self.last_logits = 2.0 * y
+            return torch.sigmoid(self.last_logits)
+        self.last_logits = None
         return y.mul_(2.0).sigmoid_()  # inference: in place
 
     def _epilogues(self) -> tuple[list[Epilogue], list[Epilogue], Epilogue] | None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from deliffas.models.losses import PerceptualLoss, foreground_patches, l1_foreground
+from deliffas.models.losses import PerceptualLoss, SaturationTerm, foreground_patches, l1_foreground, saturation_penalty
 
 
 def test_l1_foreground_values():
@@ -106,3 +106,32 @@ def test_perceptual_errors(random_backbone, unchecked):
     loss_fn = PerceptualLoss(random_backbone[0], mode="patch", patch_size=64)
     with unchecked(), pytest.raises(ValueError, match="patch_size"):
         loss_fn(torch.rand(1, 3, 32, 32), torch.rand(1, 3, 32, 32))
+
+
+def test_saturation_penalty_pulls_logits_back_inside_the_margin():
+    """Zero inside [-margin, margin]; outside, its gradient points back towards the margin."""
+    s = torch.tensor([[-6.0, -4.0, 0.0, 3.9, 5.0]], requires_grad=True)
+    p = saturation_penalty([s], 4.0)
+    assert float(p) == pytest.approx((2.0**2 + 1.0**2) / 5)
+    p.backward()
+    assert s.grad[0].tolist() == pytest.approx([-0.8, 0, 0, 0, 0.4])  # descent moves -6 up and 5 down
+    assert float(saturation_penalty([], 4.0)) == 0.0
+    two = saturation_penalty([torch.full((2, 3), 5.0), torch.zeros(4)], 4.0)
+    assert float(two) == pytest.approx(1.0)  # a mean per map, summed over maps
+    with pytest.raises(ValueError, match="margin must be > 0"):
+        saturation_penalty([s], 0.0)
+    with pytest.raises(ValueError, match="weight and margin must be > 0"):
+        SaturationTerm(0.0)
+
+
+def test_unet_keeps_the_logits_of_its_training_forward_only():
+    from deliffas.models.unet import UNet, UNetConfig
+
+    net = UNet(UNetConfig(in_channels=3, out_channels=2, base_channels=4, max_channels=8), 16)
+    x = torch.randn(1, 3, 16, 16)
+    y = net(x)
+    assert net.last_logits.shape == (1, 2, 16, 16)
+    torch.testing.assert_close(torch.sigmoid(net.last_logits), y)
+    with torch.no_grad():
+        net(x)
+    assert net.last_logits is None  # nothing held after inference
