@@ -168,7 +168,7 @@ class _SubjectViewer:
         self.cfg, self.view, self.server = cfg, view, server
         self._pose_of, self._mm = capture_camera_pose, MM_PER_UNIT
         self.inside: dict[int, CaptureHold] = {}  # client id -> the capture camera it looks through
-        self.leaving: dict[int, object] = {}  # clients that moved away from their capture camera since the last tick
+        self.leaving: dict[int, tuple] = {}  # client id -> (client, the hold it moved away from) since the last tick
         self.update_lock = threading.Lock()
         gui = server.gui
         with gui.add_folder("Camera"):
@@ -273,13 +273,13 @@ class _SubjectViewer:
         :class:`CaptureHold`); :meth:`tick` turns the client into a free camera."""
         hold = self.inside.get(client.client_id)
         if hold is not None and hold.left(client.camera.wxyz, client.camera.position, time.perf_counter()):
-            self.leaving[client.client_id] = client
+            self.leaving[client.client_id] = (client, hold)
 
     def tick(self) -> None:
         """A client that moved away from the capture camera it looked through becomes a free camera (no background)."""
-        for client_id, client in list(self.leaving.items()):
+        for client_id, (client, hold) in list(self.leaving.items()):
             self.leaving.pop(client_id, None)
-            if client_id in self.inside:
+            if self.inside.get(client_id) is hold:  # not a camera chosen since
                 self._leave(client)
 
     def _leave(self, client) -> None:
