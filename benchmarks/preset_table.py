@@ -1,6 +1,6 @@
 """The table of docs/performance.md: fps at 256^2, 512^2 and 940x1285 and foreground PSNR of trained runs, one per preset.
 
-Usage (runs trained beforehand, e.g. by the commands in docs/performance.md "To run")::
+Usage (runs trained beforehand, e.g. by ``python -m recipes.presets``)::
 
     python -m benchmarks.preset_table realtime=RUN small=RUN paper=RUN [--out table.md] [--max-frames N]
 
