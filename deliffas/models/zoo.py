@@ -7,14 +7,15 @@ preset    S      U-Net (levels, base -> max channels)       MLP depth x w   feat
 ========  =====  =========================================  ==============  =========  ====
 paper     1024   log2 S = 10, 16 -> 512 (paper appendix)    8 x 256, @4     32         10
 small     128    log2 S = 7, 8 -> 64                        4 x 64, @2      16         10
-realtime  128    log2 S = 7, 8 -> 32                        3 x 32, @1      8          10
+realtime  128    log2 S = 7, 8 -> 32                        3 x 32, @1      16         10
 tiny      32     log2 S = 5, 4 -> 16 (tests)                2 x 32, @0      8          4
 ========  =====  =========================================  ==============  =========  ====
 
-``realtime`` is ``small`` with a quarter of its per-ray MLP work (5.3 k against 19.9 k multiply-adds
-per ray) and half its feature channels, for CPU rendering at 940 x 1285 (docs/performance.md,
-"Real-time on two cores"); on the recipe capture its foreground PSNR is 0.75 dB below ``small``'s
-(five seeds, ``python -m recipes.presets``).
+``realtime`` is ``small`` with under a third of its per-ray MLP work (5.9 k against 19.9 k multiply-adds
+per ray) and a U-Net half as wide, for CPU rendering at 940 x 1285 (docs/performance.md, "Real-time on
+two cores"). Its 16 feature channels per map (8 until session 7) were chosen on the validation split;
+on the recipe capture its foreground PSNR is 0.36 dB below ``small``'s (five seeds,
+``python -m recipes.presets``).
 
 for each of the four variants (``single_surface``, ``single_surface_viewdir``,
 ``single_surface_two_unet``, ``two_surface``); the registered model names are the variant names.
@@ -140,7 +141,7 @@ def _preset(variant: str, preset: str) -> ModelConfig:
         return ModelConfig(variant=variant, atlas_res=1024,  # type: ignore[arg-type]
                            unet=UNetConfig(in_channels=9, out_channels=32, norm="affine"))
     # (atlas side, channels per map, U-Net base / max channels, MLP depth / width / feature layer)
-    compact = {"small": (128, 16, 8, 64, 4, 64, 2), "realtime": (128, 8, 8, 32, 3, 32, 1)}
+    compact = {"small": (128, 16, 8, 64, 4, 64, 2), "realtime": (128, 16, 8, 32, 3, 32, 1)}
     if preset in compact:
         side, channels, base, top, depth, width, feature_layer = compact[preset]
         return ModelConfig(
