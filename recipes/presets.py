@@ -75,8 +75,7 @@ def main(argv=None) -> dict:
         claims["realtime_within_0.5_db_of_small"] = claim.to_dict()
     from deliffas.engine.train_config import TrainConfig
 
-    default = {f.name: f.default for f in dataclasses.fields(TrainConfig)}["saturation_weight"]
-    weight = default if args.saturation_weight is None else args.saturation_weight
+    weight = TrainConfig.saturation_weight if args.saturation_weight is None else args.saturation_weight
     notes = ["## The real-time preset's claim", "", *(lines or ["- not tested: train both realtime and small"]), "",
              f"All rows: {MODEL}, L1 only, {sizes.iters} iterations, {sizes.cameras_per_frame} cameras per iteration, "
              f"saturation weight {weight:g}, seeds {seeds}; capture {sizes.frames} frames, {sizes.cameras} cameras "

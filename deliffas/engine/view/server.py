@@ -96,6 +96,11 @@ class CaptureHold:
     """When the view was sent to the pose (perf_counter seconds)."""
     reached: bool = False
 
+    @classmethod
+    def sent(cls, camera: int, wxyz, position) -> "CaptureHold":
+        """The hold of a view sent to capture camera ``camera``'s pose (``capture_camera_pose``) now."""
+        return cls(camera, np.asarray(wxyz), np.asarray(position), time.perf_counter())
+
     def at_pose(self, wxyz, position) -> bool:
         return bool(np.abs(np.asarray(position) - self.position).max() < 1e-3  # 1 mm
                     and 1 - abs(float(np.dot(np.asarray(wxyz), self.wxyz))) < 2e-5)  # about 0.7 degrees
@@ -261,7 +266,7 @@ class _Viewer:
         cam = self.scene.cameras[cam_id]
         wxyz, position, fov = capture_camera_pose(cam)
         with view.lock:
-            view.hold = CaptureHold(cam_id, np.asarray(wxyz), np.asarray(position), time.perf_counter())
+            view.hold = CaptureHold.sent(cam_id, wxyz, position)
         self._toggle_frustums()
         with client.atomic():
             client.camera.fov = fov

@@ -249,7 +249,7 @@ class _SubjectViewer:
         """Move ``client``'s view to capture camera ``cam`` and show its overlay as the background."""
         camera = self.view.cameras[cam]
         wxyz, position, fov = self._pose_of(camera)
-        self.inside[client.client_id] = CaptureHold(cam, np.asarray(wxyz), np.asarray(position), time.perf_counter())
+        self.inside[client.client_id] = CaptureHold.sent(cam, wxyz, position)
         self._visibility()
         with client.atomic():
             client.camera.fov = fov
