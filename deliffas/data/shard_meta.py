@@ -89,7 +89,7 @@ def write_meta(path: str | os.PathLike, meta: ShardMeta) -> tuple[str, int]:
 
     p = Path(path)
     tmp = temp_path(p)
-    with h5py.File(tmp, "w") as f:
+    with h5py.File(tmp, "w", rdcc_nbytes=0) as f:  # no chunk cache: see ShardWriter
         f.attrs.update({"format": META_FORMAT, "version": SCHEMA_VERSION})
         for k, v in sorted(meta.attrs.items()):
             f.attrs[k] = v

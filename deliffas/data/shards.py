@@ -165,7 +165,10 @@ class ShardWriter:
         if np.any(rows >= len(gframes)) or np.any(gframes[np.minimum(rows, len(gframes) - 1)] != want):
             raise ValueError(f"{self.path.name}: geometry lacks frames of the temporal window")
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._f = h5py.File(self.tmp, "w")
+        # no chunk cache: each chunk gets its file space when it is written, not when the last handle of
+        # its dataset closes (a thread that briefly holds this frame, as Dask's profiler does, would
+        # otherwise delay a close and reorder the chunks, and the shard's bytes would differ)
+        self._f = h5py.File(self.tmp, "w", rdcc_nbytes=0)
         f = self._f
         f.attrs.update({"format": SHARD_FORMAT, "version": SCHEMA_VERSION, "sequence": sequence,
                         "codec": codec.spec, "window": int(window), "first_frame": int(first_frame),

@@ -155,6 +155,31 @@ def test_parallel_conversion_is_identical(subject, converted, tmp_path):
     assert _manifest_bytes(out) == _manifest_bytes(converted)
 
 
+def test_lingering_dataset_handles_do_not_change_shard_bytes(subject, converted, tmp_path, monkeypatch):
+    """A handle kept alive after its write (Dask's profiler thread holds the writer's frames for a moment)
+    must not move chunks: before the writer turned the chunk cache off, a held handle kept chunks cached
+    and they got file space in another order (--dask shards then differed from --jobs 1)."""
+    held = []
+    setitem, create = h5py.Dataset.__setitem__, h5py.Group.create_dataset
+
+    def held_setitem(self, *args, **kwargs):
+        held.append(self)
+        return setitem(self, *args, **kwargs)
+
+    def held_create(self, *args, **kwargs):
+        ds = create(self, *args, **kwargs)
+        held.append(ds)
+        return ds
+
+    monkeypatch.setattr(h5py.Dataset, "__setitem__", held_setitem)
+    monkeypatch.setattr(h5py.Group, "create_dataset", held_create)
+    out = tmp_path / "out"
+    convert(subject, out, ConvertConfig(**CFG))
+    assert held, "the probe saw no dataset writes"
+    held.clear()
+    assert _manifest_bytes(out) == _manifest_bytes(converted)
+
+
 def test_video_layout_converts_to_the_same_shards(subject, converted, tmp_path):
     out = tmp_path / "out"
     before = _tree_state(subject)
