@@ -21,7 +21,10 @@ with AVX-512, 8 elsewhere; each colour written straight to its pixel); the engin
 default. Its hidden layers run in bf16 with native bf16 dot products (AVX512-BF16's ``vdpbf16ps``, fp32
 sums) when the shader's dtype is bf16 and the kernel was built with them for this CPU
 (:meth:`FastShader.fused_bf16`), else in fp32; encodings, samples, the output layer and its sigmoid are
-fp32 either way.
+fp32 either way. With ``pe_table=True`` its fp32 pass takes the first hidden layer's encoded part from
+per-coordinate tables (:meth:`FastShader.encoding_table`: four table rows per coordinate instead of the
+sin/cos and 2 L + 1 products; about 1e-4 from the exact pass, whose tiles it keeps where a uv lies outside
+[0, 1]); the engine's fast path turns it on (``FastRender.pe_table``).
 
 Supported variants: no view direction and one inner U-Net (``two_surface``, ``single_surface``);
 :func:`supports` says so, and callers use ``DeliffasModel.shade`` otherwise. Without the C kernel
@@ -33,6 +36,7 @@ from __future__ import annotations
 import ctypes
 import functools
 import logging
+import math
 
 import torch
 
@@ -40,9 +44,12 @@ from deliffas.models.deliffas import DeliffasModel, FrameFeatures
 from deliffas.models.ray_query import RayQuery
 from deliffas.native import LazyLibrary
 
-__all__ = ["FastShader", "supports", "native_bf16", "ROW_CHUNK"]
+__all__ = ["FastShader", "supports", "native_bf16", "ROW_CHUNK", "TABLE_NODES"]
 
 logger = logging.getLogger(__name__)
+
+TABLE_NODES = 2048
+"""Intervals of :meth:`FastShader.encoding_table` on [0, 1] (a power of 2: x * TABLE_NODES is exact in fp32)."""
 
 ROW_CHUNK = 16384
 """Rays per MLP chunk (realtime preset, bf16, 197 k rays, CPU time under load: 2048 / 4096 / 8192 /
@@ -368,7 +375,7 @@ static void dense(const vtile *x, int64_t K, const float *w, const float *b, con
                   int64_t N, vtile *y, int relu) {
     for (int64_t n0 = 0; n0 < N; n0 += 8) {
         vtile acc[8];
-        for (int j = 0; j < 8; j++) acc[j] = (vtile){0} + b[n0 + j];
+        for (int j = 0; j < 8; j++) acc[j] = b ? (vtile){0} + b[n0 + j] : y[n0 + j];  /* no b: y holds the start */
         for (int64_t k = 0; k < K; k++) {
             vtile xv = x[k];
             const float *wr = w + k * N + n0;
@@ -384,6 +391,53 @@ static void dense(const vtile *x, int64_t K, const float *w, const float *b, con
             y[n0 + j] = acc[j];
         }
     }
+}
+
+/* The first layer's encoded part from per-coordinate tables (FastShader.pe_table): y (N, TILE) = b + the sum over the
+   tile's 2 nuv coordinates of a cubic Hermite interpolation of that coordinate's table. Table c holds T + 1 nodes
+   x_j = j / T of 2 N floats: g_c(x_j) (N), then g_c'(x_j) / T (N), g_c = the layer's weights times the coordinate's
+   encoding, so the sin/cos and 2 L products per coordinate become 4 rows of the table. Returns 0, computing nothing,
+   when a uv of the tile is outside [0, 1] (the caller encodes that tile). T a power of 2 keeps x T exact. */
+static int table_layer(const float *const *uvs, int nuv, int64_t m, const float *table, int64_t T, int64_t N,
+                       const float *b, float *rows, vtile *y) {
+    for (int64_t i = 0; i < m; i++)
+        for (int u = 0; u < nuv; u++)
+            for (int d = 0; d < 2; d++) {
+                float x = uvs[u][2 * i + d];
+                if (!(x >= 0.0f && x <= 1.0f)) return 0;
+            }
+    for (int64_t i = 0; i < TILE; i++) {
+        int64_t r = i < m ? i : m - 1;
+        const float *node[4];  /* per coordinate: its first node */
+        float h[4][4];         /* per coordinate: Hermite weights of g_j, g'_j, g_j+1, g'_j+1 */
+        int nc = 2 * nuv;
+        for (int c = 0; c < nc; c++) {
+            float t = uvs[c / 2][2 * r + c % 2] * (float)T;
+            int64_t j = (int64_t)t;
+            if (j > T - 1) j = T - 1;
+            float s = t - (float)j, s2 = s * s, s3 = s2 * s;
+            h[c][0] = 2.0f * s3 - 3.0f * s2 + 1.0f; h[c][1] = s3 - 2.0f * s2 + s;
+            h[c][2] = 3.0f * s2 - 2.0f * s3; h[c][3] = s3 - s2;
+            node[c] = table + ((int64_t)c * (T + 1) + j) * 2 * N;
+        }
+        for (int64_t n0 = 0; n0 < N; n0 += 8) {  /* 8 outputs in one vector, summed over the 4 nc table rows */
+            v8 acc;
+            memcpy(&acc, b + n0, 32);
+            for (int c = 0; c < nc; c++) {
+                v8 g0, d0, g1, d1;
+                memcpy(&g0, node[c] + n0, 32); memcpy(&d0, node[c] + N + n0, 32);
+                memcpy(&g1, node[c] + 2 * N + n0, 32); memcpy(&d1, node[c] + 3 * N + n0, 32);
+                acc += h[c][0] * g0 + h[c][1] * d0 + h[c][2] * g1 + h[c][3] * d1;
+            }
+            memcpy(rows + i * N + n0, &acc, 32);
+        }
+    }
+    for (int64_t k = 0; k < N; k++) {
+        vtile v;
+        for (int64_t i = 0; i < TILE; i++) v[i] = rows[i * N + k];
+        y[k] = v;
+    }
+    return 1;
 }
 
 /* Native bf16 dot products (AVX512-BF16, compiled in only where -march=native has them): the hidden layers with
@@ -476,21 +530,31 @@ int deliffas_fused_bf16(void) {
 int deliffas_fused_shade(int64_t n, const float *uv_in, const uint8_t *from_outer, const float *uv_out,
                          int outer_encoded, int L, int include_input, const float *map_in, const float *map_out,
                          int64_t S, int64_t C, int64_t nh, const int64_t *dims, const float *params, int64_t E,
-                         int64_t Fd, int64_t wmax, const int64_t *pixels, float *out, int bf16) {
+                         int64_t Fd, int64_t wmax, const int64_t *pixels, float *out, int bf16, const float *pe_table,
+                         int64_t table_nodes) {
     if (C > 512) return -2;
     if (bf16 && !FUSED_BF16) return -3;
     /* fp32 tiles: E + Fd input rows, two hidden layers; bf16: the inputs' and two hidden layers' pairs besides */
-    size_t tiles = (size_t)(E + Fd + 2 * wmax + (bf16 ? (E + 1) / 2 + (Fd + 1) / 2 + wmax : 0)) * sizeof(vtile);
+    size_t tiles = (size_t)(E + Fd + 3 * wmax + (bf16 ? (E + 1) / 2 + (Fd + 1) / 2 + wmax : 0)) * sizeof(vtile);
+    if (pe_table && bf16) pe_table = 0;  /* the table serves the fp32 pass */
     char *mem = aligned_alloc(64, tiles);
     if (!mem) return -1;
-    vtile *xe = (vtile *)mem, *xf = xe + E, *h0 = xf + Fd, *h1 = h0 + wmax, *pairs = h1 + wmax;
+    vtile *xe = (vtile *)mem, *xf = xe + E, *h0 = xf + Fd, *h1 = h0 + wmax, *rows = h1 + wmax, *pairs = rows + wmax;
+    const float *uvs[2] = {outer_encoded ? uv_out : uv_in, uv_in};
+    int nuv = outer_encoded ? 2 : 1;
     const int64_t *od = dims + 5 * nh;
     const float *wo = params + od[0], *bo = wo + 3 * od[1];
     for (int64_t r0 = 0; r0 < n; r0 += TILE) {
         int64_t m = n - r0 < TILE ? n - r0 : TILE;
         int64_t per_uv = (include_input ? 2 : 0) + 4 * (int64_t)L;
         int pairs_direct = FUSED_BF16 && bf16 && nh > 0;  /* encodings straight into bf16 pairs */
-        if (!pairs_direct) {
+        int tabled = 0;  /* the first layer's encoded part from the tables */
+        if (pe_table && nh > 0) {
+            const float *tile_uvs[2] = {uvs[0] + 2 * r0, uvs[1] + 2 * r0};
+            tabled = table_layer(tile_uvs, nuv, m, pe_table, table_nodes, dims[1], params + dims[3] + dims[0] * dims[1]
+                                 + dims[2] * dims[1], (float *)rows, h0);
+        }
+        if (!pairs_direct && !tabled) {
             float *xt = (float *)xe;
             void (*encode)(const float *, int64_t, int, int, float *) = bf16 ? encode_tile_f32 : encode_tile;
             if (outer_encoded) { encode(uv_out + 2 * r0, m, L, include_input, xt); xt += per_uv * TILE; }
@@ -526,7 +590,10 @@ int deliffas_fused_shade(int64_t n, const float *uv_in, const uint8_t *from_oute
             for (int64_t l = 0; l < nh; l++) {
                 const int64_t *d = dims + 5 * l;
                 const float *w = params + d[3], *wf = params + d[4];
-                dense(x, d[0], w, w + d[0] * d[1] + d[2] * d[1], d[2] ? xf : 0, d[2], wf, d[1], bufs[l & 1], 1);
+                if (l == 0 && tabled)  /* h0 holds b + the encoded part: add the features' part (if any), ReLU */
+                    dense(x, 0, w, 0, d[2] ? xf : 0, d[2], wf, d[1], h0, 1);
+                else
+                    dense(x, d[0], w, w + d[0] * d[1] + d[2] * d[1], d[2] ? xf : 0, d[2], wf, d[1], bufs[l & 1], 1);
                 x = bufs[l & 1];
                 K = d[1];
             }
@@ -551,7 +618,8 @@ int deliffas_fused_shade(int64_t n, const float *uv_in, const uint8_t *from_oute
 
 def _declare_fused(lib: ctypes.CDLL) -> None:
     p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
-    lib.deliffas_fused_shade.argtypes = [i64, p, p, p, i32, i32, i32, p, p, i64, i64, i64, p, p, i64, i64, i64, p, p, i32]
+    lib.deliffas_fused_shade.argtypes = [i64, p, p, p, i32, i32, i32, p, p, i64, i64, i64, p, p, i64, i64, i64, p, p, i32,
+                                         p, i64]
     lib.deliffas_fused_shade.restype = i32
     lib.deliffas_fused_bf16.argtypes = []
     lib.deliffas_fused_bf16.restype = i32
@@ -608,16 +676,21 @@ class FastShader:
         row_chunk: rays per MLP chunk.
         use_kernel: False = torch only (the C passes' plain path; also without a C compiler).
         fused: False = :meth:`shade_fused` runs the per-stage path (inputs, then the MLP).
+        pe_table: :meth:`shade_fused`'s fp32 pass takes the first layer's encoded part from per-coordinate tables
+            (:meth:`encoding_table`) instead of encoding and multiplying; False = exact.
     """
 
     def __init__(self, model: DeliffasModel, dtype: torch.dtype = torch.float32, row_chunk: int = ROW_CHUNK,
-                 use_kernel: bool = True, fused: bool = True) -> None:
+                 use_kernel: bool = True, fused: bool = True, pe_table: bool = False) -> None:
         if not supports(model):
             raise ValueError(f"FastShader: variant {model.config.variant!r} is not supported (see fast_shade.supports)")
         if dtype not in (torch.float32, torch.bfloat16):
             raise ValueError(f"FastShader: dtype must be float32 or bfloat16, got {dtype}")
         self.model, self.dtype, self.row_chunk, self.use_kernel = model, dtype, int(row_chunk), bool(use_kernel)
         self.fused = bool(fused)
+        self.pe_table = bool(pe_table)
+        self._table_key: tuple | None = None
+        self._table: torch.Tensor | None = None
         self._fused_key: tuple | None = None
         self._fused: tuple[torch.Tensor, torch.Tensor, int] | None = None
         self._weights_key: tuple | None = None
@@ -723,6 +796,51 @@ class FastShader:
             self._fused_key = key
         return self._fused
 
+    def encoding_table(self) -> torch.Tensor | None:
+        """The first hidden layer's encoded part as per-coordinate tables for :meth:`shade_fused` (``pe_table``).
+
+        The layer adds ``W_e PE(uv)`` to its bias; the encoding treats each coordinate x on its own (x, then sin and
+        cos of 2^k pi x), so that sum is ``sum_c g_c(x_c)`` over the 2 or 4 encoded coordinates, with ``g_c`` a fixed
+        function of one variable into the layer's width. Tabled at ``TABLE_NODES + 1`` nodes on [0, 1] with its
+        derivative, a cubic Hermite interpolation replaces 2 L + 1 products per coordinate by four table rows; its
+        error is about ``(2^(L-1) pi / TABLE_NODES)^4 / 384`` of the highest frequency's weights (6e-5 for L = 10).
+
+        Returns (2 nuv, TABLE_NODES + 1, 2, N) float32, N the layer's width padded to 8 (g, then g' / TABLE_NODES),
+        rebuilt when the weights change; None when the table does not apply (no hidden layer, or an encoded
+        width other than 2 or 4 coordinates' encodings)."""
+        key = self._key()
+        if key == self._table_key:
+            return self._table
+        model, mlp = self.model, self.model.mlp
+        pe = model.pe_uv
+        per_uv = (2 if pe.include_input else 0) + 4 * pe.num_freqs
+        nuv = len(model.spec.encoded_uvs)
+        table = None
+        if mlp.hidden and nuv in (1, 2) and mlp.in_dim == nuv * per_uv:
+            lin = mlp.hidden[0]
+            f = mlp.feature_dim if mlp.config.feature_layer + 1 == 0 else 0
+            w = lin.weight.detach().to(torch.float64)[:, f:]  # (N, E): the encoded columns
+            n_out = -(-w.shape[0] // 8) * 8
+            x = torch.arange(TABLE_NODES + 1, dtype=torch.float64) / TABLE_NODES  # (T + 1,)
+            table = torch.zeros(2 * nuv, TABLE_NODES + 1, 2, n_out, dtype=torch.float64)
+            for u in range(nuv):
+                for d in range(2):
+                    base, g, dg = u * per_uv, table[2 * u + d, :, 0, : w.shape[0]], table[2 * u + d, :, 1, : w.shape[0]]
+                    if pe.include_input:
+                        g += x[:, None] * w[:, base + d]
+                        dg += w[:, base + d]
+                    first = base + (2 if pe.include_input else 0)
+                    for k in range(pe.num_freqs):
+                        freq = math.pi * 2.0**k
+                        ws, wc = w[:, first + 4 * k + d], w[:, first + 4 * k + 2 + d]
+                        sn, cs = torch.sin(freq * x)[:, None], torch.cos(freq * x)[:, None]
+                        g += sn * ws + cs * wc
+                        dg += freq * (cs * ws - sn * wc)
+            table[:, :, 1] /= TABLE_NODES
+            table = table.float().contiguous()
+        self._table, self._table_key = table, key
+        return table
+
     def fused_bf16(self) -> bool:
         """Whether :meth:`shade_fused` runs its hidden layers in bf16: the shader's dtype is bf16 and the fused kernel
         was built with native bf16 dot products (AVX512-BF16) this CPU has; else the pass is fp32."""
@@ -745,10 +863,12 @@ class FastShader:
         out, rows = self._check_out(n, out, rows)
         bf16 = self.fused_bf16()
         dims, params, widest = self._fused_params(bf16)
+        table = self.encoding_table() if self.pe_table and not bf16 else None
         model = self.model
         status = lib.deliffas_fused_shade(n, *got[0], len(model.mlp.hidden), dims.data_ptr(), params.data_ptr(),
                                           model.mlp.in_dim, model.mlp.feature_dim, widest,
-                                          rows.data_ptr() if rows is not None else None, out.data_ptr(), int(bf16))
+                                          rows.data_ptr() if rows is not None else None, out.data_ptr(), int(bf16),
+                                          table.data_ptr() if table is not None else None, TABLE_NODES)
         if status == -2:
             raise ValueError(f"FastShader.shade_fused: at most 512 feature channels per map, got {features.inner.shape[1]}")
         if status != 0:

@@ -56,6 +56,16 @@ def test_fast_fp32_equals_plain(frame):
         torch.testing.assert_close(fast, plain, atol=1e-4, rtol=0)
 
 
+def test_exact_encoding_equals_plain_and_the_table_is_within_its_error(frame):
+    """``pe_table=False`` (the switch) is the exact fused pass; the default table is within 1e-3 of it."""
+    model, features, raycaster, cameras = frame
+    plain = _render(model, features, raycaster, cameras[0], None)
+    exact = _render(model, features, raycaster, cameras[0], FastRender(dtype="float32", pe_table=False))
+    torch.testing.assert_close(exact, plain, atol=1e-4, rtol=0)
+    tabled = _render(model, features, raycaster, cameras[0], FastRender(dtype="float32"))
+    torch.testing.assert_close(tabled, exact, atol=1e-3, rtol=0)
+
+
 def test_per_stage_path_equals_plain(frame):
     model, features, raycaster, cameras = frame
     plain = _render(model, features, raycaster, cameras[0], None)
@@ -90,6 +100,9 @@ def test_switches(monkeypatch, unchecked):
     monkeypatch.setenv(realtime.FUSED_SHADE_ENV, "0")
     assert default_fast_render("cpu") == FastRender(fused=False)
     monkeypatch.delenv(realtime.FUSED_SHADE_ENV)
+    monkeypatch.setenv(realtime.PE_TABLE_ENV, "0")
+    assert default_fast_render("cpu") == FastRender(pe_table=False)
+    monkeypatch.delenv(realtime.PE_TABLE_ENV)
     monkeypatch.setenv(realtime.FAST_RENDER_ENV, "0")
     assert default_fast_render("cpu") is None
     monkeypatch.setenv(realtime.RENDER_DTYPE_ENV, "float32")

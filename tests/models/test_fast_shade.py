@@ -191,3 +191,64 @@ def test_fused_pass_in_eight_ray_tiles(monkeypatch, preset):
         shader = FastShader(model, torch.float32)
         assert shader.fused_available()
         torch.testing.assert_close(shader.shade_fused(feats, query), model.shade(feats, query), atol=2e-6, rtol=0)
+
+
+def _table_case(variant: str, preset: str, n: int = 4003):
+    """``_case`` with every uv in [0, 1] except the inner u of rays 2000-2099 (> 1: the table leaves their tiles to
+    the encoder)."""
+    model, feats, query = _case(variant, preset, n=n)
+    uv_in = query.uv_inner.clamp(0, 1)
+    outside = torch.zeros(n, dtype=torch.bool)
+    outside[2000:2100] = True
+    uv_in[outside, 0] = 1.001 + 0.2 * torch.rand(100)
+    return model, feats, RayQuery(query.batch_index, uv_in, query.uv_outer, None, query.inner_from_outer), outside
+
+
+def _table_agrees(model, feats, query, outside) -> None:
+    with torch.no_grad():
+        ref = FastShader(model).shade_fused(feats, query)
+        got = FastShader(model, pe_table=True).shade_fused(feats, query)
+    err = (got - ref).abs()
+    mse = float((err**2).mean())
+    assert float(err.max()) < 2e-3 and -10 * torch.log10(torch.tensor(mse)) > 70, (float(err.max()), mse)
+    torch.testing.assert_close(got[outside], ref[outside], atol=2e-6, rtol=0)  # encoded exactly
+
+
+@pytest.mark.parametrize("variant,preset", [("two_surface", "tiny"), ("two_surface", "realtime"),
+                                            ("two_surface", "small"), ("single_surface", "tiny")])
+def test_encoding_table_within_its_interpolation_error(variant, preset):
+    """``pe_table``: the first layer's encoded part from per-coordinate tables agrees with the exact fused pass within
+    the interpolation's error (which equals ``shade``); tiles with a uv outside [0, 1] are encoded exactly; the table
+    is rebuilt when the weights change."""
+    model, feats, query, outside = _table_case(variant, preset)
+    shader = FastShader(model, pe_table=True)
+    if not shader.fused_available():
+        pytest.skip(f"the fused kernel is not built here: {fast_shade._FUSED.load().reason}")
+    with torch.no_grad():
+        torch.testing.assert_close(FastShader(model).shade_fused(feats, query), model.shade(feats, query), atol=2e-6,
+                                   rtol=0)
+    _table_agrees(model, feats, query, outside)
+    table = shader.encoding_table()
+    assert table is not None and table.shape[:3] == (2 * len(model.spec.encoded_uvs), fast_shade.TABLE_NODES + 1, 2)
+    with torch.no_grad():
+        model.mlp.hidden[0].weight.mul_(0.5)
+    assert shader.encoding_table() is not table
+    _table_agrees(model, feats, query, outside)
+
+
+def test_encoding_table_in_eight_ray_tiles(monkeypatch):
+    """The table in the 8-ray tiles of CPUs without AVX-512 (a kernel built with -mno-avx512f)."""
+    _fused_built_with("-mno-avx512f", monkeypatch)
+    _table_agrees(*_table_case("two_surface", "realtime"))
+
+
+def test_bf16_fused_pass_ignores_the_table():
+    """The table serves the fp32 pass: with native bf16 a bf16 shader's fused pass is the same with and without it."""
+    model, feats, query = _case("two_surface", "realtime", n=600)
+    with torch.no_grad():
+        a = FastShader(model, torch.bfloat16).shade_fused(feats, query)
+        b = FastShader(model, torch.bfloat16, pe_table=True).shade_fused(feats, query)
+    if FastShader(model, torch.bfloat16).fused_bf16():
+        torch.testing.assert_close(a, b, atol=0, rtol=0)
+    else:  # no native bf16: the fused pass is fp32, and the table applies
+        assert float((a - b).abs().max()) < 2e-3
