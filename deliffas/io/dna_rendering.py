@@ -30,7 +30,7 @@ that need exact pixels can pass ``jpeg_quality=100`` and compare with a toleranc
 from __future__ import annotations
 
 import os
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Mapping, Sequence
@@ -272,24 +272,36 @@ def read_smc_calibration(path: PathLike) -> list[SmcCalibration]:
         return smc.calibration()
 
 
-def smc_to_cameras(path: PathLike, size: tuple[int, int] | None = None, group: str = "Camera_5mp",
-                   images: PathLike | None = None) -> list[Camera]:
+@contextmanager
+def _open_smc(source: "PathLike | SmcFile"):
+    """``source`` itself when it is an open SmcFile (left open), else the file opened for the block."""
+    if isinstance(source, SmcFile):
+        yield source
+    else:
+        with SmcFile(source) as smc:
+            yield smc
+
+
+def smc_to_cameras(path: "PathLike | SmcFile", size: tuple[int, int] | None = None, group: str = "Camera_5mp",
+                   images: "PathLike | SmcFile | None" = None) -> list[Camera]:
     """deliffas Cameras (world -> camera, mm, +0.5 pixel centres, D in ``extra``) of an ``.smc`` file.
 
     Args:
+        path: the file, or an open SmcFile (each open checks the whole file's heaps: a capture's parser opens
+            each file once and passes it).
         size: (width, height) for cameras without an image or mask in the file.
-        images: another ``.smc`` holding the frames the sizes come from (a capture's main file when
-            ``path`` is its ``_annots.smc``); None = ``path``.
+        images: another ``.smc`` (path or open SmcFile) holding the frames the sizes come from (a capture's
+            main file when ``path`` is its ``_annots.smc``); None = ``path``.
 
     Raises:
         ValueError: a camera without images in the file and no ``size``.
     """
     out = []
-    with SmcFile(path) as smc, SmcFile(images if images is not None else path) as frames:
+    with _open_smc(path) as smc, (_open_smc(images) if images is not None else nullcontext(smc)) as frames:
         for c in smc.calibration():
             wh = frames.image_size(c.camera_id, group) or smc.image_size(c.camera_id, group) or size
             if wh is None:
-                raise ValueError(f"{path}: camera {c.camera_id} has no image or mask to take its size from; pass size=(w, h)")
+                raise ValueError(f"{smc.path}: camera {c.camera_id} has no image or mask to take its size from; pass size=(w, h)")
             with naming_file(smc.path, f"Camera_Parameter/{c.camera_id}"):
                 out.append(to_camera(c.name or c.camera_id, c.K, invert_rigid(c.RT), wh[0], wh[1], units="m",
                                      pixel_centre="integer", distortion=c.D))

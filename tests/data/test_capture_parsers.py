@@ -117,3 +117,16 @@ def test_actorshq_without_smpl_needs_meshes(exported, smpl_model, tmp_path):
     subject = parse_subject(root, options=SubjectOptions(template=str(smpl_model),
                                                          motions=(str(exported("actorshq") / "poses.npz"),)))
     assert subject.sequences["training"].poses.num_frames == 4
+
+
+def test_dna_parser_opens_each_smc_once(exported, smpl_model, monkeypatch):
+    """Every ``SmcFile`` open scans the whole file's HDF5 heaps (``io.hdf5_heaps``, about 0.7 s per GB): the parser
+    opens the main file and its ``_annots.smc`` once each (it opened them up to 8 times)."""
+    import deliffas.io.dna_rendering as dna
+
+    root = exported("dna")
+    scanned = []
+    scan = dna.looping_global_heap
+    monkeypatch.setattr(dna, "looping_global_heap", lambda path: scanned.append(path.name) or scan(path))
+    parse_subject(root, options=SubjectOptions(template=str(smpl_model)))
+    assert sorted(scanned) == sorted(p.name for p in root.glob("*.smc")), scanned

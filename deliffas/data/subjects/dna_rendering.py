@@ -11,6 +11,7 @@ SMPL model). A ``scale`` other than 1 is refused. Needs the SMPL model file (``-
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import numpy as np
@@ -35,38 +36,33 @@ def _files(root: Path) -> tuple[Path, Path | None]:
     return mains[0], annots if annots.is_file() else None
 
 
-def _has(path: Path, group: str) -> bool:
-    with SmcFile(path) as smc:
-        return smc.has(group)
-
-
 def parse_dna_rendering(root: Path, options: SubjectOptions = SubjectOptions()) -> Subject:
     """Read a DNA-Rendering capture folder (see the module docstring)."""
     root = Path(root)
-    main, annots = _files(root)
+    main_path, annots_path = _files(root)
     group = str(options.extra.get("smc_group", "Camera_5mp"))
-    pick = {g: annots if annots is not None and _has(annots, g) else main for g in ("Camera_Parameter", "Mask", "SMPLx")}
-    calib = smc_to_cameras(pick["Camera_Parameter"], group=group, images=main)
-    cameras, undistort = split_distortion(calib, "DNA-Rendering")
-    spec = smpl_template(options, "DNA-Rendering")
-    with SmcFile(pick["Camera_Parameter"]) as smc:
-        ids = tuple(str(int(c.camera_id)) for c in smc.calibration())
-    with SmcFile(main) as smc:
-        stored = min(smc.frame_count(cid, group) for cid in ids)
-    with SmcFile(pick["SMPLx"]) as smc:
-        smplx = smc.smplx()
+    with contextlib.ExitStack() as stack:  # each file opened once: every open checks the whole file's heaps
+        main = stack.enter_context(SmcFile(main_path))
+        annots = stack.enter_context(SmcFile(annots_path)) if annots_path is not None else None
+        pick = {g: annots if annots is not None and annots.has(g) else main for g in ("Camera_Parameter", "Mask", "SMPLx")}
+        calib = smc_to_cameras(pick["Camera_Parameter"], group=group, images=main)
+        cameras, undistort = split_distortion(calib, "DNA-Rendering")
+        spec = smpl_template(options, "DNA-Rendering")
+        ids = tuple(str(int(c.camera_id)) for c in pick["Camera_Parameter"].calibration())
+        stored = min(main.frame_count(cid, group) for cid in ids)
+        smplx = pick["SMPLx"].smplx()
+        smplx_path, mask_path = pick["SMPLx"].path, (pick["Mask"].path if pick["Mask"] is not main else None)
     if abs(smplx.scale - 1.0) > 1e-9:
-        raise CaptureFormatError(pick["SMPLx"], "SMPLx/scale", f"expected 1 (a scaled SMPL-X fit is not supported), "
-                                                               f"got {smplx.scale:g}")
+        raise CaptureFormatError(smplx_path, "SMPLx/scale", f"expected 1 (a scaled SMPL-X fit is not supported), "
+                                                            f"got {smplx.scale:g}")
     n = min(stored, len(smplx.fullpose))
     if n == 0:
-        raise CaptureFormatError(main, group, "expected frames with SMPL-X parameters, got none")
+        raise CaptureFormatError(main_path, group, "expected frames with SMPL-X parameters, got none")
     rows = np.arange(n)
-    betas = fit_betas(smplx.betas[0], f"{pick['SMPLx']}: SMPLx/betas")
+    betas = fit_betas(smplx.betas[0], f"{smplx_path}: SMPLx/betas")
     pose = smplx_to_smpl_pose(smplx.fullpose[:n, 0], smplx.fullpose[:n, 1:22].reshape(n, -1))
     motion = Motion(rows.astype(np.int64), np.concatenate([smplx.transl[:n], pose, np.tile(betas, (n, 1))], axis=1))
-    mask_path = pick["Mask"] if pick["Mask"] != main else None
-    source = SmcFramesSpec(main, ids, tuple(int(f) for f in rows), group, mask_path, undistort)
+    source = SmcFramesSpec(main_path, ids, tuple(int(f) for f in rows), group, mask_path, undistort)
     seq = SubjectSequence(SEQUENCE, motion.frames, 0, cameras[0].width, cameras[0].height, source, motion)
     return Subject(root, "dna", cameras, spec, {SEQUENCE: seq}, read_test_cameras(root, options.test_cameras))
 
