@@ -136,7 +136,7 @@ def _rasterizer(raycaster: UVRaycaster) -> UVRasterizer:
     return rz
 
 
-def _shader(model: DeliffasModel, dtype: torch.dtype, pe_table: bool = False) -> FastShader:
+def _shader(model: DeliffasModel, dtype: torch.dtype, pe_table: bool) -> FastShader:
     per_model = _SHADERS.setdefault(model, {})
     if (dtype, pe_table) not in per_model:
         per_model[dtype, pe_table] = FastShader(model, dtype, pe_table=pe_table)

@@ -813,7 +813,7 @@ class FastShader:
             return self._table
         model, mlp = self.model, self.model.mlp
         pe = model.pe_uv
-        per_uv = (2 if pe.include_input else 0) + 4 * pe.num_freqs
+        per_uv = pe.out_dim  # one uv's encoding: (u, v) if included, then sin and cos of both per frequency
         nuv = len(model.spec.encoded_uvs)
         table = None
         if mlp.hidden and nuv in (1, 2) and mlp.in_dim == nuv * per_uv:
