@@ -64,6 +64,11 @@ _SOURCE = r"""
 
 #define L 3
 
+/* min / max of three without libm's fmin / fmax (calls through the PLT, 2 % of the pass): a NaN coordinate
+   gives some value, and such faces are skipped (their area is not finite) */
+static inline double min3(double a, double b, double c) { double m = a < b ? a : b; return m < c ? m : c; }
+static inline double max3(double a, double b, double c) { double m = a > b ? a : b; return m > c ? m : c; }
+
 /* Screen-space weights (l0, l1, l2) of pixel centre (x, y) in triangle (a, b, c); 0 when outside. */
 static inline int weights(const double *a, const double *b, const double *c, double x, double y,
                           double inv_area, double *l) {
@@ -73,8 +78,9 @@ static inline int weights(const double *a, const double *b, const double *c, dou
     return l[0] >= 0.0 && l[1] >= 0.0 && l[2] >= 0.0;
 }
 
-typedef double v8d __attribute__((vector_size(64)));
-typedef int64_t v8l __attribute__((vector_size(64)));
+typedef double v4d __attribute__((vector_size(32)));
+typedef int64_t v4l __attribute__((vector_size(32)));
+typedef float v4f __attribute__((vector_size(16)));
 typedef float v8f __attribute__((vector_size(32)));
 typedef int32_t v8i __attribute__((vector_size(32)));
 
@@ -83,55 +89,65 @@ static inline int face_rows(const double *P, const int32_t *faces, int64_t t, in
                             int64_t *re) {
     const double *a = P + 3 * (int64_t)faces[3 * t], *b = P + 3 * (int64_t)faces[3 * t + 1],
                  *c = P + 3 * (int64_t)faces[3 * t + 2];
-    double ymin = fmin(a[1], fmin(b[1], c[1])), ymax = fmax(a[1], fmax(b[1], c[1]));
-    if (!(ymax - ymin < 1e9)) return 0;  /* NaN or absurd: raster() skips it as well */
-    double lo = ceil(ymin - 0.5), hi = floor(ymax - 0.5);
-    *rs = lo < (double)r0 ? r0 : (int64_t)lo;
-    *re = hi > (double)(r0 + h - 1) ? r0 + h - 1 : (int64_t)hi;
-    return *rs <= *re;
+    double ymin = min3(a[1], b[1], c[1]), ymax = max3(a[1], b[1], c[1]);
+    double lo = ceil(ymin - 0.5), hi = floor(ymax - 0.5);  /* clipped to the window before the casts */
+    if (lo < (double)r0) lo = (double)r0;
+    if (hi > (double)(r0 + h - 1)) hi = (double)(r0 + h - 1);
+    if (!(lo <= hi)) return 0;  /* outside the window's rows, or NaN: raster() skips it as well */
+    *rs = (int64_t)lo;
+    *re = (int64_t)hi;
+    return 1;
 }
 
-/* Insert fragments (zf, fv) into the first `layers` layers of 8 pixels from q where `in`: whether a fragment goes
-   before layer k is monotone in k, so each layer takes its own value, the fragment's or the previous layer's. */
+/* Unaligned 8-lane loads and stores in registers: memcpy into arrays of vectors went through the stack in 16-byte
+   halves, and each 32-byte reload of a half-written slot waited for the stores (a third of the pass). */
+typedef float v8f_u __attribute__((vector_size(32), aligned(4)));
+typedef int32_t v8i_u __attribute__((vector_size(32), aligned(4)));
+
+/* Insert fragments (wf, fv) into the first `layers` layers of 8 pixels from q where `in`: whether a fragment goes
+   before layer k is monotone in k, so each layer takes its own value, the fragment's or the previous layer's.
+   Depth is stored as w = 1 / camera z (nearer = larger): it interpolates linearly in screen space, so no division. */
 static inline __attribute__((always_inline)) void insert8(float *z, int32_t *face, int64_t plane, int64_t q, int layers,
-                                                          v8i in, v8f zf, v8i fv) {
-    v8i zi, zk[L], fk[L], before[L];
-    memcpy(&zi, &zf, 32);
+                                                          v8i in, v8f wf, v8i fv) {
+    v8i wi = (v8i)wf, zk[L], fk[L], before[L];
+#pragma GCC unroll 4
     for (int k = 0; k < layers; k++) {
-        v8f zk_f;
-        memcpy(&zk_f, z + k * plane + q, 32);
-        memcpy(&fk[k], face + k * plane + q, 32);
-        memcpy(&zk[k], &zk_f, 32);
-        before[k] = in & ((fk[k] < 0) | (zf < zk_f));
+        v8f zk_f = *(const v8f_u *)(z + k * plane + q);
+        fk[k] = *(const v8i_u *)(face + k * plane + q);
+        zk[k] = (v8i)zk_f;
+        before[k] = in & ((fk[k] < 0) | (wf > zk_f));
     }
+#pragma GCC unroll 4
     for (int k = layers - 1; k >= 0; k--) {
-        v8i nz = (zi & before[k]) | (zk[k] & ~before[k]);
+        v8i nz = (wi & before[k]) | (zk[k] & ~before[k]);
         v8i nf = (fv & before[k]) | (fk[k] & ~before[k]);
         if (k > 0) {
             nz = (zk[k - 1] & before[k - 1]) | (nz & ~before[k - 1]);
             nf = (fk[k - 1] & before[k - 1]) | (nf & ~before[k - 1]);
         }
-        memcpy(z + k * plane + q, &nz, 32);
-        memcpy(face + k * plane + q, &nf, 32);
+        *(v8f_u *)(z + k * plane + q) = (v8f)nz;
+        *(v8i_u *)(face + k * plane + q) = nf;
     }
 }
 
 /* z-buffer pass of faces list[0 .. count) of one surface over window rows [rlo, rhi]: P (V, 3) = (x px, y px,
    camera z > 0); keeps the `layers` (<= L) nearest fragments per window pixel, sorted by depth (a fragment after
-   those at its depth), in z (float) and face (int32, -1 = none), layer k of window pixel p at k w h + p. Both need
-   7 elements of slack after the last layer. With `cover` (the inner surface's faces, this band rasterised), 8 pixels
-   that all have one keep only the nearest fragment: the farther layers are read only where the inner surface is
-   missed (the exit search), and these blends and stores took a third of the outer pass.
+   those at its depth), in z (float: 1 / camera z, larger is nearer) and face (int32, -1 = none), layer k of window
+   pixel p at k w h + p. Both need 7 elements of slack after the last layer. With `cover` (the inner surface's
+   faces, this band rasterised), 8 pixels that all have one keep only the nearest fragment: the farther layers are
+   read only where the inner surface is missed (the exit search), and these blends and stores took a third of the
+   outer pass.
    8 pixels of a row at a time in vectors (GCC/clang vector extensions), without branches: the coverage test
    (the same operations as weights() per pixel, so the same pixels), the depth, and the insertion into each layer
    (whether the fragment goes before layer k is monotone in k, so each layer takes its own value, the fragment's
    or the previous layer's). Per pixel with branches this took 2-3x longer: the order of the faces says nothing
-   about depth, so the insertion's branches were mispredicted at about every other fragment. */
+   about depth, so the insertion's branches were mispredicted at about every other fragment. Tried and not kept:
+   8-pixel groups aligned in the window (no faster) and per-row spans from the edges' crossings instead of the
+   bounding box (three divisions a row cost more than the lanes they save on faces a few pixels wide). */
 static void raster(const double *P, const int32_t *faces, const int32_t *list, int64_t count, int64_t c0, int64_t r0,
                    int64_t w, int64_t h, int64_t rlo, int64_t rhi, float *z, int32_t *face, int layers,
                    const int32_t *cover) {
-    const v8d lane = {0.5, 1.5, 2.5, 3.5, 4.5, 5.5, 6.5, 7.5};
-    const v8i lane_i = {0, 1, 2, 3, 4, 5, 6, 7};
+    const v4d lane = {0.5, 1.5, 2.5, 3.5};
     const int64_t plane = w * h;
     for (int64_t i = 0; i < count; i++) {
         int64_t t = list ? list[i] : i;
@@ -139,33 +155,48 @@ static void raster(const double *P, const int32_t *faces, const int32_t *list, i
                      *c = P + 3 * (int64_t)faces[3 * t + 2];
         double area = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]);
         if (!(area != 0.0) || !isfinite(area)) continue;
-        double xmin = fmin(a[0], fmin(b[0], c[0])), xmax = fmax(a[0], fmax(b[0], c[0]));
-        double ymin = fmin(a[1], fmin(b[1], c[1])), ymax = fmax(a[1], fmax(b[1], c[1]));
-        int64_t cs = (int64_t)ceil(xmin - 0.5), ce = (int64_t)floor(xmax - 0.5);
-        int64_t rs = (int64_t)ceil(ymin - 0.5), re = (int64_t)floor(ymax - 0.5);
-        if (cs < c0) cs = c0;
-        if (rs < rlo) rs = rlo;
-        if (ce > c0 + w - 1) ce = c0 + w - 1;
-        if (re > rhi) re = rhi;
+        double xmin = min3(a[0], b[0], c[0]), xmax = max3(a[0], b[0], c[0]);
+        double ymin = min3(a[1], b[1], c[1]), ymax = max3(a[1], b[1], c[1]);
+        /* the bounding box's columns and rows, clipped in double before the integer casts (a coordinate beyond
+           the int64 range would make them undefined) */
+        double csd = ceil(xmin - 0.5), ced = floor(xmax - 0.5), rsd = ceil(ymin - 0.5), red = floor(ymax - 0.5);
+        if (csd < (double)c0) csd = (double)c0;
+        if (ced > (double)(c0 + w - 1)) ced = (double)(c0 + w - 1);
+        if (rsd < (double)rlo) rsd = (double)rlo;
+        if (red > (double)rhi) red = (double)rhi;
+        if (!(csd <= ced) || !(rsd <= red)) continue;
+        int64_t cs = (int64_t)csd, ce = (int64_t)ced, rs = (int64_t)rsd, re = (int64_t)red;
         double inv_area = 1.0 / area, ia = 1.0 / a[2], ib = 1.0 / b[2], ic = 1.0 / c[2];
         double d0 = c[1] - b[1], d1 = a[1] - c[1], d2 = b[1] - a[1];
+        double xend = (double)ce + 1.0;  /* centre x = col + 0.5 < xend: col <= ce */
         v8i fv = (v8i){0} + (int32_t)t;
         for (int64_t row = rs; row <= re; row++) {
             double y = row + 0.5;
             double e0 = (c[0] - b[0]) * (y - b[1]), e1 = (a[0] - c[0]) * (y - c[1]), e2 = (b[0] - a[0]) * (y - a[1]);
             for (int64_t col0 = cs; col0 <= ce; col0 += 8) {
-                v8d x = (double)col0 + lane;
-                v8d m0 = (e0 - d0 * (x - b[0])) * inv_area;
-                v8d m1 = (e1 - d1 * (x - c[0])) * inv_area;
-                v8d m2 = (e2 - d2 * (x - a[0])) * inv_area;
-                v8i in = __builtin_convertvector((m0 >= 0.0) & (m1 >= 0.0) & (m2 >= 0.0), v8i)
-                         & (lane_i < (int32_t)(ce - col0 + 1));
-                v8f zf = __builtin_convertvector(1.0 / (m0 * ia + m1 * ib + m2 * ic), v8f);
+                /* w = 1 / z, interpolated (> 0: every vertex is in front of the camera), 0 where the centre is not
+                   covered: the mask rides on w, so no 64- to 32-bit mask narrowing. In two halves of 4 doubles: GCC
+                   lowers 8-double compares to scalar code without AVX-512, and the halves join in registers. */
+                v4f wh[2];
+                for (int half = 0; half < 2; half++) {
+                    v4d x = (double)(col0 + 4 * half) + lane;
+                    v4d m0 = (e0 - d0 * (x - b[0])) * inv_area;
+                    v4d m1 = (e1 - d1 * (x - c[0])) * inv_area;
+                    v4d m2 = (e2 - d2 * (x - a[0])) * inv_area;
+                    v4l covered = (m0 >= 0.0) & (m1 >= 0.0) & (m2 >= 0.0) & (x < xend);
+                    v4d wd = m0 * ia + m1 * ib + m2 * ic;
+                    v4l wbits;
+                    memcpy(&wbits, &wd, 32);
+                    wbits &= covered;
+                    memcpy(&wd, &wbits, 32);
+                    wh[half] = __builtin_convertvector(wd, v4f);
+                }
+                v8f zf = __builtin_shufflevector(wh[0], wh[1], 0, 1, 2, 3, 4, 5, 6, 7);
+                v8i in = zf > 0.0f;
                 int64_t q = (row - r0) * w + (col0 - c0);
                 int all_covered = cover != 0;
                 if (cover) {
-                    v8i cv;
-                    memcpy(&cv, cover + q, 32);
+                    v8i cv = *(const v8i_u *)(cover + q);
                     for (int j = 0; j < 8; j++) all_covered &= cv[j] >= 0;
                 }
                 if (all_covered)
@@ -289,9 +320,9 @@ int64_t deliffas_raster_uv(const double *pin, const double *pout, const int32_t 
                 int outer_exit = 0;
                 if (inner_face < 0) {
                     double d0 = m[0] * x + m[1] * y + m[2], d1 = m[3] * x + m[4] * y + m[5], d2 = m[6] * x + m[7] * y + m[8];
-                    double zmin = (double)zo[p] + eps / sqrt(d0 * d0 + d1 * d1 + d2 * d2);
+                    double zmin = 1.0 / (double)zo[p] + eps / sqrt(d0 * d0 + d1 * d1 + d2 * d2);
                     for (int k = 1; k < L; k++) {
-                        if (fo[k * n + p] >= 0 && (double)zo[k * n + p] > zmin) {
+                        if (fo[k * n + p] >= 0 && 1.0 / (double)zo[k * n + p] > zmin) {
                             inner_face = fo[k * n + p];
                             outer_exit = 1;
                             break;
@@ -486,7 +517,7 @@ class UVRasterizer:
 # ------------------------------------------------------------------------------------------- numpy version
 def _fragments(P: np.ndarray, faces: np.ndarray, window: tuple[int, int, int, int]):
     """Every (pixel, depth, face) fragment of a surface in the window: flat window pixel (M,) int64,
-    z (M,) float32 (rounded as the kernel stores it), face (M,) int64."""
+    1 / z (M,) float32 (rounded as the kernel stores it), face (M,) int64."""
     c0, r0, c1, r1 = window
     w = c1 - c0
     a, b, c = P[faces[:, 0]], P[faces[:, 1]], P[faces[:, 2]]  # (F, 3) each
@@ -516,12 +547,15 @@ def _fragments(P: np.ndarray, faces: np.ndarray, window: tuple[int, int, int, in
         x, y = col + 0.5, row + 0.5
         A, B, C = a[t], b[t], c[t]
         inv = 1.0 / area[t]
-        l0 = ((C[:, 0] - B[:, 0]) * (y - B[:, 1]) - (C[:, 1] - B[:, 1]) * (x - B[:, 0])) * inv
-        l1 = ((A[:, 0] - C[:, 0]) * (y - C[:, 1]) - (A[:, 1] - C[:, 1]) * (x - C[:, 0])) * inv
-        l2 = ((B[:, 0] - A[:, 0]) * (y - A[:, 1]) - (B[:, 1] - A[:, 1]) * (x - A[:, 0])) * inv
-        inside = (l0 >= 0) & (l1 >= 0) & (l2 >= 0)
-        z = 1.0 / (l0 * (1.0 / A[:, 2]) + l1 * (1.0 / B[:, 2]) + l2 * (1.0 / C[:, 2]))
-        parts.append((((row - r0) * w + (col - c0))[inside], z[inside].astype(np.float32), t[inside]))
+        with np.errstate(over="ignore", invalid="ignore"):  # faces projected absurdly far: no pixel, as the kernel
+            l0 = ((C[:, 0] - B[:, 0]) * (y - B[:, 1]) - (C[:, 1] - B[:, 1]) * (x - B[:, 0])) * inv
+            l1 = ((A[:, 0] - C[:, 0]) * (y - C[:, 1]) - (A[:, 1] - C[:, 1]) * (x - C[:, 0])) * inv
+            l2 = ((B[:, 0] - A[:, 0]) * (y - A[:, 1]) - (B[:, 1] - A[:, 1]) * (x - A[:, 0])) * inv
+            # 1 / z interpolated and rounded as the kernel stores it; the kernel drops a covered centre whose
+            # rounded value is not > 0 (none with every vertex in front of the camera)
+            inv_z = (l0 * (1.0 / A[:, 2]) + l1 * (1.0 / B[:, 2]) + l2 * (1.0 / C[:, 2])).astype(np.float32)
+        inside = (l0 >= 0) & (l1 >= 0) & (l2 >= 0) & (inv_z > 0)
+        parts.append((((row - r0) * w + (col - c0))[inside], inv_z[inside], t[inside]))
     if not parts:
         return np.zeros(0, np.int64), np.zeros(0, np.float32), np.zeros(0, np.int64)
     return tuple(np.concatenate(p) for p in zip(*parts))
@@ -547,15 +581,16 @@ def _raster_numpy(pin, pout, faces, corner_uvs, window, width: int, m: np.ndarra
     n = w * (r1 - r0)
     faces64 = faces.astype(np.int64)
     inner_face = np.full(n, -1, np.int64)
-    pix, z, face = _fragments(pin, faces64, window)
-    order = np.lexsort((z, pix))  # nearest first per pixel
+    pix, inv_z, face = _fragments(pin, faces64, window)
+    order = np.lexsort((-inv_z, pix))  # nearest first per pixel
     pix, face = pix[order], face[order]
     first = np.ones(len(pix), bool)
     first[1:] = pix[1:] != pix[:-1]
     inner_face[pix[first]] = face[first]
-    pix, z, face = _fragments(pout, faces64, window)
-    order = np.lexsort((z, pix))
-    pix, z, face = pix[order], z[order], face[order]
+    pix, inv_z, face = _fragments(pout, faces64, window)
+    order = np.lexsort((-inv_z, pix))
+    pix, face = pix[order], face[order]
+    z = 1.0 / inv_z[order].astype(np.float64)
     first = np.ones(len(pix), bool)
     first[1:] = pix[1:] != pix[:-1]
     rank = np.arange(len(pix)) - np.maximum.accumulate(np.where(first, np.arange(len(pix)), 0))
@@ -565,7 +600,7 @@ def _raster_numpy(pin, pout, faces, corner_uvs, window, width: int, m: np.ndarra
     col, row = pix % w + c0 + 0.5, pix // w + r0 + 0.5
     length = np.sqrt(sum((m[j, 0] * col + m[j, 1] * row + m[j, 2]) ** 2 for j in range(3)))
     z0 = np.repeat(z[first], np.diff(np.append(np.flatnonzero(first), len(pix))))
-    later = (rank > 0) & (rank < OUTER_LAYERS) & (z.astype(np.float64) > z0.astype(np.float64) + eps / length)
+    later = (rank > 0) & (rank < OUTER_LAYERS) & (z > z0 + eps / length)
     later_idx = np.flatnonzero(later)
     keep = np.ones(len(later_idx), bool)
     keep[1:] = pix[later_idx[1:]] != pix[later_idx[:-1]]

@@ -145,3 +145,22 @@ def test_depth_pass_covers_the_outer_silhouette(blob):
     rz = UVRasterizer(v, f, outer, atlas)
     faces = rz.depth_pass(cam)
     assert (faces >= 0).sum() == rz.shaded_pixels(cam).num_rays  # every outer-covered pixel is shaded here
+
+
+def test_faces_projected_beyond_the_integer_range_equal_numpy():
+    """A vertex a hair in front of the camera plane projects to ~1e104 px: the kernel clips before its integer casts
+    and gives the numpy version's pixels (the faces reaching into the image from there are still drawn)."""
+    if not raster_kernel_available():
+        pytest.skip("no C compiler")
+    cam = ref.look_at([0.0, 0.0, 0.0], [0.0, 0.0, 1000.0], 64, 48, focal=60.0)
+    in_camera = np.array([[-300, -200, 1000], [300, -200, 1000], [0, 250, 1000], [300, 200, 1e-100],
+                          [-250, 150, 1000]], np.float64)  # camera frame, mm
+    v = (in_camera - cam.t) @ cam.R  # world = R^T (camera - t)
+    f = np.array([[0, 1, 2], [1, 3, 2], [4, 0, 3]], np.int64)
+    atlas = UVAtlas.from_mesh(v, f, resolution=32)
+    outer = v + 30.0 * cam.R[2]  # 30 mm farther along the optical axis
+    a = UVRasterizer(v, f, outer, atlas, method="native").shaded_pixels(cam)
+    b = UVRasterizer(v, f, outer, atlas, method="numpy").shaded_pixels(cam)
+    assert a is not None and a.num_rays > 0
+    np.testing.assert_array_equal(a.pixels, b.pixels)
+    np.testing.assert_allclose(a.uv_outer, b.uv_outer, atol=1e-6)
