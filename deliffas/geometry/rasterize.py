@@ -84,6 +84,19 @@ typedef float v4f __attribute__((vector_size(16)));
 typedef float v8f __attribute__((vector_size(32)));
 typedef int32_t v8i __attribute__((vector_size(32)));
 
+/* (lo, hi) as one vector: in registers where the compiler has __builtin_shufflevector (GCC 12, clang), else through
+   memory (correct, slower) */
+static inline v8f join_halves(v4f lo, v4f hi) {
+#if defined(__clang__) || (defined(__GNUC__) && __GNUC__ >= 12)
+    return __builtin_shufflevector(lo, hi, 0, 1, 2, 3, 4, 5, 6, 7);
+#else
+    v8f out;
+    memcpy(&out, &lo, 16);
+    memcpy((char *)&out + 16, &hi, 16);
+    return out;
+#endif
+}
+
 /* Rows [rs, re] of face t's pixel centres in the window (its bounding box); 0 when it covers none. */
 static inline int face_rows(const double *P, const int32_t *faces, int64_t t, int64_t r0, int64_t h, int64_t *rs,
                             int64_t *re) {
@@ -191,7 +204,7 @@ static void raster(const double *P, const int32_t *faces, const int32_t *list, i
                     memcpy(&wd, &wbits, 32);
                     wh[half] = __builtin_convertvector(wd, v4f);
                 }
-                v8f zf = __builtin_shufflevector(wh[0], wh[1], 0, 1, 2, 3, 4, 5, 6, 7);
+                v8f zf = join_halves(wh[0], wh[1]);
                 v8i in = zf > 0.0f;
                 int64_t q = (row - r0) * w + (col0 - c0);
                 int all_covered = cover != 0;
