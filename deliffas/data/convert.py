@@ -358,6 +358,7 @@ def _convert_planned(subject: Subject, out: Path, config: ConvertConfig, plan: _
             record(entry)
     finally:
         bar.close()
+        builder.close()
     _remove_leftovers(out)  # temporary files of attempts killed with their worker (retried elsewhere)
     write_manifest(out, manifest(True))
     total = sum(int(e["bytes"]) for e in done.values()) + meta_bytes

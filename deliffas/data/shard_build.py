@@ -10,8 +10,9 @@ setup) and writes shards with :meth:`ShardBuilder.write`. Geometry runs on one t
 from __future__ import annotations
 
 import contextlib
+import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Mapping, Sequence, no_type_check
 
@@ -77,6 +78,9 @@ def _outer_offsets(template: Template, outer_obj: str | None, offset_mm: float) 
     return np.einsum("vc,vc->v", outer.verts - rest, n_rest).astype(np.float32)
 
 
+_OPEN_SOURCES_LOCK = threading.Lock()
+
+
 @dataclass(frozen=True)
 class ShardBuilder:
     """What every shard of one conversion shares (build with :meth:`create`)."""
@@ -91,6 +95,9 @@ class ShardBuilder:
     geometry: FrameGeometryBuilder
     meshes: Mapping[str, MeshSequence]
     """Tracked surfaces by sequence (those the subject gives)."""
+    open_sources: dict = field(default_factory=dict, compare=False, repr=False)
+    """Frame sources kept open across shards, by sequence: those whose spec sets ``keep_open`` (read in any order
+    at one cost, slow to open: a DNA-Rendering ``.smc`` is scanned whole at each open). :meth:`close` closes them."""
 
     # no_type_check: Dask ships this bound classmethod by value (cloudpickle), and the test run's
     # type-check wrapper (jaxtyping's import hook) holds weakrefs, which do not pickle.
@@ -142,13 +149,32 @@ class ShardBuilder:
         return ShardGeometry(frames, dofs, geo.inner, geo.outer, geo.normal_maps_inner.numpy(),
                              geo.normal_maps_outer.numpy())
 
+    def _kept_source(self, sequence: str):
+        """The sequence's frame source, opened on first use and kept for the builder's life (several threads of a
+        worker may share the builder)."""
+        with _OPEN_SOURCES_LOCK:
+            src = self.open_sources.get(sequence)
+            if src is None:
+                src = self.open_sources[sequence] = self.subject.sequences[sequence].images.open()
+            return src
+
+    def close(self) -> None:
+        """Close the frame sources kept open across shards (a builder living as long as its worker process needs
+        no call: the files are read-only)."""
+        with _OPEN_SOURCES_LOCK:
+            sources = list(self.open_sources.values())
+            self.open_sources.clear()
+        for src in sources:
+            src.close()
+
     def write(self, task: ShardTask) -> dict:
         """Write one shard atomically; returns its manifest entry."""
         t0 = time.perf_counter()
         geo = self.shard_geometry(task.sequence, task.geometry_frames)
         seq = self.subject.sequences[task.sequence]
         s = self.settings
-        src = seq.images.open()
+        kept = getattr(seq.images, "keep_open", False)
+        src = self._kept_source(task.sequence) if kept else seq.images.open()
         writer = ShardWriter(s.out_dir / task.name, task.sequence, task.frames, s.cameras, seq.height, seq.width,
                              Codec.parse(s.codec), geo, s.window, seq.first_frame)
         try:
@@ -161,7 +187,8 @@ class ShardBuilder:
             writer.abort()
             raise
         finally:
-            src.close()
+            if not kept:
+                src.close()
         return {"name": task.name, "sequence": task.sequence, "frames": list(task.frames), "sha256": sha,
                 "bytes": size, "seconds": time.perf_counter() - t0}
 

@@ -77,7 +77,11 @@ class FrameSource(Protocol):
 @runtime_checkable
 class FramesSpec(Protocol):
     """Where a sequence's frames are, picklable: ``open`` gives its ``FrameSource`` in the process that
-    reads (``data.subjects.FrameSourceSpec``, ``io.capture_frames.FileFramesSpec``, ``SmcFramesSpec``)."""
+    reads (``data.subjects.FrameSourceSpec``, ``io.capture_frames.FileFramesSpec``, ``SmcFramesSpec``).
+
+    A spec may set the class attribute ``keep_open = True`` when its source reads any (frame, camera) at one cost
+    and is slow to open: a conversion then keeps one source per worker open across shards instead of opening one
+    per shard (``SmcFramesSpec``)."""
 
     def open(self) -> FrameSource: ...
 

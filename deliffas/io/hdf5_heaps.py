@@ -52,7 +52,7 @@ def looping_global_heap(path: str | os.PathLike) -> str | None:
     Args:
         path: an HDF5 file, read whole through a memory map (about 0.7 s per GB from the page cache,
             on every call: ``SmcFile`` calls it at each open, so the DNA-Rendering parser opens each file
-            once, and a conversion once per shard per file).
+            once, and a conversion keeps one open per worker across its shards).
 
     Returns:
         A sentence naming the collection's and the object's byte offsets, or None when every

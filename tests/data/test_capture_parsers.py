@@ -119,6 +119,30 @@ def test_actorshq_without_smpl_needs_meshes(exported, smpl_model, tmp_path):
     assert subject.sequences["training"].poses.num_frames == 4
 
 
+def test_dna_conversion_opens_each_smc_once(exported, smpl_model, monkeypatch, tmp_path):
+    """A conversion keeps one ``SmcFrameSource`` open across its shards (``SmcFramesSpec.keep_open``): each ``.smc``
+    is scanned once, not once per shard, and closed at the end; the shards equal those of one source per shard."""
+    import deliffas.io.dna_rendering as dna
+
+    subject = parse_subject(exported("dna"), options=SubjectOptions(template=str(smpl_model)))
+    scanned, opened = [], []
+    scan = dna.looping_global_heap
+    monkeypatch.setattr(dna, "looping_global_heap", lambda path: scanned.append(path.name) or scan(path))
+    real_close = dna.SmcFile.close
+    monkeypatch.setattr(dna.SmcFile, "close", lambda self: opened.remove(self) or real_close(self))
+    real_init = dna.SmcFile.__init__
+    monkeypatch.setattr(dna.SmcFile, "__init__", lambda self, path: real_init(self, path) or opened.append(self))
+    convert(subject, tmp_path / "kept", ConvertConfig(atlas_res=16, shard_frames=1, progress=False))
+    assert len(ShardSet(tmp_path / "kept").manifest["shards"]) == 4
+    assert scanned == ["cap_dna.smc"] * 2  # the pre-conversion check's source, then the shards' one (5 before)
+    assert opened == []  # every file closed
+    monkeypatch.setattr(type(subject.sequences["training"].images), "keep_open", False)  # one source per shard
+    convert(subject, tmp_path / "per_shard", ConvertConfig(atlas_res=16, shard_frames=1, progress=False))
+    assert len(scanned) == 2 + 5 and opened == []
+    kept, per_shard = ShardSet(tmp_path / "kept").manifest, ShardSet(tmp_path / "per_shard").manifest
+    assert [s["sha256"] for s in kept["shards"]] == [s["sha256"] for s in per_shard["shards"]]
+
+
 def test_dna_parser_opens_each_smc_once(exported, smpl_model, monkeypatch):
     """Every ``SmcFile`` open scans the whole file's HDF5 heaps (``io.hdf5_heaps``, about 0.7 s per GB): the parser
     opens the main file and its ``_annots.smc`` once each (it opened them up to 8 times)."""
