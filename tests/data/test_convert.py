@@ -119,6 +119,7 @@ def test_resume_after_interruption_gives_identical_manifest(subject, converted, 
     assert not list((out / "shards").glob(".*tmp*")) and verify_shards(out) == []
 
 
+@pytest.mark.slow  # a SIGKILL chain of real processes (17 s): `make test-slow`, as the others
 def test_resume_after_sigkill(subject, converted, tmp_path):
     """A real `deliffas convert --jobs 1` killed with SIGKILL once its first shard is listed."""
     out = tmp_path / "out"
