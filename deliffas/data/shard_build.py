@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from deliffas.io.dynacap import read_obj
+from deliffas.io.frames import FrameSource
 from deliffas.io.meshes import MeshSequence, read_meshes
 from deliffas.geometry.atlas import TexelTable, UVAtlas, uv_texel_table
 from deliffas.geometry.frame_geometry import FrameGeometryBuilder
@@ -95,7 +96,7 @@ class ShardBuilder:
     geometry: FrameGeometryBuilder
     meshes: Mapping[str, MeshSequence]
     """Tracked surfaces by sequence (those the subject gives)."""
-    open_sources: dict = field(default_factory=dict, compare=False, repr=False)
+    open_sources: dict[str, FrameSource] = field(default_factory=dict, compare=False, repr=False)
     """Frame sources kept open across shards, by sequence: those whose spec sets ``keep_open`` (read in any order
     at one cost, slow to open: a DNA-Rendering ``.smc`` is scanned whole at each open). :meth:`close` closes them."""
 
@@ -149,7 +150,7 @@ class ShardBuilder:
         return ShardGeometry(frames, dofs, geo.inner, geo.outer, geo.normal_maps_inner.numpy(),
                              geo.normal_maps_outer.numpy())
 
-    def _kept_source(self, sequence: str):
+    def _kept_source(self, sequence: str) -> FrameSource:
         """The sequence's frame source, opened on first use and kept for the builder's life (several threads of a
         worker may share the builder)."""
         with _OPEN_SOURCES_LOCK:
