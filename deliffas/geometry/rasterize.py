@@ -168,17 +168,15 @@ static void raster(const double *P, const int32_t *faces, const int32_t *list, i
                      *c = P + 3 * (int64_t)faces[3 * t + 2];
         double area = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]);
         if (!(area != 0.0) || !isfinite(area)) continue;
-        double xmin = min3(a[0], b[0], c[0]), xmax = max3(a[0], b[0], c[0]);
-        double ymin = min3(a[1], b[1], c[1]), ymax = max3(a[1], b[1], c[1]);
-        /* the bounding box's columns and rows, clipped in double before the integer casts (a coordinate beyond
-           the int64 range would make them undefined) */
-        double csd = ceil(xmin - 0.5), ced = floor(xmax - 0.5), rsd = ceil(ymin - 0.5), red = floor(ymax - 0.5);
+        int64_t rs, re;  /* the bounding box's rows in the band */
+        if (!face_rows(P, faces, t, rlo, rhi - rlo + 1, &rs, &re)) continue;
+        /* and its columns in the window, clipped in double before the integer casts as face_rows' rows (a
+           coordinate beyond the int64 range would make them undefined) */
+        double csd = ceil(min3(a[0], b[0], c[0]) - 0.5), ced = floor(max3(a[0], b[0], c[0]) - 0.5);
         if (csd < (double)c0) csd = (double)c0;
         if (ced > (double)(c0 + w - 1)) ced = (double)(c0 + w - 1);
-        if (rsd < (double)rlo) rsd = (double)rlo;
-        if (red > (double)rhi) red = (double)rhi;
-        if (!(csd <= ced) || !(rsd <= red)) continue;
-        int64_t cs = (int64_t)csd, ce = (int64_t)ced, rs = (int64_t)rsd, re = (int64_t)red;
+        if (!(csd <= ced)) continue;
+        int64_t cs = (int64_t)csd, ce = (int64_t)ced;
         double inv_area = 1.0 / area, ia = 1.0 / a[2], ib = 1.0 / b[2], ic = 1.0 / c[2];
         double d0 = c[1] - b[1], d1 = a[1] - c[1], d2 = b[1] - a[1];
         double xend = (double)ce + 1.0;  /* centre x = col + 0.5 < xend: col <= ce */
@@ -198,11 +196,7 @@ static void raster(const double *P, const int32_t *faces, const int32_t *list, i
                     v4d m2 = (e2 - d2 * (x - a[0])) * inv_area;
                     v4l covered = (m0 >= 0.0) & (m1 >= 0.0) & (m2 >= 0.0) & (x < xend);
                     v4d wd = m0 * ia + m1 * ib + m2 * ic;
-                    v4l wbits;
-                    memcpy(&wbits, &wd, 32);
-                    wbits &= covered;
-                    memcpy(&wd, &wbits, 32);
-                    wh[half] = __builtin_convertvector(wd, v4f);
+                    wh[half] = __builtin_convertvector((v4d)((v4l)wd & covered), v4f);
                 }
                 v8f zf = join_halves(wh[0], wh[1]);
                 v8i in = zf > 0.0f;
