@@ -10,8 +10,9 @@ stage by stage (``uv``, ``sample``, ``mlp``), with three replacements:
 * ``mlp``: the MLP as a chain of ``addmm`` in fp32, or in bf16 where the CPU has native bf16;
 * by default ``sample`` and ``mlp`` are one C pass instead (``FastShader.shade_fused``: 16 rays at a time in
   the vector lanes, the hidden layers in bf16 with native bf16 dot products where the dtype is bf16, else fp32,
-  the first layer's encoded part from per-coordinate tables in fp32 (``FastRender.pe_table``); every colour
-  written to its pixel), timed as the ``mlp`` stage.
+  the first layer's encoded part from per-coordinate tables in fp32 (``FastRender.pe_table``), the feature
+  layer's feature part sampled from maps projected once per frame's features (``FastRender.project_features``);
+  every colour written to its pixel), timed as the ``mlp`` stage.
 
 :class:`FastRender` is the switch. ``deliffas render`` and ``deliffas view`` use
 :func:`default_fast_render` (on for CPU devices); ``deliffas eval`` keeps the plain path, whose
@@ -45,7 +46,8 @@ from deliffas.models.deliffas import DeliffasModel, FrameFeatures
 from deliffas.models.fast_shade import FastShader, native_bf16, supports
 
 __all__ = ["FastRender", "default_fast_render", "fast_camera_rays", "fast_render_camera", "render_stream",
-           "FAST_RENDER_ENV", "RENDER_DTYPE_ENV", "FUSED_SHADE_ENV", "PE_TABLE_ENV", "FRAMES_IN_FLIGHT_ENV"]
+           "FAST_RENDER_ENV", "RENDER_DTYPE_ENV", "FUSED_SHADE_ENV", "PE_TABLE_ENV", "PROJECT_FEATURES_ENV",
+           "FRAMES_IN_FLIGHT_ENV"]
 
 logger = logging.getLogger(__name__)
 
@@ -58,6 +60,9 @@ FUSED_SHADE_ENV = "DELIFFAS_FUSED_SHADE"
 """Environment variable: "0" makes :func:`default_fast_render` use the per-stage path (``FastRender.fused=False``)."""
 PE_TABLE_ENV = "DELIFFAS_PE_TABLE"
 """Environment variable: "0" makes :func:`default_fast_render` encode every ray exactly (``FastRender.pe_table=False``)."""
+PROJECT_FEATURES_ENV = "DELIFFAS_PROJECT_FEATURES"
+"""Environment variable: "0" makes :func:`default_fast_render` sample the features themselves
+(``FastRender.project_features=False``)."""
 FRAMES_IN_FLIGHT_ENV = "DELIFFAS_FRAMES_IN_FLIGHT"
 """Environment variable: frames :func:`render_stream` renders at once under ``FastRender.in_flight=0`` (auto);
 "1" = one after the other."""
@@ -83,6 +88,10 @@ class FastRender:
     """The fused fp32 pass takes the first layer's encoded part from per-coordinate tables
     (``FastShader.encoding_table``: within 1e-4 of the exact pass, about 95 dB); False = the exact encoding.
     ``DELIFFAS_PE_TABLE=0`` turns it off."""
+    project_features: bool = True
+    """The fused fp32 pass samples the feature layer's feature part from maps projected once per frame's features
+    (``FastShader.projected_maps``: the same sums in another order, within 1e-6) instead of sampling the features
+    and multiplying; False = the features. ``DELIFFAS_PROJECT_FEATURES=0`` turns it off."""
     in_flight: int = 0
     """Frames :func:`render_stream` renders at once: 0 = auto (``DELIFFAS_FRAMES_IN_FLIGHT``, else one per CPU
     core, at most 2), 1 = sequentially."""
@@ -120,12 +129,14 @@ def default_fast_render(device: torch.device | str) -> FastRender | None:
     if torch.device(device).type != "cpu" or os.environ.get(FAST_RENDER_ENV, "1").strip() == "0":
         return None
     return FastRender(fused=os.environ.get(FUSED_SHADE_ENV, "1").strip() != "0",
-                      pe_table=os.environ.get(PE_TABLE_ENV, "1").strip() != "0")
+                      pe_table=os.environ.get(PE_TABLE_ENV, "1").strip() != "0",
+                      project_features=os.environ.get(PROJECT_FEATURES_ENV, "1").strip() != "0")
 
 
 # one rasteriser and one shader per frame geometry / model, alive as long as their owner
 _RASTERIZERS: "weakref.WeakKeyDictionary[UVRaycaster, UVRasterizer]" = weakref.WeakKeyDictionary()
-_SHADERS: "weakref.WeakKeyDictionary[DeliffasModel, dict[tuple[torch.dtype, bool], FastShader]]" = weakref.WeakKeyDictionary()
+_SHADERS: "weakref.WeakKeyDictionary[DeliffasModel, dict[tuple[torch.dtype, bool, bool], FastShader]]" = \
+    weakref.WeakKeyDictionary()
 
 
 def _rasterizer(raycaster: UVRaycaster) -> UVRasterizer:
@@ -136,11 +147,12 @@ def _rasterizer(raycaster: UVRaycaster) -> UVRasterizer:
     return rz
 
 
-def _shader(model: DeliffasModel, dtype: torch.dtype, pe_table: bool) -> FastShader:
+def _shader(model: DeliffasModel, dtype: torch.dtype, pe_table: bool, project_features: bool) -> FastShader:
     per_model = _SHADERS.setdefault(model, {})
-    if (dtype, pe_table) not in per_model:
-        per_model[dtype, pe_table] = FastShader(model, dtype, pe_table=pe_table)
-    return per_model[dtype, pe_table]
+    key = (dtype, pe_table, project_features)
+    if key not in per_model:
+        per_model[key] = FastShader(model, dtype, pe_table=pe_table, project_features=project_features)
+    return per_model[key]
 
 
 def fast_camera_rays(raycaster: UVRaycaster, camera: Camera, rasterize: bool = True, viewdir: bool = True) -> CameraRays:
@@ -174,7 +186,7 @@ def fast_render_camera(model: DeliffasModel, features: FrameFeatures, raycaster:
         batch = _camera_batch(fast_camera_rays(raycaster, camera, fast.rasterize, viewdir=model.spec.viewdir))
         query = ray_query(batch, model.spec)
     if supports(model) and model.mlp.output.weight.dtype == torch.float32 and features.inner.device.type == "cpu":
-        shader = _shader(model, fast.torch_dtype(), fast.pe_table)
+        shader = _shader(model, fast.torch_dtype(), fast.pe_table, fast.project_features)
         if fast.fused and shader.fused_available():
             with timer.stage("mlp"):  # sampling, encodings and the MLP in one pass: timed as one stage
                 canvas = torch.full((camera.height * camera.width, 3), float(background))

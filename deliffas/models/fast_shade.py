@@ -24,7 +24,11 @@ sums) when the shader's dtype is bf16 and the kernel was built with them for thi
 fp32 either way. With ``pe_table=True`` its fp32 pass takes the first hidden layer's encoded part from
 per-coordinate tables (:meth:`FastShader.encoding_table`: four table rows per coordinate instead of the
 sin/cos and 2 L + 1 products; about 1e-4 from the exact pass, whose tiles it keeps where a uv lies outside
-[0, 1]); the engine's fast path turns it on (``FastRender.pe_table``).
+[0, 1]); the engine's fast path turns it on (``FastRender.pe_table``). With ``project_features=True`` the fp32 pass
+samples the feature layer's feature part from maps projected once per frame's features (:meth:`FastShader.projected_maps`:
+bilinear sampling commutes with the layer's product, so each ray reads N projected columns instead of sampling F
+features and multiplying them by an (F, N) block; within 1e-6 of the sampled features); the engine's fast path turns
+it on (``FastRender.project_features``).
 
 Supported variants: no view direction and one inner U-Net (``two_surface``, ``single_surface``);
 :func:`supports` says so, and callers use ``DeliffasModel.shade`` otherwise. Without the C kernel
@@ -37,6 +41,7 @@ import ctypes
 import functools
 import logging
 import math
+import threading
 
 import torch
 
@@ -44,12 +49,16 @@ from deliffas.models.deliffas import DeliffasModel, FrameFeatures
 from deliffas.models.ray_query import RayQuery
 from deliffas.native import LazyLibrary
 
-__all__ = ["FastShader", "supports", "native_bf16", "ROW_CHUNK", "TABLE_NODES"]
+__all__ = ["FastShader", "supports", "native_bf16", "ROW_CHUNK", "TABLE_NODES", "PROJECTED_MAX_BYTES"]
 
 logger = logging.getLogger(__name__)
 
 TABLE_NODES = 2048
 """Intervals of :meth:`FastShader.encoding_table` on [0, 1] (a power of 2: x * TABLE_NODES is exact in fp32)."""
+
+PROJECTED_MAX_BYTES = 64 * 2**20
+"""The most :meth:`FastShader.projected_maps` projects (all maps together); larger ones (the paper preset's 1024^2
+texels of 256 columns) sample the features instead."""
 
 ROW_CHUNK = 16384
 """Rays per MLP chunk (realtime preset, bf16, 197 k rays, CPU time under load: 2048 / 4096 / 8192 /
@@ -323,13 +332,11 @@ static void encode_tile_f32(const float *uv, int64_t m, int L, int include_input
     }
 }
 
-/* Bilinear samples (sample_f32's arithmetic) of uvs [0, m) of a tile into ft (C, TILE): ray i reads map_alt where
-   alt[i] is set, else map; coordinates and weights computed over the tile (vectorised), then C channels of four
-   taps per ray. Clamped coordinates are >= 0, so the integer part is a truncation. */
-static void sample_tile(const float *map, const float *map_alt, const uint8_t *alt, const float *uv, int64_t m,
-                        int64_t S, int64_t C, float *ft) {
-    float w00[TILE], w01[TILE], w10[TILE], w11[TILE];
-    int64_t o00[TILE], o01[TILE], o10[TILE], o11[TILE];
+/* The bilinear taps of a tile's uvs [0, m) (sample_f32's arithmetic; the last uv repeated past m) on an (S, S) map of
+   C channels per texel: weights w[tap][ray] and offsets o[tap][ray] (floats from the map's start) of the texels
+   (y0, x0), (y0, x1), (y1, x0), (y1, x1); computed over the tile (vectorised). Clamped coordinates are >= 0, so the
+   integer part is a truncation. */
+static void tile_taps(const float *uv, int64_t m, int64_t S, int64_t C, float w[4][TILE], int64_t o[4][TILE]) {
     const float hi = (float)(S - 1);
     float u[2][TILE];
     for (int64_t i = 0; i < TILE; i++)
@@ -343,10 +350,19 @@ static void sample_tile(const float *map, const float *map_alt, const uint8_t *a
         int32_t x0 = (int32_t)ix, y0 = (int32_t)iy;
         float fx = ix - (float)x0, fy = iy - (float)y0;
         int32_t x1 = x0 + (x0 + 1 < S), y1 = y0 + (y0 + 1 < S);
-        w00[i] = (1.0f - fx) * (1.0f - fy); w01[i] = fx * (1.0f - fy); w10[i] = (1.0f - fx) * fy; w11[i] = fx * fy;
-        o00[i] = ((int64_t)y0 * S + x0) * C; o01[i] = ((int64_t)y0 * S + x1) * C;
-        o10[i] = ((int64_t)y1 * S + x0) * C; o11[i] = ((int64_t)y1 * S + x1) * C;
+        w[0][i] = (1.0f - fx) * (1.0f - fy); w[1][i] = fx * (1.0f - fy); w[2][i] = (1.0f - fx) * fy; w[3][i] = fx * fy;
+        o[0][i] = ((int64_t)y0 * S + x0) * C; o[1][i] = ((int64_t)y0 * S + x1) * C;
+        o[2][i] = ((int64_t)y1 * S + x0) * C; o[3][i] = ((int64_t)y1 * S + x1) * C;
     }
+}
+
+/* Bilinear samples (sample_f32's arithmetic) of uvs [0, m) of a tile into ft (C, TILE): ray i reads map_alt where
+   alt[i] is set, else map; C channels of four taps per ray. */
+static void sample_tile(const float *map, const float *map_alt, const uint8_t *alt, const float *uv, int64_t m,
+                        int64_t S, int64_t C, float *ft) {
+    float w[4][TILE];
+    int64_t o[4][TILE];
+    tile_taps(uv, m, S, C, w, o);
     const float *base[TILE];
     for (int64_t i = 0; i < TILE; i++) base[i] = (alt && alt[i < m ? i : m - 1]) ? map_alt : map;
     int64_t c = 0;
@@ -355,9 +371,9 @@ static void sample_tile(const float *map, const float *map_alt, const uint8_t *a
         for (int64_t i = 0; i < TILE; i++) {
             const float *mp = base[i] + c;
             v8 t00, t01, t10, t11;
-            memcpy(&t00, mp + o00[i], 32); memcpy(&t01, mp + o01[i], 32);
-            memcpy(&t10, mp + o10[i], 32); memcpy(&t11, mp + o11[i], 32);
-            v8 v = w00[i] * t00 + w01[i] * t01 + w10[i] * t10 + w11[i] * t11;
+            memcpy(&t00, mp + o[0][i], 32); memcpy(&t01, mp + o[1][i], 32);
+            memcpy(&t10, mp + o[2][i], 32); memcpy(&t11, mp + o[3][i], 32);
+            v8 v = w[0][i] * t00 + w[1][i] * t01 + w[2][i] * t10 + w[3][i] * t11;
             memcpy(blk[i], &v, 32);
         }
         for (int j = 0; j < 8; j++)
@@ -366,8 +382,49 @@ static void sample_tile(const float *map, const float *map_alt, const uint8_t *a
     for (; c < C; c++)
         for (int64_t i = 0; i < TILE; i++) {
             const float *mp = base[i] + c;
-            ft[c * TILE + i] = w00[i] * mp[o00[i]] + w01[i] * mp[o01[i]] + w10[i] * mp[o10[i]] + w11[i] * mp[o11[i]];
+            ft[c * TILE + i] = w[0][i] * mp[o[0][i]] + w[1][i] * mp[o[1][i]] + w[2][i] * mp[o[2][i]] + w[3][i] * mp[o[3][i]];
         }
+}
+
+/* Projected features (FastShader.project_features): rows (TILE, N) += per ray the bilinear samples of (S, S, N) maps
+   that hold the feature layer's feature columns times a feature map: pa at uv_a (when pa), then pb at uv_b, or pc
+   where alt[i] is set. Sampling commutes with the product, so this is the layer's Wf f without f. N a multiple of 8. */
+static void add_projected(const float *pa, const float *uv_a, const float *pb, const float *pc, const uint8_t *alt,
+                          const float *uv_b, int64_t m, int64_t S, int64_t N, float *rows) {
+    float wa[4][TILE], wb[4][TILE];
+    int64_t oa[4][TILE], ob[4][TILE];
+    if (pa) tile_taps(uv_a, m, S, N, wa, oa);
+    tile_taps(uv_b, m, S, N, wb, ob);
+    for (int64_t i = 0; i < TILE; i++) {
+        const float *mb = (alt && alt[i < m ? i : m - 1]) ? pc : pb;
+        for (int64_t n0 = 0; n0 < N; n0 += 8) {
+            v8 acc, t0, t1, t2, t3;
+            memcpy(&acc, rows + i * N + n0, 32);
+            if (pa) {
+                memcpy(&t0, pa + oa[0][i] + n0, 32); memcpy(&t1, pa + oa[1][i] + n0, 32);
+                memcpy(&t2, pa + oa[2][i] + n0, 32); memcpy(&t3, pa + oa[3][i] + n0, 32);
+                acc += wa[0][i] * t0 + wa[1][i] * t1 + wa[2][i] * t2 + wa[3][i] * t3;
+            }
+            memcpy(&t0, mb + ob[0][i] + n0, 32); memcpy(&t1, mb + ob[1][i] + n0, 32);
+            memcpy(&t2, mb + ob[2][i] + n0, 32); memcpy(&t3, mb + ob[3][i] + n0, 32);
+            acc += wb[0][i] * t0 + wb[1][i] * t1 + wb[2][i] * t2 + wb[3][i] * t3;
+            memcpy(rows + i * N + n0, &acc, 32);
+        }
+    }
+}
+
+/* rows (TILE, N) = the bias b (N) for every ray */
+static void bias_rows(const float *b, int64_t N, float *rows) {
+    for (int64_t i = 0; i < TILE; i++) memcpy(rows + i * N, b, (size_t)N * sizeof(float));
+}
+
+/* y (N, TILE) = rows (TILE, N) transposed */
+static void rows_to_tile(const float *rows, int64_t N, vtile *y) {
+    for (int64_t k = 0; k < N; k++) {
+        vtile v;
+        for (int64_t i = 0; i < TILE; i++) v[i] = rows[i * N + k];
+        y[k] = v;
+    }
 }
 
 /* y (N, TILE) = relu?(b + x (K, TILE) W (K, N) + f (F, TILE) Wf (F, N)); N a multiple of 8. */
@@ -393,19 +450,17 @@ static void dense(const vtile *x, int64_t K, const float *w, const float *b, con
     }
 }
 
-/* The first layer's encoded part from per-coordinate tables (FastShader.pe_table): y (N, TILE) = b + the sum over the
+/* The first layer's encoded part from per-coordinate tables (FastShader.pe_table): rows (TILE, N) = b + the sum over the
    tile's 2 nuv coordinates of a cubic Hermite interpolation of that coordinate's table. Table c holds T + 1 nodes
    x_j = j / T of 2 N floats: g_c(x_j) (N), then g_c'(x_j) / T (N), g_c = the layer's weights times the coordinate's
    encoding, so the sin/cos and 2 L products per coordinate become 4 rows of the table. Returns 0, computing nothing,
    when a uv of the tile is outside [0, 1] (the caller encodes that tile). T a power of 2 keeps x T exact. */
 static int table_layer(const float *const *uvs, int nuv, int64_t m, const float *table, int64_t T, int64_t N,
-                       const float *b, float *rows, vtile *y) {
-    for (int64_t i = 0; i < m; i++)
-        for (int u = 0; u < nuv; u++)
-            for (int d = 0; d < 2; d++) {
-                float x = uvs[u][2 * i + d];
-                if (!(x >= 0.0f && x <= 1.0f)) return 0;
-            }
+                       const float *b, float *rows) {
+    int inside = 1;  /* (branch-free, so it vectorises; NaN is outside) */
+    for (int u = 0; u < nuv; u++)
+        for (int64_t i = 0; i < 2 * m; i++) inside &= (uvs[u][i] >= 0.0f) & (uvs[u][i] <= 1.0f);
+    if (!inside) return 0;
     for (int64_t i = 0; i < TILE; i++) {
         int64_t r = i < m ? i : m - 1;
         const float *node[4];  /* per coordinate: its first node */
@@ -431,11 +486,6 @@ static int table_layer(const float *const *uvs, int nuv, int64_t m, const float 
             }
             memcpy(rows + i * N + n0, &acc, 32);
         }
-    }
-    for (int64_t k = 0; k < N; k++) {
-        vtile v;
-        for (int64_t i = 0; i < TILE; i++) v[i] = rows[i * N + k];
-        y[k] = v;
     }
     return 1;
 }
@@ -525,18 +575,20 @@ int deliffas_fused_bf16(void) {
    first layer's K); wmax: the widest hidden layer. Colour of ray r to out[3 pixels[r] ..] (out[3 r ..] if no
    pixels). params are 4-byte words: fp32, or with bf16 (deliffas_fused_bf16() must be 1) the hidden layers'
    weights as bf16 pairs, W (K/2, N) and Wf (F/2, N) with dims giving K/2 and F/2, biases and the output layer
-   fp32. Returns 0, -1 when the scratch tiles cannot be allocated, -2 for more than 512 channels per map, -3 for
-   bf16 without the kernel. */
+   fp32. proj_in (with fp32 only): the feature layer's (the one with F > 0) feature part from projected maps
+   (add_projected; S x S texels of that layer's N): proj_out at uv_out (NULL without an outer map), proj_in at uv_in,
+   proj_peel at uv_in where from_outer (NULL without from_outer); no features sampled then. Returns 0, -1 when the
+   scratch tiles cannot be allocated, -2 for more than 512 channels per map, -3 for bf16 without the kernel. */
 int deliffas_fused_shade(int64_t n, const float *uv_in, const uint8_t *from_outer, const float *uv_out,
                          int outer_encoded, int L, int include_input, const float *map_in, const float *map_out,
                          int64_t S, int64_t C, int64_t nh, const int64_t *dims, const float *params, int64_t E,
                          int64_t Fd, int64_t wmax, const int64_t *pixels, float *out, int bf16, const float *pe_table,
-                         int64_t table_nodes) {
+                         int64_t table_nodes, const float *proj_out, const float *proj_in, const float *proj_peel) {
     if (C > 512) return -2;
     if (bf16 && !FUSED_BF16) return -3;
     /* fp32 tiles: E + Fd input rows, two hidden layers; bf16: the inputs' and two hidden layers' pairs besides */
     size_t tiles = (size_t)(E + Fd + 3 * wmax + (bf16 ? (E + 1) / 2 + (Fd + 1) / 2 + wmax : 0)) * sizeof(vtile);
-    if (pe_table && bf16) pe_table = 0;  /* the table serves the fp32 pass */
+    if (bf16) pe_table = proj_in = 0;  /* the table and the projected maps serve the fp32 pass */
     char *mem = aligned_alloc(64, tiles);
     if (!mem) return -1;
     vtile *xe = (vtile *)mem, *xf = xe + E, *h0 = xf + Fd, *h1 = h0 + wmax, *rows = h1 + wmax, *pairs = rows + wmax;
@@ -552,7 +604,7 @@ int deliffas_fused_shade(int64_t n, const float *uv_in, const uint8_t *from_oute
         if (pe_table && nh > 0) {
             const float *tile_uvs[2] = {uvs[0] + 2 * r0, uvs[1] + 2 * r0};
             tabled = table_layer(tile_uvs, nuv, m, pe_table, table_nodes, dims[1], params + dims[3] + dims[0] * dims[1]
-                                 + dims[2] * dims[1], (float *)rows, h0);
+                                 + dims[2] * dims[1], (float *)rows);
         }
         if (!pairs_direct && !tabled) {
             float *xt = (float *)xe;
@@ -560,9 +612,12 @@ int deliffas_fused_shade(int64_t n, const float *uv_in, const uint8_t *from_oute
             if (outer_encoded) { encode(uv_out + 2 * r0, m, L, include_input, xt); xt += per_uv * TILE; }
             encode(uv_in + 2 * r0, m, L, include_input, xt);
         }
-        float *ft = (float *)xf;
-        if (map_out) { sample_tile(map_out, map_out, 0, uv_out + 2 * r0, m, S, C, ft); ft += C * TILE; }
-        sample_tile(map_in, map_out, (map_out && from_outer) ? from_outer + r0 : 0, uv_in + 2 * r0, m, S, C, ft);
+        const uint8_t *peel = (map_out && from_outer) ? from_outer + r0 : 0;
+        if (!proj_in) {
+            float *ft = (float *)xf;
+            if (map_out) { sample_tile(map_out, map_out, 0, uv_out + 2 * r0, m, S, C, ft); ft += C * TILE; }
+            sample_tile(map_in, map_out, peel, uv_in + 2 * r0, m, S, C, ft);
+        }
         const vtile *x = xe;
         int64_t K = E;
         if (bf16 && nh > 0) {
@@ -589,11 +644,17 @@ int deliffas_fused_shade(int64_t n, const float *uv_in, const uint8_t *from_oute
             vtile *bufs[2] = {h0, h1};
             for (int64_t l = 0; l < nh; l++) {
                 const int64_t *d = dims + 5 * l;
-                const float *w = params + d[3], *wf = params + d[4];
-                if (l == 0 && tabled)  /* h0 holds b + the encoded part: add the features' part (if any), ReLU */
-                    dense(x, 0, w, 0, d[2] ? xf : 0, d[2], wf, d[1], h0, 1);
-                else
-                    dense(x, d[0], w, w + d[0] * d[1] + d[2] * d[1], d[2] ? xf : 0, d[2], wf, d[1], bufs[l & 1], 1);
+                const float *w = params + d[3], *wf = params + d[4], *b = w + d[0] * d[1] + d[2] * d[1];
+                int projected = d[2] && proj_in, from_rows = projected || (l == 0 && tabled);
+                if (from_rows) {  /* the layer starts from rows: b + the encoded part and/or the projected features */
+                    if (!(l == 0 && tabled)) bias_rows(b, d[1], (float *)rows);
+                    if (projected)
+                        add_projected(map_out ? proj_out : 0, uv_out + 2 * r0, proj_in, proj_peel, peel, uv_in + 2 * r0,
+                                      m, S, d[1], (float *)rows);
+                    rows_to_tile((const float *)rows, d[1], bufs[l & 1]);
+                }
+                int64_t F = projected ? 0 : d[2];
+                dense(x, l == 0 && tabled ? 0 : d[0], w, from_rows ? 0 : b, F ? xf : 0, F, wf, d[1], bufs[l & 1], 1);
                 x = bufs[l & 1];
                 K = d[1];
             }
@@ -619,7 +680,7 @@ int deliffas_fused_shade(int64_t n, const float *uv_in, const uint8_t *from_oute
 def _declare_fused(lib: ctypes.CDLL) -> None:
     p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
     lib.deliffas_fused_shade.argtypes = [i64, p, p, p, i32, i32, i32, p, p, i64, i64, i64, p, p, i64, i64, i64, p, p, i32,
-                                         p, i64]
+                                         p, i64, p, p, p]
     lib.deliffas_fused_shade.restype = i32
     lib.deliffas_fused_bf16.argtypes = []
     lib.deliffas_fused_bf16.restype = i32
@@ -678,10 +739,13 @@ class FastShader:
         fused: False = :meth:`shade_fused` runs the per-stage path (inputs, then the MLP).
         pe_table: :meth:`shade_fused`'s fp32 pass takes the first layer's encoded part from per-coordinate tables
             (:meth:`encoding_table`) instead of encoding and multiplying; False = exact.
+        project_features: :meth:`shade_fused`'s fp32 pass samples the feature layer's projected maps
+            (:meth:`projected_maps`) instead of the features; False = samples the features and multiplies.
     """
 
     def __init__(self, model: DeliffasModel, dtype: torch.dtype = torch.float32, row_chunk: int = ROW_CHUNK,
-                 use_kernel: bool = True, fused: bool = True, pe_table: bool = False) -> None:
+                 use_kernel: bool = True, fused: bool = True, pe_table: bool = False,
+                 project_features: bool = False) -> None:
         if not supports(model):
             raise ValueError(f"FastShader: variant {model.config.variant!r} is not supported (see fast_shade.supports)")
         if dtype not in (torch.float32, torch.bfloat16):
@@ -689,6 +753,10 @@ class FastShader:
         self.model, self.dtype, self.row_chunk, self.use_kernel = model, dtype, int(row_chunk), bool(use_kernel)
         self.fused = bool(fused)
         self.pe_table = bool(pe_table)
+        self.project_features = bool(project_features)
+        self._projected_lock = threading.Lock()
+        self._projected_key: tuple | None = None
+        self._projected: tuple[torch.Tensor | None, torch.Tensor | None, torch.Tensor | None] | None = None
         self._table_key: tuple | None = None
         self._table: torch.Tensor | None = None
         self._fused_key: tuple | None = None
@@ -841,6 +909,44 @@ class FastShader:
         self._table, self._table_key = table, key
         return table
 
+    def projected_maps(self, features: FrameFeatures) -> tuple[torch.Tensor | None, torch.Tensor, torch.Tensor | None] | None:
+        """The feature layer's feature part as maps for :meth:`shade_fused` (``project_features``).
+
+        The layer after the concatenation adds ``Wf_o f_o + Wf_i f_i`` (the outer sample at uv_outer, then the inner
+        one at uv_inner); a bilinear sample is a weighted sum of texels, so it commutes with the product:
+        ``Wf_i sample(map_in, uv) = sample(map_in Wf_i^T, uv)``. With the maps projected once per frame's features
+        (per pose: every camera shares them), each ray samples N columns and skips the F N products.
+
+        Returns (outer map x Wf_o^T or None, inner map x Wf_i^T, outer map x Wf_i^T for peeled rays or None), each
+        (S, S, N) float32, N the layer's width padded to 8; cached for the last features (held, so the key stays
+        unique) and weights. None when nothing is to project (no feature columns, several frames, non-fp32 maps)
+        or the maps would exceed :data:`PROJECTED_MAX_BYTES`."""
+        mlp, spec = self.model.mlp, self.model.spec
+        inner, outer = features.inner, features.outer if spec.outer_unet else None
+        if not mlp.feature_dim or features.batch_size != 1 or inner.dtype != torch.float32:
+            return None
+        S, C = int(inner.shape[2]), int(inner.shape[1])
+        n_out = -(-mlp.hidden[mlp.config.feature_layer + 1].out_features // 8) * 8
+        count = (outer is not None) + 1 + (outer is not None and spec.inner_from_outer)
+        if count * S * S * n_out * 4 > PROJECTED_MAX_BYTES:
+            return None
+        key = (self._key(), id(inner), inner._version, id(outer), outer._version if outer is not None else None)
+        with self._projected_lock:
+            if self._projected_key == key:
+                return self._projected
+            w = mlp.hidden[mlp.config.feature_layer + 1].weight.detach().float()[:, : mlp.feature_dim]
+            w = torch.nn.functional.pad(w, (0, 0, 0, n_out - w.shape[0]))  # (N, F), zero rows for padded outputs
+            w_o, w_i = (w[:, :C], w[:, C:]) if outer is not None else (None, w)
+
+            def project(m: torch.Tensor, wt: torch.Tensor) -> torch.Tensor:
+                return (m[0].permute(1, 2, 0).reshape(S * S, C) @ wt.t()).reshape(S, S, n_out).contiguous()
+
+            maps = (project(outer, w_o) if outer is not None else None, project(inner, w_i),
+                    project(outer, w_i) if outer is not None and spec.inner_from_outer else None)
+            # the key holds the features' ids: keep them alive so no other tensor takes their id
+            self._projected, self._projected_key, self._projected_features = maps, key, (inner, outer)
+            return maps
+
     def fused_bf16(self) -> bool:
         """Whether :meth:`shade_fused` runs its hidden layers in bf16: the shader's dtype is bf16 and the fused kernel
         was built with native bf16 dot products (AVX512-BF16) this CPU has; else the pass is fp32."""
@@ -864,11 +970,14 @@ class FastShader:
         bf16 = self.fused_bf16()
         dims, params, widest = self._fused_params(bf16)
         table = self.encoding_table() if self.pe_table and not bf16 else None
+        projected = self.projected_maps(features) if self.project_features and not bf16 else None
+        projected = projected if projected is not None else (None, None, None)
         model = self.model
         status = lib.deliffas_fused_shade(n, *got[0], len(model.mlp.hidden), dims.data_ptr(), params.data_ptr(),
                                           model.mlp.in_dim, model.mlp.feature_dim, widest,
                                           rows.data_ptr() if rows is not None else None, out.data_ptr(), int(bf16),
-                                          table.data_ptr() if table is not None else None, TABLE_NODES)
+                                          table.data_ptr() if table is not None else None, TABLE_NODES,
+                                          *(t.data_ptr() if t is not None else None for t in projected))
         if status == -2:
             raise ValueError(f"FastShader.shade_fused: at most 512 feature channels per map, got {features.inner.shape[1]}")
         if status != 0:

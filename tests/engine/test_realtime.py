@@ -57,11 +57,15 @@ def test_fast_fp32_equals_plain(frame):
 
 
 def test_exact_encoding_equals_plain_and_the_table_is_within_its_error(frame):
-    """``pe_table=False`` (the switch) is the exact fused pass; the default table is within 1e-3 of it."""
+    """``pe_table=False`` (the switch) is the exact fused pass, with and without projected features; the default
+    table is within 1e-3 of it."""
     model, features, raycaster, cameras = frame
     plain = _render(model, features, raycaster, cameras[0], None)
     exact = _render(model, features, raycaster, cameras[0], FastRender(dtype="float32", pe_table=False))
     torch.testing.assert_close(exact, plain, atol=1e-4, rtol=0)
+    sampled = _render(model, features, raycaster, cameras[0],
+                      FastRender(dtype="float32", pe_table=False, project_features=False))
+    torch.testing.assert_close(sampled, plain, atol=1e-4, rtol=0)
     tabled = _render(model, features, raycaster, cameras[0], FastRender(dtype="float32"))
     torch.testing.assert_close(tabled, exact, atol=1e-3, rtol=0)
 
@@ -103,6 +107,9 @@ def test_switches(monkeypatch, unchecked):
     monkeypatch.setenv(realtime.PE_TABLE_ENV, "0")
     assert default_fast_render("cpu") == FastRender(pe_table=False)
     monkeypatch.delenv(realtime.PE_TABLE_ENV)
+    monkeypatch.setenv(realtime.PROJECT_FEATURES_ENV, "0")
+    assert default_fast_render("cpu") == FastRender(project_features=False)
+    monkeypatch.delenv(realtime.PROJECT_FEATURES_ENV)
     monkeypatch.setenv(realtime.FAST_RENDER_ENV, "0")
     assert default_fast_render("cpu") is None
     monkeypatch.setenv(realtime.RENDER_DTYPE_ENV, "float32")

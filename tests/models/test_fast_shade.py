@@ -243,12 +243,68 @@ def test_encoding_table_in_eight_ray_tiles(monkeypatch):
 
 
 def test_bf16_fused_pass_ignores_the_table():
-    """The table serves the fp32 pass: with native bf16 a bf16 shader's fused pass is the same with and without it."""
+    """The table and the projected features serve the fp32 pass: with native bf16 a bf16 shader's fused pass is the
+    same with and without them."""
     model, feats, query = _case("two_surface", "realtime", n=600)
     with torch.no_grad():
         a = FastShader(model, torch.bfloat16).shade_fused(feats, query)
-        b = FastShader(model, torch.bfloat16, pe_table=True).shade_fused(feats, query)
+        b = FastShader(model, torch.bfloat16, pe_table=True, project_features=True).shade_fused(feats, query)
     if FastShader(model, torch.bfloat16).fused_bf16():
         torch.testing.assert_close(a, b, atol=0, rtol=0)
     else:  # no native bf16: the fused pass is fp32, and the table applies
         assert float((a - b).abs().max()) < 2e-3
+
+
+def _feature_layer(model):
+    return model.mlp.hidden[model.mlp.config.feature_layer + 1]
+
+
+@pytest.mark.parametrize("pe_table", [False, True])
+@pytest.mark.parametrize("variant,preset", [("two_surface", "tiny"), ("two_surface", "realtime"),
+                                            ("two_surface", "small"), ("single_surface", "tiny")])
+def test_projected_features_equal_sampled_features(variant, preset, pe_table):
+    """``project_features``: the feature layer's part from projected maps equals sampling the features and multiplying
+    (with and without the table; the tiny preset's features enter the tabled first layer), on peeled rays, a partial
+    tile and uvs outside [0, 1]; the maps are cached, and rebuilt when the features or the weights change."""
+    model, feats, query = _case(variant, preset, n=1000 + 7)
+    shader = FastShader(model, pe_table=pe_table, project_features=True)
+    if not shader.fused_available():
+        pytest.skip(f"the fused kernel is not built here: {fast_shade._FUSED.load().reason}")
+    sampled = FastShader(model, pe_table=pe_table)
+    with torch.no_grad():
+        torch.testing.assert_close(shader.shade_fused(feats, query), sampled.shade_fused(feats, query), atol=2e-6, rtol=0)
+        maps = shader.projected_maps(feats)
+        S, width = model.config.atlas_res, -(-_feature_layer(model).out_features // 8) * 8
+        assert maps is not None and maps[1].shape == (S, S, width)
+        assert (maps[0] is not None) == model.spec.outer_unet
+        assert (maps[2] is not None) == (model.spec.outer_unet and model.spec.inner_from_outer)
+        assert shader.projected_maps(feats) is maps
+        feats.inner.mul_(0.5)  # in place: the same tensor, a new version
+        assert shader.projected_maps(feats) is not maps
+        torch.testing.assert_close(shader.shade_fused(feats, query), sampled.shade_fused(feats, query), atol=2e-6, rtol=0)
+        maps = shader.projected_maps(feats)
+        _feature_layer(model).weight.mul_(-1.5)
+        assert shader.projected_maps(feats) is not maps
+        torch.testing.assert_close(shader.shade_fused(feats, query), sampled.shade_fused(feats, query), atol=2e-6, rtol=0)
+        other = FrameFeatures(inner=feats.inner.flip(2).contiguous(memory_format=torch.channels_last), outer=feats.outer)
+        torch.testing.assert_close(shader.shade_fused(other, query), sampled.shade_fused(other, query), atol=2e-6, rtol=0)
+
+
+def test_projected_features_beyond_their_budget_sample_the_features(monkeypatch):
+    """Maps larger than ``PROJECTED_MAX_BYTES`` (the paper preset's) are not projected: the pass samples the features."""
+    model, feats, query = _case("two_surface", "realtime", n=300)
+    monkeypatch.setattr(fast_shade, "PROJECTED_MAX_BYTES", 1024)
+    shader = FastShader(model, project_features=True)
+    assert shader.projected_maps(feats) is None
+    with torch.no_grad():
+        torch.testing.assert_close(shader.shade_fused(feats, query), FastShader(model).shade_fused(feats, query),
+                                   atol=0, rtol=0)
+
+
+def test_projected_features_in_eight_ray_tiles(monkeypatch):
+    """Projected features in the 8-ray tiles of CPUs without AVX-512 (a kernel built with -mno-avx512f)."""
+    _fused_built_with("-mno-avx512f", monkeypatch)
+    model, feats, query = _case("two_surface", "realtime", n=500)
+    with torch.no_grad():
+        torch.testing.assert_close(FastShader(model, pe_table=True, project_features=True).shade_fused(feats, query),
+                                   FastShader(model, pe_table=True).shade_fused(feats, query), atol=2e-6, rtol=0)
