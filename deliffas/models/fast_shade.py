@@ -450,6 +450,60 @@ static void dense(const vtile *x, int64_t K, const float *w, const float *b, con
     }
 }
 
+/* Two tiles keep a vector register each (the compiler would otherwise reload them for every product) */
+#if defined(__x86_64__) && defined(__GNUC__)
+#define IN_REGISTER(v) __asm__("" : "+v"(v))
+#else
+#define IN_REGISTER(v) ((void)0)
+#endif
+#define GROUP 2  /* tiles shaded together: their dense layers share every weight (dense2) */
+
+/* dense (relu) for two tiles at once, 4 outputs at a time: each broadcast weight serves 2 products, 6 loads per 8
+   products instead of 9 (the load ports, not the FMAs, bounded dense on AVX2). */
+static void dense2(const vtile *x0, const vtile *x1, int64_t K, const float *w, const float *b, const vtile *f0,
+                   const vtile *f1, int64_t F, const float *wf, int64_t N, vtile *y0, vtile *y1) {
+    for (int64_t n0 = 0; n0 < N; n0 += 4) {
+        vtile a0[4], a1[4];
+        for (int j = 0; j < 4; j++) {
+            a0[j] = b ? (vtile){0} + b[n0 + j] : y0[n0 + j];  /* no b: y holds the start */
+            a1[j] = b ? (vtile){0} + b[n0 + j] : y1[n0 + j];
+        }
+        for (int64_t k = 0; k < K; k++) {
+            vtile u = x0[k], v = x1[k];
+            IN_REGISTER(u); IN_REGISTER(v);
+            const float *wr = w + k * N + n0;
+            for (int j = 0; j < 4; j++) { float s = wr[j]; a0[j] += u * s; a1[j] += v * s; }
+        }
+        for (int64_t k = 0; k < F; k++) {
+            vtile u = f0[k], v = f1[k];
+            IN_REGISTER(u); IN_REGISTER(v);
+            const float *wr = wf + k * N + n0;
+            for (int j = 0; j < 4; j++) { float s = wr[j]; a0[j] += u * s; a1[j] += v * s; }
+        }
+        for (int j = 0; j < 4; j++) {
+            y0[n0 + j] = (vtile)((vtilei)a0[j] & (a0[j] > (vtile){0}));
+            y1[n0 + j] = (vtile)((vtilei)a1[j] & (a1[j] > (vtile){0}));
+        }
+    }
+}
+
+/* The output layer, its sigmoid and the colours of rays [0, m) of a tile (x: (K, TILE)) to out[3 pixels[r0 + i] ..]
+   (out[3 (r0 + i) ..] without pixels). */
+static void write_colours(const vtile *x, int64_t K, const float *wo, const float *bo, int64_t m, const int64_t *pixels,
+                          int64_t r0, float *out) {
+    vtile acc[3];
+    for (int j = 0; j < 3; j++) acc[j] = (vtile){0} + bo[j];
+    for (int64_t k = 0; k < K; k++)
+        for (int j = 0; j < 3; j++) acc[j] += x[k] * wo[j * K + k];
+    float rgb[3][TILE];
+    for (int j = 0; j < 3; j++)
+        for (int i = 0; i < TILE; i++) rgb[j][i] = 1.0f / (1.0f + exp_approx(-acc[j][i]));
+    for (int64_t i = 0; i < m; i++) {
+        float *o = out + 3 * (pixels ? pixels[r0 + i] : r0 + i);
+        o[0] = rgb[0][i]; o[1] = rgb[1][i]; o[2] = rgb[2][i];
+    }
+}
+
 /* The first layer's encoded part from per-coordinate tables (FastShader.pe_table): rows (TILE, N) = b + the sum over the
    tile's 2 nuv coordinates of a cubic Hermite interpolation of that coordinate's table. Table c holds T + 1 nodes
    x_j = j / T of 2 N floats: g_c(x_j) (N), then g_c'(x_j) / T (N), g_c = the layer's weights times the coordinate's
@@ -586,90 +640,105 @@ int deliffas_fused_shade(int64_t n, const float *uv_in, const uint8_t *from_oute
                          int64_t table_nodes, const float *proj_out, const float *proj_in, const float *proj_peel) {
     if (C > 512) return -2;
     if (bf16 && !FUSED_BF16) return -3;
-    /* fp32 tiles: E + Fd input rows, two hidden layers; bf16: the inputs' and two hidden layers' pairs besides */
-    size_t tiles = (size_t)(E + Fd + 3 * wmax + (bf16 ? (E + 1) / 2 + (Fd + 1) / 2 + wmax : 0)) * sizeof(vtile);
+    /* per tile, fp32: E + Fd input rows, two hidden layers and the rows; bf16: the inputs' and two hidden layers'
+       pairs besides */
+    int64_t per_tile = E + Fd + 3 * wmax + (bf16 ? (E + 1) / 2 + (Fd + 1) / 2 + wmax : 0);
     if (bf16) pe_table = proj_in = 0;  /* the table and the projected maps serve the fp32 pass */
-    char *mem = aligned_alloc(64, tiles);
+    char *mem = aligned_alloc(64, (size_t)(GROUP * per_tile) * sizeof(vtile));
     if (!mem) return -1;
-    vtile *xe = (vtile *)mem, *xf = xe + E, *h0 = xf + Fd, *h1 = h0 + wmax, *rows = h1 + wmax, *pairs = rows + wmax;
+    vtile *xe[GROUP], *xf[GROUP], *h[GROUP][2], *rows[GROUP], *pairs[GROUP];
+    for (int t = 0; t < GROUP; t++) {
+        xe[t] = (vtile *)mem + t * per_tile; xf[t] = xe[t] + E; h[t][0] = xf[t] + Fd; h[t][1] = h[t][0] + wmax;
+        rows[t] = h[t][1] + wmax; pairs[t] = rows[t] + wmax;
+    }
+    (void)pairs;  /* (read by the bf16 layers only) */
     const float *uvs[2] = {outer_encoded ? uv_out : uv_in, uv_in};
     int nuv = outer_encoded ? 2 : 1;
     const int64_t *od = dims + 5 * nh;
     const float *wo = params + od[0], *bo = wo + 3 * od[1];
-    for (int64_t r0 = 0; r0 < n; r0 += TILE) {
-        int64_t m = n - r0 < TILE ? n - r0 : TILE;
-        int64_t per_uv = (include_input ? 2 : 0) + 4 * (int64_t)L;
-        int pairs_direct = FUSED_BF16 && bf16 && nh > 0;  /* encodings straight into bf16 pairs */
-        int tabled = 0;  /* the first layer's encoded part from the tables */
-        if (pe_table && nh > 0) {
-            const float *tile_uvs[2] = {uvs[0] + 2 * r0, uvs[1] + 2 * r0};
-            tabled = table_layer(tile_uvs, nuv, m, pe_table, table_nodes, dims[1], params + dims[3] + dims[0] * dims[1]
-                                 + dims[2] * dims[1], (float *)rows);
-        }
-        if (!pairs_direct && !tabled) {
-            float *xt = (float *)xe;
-            void (*encode)(const float *, int64_t, int, int, float *) = bf16 ? encode_tile_f32 : encode_tile;
-            if (outer_encoded) { encode(uv_out + 2 * r0, m, L, include_input, xt); xt += per_uv * TILE; }
-            encode(uv_in + 2 * r0, m, L, include_input, xt);
-        }
-        const uint8_t *peel = (map_out && from_outer) ? from_outer + r0 : 0;
-        if (!proj_in) {
-            float *ft = (float *)xf;
-            if (map_out) { sample_tile(map_out, map_out, 0, uv_out + 2 * r0, m, S, C, ft); ft += C * TILE; }
-            sample_tile(map_in, map_out, peel, uv_in + 2 * r0, m, S, C, ft);
-        }
-        const vtile *x = xe;
-        int64_t K = E;
-        if (bf16 && nh > 0) {
+    int64_t per_uv = (include_input ? 2 : 0) + 4 * (int64_t)L;
+    for (int64_t g0 = 0; g0 < n; g0 += GROUP * TILE) {
+        int nt = 0;  /* tiles in this group */
+        int64_t r0s[GROUP], ms[GROUP];
+        int tabled[GROUP];  /* the first layer's encoded part from the tables */
+        const uint8_t *peel[GROUP];
+        for (; nt < GROUP && g0 + nt * TILE < n; nt++) {
+            int t = nt;
+            int64_t r0 = r0s[t] = g0 + t * TILE, m = ms[t] = n - r0 < TILE ? n - r0 : TILE;
+            int pairs_direct = FUSED_BF16 && bf16 && nh > 0;  /* encodings straight into bf16 pairs */
+            tabled[t] = 0;
+            if (pe_table && nh > 0) {
+                const float *tile_uvs[2] = {uvs[0] + 2 * r0, uvs[1] + 2 * r0};
+                tabled[t] = table_layer(tile_uvs, nuv, m, pe_table, table_nodes, dims[1],
+                                        params + dims[3] + dims[0] * dims[1] + dims[2] * dims[1], (float *)rows[t]);
+            }
+            if (!pairs_direct && !tabled[t]) {
+                float *xt = (float *)xe[t];
+                void (*encode)(const float *, int64_t, int, int, float *) = bf16 ? encode_tile_f32 : encode_tile;
+                if (outer_encoded) { encode(uv_out + 2 * r0, m, L, include_input, xt); xt += per_uv * TILE; }
+                encode(uv_in + 2 * r0, m, L, include_input, xt);
+            }
+            peel[t] = (map_out && from_outer) ? from_outer + r0 : 0;
+            if (!proj_in) {
+                float *ft = (float *)xf[t];
+                if (map_out) { sample_tile(map_out, map_out, 0, uv_out + 2 * r0, m, S, C, ft); ft += C * TILE; }
+                sample_tile(map_in, map_out, peel[t], uv_in + 2 * r0, m, S, C, ft);
+            }
+            if (bf16 && nh > 0) {  /* the bf16 hidden layers and the colours, a tile at a time */
 #if FUSED_BF16
-            __m512bh *pe = (__m512bh *)pairs, *pf = pe + (E + 1) / 2, *ph[2] = {pf + (Fd + 1) / 2, pf + (Fd + 1) / 2 + wmax / 2};
-            __m512bh *pp = pe;
-            if (outer_encoded) { encode_pairs(uv_out + 2 * r0, m, L, include_input, pp); pp += per_uv / 2; }
-            encode_pairs(uv_in + 2 * r0, m, L, include_input, pp);
-            pair_tile(xf, Fd, pf);
-            const __m512bh *xp = pe;
-            const uint32_t *words = (const uint32_t *)params;
-            for (int64_t l = 0; l < nh; l++) {
-                const int64_t *d = dims + 5 * l;
-                const uint32_t *w = words + d[3], *wf = words + d[4];
-                const float *b = params + d[3] + d[0] * d[1] + d[2] * d[1];
-                int last = l == nh - 1;
-                dense_bf16(xp, d[0], w, b, d[2] ? pf : 0, d[2], wf, d[1], ph[l & 1], last ? h0 : 0);
-                xp = ph[l & 1];
-                K = d[1];
-            }
-            x = h0;
-#endif
-        } else {
-            vtile *bufs[2] = {h0, h1};
-            for (int64_t l = 0; l < nh; l++) {
-                const int64_t *d = dims + 5 * l;
-                const float *w = params + d[3], *wf = params + d[4], *b = w + d[0] * d[1] + d[2] * d[1];
-                int projected = d[2] && proj_in, from_rows = projected || (l == 0 && tabled);
-                if (from_rows) {  /* the layer starts from rows: b + the encoded part and/or the projected features */
-                    if (!(l == 0 && tabled)) bias_rows(b, d[1], (float *)rows);
-                    if (projected)
-                        add_projected(map_out ? proj_out : 0, uv_out + 2 * r0, proj_in, proj_peel, peel, uv_in + 2 * r0,
-                                      m, S, d[1], (float *)rows);
-                    rows_to_tile((const float *)rows, d[1], bufs[l & 1]);
+                __m512bh *pe = (__m512bh *)pairs[t], *pf = pe + (E + 1) / 2;
+                __m512bh *ph[2] = {pf + (Fd + 1) / 2, pf + (Fd + 1) / 2 + wmax / 2};
+                __m512bh *pp = pe;
+                if (outer_encoded) { encode_pairs(uv_out + 2 * r0, m, L, include_input, pp); pp += per_uv / 2; }
+                encode_pairs(uv_in + 2 * r0, m, L, include_input, pp);
+                pair_tile(xf[t], Fd, pf);
+                const __m512bh *xp = pe;
+                const uint32_t *words = (const uint32_t *)params;
+                for (int64_t l = 0; l < nh; l++) {
+                    const int64_t *d = dims + 5 * l;
+                    const uint32_t *w = words + d[3], *wf = words + d[4];
+                    const float *b = params + d[3] + d[0] * d[1] + d[2] * d[1];
+                    dense_bf16(xp, d[0], w, b, d[2] ? pf : 0, d[2], wf, d[1], ph[l & 1], l == nh - 1 ? h[t][0] : 0);
+                    xp = ph[l & 1];
                 }
-                int64_t F = projected ? 0 : d[2];
-                dense(x, l == 0 && tabled ? 0 : d[0], w, from_rows ? 0 : b, F ? xf : 0, F, wf, d[1], bufs[l & 1], 1);
-                x = bufs[l & 1];
-                K = d[1];
+                write_colours(h[t][0], od[1], wo, bo, m, pixels, r0, out);
+#endif
             }
         }
-        vtile acc[3];
-        for (int j = 0; j < 3; j++) acc[j] = (vtile){0} + bo[j];
-        for (int64_t k = 0; k < K; k++)
-            for (int j = 0; j < 3; j++) acc[j] += x[k] * wo[j * K + k];
-        float rgb[3][TILE];
-        for (int j = 0; j < 3; j++)
-            for (int i = 0; i < TILE; i++) rgb[j][i] = 1.0f / (1.0f + exp_approx(-acc[j][i]));
-        for (int64_t i = 0; i < m; i++) {
-            float *o = out + 3 * (pixels ? pixels[r0 + i] : r0 + i);
-            o[0] = rgb[0][i]; o[1] = rgb[1][i]; o[2] = rgb[2][i];
+        if (bf16 && nh > 0) continue;
+        const vtile *x[GROUP];
+        for (int t = 0; t < nt; t++) x[t] = xe[t];
+        for (int64_t l = 0; l < nh; l++) {
+            const int64_t *d = dims + 5 * l;
+            const float *w = params + d[3], *wf = params + d[4], *b = w + d[0] * d[1] + d[2] * d[1];
+            int projected = d[2] && proj_in, alike = 1;
+            for (int t = 0; t < nt; t++) {
+                int from_table = l == 0 && tabled[t];
+                alike &= from_table == (l == 0 && tabled[0]);
+                if (projected || from_table) {  /* the layer starts from rows: b + the encoded part and/or the projected features */
+                    if (!from_table) bias_rows(b, d[1], (float *)rows[t]);
+                    if (projected)
+                        add_projected(map_out ? proj_out : 0, uv_out + 2 * r0s[t], proj_in, proj_peel, peel[t],
+                                      uv_in + 2 * r0s[t], ms[t], S, d[1], (float *)rows[t]);
+                    rows_to_tile((const float *)rows[t], d[1], h[t][l & 1]);
+                }
+            }
+            int64_t F = projected ? 0 : d[2];
+            if (nt == 2 && alike) {
+                int from_rows = projected || (l == 0 && tabled[0]);
+                dense2(x[0], x[1], l == 0 && tabled[0] ? 0 : d[0], w, from_rows ? 0 : b, F ? xf[0] : 0, F ? xf[1] : 0, F,
+                       wf, d[1], h[0][l & 1], h[1][l & 1]);
+            } else {
+                for (int t = 0; t < nt; t++) {
+                    int from_table = l == 0 && tabled[t];
+                    dense(x[t], from_table ? 0 : d[0], w, projected || from_table ? 0 : b, F ? xf[t] : 0, F, wf, d[1],
+                          h[t][l & 1], 1);
+                }
+            }
+            for (int t = 0; t < nt; t++) x[t] = h[t][l & 1];
         }
+        int64_t K = nh ? od[1] : E;
+        for (int t = 0; t < nt; t++) write_colours(x[t], K, wo, bo, ms[t], pixels, r0s[t], out);
     }
     free(mem);
     return 0;
