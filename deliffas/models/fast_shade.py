@@ -418,7 +418,29 @@ static void bias_rows(const float *b, int64_t N, float *rows) {
     for (int64_t i = 0; i < TILE; i++) memcpy(rows + i * N, b, (size_t)N * sizeof(float));
 }
 
-/* y (N, TILE) = rows (TILE, N) transposed */
+/* y (N, TILE) = rows (TILE, N) transposed; N a multiple of 8 */
+#if TILE == 8 && defined(__AVX__)
+#include <immintrin.h>
+static void rows_to_tile(const float *rows, int64_t N, vtile *y) {
+    for (int64_t k = 0; k < N; k += 8) {  /* an 8 x 8 block in registers: 24 shuffles instead of 64 inserts */
+        const float *s = rows + k;
+        __m256 r0 = _mm256_loadu_ps(s), r1 = _mm256_loadu_ps(s + N), r2 = _mm256_loadu_ps(s + 2 * N),
+               r3 = _mm256_loadu_ps(s + 3 * N), r4 = _mm256_loadu_ps(s + 4 * N), r5 = _mm256_loadu_ps(s + 5 * N),
+               r6 = _mm256_loadu_ps(s + 6 * N), r7 = _mm256_loadu_ps(s + 7 * N);
+        __m256 t0 = _mm256_unpacklo_ps(r0, r1), t1 = _mm256_unpackhi_ps(r0, r1), t2 = _mm256_unpacklo_ps(r2, r3),
+               t3 = _mm256_unpackhi_ps(r2, r3), t4 = _mm256_unpacklo_ps(r4, r5), t5 = _mm256_unpackhi_ps(r4, r5),
+               t6 = _mm256_unpacklo_ps(r6, r7), t7 = _mm256_unpackhi_ps(r6, r7);
+        __m256 u0 = _mm256_shuffle_ps(t0, t2, 0x44), u1 = _mm256_shuffle_ps(t0, t2, 0xEE),
+               u2 = _mm256_shuffle_ps(t1, t3, 0x44), u3 = _mm256_shuffle_ps(t1, t3, 0xEE),
+               u4 = _mm256_shuffle_ps(t4, t6, 0x44), u5 = _mm256_shuffle_ps(t4, t6, 0xEE),
+               u6 = _mm256_shuffle_ps(t5, t7, 0x44), u7 = _mm256_shuffle_ps(t5, t7, 0xEE);
+        y[k] = (vtile)_mm256_permute2f128_ps(u0, u4, 0x20); y[k + 1] = (vtile)_mm256_permute2f128_ps(u1, u5, 0x20);
+        y[k + 2] = (vtile)_mm256_permute2f128_ps(u2, u6, 0x20); y[k + 3] = (vtile)_mm256_permute2f128_ps(u3, u7, 0x20);
+        y[k + 4] = (vtile)_mm256_permute2f128_ps(u0, u4, 0x31); y[k + 5] = (vtile)_mm256_permute2f128_ps(u1, u5, 0x31);
+        y[k + 6] = (vtile)_mm256_permute2f128_ps(u2, u6, 0x31); y[k + 7] = (vtile)_mm256_permute2f128_ps(u3, u7, 0x31);
+    }
+}
+#else
 static void rows_to_tile(const float *rows, int64_t N, vtile *y) {
     for (int64_t k = 0; k < N; k++) {
         vtile v;
@@ -426,6 +448,7 @@ static void rows_to_tile(const float *rows, int64_t N, vtile *y) {
         y[k] = v;
     }
 }
+#endif
 
 /* y (N, TILE) = relu?(b + x (K, TILE) W (K, N) + f (F, TILE) Wf (F, N)); N a multiple of 8. */
 static void dense(const vtile *x, int64_t K, const float *w, const float *b, const vtile *f, int64_t F, const float *wf,
