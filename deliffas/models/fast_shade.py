@@ -473,8 +473,9 @@ static void dense(const vtile *x, int64_t K, const float *w, const float *b, con
     }
 }
 
-/* Two tiles keep a vector register each (the compiler would otherwise reload them for every product) */
-#if defined(__x86_64__) && defined(__GNUC__)
+/* Two tiles keep a vector register each (the compiler would otherwise reload them for every product); only where a
+   tile fits one register (AVX for 8 lanes, AVX-512 for 16): wider vectors have no register to ask for. */
+#if defined(__x86_64__) && defined(__GNUC__) && defined(__AVX__)
 #define IN_REGISTER(v) __asm__("" : "+v"(v))
 #else
 #define IN_REGISTER(v) ((void)0)

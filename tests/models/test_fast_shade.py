@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import platform
+
 import pytest
 import torch
 
@@ -165,6 +167,24 @@ def _fused_built_with(flag: str, monkeypatch) -> LazyLibrary:
         pytest.skip(f"kernel not built with {flag}: {lib.load().reason}")
     monkeypatch.setattr(fast_shade, "_FUSED", lib)
     return lib
+
+
+@pytest.mark.skipif(platform.machine().lower() not in ("x86_64", "amd64"), reason="-mno-avx is an x86 flag")
+def test_fused_pass_builds_and_agrees_without_avx(monkeypatch):
+    """The kernel builds for x86 CPUs without AVX (SSE registers only; ``build_library`` also falls back to no
+    ``-march`` at all, the same case) and agrees with ``shade``: the asm that keeps a tile in a register is left out
+    where a tile is wider than the registers, which would not compile."""
+    lib = LazyLibrary("fused_shade_no_avx", fast_shade._FUSED_SOURCE, (*fast_shade._FUSED.flags, "-mno-avx"),
+                      setup=fast_shade._declare_fused, fallback="none")
+    built = lib.load()
+    if built.lib is None and ("no C compiler" in built.reason or built.reason.startswith("disabled")):
+        pytest.skip(built.reason)
+    assert built.lib is not None, built.reason
+    monkeypatch.setattr(fast_shade, "_FUSED", lib)
+    model, feats, query = _case("two_surface", "realtime", n=300)
+    with torch.no_grad():
+        got = FastShader(model, pe_table=True, project_features=True).shade_fused(feats, query)
+        torch.testing.assert_close(got, model.shade(feats, query), atol=2e-3, rtol=0)
 
 
 def test_fused_pass_built_without_native_bf16_runs_fp32(monkeypatch):
