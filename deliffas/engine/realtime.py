@@ -11,9 +11,8 @@ stage by stage (``uv``, ``sample``, ``mlp``), with three replacements:
 * by default ``sample`` and ``mlp`` are one C pass instead (``FastShader.shade_fused``: 16 rays at a time in
   the vector lanes, the hidden layers in bf16 with native bf16 dot products where the dtype is bf16, else fp32,
   the first layer's encoded part from per-coordinate tables in fp32 (``FastRender.pe_table``), the feature
-  layer's feature part sampled from maps projected once per frame's features when they are shaded again, as
-  with a held pose (``FastRender.project_features``); every colour written to its pixel), timed as the ``mlp``
-  stage.
+  layer's feature part sampled from maps projected once per frame's features (``FastRender.project_features``);
+  every colour written to its pixel), timed as the ``mlp`` stage.
 
 :class:`FastRender` is the switch. ``deliffas render`` and ``deliffas view`` use
 :func:`default_fast_render` (on for CPU devices); ``deliffas eval`` keeps the plain path, whose
@@ -92,8 +91,7 @@ class FastRender:
     project_features: bool = True
     """The fused fp32 pass samples the feature layer's feature part from maps projected once per frame's features
     (``FastShader.projected_maps``: the same sums in another order, within 1e-6) instead of sampling the features
-    and multiplying, from the second time the same features are shaded (a held pose, a pose's other cameras; a
-    new pose every frame never projects); False = the features. ``DELIFFAS_PROJECT_FEATURES=0`` turns it off."""
+    and multiplying; False = the features. ``DELIFFAS_PROJECT_FEATURES=0`` turns it off."""
     in_flight: int = 0
     """Frames :func:`render_stream` renders at once: 0 = auto (``DELIFFAS_FRAMES_IN_FLIGHT``, else one per CPU
     core, at most 2), 1 = sequentially."""

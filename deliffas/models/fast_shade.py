@@ -27,9 +27,8 @@ sin/cos and 2 L + 1 products; about 1e-4 from the exact pass, whose tiles it kee
 [0, 1]); the engine's fast path turns it on (``FastRender.pe_table``). With ``project_features=True`` the fp32 pass
 samples the feature layer's feature part from maps projected once per frame's features (:meth:`FastShader.projected_maps`:
 bilinear sampling commutes with the layer's product, so each ray reads N projected columns instead of sampling F
-features and multiplying them by an (F, N) block; within 1e-6 of the sampled features), from the second time the same
-features are shaded on (a held pose, a pose's other cameras); the engine's fast path turns it on
-(``FastRender.project_features``).
+features and multiplying them by an (F, N) block; within 1e-6 of the sampled features); the engine's fast path turns
+it on (``FastRender.project_features``).
 
 Supported variants: no view direction and one inner U-Net (``two_surface``, ``single_surface``);
 :func:`supports` says so, and callers use ``DeliffasModel.shade`` otherwise. Without the C kernel
@@ -834,8 +833,7 @@ class FastShader:
         pe_table: :meth:`shade_fused`'s fp32 pass takes the first layer's encoded part from per-coordinate tables
             (:meth:`encoding_table`) instead of encoding and multiplying; False = exact.
         project_features: :meth:`shade_fused`'s fp32 pass samples the feature layer's projected maps
-            (:meth:`projected_maps`) instead of the features, from the second time the same features are shaded
-            (the first samples them); False = samples the features and multiplies.
+            (:meth:`projected_maps`) instead of the features; False = samples the features and multiplies.
     """
 
     def __init__(self, model: DeliffasModel, dtype: torch.dtype = torch.float32, row_chunk: int = ROW_CHUNK,
@@ -852,7 +850,6 @@ class FastShader:
         self._projected_lock = threading.Lock()
         self._projected_key: tuple | None = None
         self._projected: tuple[torch.Tensor | None, torch.Tensor | None, torch.Tensor | None] | None = None
-        self._seen_key: tuple | None = None
         self._table_key: tuple | None = None
         self._table: torch.Tensor | None = None
         self._fused_key: tuple | None = None
@@ -1026,7 +1023,7 @@ class FastShader:
         count = (outer is not None) + 1 + (outer is not None and spec.inner_from_outer)
         if count * S * S * n_out * 4 > PROJECTED_MAX_BYTES:
             return None
-        key = self._features_key(features)
+        key = (self._key(), id(inner), inner._version, id(outer), outer._version if outer is not None else None)
         with self._projected_lock:
             if self._projected_key == key:
                 return self._projected
@@ -1042,24 +1039,6 @@ class FastShader:
             # the key holds the features' ids: keep them alive so no other tensor takes their id
             self._projected, self._projected_key, self._projected_features = maps, key, (inner, outer)
             return maps
-
-    def _features_key(self, features: FrameFeatures) -> tuple:
-        inner, outer = features.inner, features.outer if self.model.spec.outer_unet else None
-        return (self._key(), id(inner), inner._version, id(outer), outer._version if outer is not None else None)
-
-    def _reused_projection(self, features: FrameFeatures
-                           ) -> tuple[torch.Tensor | None, torch.Tensor, torch.Tensor | None] | None:
-        """:meth:`projected_maps` once ``features`` are shaded a second time (a held pose, another camera of the
-        pose), else None: the first use samples them, so a new pose every frame pays no projection (at S = 256 the
-        projection cost more than the first frame saved: 17.3 -> 15.0 fps, U-Nets per frame, two in flight)."""
-        key = self._features_key(features)
-        with self._projected_lock:
-            if self._projected_key == key:
-                return self._projected
-            first_use = self._seen_key != key
-            # (held, so that no other tensor takes the ids in the key)
-            self._seen_key, self._seen_features = key, (features.inner, features.outer)
-        return None if first_use else self.projected_maps(features)
 
     def fused_bf16(self) -> bool:
         """Whether :meth:`shade_fused` runs its hidden layers in bf16: the shader's dtype is bf16 and the fused kernel
@@ -1084,7 +1063,7 @@ class FastShader:
         bf16 = self.fused_bf16()
         dims, params, widest = self._fused_params(bf16)
         table = self.encoding_table() if self.pe_table and not bf16 else None
-        projected = self._reused_projection(features) if self.project_features and not bf16 else None
+        projected = self.projected_maps(features) if self.project_features and not bf16 else None
         projected = projected if projected is not None else (None, None, None)
         model = self.model
         status = lib.deliffas_fused_shade(n, *got[0], len(model.mlp.hidden), dims.data_ptr(), params.data_ptr(),

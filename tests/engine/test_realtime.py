@@ -57,14 +57,12 @@ def test_fast_fp32_equals_plain(frame):
 
 
 def test_exact_encoding_equals_plain_and_the_table_is_within_its_error(frame):
-    """``pe_table=False`` (the switch) is the exact fused pass, with and without projected features (the features'
-    second use, here another camera, projects them); the default table is within 1e-3 of it."""
+    """``pe_table=False`` (the switch) is the exact fused pass, with and without projected features; the default
+    table is within 1e-3 of it."""
     model, features, raycaster, cameras = frame
     plain = _render(model, features, raycaster, cameras[0], None)
     exact = _render(model, features, raycaster, cameras[0], FastRender(dtype="float32", pe_table=False))
     torch.testing.assert_close(exact, plain, atol=1e-4, rtol=0)
-    projected = _render(model, features, raycaster, cameras[1], FastRender(dtype="float32", pe_table=False))
-    torch.testing.assert_close(projected, _render(model, features, raycaster, cameras[1], None), atol=1e-4, rtol=0)
     sampled = _render(model, features, raycaster, cameras[0],
                       FastRender(dtype="float32", pe_table=False, project_features=False))
     torch.testing.assert_close(sampled, plain, atol=1e-4, rtol=0)

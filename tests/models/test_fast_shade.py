@@ -182,10 +182,9 @@ def test_fused_pass_builds_and_agrees_without_avx(monkeypatch):
     assert built.lib is not None, built.reason
     monkeypatch.setattr(fast_shade, "_FUSED", lib)
     model, feats, query = _case("two_surface", "realtime", n=300)
-    shader = FastShader(model, pe_table=True, project_features=True)
     with torch.no_grad():
-        for _ in range(2):  # sampled, then projected features
-            torch.testing.assert_close(shader.shade_fused(feats, query), model.shade(feats, query), atol=2e-3, rtol=0)
+        got = FastShader(model, pe_table=True, project_features=True).shade_fused(feats, query)
+        torch.testing.assert_close(got, model.shade(feats, query), atol=2e-3, rtol=0)
 
 
 def test_fused_pass_built_without_native_bf16_runs_fp32(monkeypatch):
@@ -292,13 +291,8 @@ def test_projected_features_equal_sampled_features(variant, preset, pe_table):
     if not shader.fused_available():
         pytest.skip(f"the fused kernel is not built here: {fast_shade._FUSED.load().reason}")
     sampled = FastShader(model, pe_table=pe_table)
-
-    def agree(f):  # shaded twice: the second pass projects (the first of new features samples them)
-        shader.shade_fused(f, query)
-        torch.testing.assert_close(shader.shade_fused(f, query), sampled.shade_fused(f, query), atol=2e-6, rtol=0)
-
     with torch.no_grad():
-        agree(feats)
+        torch.testing.assert_close(shader.shade_fused(feats, query), sampled.shade_fused(feats, query), atol=2e-6, rtol=0)
         maps = shader.projected_maps(feats)
         S, width = model.config.atlas_res, -(-_feature_layer(model).out_features // 8) * 8
         assert maps is not None and maps[1].shape == (S, S, width)
@@ -307,39 +301,13 @@ def test_projected_features_equal_sampled_features(variant, preset, pe_table):
         assert shader.projected_maps(feats) is maps
         feats.inner.mul_(0.5)  # in place: the same tensor, a new version
         assert shader.projected_maps(feats) is not maps
-        agree(feats)
+        torch.testing.assert_close(shader.shade_fused(feats, query), sampled.shade_fused(feats, query), atol=2e-6, rtol=0)
         maps = shader.projected_maps(feats)
         _feature_layer(model).weight.mul_(-1.5)
         assert shader.projected_maps(feats) is not maps
-        agree(feats)
+        torch.testing.assert_close(shader.shade_fused(feats, query), sampled.shade_fused(feats, query), atol=2e-6, rtol=0)
         other = FrameFeatures(inner=feats.inner.flip(2).contiguous(memory_format=torch.channels_last), outer=feats.outer)
-        agree(other)
-
-
-def test_features_are_projected_when_shaded_again(monkeypatch):
-    """The first shading of new features samples them (a new pose every frame pays no projection); the second
-    projects, and later ones reuse the maps; new features (or the same ones changed in place) start over."""
-    model, feats, query = _case("two_surface", "realtime", n=300)
-    shader = FastShader(model, pe_table=True, project_features=True)
-    if not shader.fused_available():
-        pytest.skip(f"the fused kernel is not built here: {fast_shade._FUSED.load().reason}")
-    calls = []
-    project = shader.projected_maps
-    monkeypatch.setattr(shader, "projected_maps", lambda f: calls.append(f) or project(f))
-    sampled = FastShader(model, pe_table=True)
-    with torch.no_grad():
-        ref = sampled.shade_fused(feats, query)
-        torch.testing.assert_close(shader.shade_fused(feats, query), ref, atol=2e-6, rtol=0)
-        assert calls == []
-        for _ in range(3):
-            torch.testing.assert_close(shader.shade_fused(feats, query), ref, atol=2e-6, rtol=0)
-        assert len(calls) == 1
-        feats.inner.mul_(0.5)
-        shader.shade_fused(feats, query)
-        assert len(calls) == 1
-        torch.testing.assert_close(shader.shade_fused(feats, query), sampled.shade_fused(feats, query), atol=2e-6,
-                                   rtol=0)
-        assert len(calls) == 2
+        torch.testing.assert_close(shader.shade_fused(other, query), sampled.shade_fused(other, query), atol=2e-6, rtol=0)
 
 
 def test_projected_features_beyond_their_budget_sample_the_features(monkeypatch):
@@ -357,8 +325,6 @@ def test_projected_features_in_eight_ray_tiles(monkeypatch):
     """Projected features in the 8-ray tiles of CPUs without AVX-512 (a kernel built with -mno-avx512f)."""
     _fused_built_with("-mno-avx512f", monkeypatch)
     model, feats, query = _case("two_surface", "realtime", n=500)
-    shader = FastShader(model, pe_table=True, project_features=True)
     with torch.no_grad():
-        shader.shade_fused(feats, query)  # (the first use samples the features; the second projects them)
-        torch.testing.assert_close(shader.shade_fused(feats, query),
+        torch.testing.assert_close(FastShader(model, pe_table=True, project_features=True).shade_fused(feats, query),
                                    FastShader(model, pe_table=True).shade_fused(feats, query), atol=2e-6, rtol=0)
