@@ -87,11 +87,13 @@ def _frame_fns(model, sample, info, camera, fast):
         with torch.no_grad():
             return render_camera(model, features, rc, camera, device, timer or StageTimer(device), fast=fast)
 
-    def full():  # a new pose: surfaces and U-Nets per frame
+    once = dataclasses.replace(fast, project_features=False) if fast is not None else None
+
+    def full():  # a new pose: surfaces and U-Nets per frame, features shaded once (as engine.render does)
         with torch.no_grad():
             rc2 = UVRaycaster(sample.inner_verts, info["faces"], sample.outer_verts, info["atlas"])
             feats = model.encode(*sample.normal_maps(device))
-            return render_camera(model, feats, rc2, camera, device, StageTimer(device), fast=fast)
+            return render_camera(model, feats, rc2, camera, device, StageTimer(device), fast=once)
     return held, full, features, rc
 
 
