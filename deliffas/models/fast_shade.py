@@ -234,7 +234,7 @@ _FUSED_SOURCE = _SOURCE + r"""
 #include <stdlib.h>
 
 /* Rays per tile = float lanes of the widest vector registers: 16 with AVX-512, else 8. A 16-lane tile on AVX2 is
-   emulated with register pairs, and dense()'s 8 accumulators then spill: the fp32 pass ran 5 x slower than with 8. */
+   emulated with register pairs, and the dense layers' accumulators then spill: the fp32 pass ran 5 x slower. */
 #ifdef __AVX512F__
 #define TILE 16
 #else
@@ -356,6 +356,38 @@ static void tile_taps(const float *uv, int64_t m, int64_t S, int64_t C, float w[
     }
 }
 
+/* y (N, TILE) = rows (TILE, N) transposed; N a multiple of 8 */
+#if TILE == 8 && defined(__AVX__)
+#include <immintrin.h>
+static void rows_to_tile(const float *rows, int64_t N, vtile *y) {
+    for (int64_t k = 0; k < N; k += 8) {  /* an 8 x 8 block in registers: 24 shuffles instead of 64 inserts */
+        const float *s = rows + k;
+        __m256 r0 = _mm256_loadu_ps(s), r1 = _mm256_loadu_ps(s + N), r2 = _mm256_loadu_ps(s + 2 * N),
+               r3 = _mm256_loadu_ps(s + 3 * N), r4 = _mm256_loadu_ps(s + 4 * N), r5 = _mm256_loadu_ps(s + 5 * N),
+               r6 = _mm256_loadu_ps(s + 6 * N), r7 = _mm256_loadu_ps(s + 7 * N);
+        __m256 t0 = _mm256_unpacklo_ps(r0, r1), t1 = _mm256_unpackhi_ps(r0, r1), t2 = _mm256_unpacklo_ps(r2, r3),
+               t3 = _mm256_unpackhi_ps(r2, r3), t4 = _mm256_unpacklo_ps(r4, r5), t5 = _mm256_unpackhi_ps(r4, r5),
+               t6 = _mm256_unpacklo_ps(r6, r7), t7 = _mm256_unpackhi_ps(r6, r7);
+        __m256 u0 = _mm256_shuffle_ps(t0, t2, 0x44), u1 = _mm256_shuffle_ps(t0, t2, 0xEE),
+               u2 = _mm256_shuffle_ps(t1, t3, 0x44), u3 = _mm256_shuffle_ps(t1, t3, 0xEE),
+               u4 = _mm256_shuffle_ps(t4, t6, 0x44), u5 = _mm256_shuffle_ps(t4, t6, 0xEE),
+               u6 = _mm256_shuffle_ps(t5, t7, 0x44), u7 = _mm256_shuffle_ps(t5, t7, 0xEE);
+        y[k] = (vtile)_mm256_permute2f128_ps(u0, u4, 0x20); y[k + 1] = (vtile)_mm256_permute2f128_ps(u1, u5, 0x20);
+        y[k + 2] = (vtile)_mm256_permute2f128_ps(u2, u6, 0x20); y[k + 3] = (vtile)_mm256_permute2f128_ps(u3, u7, 0x20);
+        y[k + 4] = (vtile)_mm256_permute2f128_ps(u0, u4, 0x31); y[k + 5] = (vtile)_mm256_permute2f128_ps(u1, u5, 0x31);
+        y[k + 6] = (vtile)_mm256_permute2f128_ps(u2, u6, 0x31); y[k + 7] = (vtile)_mm256_permute2f128_ps(u3, u7, 0x31);
+    }
+}
+#else
+static void rows_to_tile(const float *rows, int64_t N, vtile *y) {
+    for (int64_t k = 0; k < N; k++) {
+        vtile v;
+        for (int64_t i = 0; i < TILE; i++) v[i] = rows[i * N + k];
+        y[k] = v;
+    }
+}
+#endif
+
 /* Bilinear samples (sample_f32's arithmetic) of uvs [0, m) of a tile into ft (C, TILE): ray i reads map_alt where
    alt[i] is set, else map; C channels of four taps per ray. */
 static void sample_tile(const float *map, const float *map_alt, const uint8_t *alt, const float *uv, int64_t m,
@@ -367,17 +399,16 @@ static void sample_tile(const float *map, const float *map_alt, const uint8_t *a
     for (int64_t i = 0; i < TILE; i++) base[i] = (alt && alt[i < m ? i : m - 1]) ? map_alt : map;
     int64_t c = 0;
     for (; c + 8 <= C; c += 8) {  /* 8 channels of a ray in one vector, then the (TILE, 8) block transposed into ft */
-        float blk[TILE][8];
+        float blk[TILE * 8];
         for (int64_t i = 0; i < TILE; i++) {
             const float *mp = base[i] + c;
             v8 t00, t01, t10, t11;
             memcpy(&t00, mp + o[0][i], 32); memcpy(&t01, mp + o[1][i], 32);
             memcpy(&t10, mp + o[2][i], 32); memcpy(&t11, mp + o[3][i], 32);
             v8 v = w[0][i] * t00 + w[1][i] * t01 + w[2][i] * t10 + w[3][i] * t11;
-            memcpy(blk[i], &v, 32);
+            memcpy(blk + 8 * i, &v, 32);
         }
-        for (int j = 0; j < 8; j++)
-            for (int64_t i = 0; i < TILE; i++) ft[(c + j) * TILE + i] = blk[i][j];
+        rows_to_tile(blk, 8, (vtile *)ft + c);
     }
     for (; c < C; c++)
         for (int64_t i = 0; i < TILE; i++) {
@@ -418,61 +449,6 @@ static void bias_rows(const float *b, int64_t N, float *rows) {
     for (int64_t i = 0; i < TILE; i++) memcpy(rows + i * N, b, (size_t)N * sizeof(float));
 }
 
-/* y (N, TILE) = rows (TILE, N) transposed; N a multiple of 8 */
-#if TILE == 8 && defined(__AVX__)
-#include <immintrin.h>
-static void rows_to_tile(const float *rows, int64_t N, vtile *y) {
-    for (int64_t k = 0; k < N; k += 8) {  /* an 8 x 8 block in registers: 24 shuffles instead of 64 inserts */
-        const float *s = rows + k;
-        __m256 r0 = _mm256_loadu_ps(s), r1 = _mm256_loadu_ps(s + N), r2 = _mm256_loadu_ps(s + 2 * N),
-               r3 = _mm256_loadu_ps(s + 3 * N), r4 = _mm256_loadu_ps(s + 4 * N), r5 = _mm256_loadu_ps(s + 5 * N),
-               r6 = _mm256_loadu_ps(s + 6 * N), r7 = _mm256_loadu_ps(s + 7 * N);
-        __m256 t0 = _mm256_unpacklo_ps(r0, r1), t1 = _mm256_unpackhi_ps(r0, r1), t2 = _mm256_unpacklo_ps(r2, r3),
-               t3 = _mm256_unpackhi_ps(r2, r3), t4 = _mm256_unpacklo_ps(r4, r5), t5 = _mm256_unpackhi_ps(r4, r5),
-               t6 = _mm256_unpacklo_ps(r6, r7), t7 = _mm256_unpackhi_ps(r6, r7);
-        __m256 u0 = _mm256_shuffle_ps(t0, t2, 0x44), u1 = _mm256_shuffle_ps(t0, t2, 0xEE),
-               u2 = _mm256_shuffle_ps(t1, t3, 0x44), u3 = _mm256_shuffle_ps(t1, t3, 0xEE),
-               u4 = _mm256_shuffle_ps(t4, t6, 0x44), u5 = _mm256_shuffle_ps(t4, t6, 0xEE),
-               u6 = _mm256_shuffle_ps(t5, t7, 0x44), u7 = _mm256_shuffle_ps(t5, t7, 0xEE);
-        y[k] = (vtile)_mm256_permute2f128_ps(u0, u4, 0x20); y[k + 1] = (vtile)_mm256_permute2f128_ps(u1, u5, 0x20);
-        y[k + 2] = (vtile)_mm256_permute2f128_ps(u2, u6, 0x20); y[k + 3] = (vtile)_mm256_permute2f128_ps(u3, u7, 0x20);
-        y[k + 4] = (vtile)_mm256_permute2f128_ps(u0, u4, 0x31); y[k + 5] = (vtile)_mm256_permute2f128_ps(u1, u5, 0x31);
-        y[k + 6] = (vtile)_mm256_permute2f128_ps(u2, u6, 0x31); y[k + 7] = (vtile)_mm256_permute2f128_ps(u3, u7, 0x31);
-    }
-}
-#else
-static void rows_to_tile(const float *rows, int64_t N, vtile *y) {
-    for (int64_t k = 0; k < N; k++) {
-        vtile v;
-        for (int64_t i = 0; i < TILE; i++) v[i] = rows[i * N + k];
-        y[k] = v;
-    }
-}
-#endif
-
-/* y (N, TILE) = relu?(b + x (K, TILE) W (K, N) + f (F, TILE) Wf (F, N)); N a multiple of 8. */
-static void dense(const vtile *x, int64_t K, const float *w, const float *b, const vtile *f, int64_t F, const float *wf,
-                  int64_t N, vtile *y, int relu) {
-    for (int64_t n0 = 0; n0 < N; n0 += 8) {
-        vtile acc[8];
-        for (int j = 0; j < 8; j++) acc[j] = b ? (vtile){0} + b[n0 + j] : y[n0 + j];  /* no b: y holds the start */
-        for (int64_t k = 0; k < K; k++) {
-            vtile xv = x[k];
-            const float *wr = w + k * N + n0;
-            for (int j = 0; j < 8; j++) acc[j] += xv * wr[j];
-        }
-        for (int64_t k = 0; k < F; k++) {
-            vtile fv = f[k];
-            const float *wr = wf + k * N + n0;
-            for (int j = 0; j < 8; j++) acc[j] += fv * wr[j];
-        }
-        for (int j = 0; j < 8; j++) {
-            if (relu) acc[j] = (vtile)((vtilei)acc[j] & (acc[j] > (vtile){0}));
-            y[n0 + j] = acc[j];
-        }
-    }
-}
-
 /* Two tiles keep a vector register each (the compiler would otherwise reload them for every product); only where a
    tile fits one register (AVX for 8 lanes, AVX-512 for 16): wider vectors have no register to ask for. */
 #if defined(__x86_64__) && defined(__GNUC__) && defined(__AVX__)
@@ -482,14 +458,16 @@ static void dense(const vtile *x, int64_t K, const float *w, const float *b, con
 #endif
 #define GROUP 2  /* tiles shaded together: their dense layers share every weight (dense2) */
 
-/* dense (relu) for two tiles at once, 4 outputs at a time: each broadcast weight serves 2 products, 6 loads per 8
-   products instead of 9 (the load ports, not the FMAs, bounded dense on AVX2). */
+/* y (N, TILE) = relu(b + x (K, TILE) W (K, N) + f (F, TILE) Wf (F, N)) for two tiles at once (x0 .. y0, x1 .. y1;
+   one tile passed twice for a tile alone), 4 outputs at a time: each broadcast weight serves 2 products, 6 loads per
+   8 products instead of 9 for one tile (the load ports, not the FMAs, bounded the layers on AVX2). No b: y holds the
+   start. N a multiple of 4. */
 static void dense2(const vtile *x0, const vtile *x1, int64_t K, const float *w, const float *b, const vtile *f0,
                    const vtile *f1, int64_t F, const float *wf, int64_t N, vtile *y0, vtile *y1) {
     for (int64_t n0 = 0; n0 < N; n0 += 4) {
         vtile a0[4], a1[4];
         for (int j = 0; j < 4; j++) {
-            a0[j] = b ? (vtile){0} + b[n0 + j] : y0[n0 + j];  /* no b: y holds the start */
+            a0[j] = b ? (vtile){0} + b[n0 + j] : y0[n0 + j];
             a1[j] = b ? (vtile){0} + b[n0 + j] : y1[n0 + j];
         }
         for (int64_t k = 0; k < K; k++) {
@@ -748,21 +726,15 @@ int deliffas_fused_shade(int64_t n, const float *uv_in, const uint8_t *from_oute
                 }
             }
             int64_t F = projected ? 0 : d[2];
-            if (nt == 2 && alike) {
-                int from_rows = projected || (l == 0 && tabled[0]);
-                dense2(x[0], x[1], l == 0 && tabled[0] ? 0 : d[0], w, from_rows ? 0 : b, F ? xf[0] : 0, F ? xf[1] : 0, F,
-                       wf, d[1], h[0][l & 1], h[1][l & 1]);
-            } else {
-                for (int t = 0; t < nt; t++) {
-                    int from_table = l == 0 && tabled[t];
-                    dense(x[t], from_table ? 0 : d[0], w, projected || from_table ? 0 : b, F ? xf[t] : 0, F, wf, d[1],
-                          h[t][l & 1], 1);
-                }
+            int pair = nt == 2 && alike;  /* both tiles in one call; else each alone, passed twice */
+            for (int t = 0; t < nt; t += 1 + pair) {
+                int u = pair ? 1 : t, from_table = l == 0 && tabled[t];
+                dense2(x[t], x[u], from_table ? 0 : d[0], w, projected || from_table ? 0 : b, F ? xf[t] : 0,
+                       F ? xf[u] : 0, F, wf, d[1], h[t][l & 1], h[u][l & 1]);
             }
             for (int t = 0; t < nt; t++) x[t] = h[t][l & 1];
         }
-        int64_t K = nh ? od[1] : E;
-        for (int t = 0; t < nt; t++) write_colours(x[t], K, wo, bo, ms[t], pixels, r0s[t], out);
+        for (int t = 0; t < nt; t++) write_colours(x[t], od[1], wo, bo, ms[t], pixels, r0s[t], out);
     }
     free(mem);
     return 0;
@@ -804,6 +776,11 @@ def native_bf16() -> bool:
     except OSError:
         return False
     return any(flag in flags.split() for flag in ("avx512_bf16", "amx_bf16", "bf16"))
+
+
+def _lanes(width: int) -> int:
+    """A layer width padded to a multiple of 8, as the fused pass lays out its outputs (8 a vector)."""
+    return -(-width // 8) * 8
 
 
 def _bf16_pairs(w: torch.Tensor) -> torch.Tensor:
@@ -850,6 +827,7 @@ class FastShader:
         self._projected_lock = threading.Lock()
         self._projected_key: tuple | None = None
         self._projected: tuple[torch.Tensor | None, torch.Tensor | None, torch.Tensor | None] | None = None
+        self._projected_features: tuple[torch.Tensor, torch.Tensor | None] | None = None  # the key's tensors, held
         self._table_key: tuple | None = None
         self._table: torch.Tensor | None = None
         self._fused_key: tuple | None = None
@@ -936,7 +914,7 @@ class FastShader:
                 w = lin.weight.detach().float()
                 f = mlp.feature_dim if (i == mlp.config.feature_layer + 1 and mlp.feature_dim) else 0
                 w_f, w_h = w[:, :f], w[:, f:]
-                n_out = -(-w.shape[0] // 8) * 8
+                n_out = _lanes(w.shape[0])
                 pad = lambda t, rows: torch.nn.functional.pad(t, (0, n_out - t.shape[1], 0, rows - t.shape[0]))  # noqa: E731
                 bias = pad(lin.bias.detach().float()[None], 1).view(torch.int32)
                 if bf16:
@@ -981,7 +959,7 @@ class FastShader:
             lin = mlp.hidden[0]
             f = mlp.feature_dim if mlp.config.feature_layer + 1 == 0 else 0
             w = lin.weight.detach().to(torch.float64)[:, f:]  # (N, E): the encoded columns
-            n_out = -(-w.shape[0] // 8) * 8
+            n_out = _lanes(w.shape[0])
             x = torch.arange(TABLE_NODES + 1, dtype=torch.float64) / TABLE_NODES  # (T + 1,)
             table = torch.zeros(2 * nuv, TABLE_NODES + 1, 2, n_out, dtype=torch.float64)
             for u in range(nuv):
@@ -1019,7 +997,7 @@ class FastShader:
         if not mlp.feature_dim or features.batch_size != 1 or inner.dtype != torch.float32:
             return None
         S, C = int(inner.shape[2]), int(inner.shape[1])
-        n_out = -(-mlp.hidden[mlp.config.feature_layer + 1].out_features // 8) * 8
+        n_out = _lanes(mlp.hidden[mlp.config.feature_layer + 1].out_features)
         count = (outer is not None) + 1 + (outer is not None and spec.inner_from_outer)
         if count * S * S * n_out * 4 > PROJECTED_MAX_BYTES:
             return None
