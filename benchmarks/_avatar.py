@@ -66,7 +66,7 @@ def _character_path() -> tuple[Path, str]:
 @functools.lru_cache(maxsize=1)
 def avatar(num_normal_frames: int = 8) -> Avatar:
     """The posed character (cached per process)."""
-    from deliffas.io.dynacap import read_character, read_motion
+    from deliffas.io.formats.dynacap.character import read_character, read_motion
     from deliffas.geometry.atlas import UVAtlas
     from deliffas.geometry.mesh_ops import vertex_normals
     from deliffas.geometry.shell import offset_shell

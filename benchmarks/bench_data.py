@@ -93,7 +93,7 @@ def run() -> list[Result]:
 
 def _geometry_from_motion(subject: Path, ds):
     """What a sample needs besides the images when there are no shards: pose the window, build normal maps."""
-    from deliffas.io.dynacap import read_character, read_motion
+    from deliffas.io.formats.dynacap.character import read_character, read_motion
     from deliffas.geometry.atlas import UVAtlas, uv_texel_table
     from deliffas.geometry.frame_geometry import FrameGeometryBuilder
     from deliffas.geometry.templates import DDCTemplate

@@ -8,7 +8,7 @@ from benchmarks.common import SAMPLE_DIR, Result, best_time
 
 
 def run() -> list[Result]:
-    from deliffas.io.dynacap import read_character, read_motion
+    from deliffas.io.formats.dynacap.character import read_character, read_motion
     from deliffas.geometry.templates import DDCTemplate
 
     if not (SAMPLE_DIR / "ddc.character").is_file():

@@ -20,7 +20,7 @@ from deliffas.geometry.frame_geometry import FrameGeometryBuilder
 from deliffas.geometry.motion_gen import procedural_motion
 from deliffas.geometry.procedural import make_procedural_character
 from deliffas.geometry.templates import build_template, ddc_spec
-from deliffas.io.dynacap import read_character, read_motion
+from deliffas.io.formats.dynacap.character import read_character, read_motion
 from deliffas.io.mesh_files import write_mesh
 
 

@@ -71,7 +71,7 @@ def variant_source(args, sizes: RecipeSizes) -> VariantSource:
 
 def template_deviation(variant_character: Path, original_character: Path) -> dict:
     """Symmetric surface distance (mm, rest pose) between a variant's template and the original's."""
-    from deliffas.io.dynacap import read_character
+    from deliffas.io.formats.dynacap.character import read_character
     from deliffas.geometry.variants import closest_points_on_mesh
 
     a = read_character(variant_character).mesh

@@ -83,7 +83,7 @@ def standin_character(character, faces: int = STANDIN_FACES, smooth_iters: int =
 
 def write_template_folder(folder: Path, character, name: str, offset_mm: float = 30.0) -> Path:
     """Write ``character`` as ``folder/<name>.character`` plus its ``outer.obj`` shell (as ``build_templates``)."""
-    from deliffas.io.dynacap import ObjData, write_obj
+    from deliffas.io.formats.dynacap.character import ObjData, write_obj
     from deliffas.geometry.shell import ShellConfig, offset_shell, shell_offsets
     from deliffas.geometry.variants import write_variant
 
@@ -98,7 +98,7 @@ def write_template_folder(folder: Path, character, name: str, offset_mm: float =
 
 # --------------------------------------------------------------------------------------------- recipe
 def main(argv=None) -> dict:
-    from deliffas.io.dynacap import read_character
+    from deliffas.io.formats.dynacap.character import read_character
 
     p = recipe_parser(__doc__.splitlines()[0], seeds=True)
     p.add_argument("--smpl-model", default=None,
@@ -112,7 +112,7 @@ def main(argv=None) -> dict:
     p.add_argument("--standin-smooth", type=int, default=STANDIN_SMOOTH, help="Taubin iterations of the stand-in")
     args = p.parse_args(argv)
     if args.smpl_model not in (None, "procedural") and not Path(args.smpl_model).is_file():
-        from deliffas.io.smpl import SMPL_NOT_SHIPPED
+        from deliffas.io.body_models.smpl import SMPL_NOT_SHIPPED
 
         p.error(f"--smpl-model {args.smpl_model}: no such file. {SMPL_NOT_SHIPPED}")
     sizes = ablation_sizes(args)

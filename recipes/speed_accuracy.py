@@ -212,7 +212,7 @@ def retime(timed: list[tuple[dict, Path]], repeats: int, device: str = "cpu") ->
 
 
 def _coarse_budgets(character: Path, fractions: tuple[float, ...]) -> list[int]:
-    from deliffas.io.dynacap import read_character
+    from deliffas.io.formats.dynacap.character import read_character
 
     faces = read_character(character).mesh.num_faces
     return sorted({max(64, int(round(f * faces))) for f in fractions}, reverse=True)

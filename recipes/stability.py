@@ -193,7 +193,7 @@ def _shell_summary(report: dict) -> dict:
 def _plain_shell_stats(character: Path, d: float) -> dict | None:
     """Rest-pose statistics of the plain shell at d (self-intersecting faces), None if they fail."""
     try:
-        from deliffas.io.dynacap import read_character
+        from deliffas.io.formats.dynacap.character import read_character
         from deliffas.geometry.shell import offset_shell, shell_report
 
         mesh = read_character(character).mesh
@@ -360,7 +360,7 @@ def holed_template(character: Path, folder: Path, holes: int, seed: int = 0, rin
     face get no normal and stay in place in the shell. Returns ``{"character", "faces_deleted",
     "faces", "boundary_edges"}``.
     """
-    from deliffas.io.dynacap import read_character
+    from deliffas.io.formats.dynacap.character import read_character
     from deliffas.geometry.shell import boundary_edges
     from deliffas.geometry.variants import write_variant
 

@@ -67,14 +67,14 @@ def sample_dir() -> Path:
 
 @pytest.fixture(scope="session")
 def sample_character(sample_dir):
-    from deliffas.io.dynacap import read_character
+    from deliffas.io.formats.dynacap.character import read_character
 
     return read_character(sample_dir / "ddc.character")
 
 
 @pytest.fixture(scope="session")
 def sample_motion(sample_dir, sample_character):
-    from deliffas.io.dynacap import read_motion
+    from deliffas.io.formats.dynacap.character import read_motion
 
     return read_motion(sample_dir / "skeletoolToGTPose" / "poseAngles.motion", sample_character.skeleton.num_dofs)
 

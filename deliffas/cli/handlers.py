@@ -14,8 +14,8 @@ import sys
 from pathlib import Path
 
 from deliffas.io.camera_formats import read_cameras, write_cameras
-from deliffas.io.files import claim_output_file
-from deliffas.io.dynacap import read_character
+from deliffas.io.infra.files import claim_output_file
+from deliffas.io.formats.dynacap.character import read_character
 from deliffas.geometry.smpl_surface_fit import SurfaceFitConfig
 from deliffas.geometry.templates import spec_from_file
 from deliffas.geometry.procedural import make_procedural_character

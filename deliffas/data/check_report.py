@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from deliffas.io.capture_format import write_json_atomic
-from deliffas.io.capture_frames import write_image_file
-from deliffas.io.text_lines import write_text_atomic
+from deliffas.io.infra.reader_checks import write_json_atomic
+from deliffas.io.formats.capture_frames import write_image_file
+from deliffas.io.infra.text_lines import write_text_atomic
 from deliffas.data.check import CheckResult
 
 __all__ = ["overlay", "write_check_report", "check_summary"]

@@ -27,7 +27,7 @@ from typing import Literal
 import numpy as np
 from tqdm import tqdm
 
-from deliffas.io.files import TMP_MARK, sha256_file
+from deliffas.io.infra.files import TMP_MARK, sha256_file
 from deliffas.data.shard_build import ShardBuilder, ShardSettings, ShardTask
 from deliffas.data.shard_meta import ShardMeta, write_meta
 from deliffas.data.shards import (

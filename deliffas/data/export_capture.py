@@ -15,15 +15,15 @@ from typing import Literal
 
 import numpy as np
 
-from deliffas.io.actorshq import actorshq_mask_path, actorshq_rgb_path, camera_to_actorshq, write_actorshq_calibration
-from deliffas.io.amass import SMPL_BODY_POSE_DIM, write_smpl_motion
-from deliffas.io.capture_frames import write_image_file
-from deliffas.io.dna_rendering import SmcSmplx, cameras_to_smc, write_smc
-from deliffas.io.easymocap import EasyMocapSmpl, camera_to_easymocap, write_easymocap_cameras, write_easymocap_smpl
-from deliffas.io.smpl import load_smpl_model
-from deliffas.io.thuman4 import (Thuman4Smplx, camera_to_thuman4, thuman4_image_path, thuman4_mask_path,
+from deliffas.io.formats.actorshq import actorshq_mask_path, actorshq_rgb_path, camera_to_actorshq, write_actorshq_calibration
+from deliffas.io.body_models.amass import SMPL_BODY_POSE_DIM, write_smpl_motion
+from deliffas.io.formats.capture_frames import write_image_file
+from deliffas.io.formats.dna_rendering import SmcSmplx, cameras_to_smc, write_smc
+from deliffas.io.formats.easymocap import EasyMocapSmpl, camera_to_easymocap, write_easymocap_cameras, write_easymocap_smpl
+from deliffas.io.body_models.smpl import load_smpl_model
+from deliffas.io.formats.thuman4 import (Thuman4Smplx, camera_to_thuman4, thuman4_image_path, thuman4_mask_path,
                                  write_thuman4_calibration, write_thuman4_smplx)
-from deliffas.io.zju_mocap import cameras_to_zju, write_zju_annots, write_zju_params, zju_params_path
+from deliffas.io.formats.zju_mocap import cameras_to_zju, write_zju_annots, write_zju_params, zju_params_path
 from deliffas.geometry.smpl_params import params_to_motion, params_to_rhth, rest_root_joint
 from deliffas.data.subjects import Subject
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from deliffas.io.dynacap import Character
+from deliffas.io.formats.dynacap.character import Character
 from deliffas.geometry.mesh_ops import vertex_normals
 
 __all__ = ["GARMENT_LABEL", "garment_weights", "ddc_garment_region", "smpl_garment_region", "region_weights",

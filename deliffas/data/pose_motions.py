@@ -10,8 +10,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from deliffas.io.amass import read_smpl_motion
-from deliffas.io.dynacap import Motion, read_motion
+from deliffas.io.body_models.amass import read_smpl_motion
+from deliffas.io.formats.dynacap.character import Motion, read_motion
 from deliffas.geometry.smpl_params import motion_to_dynacap
 from deliffas.geometry.templates import TemplateSpec
 

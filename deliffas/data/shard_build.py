@@ -19,9 +19,9 @@ from typing import Mapping, Sequence, no_type_check
 import numpy as np
 import torch
 
-from deliffas.io.dynacap import read_obj
-from deliffas.io.frames import FrameSource
-from deliffas.io.meshes import MeshSequence, read_meshes
+from deliffas.io.formats.dynacap.character import read_obj
+from deliffas.io.formats.dynacap.frames import FrameSource
+from deliffas.io.formats.dynacap.meshes import MeshSequence, read_meshes
 from deliffas.geometry.atlas import TexelTable, UVAtlas, uv_texel_table
 from deliffas.geometry.frame_geometry import FrameGeometryBuilder
 from deliffas.geometry.mesh_ops import vertex_normals

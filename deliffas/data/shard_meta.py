@@ -13,7 +13,7 @@ import numpy as np
 from jaxtyping import Bool, Float, Integer
 
 from deliffas.io.cameras import Camera
-from deliffas.io.files import durable_replace, sha256_file, temp_path
+from deliffas.io.infra.files import durable_replace, sha256_file, temp_path
 from deliffas.geometry.templates import TemplateSpec, ddc_spec
 
 __all__ = ["ShardMeta", "write_meta", "read_meta", "META_FORMAT", "SCHEMA_VERSION"]

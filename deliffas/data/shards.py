@@ -26,7 +26,7 @@ from typing import Literal, Sequence
 import numpy as np
 from jaxtyping import Float, Integer
 
-from deliffas.io.files import durable_replace, sha256_file, temp_path
+from deliffas.io.infra.files import durable_replace, sha256_file, temp_path
 from deliffas.data.shard_meta import SCHEMA_VERSION, ShardMeta, read_meta
 from deliffas.data.shard_schema import SHARD_FORMAT, inside, shard_problems
 

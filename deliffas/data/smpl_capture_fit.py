@@ -17,10 +17,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from deliffas.io.amass import write_smpl_motion
-from deliffas.io.files import claim_output
-from deliffas.io.meshes import read_meshes
-from deliffas.io.text_lines import write_text_atomic
+from deliffas.io.body_models.amass import write_smpl_motion
+from deliffas.io.infra.files import claim_output
+from deliffas.io.formats.dynacap.meshes import read_meshes
+from deliffas.io.infra.text_lines import write_text_atomic
 from deliffas.geometry.smpl_params import params_to_motion
 from deliffas.geometry.smpl_surface_fit import SurfaceFitConfig, fit_smpl_to_surfaces
 from deliffas.geometry.templates import build_template, spec_from_file

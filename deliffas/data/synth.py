@@ -27,11 +27,11 @@ from typing import Literal, Sequence
 import numpy as np
 
 from deliffas.io.cameras import Camera, look_at
-from deliffas.io.meshes import MeshSequence, write_meshes
-from deliffas.io.calibration import write_calibration
-from deliffas.io.files import claim_output
-from deliffas.io.frames import ImageFolderSource, VideoWriterSet, write_image
-from deliffas.io.text_lines import write_text_atomic
+from deliffas.io.formats.dynacap.meshes import MeshSequence, write_meshes
+from deliffas.io.formats.dynacap.calibration import write_calibration
+from deliffas.io.infra.files import claim_output
+from deliffas.io.formats.dynacap.frames import ImageFolderSource, VideoWriterSet, write_image
+from deliffas.io.infra.text_lines import write_text_atomic
 from deliffas.geometry.mesh_ops import vertex_normals
 from deliffas.geometry.templates import build_template
 from deliffas.data.garment import GarmentFrames, garment_deformation, region_weights

@@ -16,9 +16,9 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from deliffas.io.amass import read_smpl_motion, write_smpl_motion
-from deliffas.io.dynacap import Motion, read_character, read_motion, write_character, write_motion
-from deliffas.io.smpl import load_smpl_model
+from deliffas.io.body_models.amass import read_smpl_motion, write_smpl_motion
+from deliffas.io.formats.dynacap.character import Motion, read_character, read_motion, write_character, write_motion
+from deliffas.io.body_models.smpl import load_smpl_model
 from deliffas.geometry.motion_gen import procedural_motion
 from deliffas.geometry.procedural import make_procedural_character
 from deliffas.geometry.smpl_body import make_procedural_smpl

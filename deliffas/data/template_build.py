@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from deliffas.io.files import claim_output
-from deliffas.io.text_lines import write_text_atomic
-from deliffas.io.dynacap import Character, ObjData, read_character, write_obj
+from deliffas.io.infra.files import claim_output
+from deliffas.io.infra.text_lines import write_text_atomic
+from deliffas.io.formats.dynacap.character import Character, ObjData, read_character, write_obj
 from deliffas.geometry.atlas import UVAtlas, uv_texel_table
 from deliffas.geometry.shell import ShellConfig, offset_shell, shell_offsets, shell_report
 from deliffas.geometry.variants import coarse_variant, smooth_variant, write_variant

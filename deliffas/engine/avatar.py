@@ -28,7 +28,7 @@ from deliffas.engine.evaluate import load_run
 from deliffas.engine.identity import capture_identity
 from deliffas.geometry.templates import TemplateSpec
 from deliffas.io.avatar_file import AVATAR_SUFFIX, AvatarFileError, read_avatar_file, write_avatar_file
-from deliffas.io.files import claim_output_file, sha256_file
+from deliffas.io.infra.files import claim_output_file, sha256_file
 from deliffas.models.deliffas import DeliffasModel, ModelConfig
 from deliffas.models.unet import optimize_for_inference
 from deliffas.models.zoo import config_from_dict, config_to_dict, load_checkpoint

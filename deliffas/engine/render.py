@@ -21,7 +21,7 @@ from deliffas.engine.rays import camera_rays, paint_images, ray_query, stack_ray
 from deliffas.engine.realtime import FastRender, default_fast_render, fast_render_camera, render_stream
 from deliffas.engine.timing import StageTimer
 from deliffas.geometry.raycast import UVRaycaster
-from deliffas.io.files import claim_output_file
+from deliffas.io.infra.files import claim_output_file
 from deliffas.io.video import VIDEO_SUFFIXES, write_video
 
 __all__ = ["RenderConfig", "render_video", "orbit_cameras", "render_images", "motion_geometry_builder"]

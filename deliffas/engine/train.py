@@ -36,7 +36,7 @@ from deliffas.engine.train_config import TrainConfig, TrainResult, resolve_model
 from deliffas.engine.train_step import balance_weight, render_sample_images, train_step
 from deliffas.models.deliffas import DeliffasModel
 from deliffas.models.losses import PerceptualLoss, SaturationTerm
-from deliffas.io.files import claim_output
+from deliffas.io.infra.files import claim_output
 from deliffas.models.zoo import config_to_dict
 
 __all__ = ["TrainConfig", "TrainResult", "Trainer", "train", "train_step", "resolve_model_config",

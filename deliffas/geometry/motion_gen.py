@@ -16,8 +16,8 @@ from typing import Literal
 
 import numpy as np
 
-from deliffas.io.dynacap import Motion
-from deliffas.io.skeleton import Skeleton
+from deliffas.io.formats.dynacap.character import Motion
+from deliffas.io.formats.dynacap.skeleton import Skeleton
 
 __all__ = ["MotionStyle", "procedural_motion", "known_dof_names", "MAX_YAW_RATE"]
 

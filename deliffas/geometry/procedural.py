@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from deliffas.io.dynacap import Character, CharacterFiles, ObjData, Skin, write_character
-from deliffas.io.files import claim_output
-from deliffas.io.skeleton import Dof, Joint, Skeleton
+from deliffas.io.formats.dynacap.character import Character, CharacterFiles, ObjData, Skin, write_character
+from deliffas.io.infra.files import claim_output
+from deliffas.io.formats.dynacap.skeleton import Dof, Joint, Skeleton
 from deliffas.geometry.variants import decimate_mesh, remesh_isotropic, sparsify_weights
 from deliffas.geometry.atlas import UVAtlas, uv_texel_table
 from deliffas.geometry.skeleton import SkeletonFK

@@ -10,7 +10,7 @@ import torch
 from torch import nn
 
 from deliffas.checks import check_shape
-from deliffas.io.skeleton import Skeleton
+from deliffas.io.formats.dynacap.skeleton import Skeleton
 
 __all__ = ["axis_angle_to_matrix", "forward_kinematics", "SkeletonFK", "kinematic_levels"]
 

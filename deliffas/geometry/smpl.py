@@ -3,7 +3,7 @@
 ``batch_rodrigues``, ``blend_shapes``, ``batch_rigid_transform`` and ``smpl_lbs`` take every model
 array as an argument and create new tensors on the inputs' device and dtype. The template that holds
 the arrays is :class:`deliffas.geometry.templates.smpl.SMPLTemplate`; the model file is read by
-:func:`deliffas.io.smpl.load_smpl_model`.
+:func:`deliffas.io.body_models.smpl.load_smpl_model`.
 """
 
 from __future__ import annotations

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from deliffas.io.obj import ObjData, write_obj
-from deliffas.io.smpl import NUM_JOINTS, NUM_POSE_BASIS, SMPLModelData, write_smpl_model
+from deliffas.io.body_models.smpl import NUM_JOINTS, NUM_POSE_BASIS, SMPLModelData, write_smpl_model
 from deliffas.geometry.atlas import UVAtlas
 from deliffas.geometry.marching_tets import marching_tetrahedra
 from deliffas.geometry.mesh_ops import vertex_normals

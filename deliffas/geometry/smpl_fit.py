@@ -27,7 +27,7 @@ from jaxtyping import Float
 from torch import Tensor
 
 from deliffas.checks import check_finite, check_shape
-from deliffas.io.smpl import NUM_JOINTS
+from deliffas.io.body_models.smpl import NUM_JOINTS
 from deliffas.geometry.templates.smpl import SMPLTemplate
 
 __all__ = ["SMPLFitConfig", "SMPLFitResult", "fit_smpl", "FIT_UNIT_M"]

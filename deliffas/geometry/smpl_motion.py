@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from deliffas.io.amass import SMPLMotion
-from deliffas.io.smpl import NUM_JOINTS
+from deliffas.io.body_models.amass import SMPLMotion
+from deliffas.io.body_models.smpl import NUM_JOINTS
 
 __all__ = ["procedural_smpl_motion"]
 

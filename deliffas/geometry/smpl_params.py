@@ -2,8 +2,8 @@
 
 ``SMPLTemplate`` (``deliffas.geometry.templates.smpl``) poses a frame from one row
 ``[transl (3, model units), axis-angle pose (72), betas (num_betas)]``; the rest of deliffas reads
-per-frame pose parameters as a ``deliffas.io.dynacap.Motion`` (frame numbers + rows). These pure
-functions convert an AMASS-style :class:`~deliffas.io.amass.SMPLMotion` to those rows and that
+per-frame pose parameters as a ``deliffas.io.formats.dynacap.character.Motion`` (frame numbers + rows). These pure
+functions convert an AMASS-style :class:`~deliffas.io.body_models.amass.SMPLMotion` to those rows and that
 ``Motion`` and back, without changing units or axes (AMASS's z-up world stays in the root
 orientation and translation). Capture datasets store the same pose in other forms; the
 conversions are exact and live here too: EasyMocap / ZJU-MoCap ``Rh``/``Th`` (:func:`rhth_to_params`,
@@ -14,10 +14,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from deliffas.io.amass import SMPL_BODY_POSE_DIM, SMPL_POSE_DIM, SMPLMotion
+from deliffas.io.body_models.amass import SMPL_BODY_POSE_DIM, SMPL_POSE_DIM, SMPLMotion
 from deliffas.io.camera_conventions import matrix_to_rotvec, rotvec_to_matrix
-from deliffas.io.dynacap import Motion
-from deliffas.io.smpl import SMPLModelData
+from deliffas.io.formats.dynacap.character import Motion
+from deliffas.io.body_models.smpl import SMPLModelData
 
 __all__ = ["smpl_param_dim", "motion_to_params", "params_to_motion", "motion_to_dynacap", "rest_root_joint",
            "rhth_to_params", "params_to_rhth", "smplx_to_smpl_pose"]

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from deliffas.checks import check_shape
-from deliffas.io.dynacap import Character, ObjData, Skin, write_character
+from deliffas.io.formats.dynacap.character import Character, ObjData, Skin, write_character
 from deliffas.geometry.mesh_ops import vertex_normals
 from deliffas.geometry.atlas import UVAtlas, uv_texel_table
 

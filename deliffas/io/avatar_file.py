@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from deliffas.io.files import write_bytes_atomic
+from deliffas.io.infra.files import write_bytes_atomic
 
 __all__ = ["AvatarFile", "AvatarFileError", "write_avatar_file", "read_avatar_file", "AVATAR_FORMAT",
            "AVATAR_VERSION", "AVATAR_SUFFIX"]

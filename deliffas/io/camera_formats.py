@@ -28,18 +28,18 @@ import os
 from pathlib import Path
 from typing import Literal, Sequence
 
-from deliffas.io.actorshq import actorshq_to_camera, camera_to_actorshq, read_actorshq_calibration, write_actorshq_calibration
-from deliffas.io.calibration import read_calibration, write_calibration
+from deliffas.io.formats.actorshq import actorshq_to_camera, camera_to_actorshq, read_actorshq_calibration, write_actorshq_calibration
+from deliffas.io.formats.dynacap.calibration import read_calibration, write_calibration
 from deliffas.io.camera_conventions import require_distortion_fits
 from deliffas.io.cameras import Camera
-from deliffas.io.capture_format import naming_file, read_json
-from deliffas.io.colmap import cameras_from_colmap, cameras_to_colmap
-from deliffas.io.dna_rendering import cameras_to_smc, smc_to_cameras, write_smc
-from deliffas.io.easymocap import camera_to_easymocap, easymocap_to_camera, read_easymocap_cameras, write_easymocap_cameras
-from deliffas.io.nerfstudio import camera_to_nerfstudio, nerfstudio_to_camera, read_transforms, write_transforms
-from deliffas.io.thuman4 import (camera_to_thuman4, read_thuman4_calibration, thuman4_calibration_path, thuman4_to_camera,
+from deliffas.io.infra.reader_checks import naming_file, read_json
+from deliffas.io.formats.colmap import cameras_from_colmap, cameras_to_colmap
+from deliffas.io.formats.dna_rendering import cameras_to_smc, smc_to_cameras, write_smc
+from deliffas.io.formats.easymocap import camera_to_easymocap, easymocap_to_camera, read_easymocap_cameras, write_easymocap_cameras
+from deliffas.io.formats.nerfstudio import camera_to_nerfstudio, nerfstudio_to_camera, read_transforms, write_transforms
+from deliffas.io.formats.thuman4 import (camera_to_thuman4, read_thuman4_calibration, thuman4_calibration_path, thuman4_to_camera,
                                  write_thuman4_calibration)
-from deliffas.io.zju_mocap import cameras_to_zju, read_zju_annots, write_zju_annots, zju_to_cameras
+from deliffas.io.formats.zju_mocap import cameras_to_zju, read_zju_annots, write_zju_annots, zju_to_cameras
 
 __all__ = ["CAMERA_FORMATS", "CameraFormat", "detect_camera_format", "read_cameras", "write_cameras"]
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 from jaxtyping import Float, Integer, Real
 
-from deliffas.io.files import durable_replace, temp_path
+from deliffas.io.infra.files import durable_replace, temp_path
 from deliffas.io.obj import ObjData, write_obj
 
 __all__ = ["MESH_SUFFIXES", "write_mesh"]

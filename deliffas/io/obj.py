@@ -14,7 +14,7 @@ from typing import no_type_check
 import numpy as np
 from jaxtyping import Float, Integer
 
-from deliffas.io.text_lines import DynaCapFormatError, read_text, write_text_atomic
+from deliffas.io.infra.text_lines import DynaCapFormatError, read_text, write_text_atomic
 
 __all__ = ["ObjData", "read_obj", "write_obj"]
 

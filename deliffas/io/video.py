@@ -15,7 +15,7 @@ from typing import Any, Iterable
 
 import numpy as np
 
-from deliffas.io.files import atomic_path
+from deliffas.io.infra.files import atomic_path
 
 __all__ = ["VIDEO_SUFFIXES", "write_video", "read_video_info"]
 

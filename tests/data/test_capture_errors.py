@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from deliffas.cli import main
-from deliffas.io.zju_mocap import load_npy_dict
+from deliffas.io.formats.zju_mocap import load_npy_dict
 
 
 def _npy_drop(path, key):

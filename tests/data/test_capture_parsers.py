@@ -20,7 +20,7 @@ from deliffas.data.convert import ConvertConfig, convert
 from deliffas.data.export_capture import EXPORT_FORMATS
 from deliffas.data.shards import ShardSet
 from deliffas.data.subjects import SubjectOptions, parse_subject
-from deliffas.io.easymocap import read_easymocap_cameras, write_easymocap_cameras
+from deliffas.io.formats.easymocap import read_easymocap_cameras, write_easymocap_cameras
 
 JPEG_MASKS = {"thuman4", "dna"}
 """Formats whose masks are JPEG (the others store PNG)."""
@@ -66,7 +66,7 @@ def test_rhth_posing_matches_direct_rotation(exported, smpl_model, smpl_subject)
 
     from deliffas.geometry.templates import build_template
     from deliffas.io.camera_conventions import rotvec_to_matrix
-    from deliffas.io.zju_mocap import read_zju_params, zju_params_path
+    from deliffas.io.formats.zju_mocap import read_zju_params, zju_params_path
 
     root = exported("zju")
     subject = parse_subject(root, options=SubjectOptions(template=str(smpl_model)))
@@ -122,7 +122,7 @@ def test_actorshq_without_smpl_needs_meshes(exported, smpl_model, tmp_path):
 def test_dna_conversion_opens_each_smc_once(exported, smpl_model, monkeypatch, tmp_path):
     """A conversion keeps one ``SmcFrameSource`` open across its shards (``SmcFramesSpec.keep_open``): each ``.smc``
     is scanned once, not once per shard, and closed at the end; the shards equal those of one source per shard."""
-    import deliffas.io.dna_rendering as dna
+    import deliffas.io.formats.dna_rendering as dna
 
     subject = parse_subject(exported("dna"), options=SubjectOptions(template=str(smpl_model)))
     scanned, opened = [], []
@@ -144,9 +144,9 @@ def test_dna_conversion_opens_each_smc_once(exported, smpl_model, monkeypatch, t
 
 
 def test_dna_parser_opens_each_smc_once(exported, smpl_model, monkeypatch):
-    """Every ``SmcFile`` open scans the whole file's HDF5 heaps (``io.hdf5_heaps``, about 0.7 s per GB): the parser
+    """Every ``SmcFile`` open scans the whole file's HDF5 heaps (``io.infra.hdf5_heaps``, about 0.7 s per GB): the parser
     opens the main file and its ``_annots.smc`` once each (it opened them up to 8 times)."""
-    import deliffas.io.dna_rendering as dna
+    import deliffas.io.formats.dna_rendering as dna
 
     root = exported("dna")
     scanned = []

@@ -16,8 +16,8 @@ from deliffas.cli import main
 from deliffas.data.check import OPENGL_FROM_OPENCV, CheckConfig, check_subject
 from deliffas.data.subjects import SubjectOptions, parse_subject
 from deliffas.io.camera_conventions import rotvec_to_matrix
-from deliffas.io.dynacap import Motion
-from deliffas.io.easymocap import read_easymocap_cameras, write_easymocap_cameras
+from deliffas.io.formats.dynacap.character import Motion
+from deliffas.io.formats.easymocap import read_easymocap_cameras, write_easymocap_cameras
 
 
 @pytest.fixture(scope="session")

@@ -15,8 +15,8 @@ import pytest
 
 from deliffas.cli import main as cli_main
 from deliffas.data.convert import ConvertConfig, convert, parse_frame_range
-from deliffas.io.dynacap import read_character
-from deliffas.io.frames import ImageFolderSource
+from deliffas.io.formats.dynacap.character import read_character
+from deliffas.io.formats.dynacap.frames import ImageFolderSource
 from deliffas.data.shards import MANIFEST_NAME, ShardSet, read_manifest, verify_shards, write_manifest
 
 CFG = dict(shard_frames=2, atlas_res=32, progress=False)
@@ -214,7 +214,7 @@ def test_frame_and_camera_selection_codecs_and_meshes(subject, tmp_path):
     rgb, mask = shard.image(row, 1)
     ref = ImageFolderSource(subject / "training").read(2, 2)
     assert np.array_equal(rgb, ref[0]) and np.array_equal(mask, ref[1])
-    from deliffas.io.meshes import read_meshes
+    from deliffas.io.formats.dynacap.meshes import read_meshes
 
     gt = read_meshes(subject / "training" / "gt.meshes").verts
     assert np.allclose(shard.geometry("inner_verts", [shard.h5["window_rows"][row][0]])[0], gt[2], atol=1e-3)
@@ -228,7 +228,7 @@ def test_frame_and_camera_selection_codecs_and_meshes(subject, tmp_path):
 
 def test_template_variant_with_outer_obj(subject, tmp_path):
     """--template DIR: its character poses the surface, outer.obj gives per-vertex offsets."""
-    from deliffas.io.dynacap import ObjData, write_obj
+    from deliffas.io.formats.dynacap.character import ObjData, write_obj
     from deliffas.geometry.mesh_ops import vertex_normals
 
     char_path = next((subject / "character").glob("*.character"))
@@ -298,7 +298,7 @@ def _edit_shard(out, name, edit):
     """Apply ``edit(h5py.File)`` to a shard and record its new checksum, so only the schema is wrong."""
     import h5py
 
-    from deliffas.io.files import sha256_file
+    from deliffas.io.infra.files import sha256_file
 
     p = out / name
     with h5py.File(p, "r+") as f:

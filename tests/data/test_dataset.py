@@ -7,7 +7,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from deliffas.data.dataset import FrameItem, RandomCameraSampler, ShardDataset, protocol_frames
-from deliffas.io.frames import ImageFolderSource
+from deliffas.io.formats.dynacap.frames import ImageFolderSource
 from deliffas.data.shards import read_manifest, write_manifest
 
 

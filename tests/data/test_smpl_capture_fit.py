@@ -10,7 +10,7 @@ import pytest
 from deliffas.cli import main
 from deliffas.data.shards import ShardSet
 from deliffas.geometry.smpl_body import make_procedural_smpl
-from deliffas.io.amass import read_smpl_motion
+from deliffas.io.body_models.amass import read_smpl_motion
 
 
 @pytest.fixture(scope="module")

@@ -9,10 +9,10 @@ import pytest
 import torch
 
 from deliffas.io.cameras import Camera
-from deliffas.io.dynacap import read_character, read_motion
-from deliffas.io.calibration import read_calibration
-from deliffas.io.meshes import read_meshes
-from deliffas.io.frames import ImageFolderSource, VideoSource, open_frame_source
+from deliffas.io.formats.dynacap.character import read_character, read_motion
+from deliffas.io.formats.dynacap.calibration import read_calibration
+from deliffas.io.formats.dynacap.meshes import read_meshes
+from deliffas.io.formats.dynacap.frames import ImageFolderSource, VideoSource, open_frame_source
 from deliffas.data.render_gt import ShadingConfig, render_views
 from deliffas.data.garment import GARMENT_LABEL, garment_weights
 from deliffas.data.synth import SynthConfig, choose_test_cameras, dome_cameras, synthesize_capture

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from deliffas.cli import main
-from deliffas.io.dynacap import read_character
+from deliffas.io.formats.dynacap.character import read_character
 from deliffas.io.obj import read_obj
 
 

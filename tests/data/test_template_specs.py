@@ -19,7 +19,7 @@ from deliffas.geometry.templates import (
     ddc_graph_spec,
     smpl_spec,
 )
-from deliffas.io.dynacap import read_character
+from deliffas.io.formats.dynacap.character import read_character
 from tests.geometry.test_smpl import _synthetic_arrays
 
 

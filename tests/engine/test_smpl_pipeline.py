@@ -13,7 +13,7 @@ import pytest
 from deliffas.cli import main
 from deliffas.data.shards import ShardSet
 from deliffas.geometry.smpl_motion import procedural_smpl_motion
-from deliffas.io.amass import write_smpl_motion
+from deliffas.io.body_models.amass import write_smpl_motion
 
 
 @pytest.fixture(scope="module")

@@ -68,7 +68,7 @@ def look_at(center, target, width: int, height: int, focal: float, up=(0.0, 1.0,
 def read_obj_minimal(path: Path):
     """verts, faces, uvs, face_uvs of an OBJ (the project reader when available)."""
     try:
-        from deliffas.io.dynacap import read_obj
+        from deliffas.io.formats.dynacap.character import read_obj
 
         o = read_obj(path)
         return o.verts, o.faces, o.uvs, o.face_uvs

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from deliffas.io.dynacap import read_character, read_motion, write_motion
+from deliffas.io.formats.dynacap.character import read_character, read_motion, write_motion
 from deliffas.geometry.marching_tets import marching_tetrahedra
 from deliffas.geometry.procedural import LABELS, PROCEDURAL_DOF_NAMES, procedural_skeleton
 from deliffas.geometry.templates import DDCTemplate

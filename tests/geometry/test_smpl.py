@@ -10,7 +10,7 @@ import scipy.sparse as sp
 import torch
 
 from deliffas.geometry.templates import SMPLTemplate
-from deliffas.io.smpl import SMPLModelError, load_smpl_model
+from deliffas.io.body_models.smpl import SMPLModelError, load_smpl_model
 from deliffas.geometry.templates import Template
 
 PARENTS = np.array([-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21])

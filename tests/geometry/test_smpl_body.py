@@ -12,7 +12,7 @@ import torch
 from deliffas.geometry.smpl_body import (
     SMPL_JOINT_NAMES, SMPL_PARENTS, make_procedural_smpl, procedural_smpl, procedural_smpl_joints)
 from deliffas.geometry.templates import SMPLTemplate, build_template, smpl_spec
-from deliffas.io.smpl import SMPLModelError, load_smpl_model, write_smpl_model
+from deliffas.io.body_models.smpl import SMPLModelError, load_smpl_model, write_smpl_model
 
 OFFICIAL_PARENTS = [-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21]
 
@@ -140,7 +140,7 @@ def test_pose_cli_equals_smplx(body_files, tmp_path):
     from smplx.vertex_ids import vertex_ids
 
     from deliffas.cli import main
-    from deliffas.io.amass import SMPLMotion, write_smpl_motion
+    from deliffas.io.body_models.amass import SMPLMotion, write_smpl_motion
 
     with np.load(body_files[0]) as z:
         arrays = {k: z[k] for k in z.files}

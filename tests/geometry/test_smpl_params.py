@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from deliffas.geometry.smpl_params import motion_to_dynacap, motion_to_params, params_to_motion, smpl_param_dim
-from deliffas.io.amass import SMPLMotion
-from deliffas.io.dynacap import Motion
+from deliffas.io.body_models.amass import SMPLMotion
+from deliffas.io.formats.dynacap.character import Motion
 
 
 def _motion(n: int = 5, pose_dim: int = 156, num_betas: int = 16) -> SMPLMotion:

@@ -17,7 +17,7 @@ from deliffas.geometry.templates import (
     register_template_kind,
     template_kinds,
 )
-from deliffas.io.dynacap import read_character
+from deliffas.io.formats.dynacap.character import read_character
 from deliffas.io.obj import read_obj, write_obj, ObjData
 
 

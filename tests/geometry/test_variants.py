@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from deliffas.io.dynacap import read_character
+from deliffas.io.formats.dynacap.character import read_character
 from deliffas.geometry.variants import (_closest_on_triangles, _sample_bilinear, closest_points_on_mesh,
                                         coarse_variant, smooth_variant, sparsify_weights, taubin_smooth,
                                         write_variant)

@@ -7,8 +7,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from capture_cameras import POINTS_MM
-from deliffas.io.actorshq import actorshq_mask_path, actorshq_rgb_path, actorshq_to_camera, read_actorshq_calibration
-from deliffas.io.capture_format import CaptureFormatError
+from deliffas.io.formats.actorshq import actorshq_mask_path, actorshq_rgb_path, actorshq_to_camera, read_actorshq_calibration
+from deliffas.io.infra.reader_checks import CaptureFormatError
 
 HEADER = "name,w,h,rx,ry,rz,tx,ty,tz,fx,fy,px,py\r\n"
 ROW = ["Cam007", "1022", "1372", "0.3", "2.9", "-0.2", "0.4", "1.1", "3.2", "1.21", "0.905", "0.503", "0.497"]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from deliffas.io.amass import SMPLMotion, SMPLMotionError, read_smpl_motion, write_smpl_motion
+from deliffas.io.body_models.amass import SMPLMotion, SMPLMotionError, read_smpl_motion, write_smpl_motion
 
 
 def _motion(n: int = 5, pose_dim: int = 72, num_betas: int = 16, seed: int = 0) -> SMPLMotion:

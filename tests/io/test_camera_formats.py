@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from capture_cameras import HEIGHT, WIDTH, assert_same_cameras, rig
-from deliffas.io.calibration import write_calibration
+from deliffas.io.formats.dynacap.calibration import write_calibration
 from deliffas.io.camera_conventions import DISTORTION, LossyConversionError
 from deliffas.io.camera_formats import CAMERA_FORMATS, detect_camera_format, read_cameras, write_cameras
 

@@ -9,7 +9,7 @@ import pytest
 
 from capture_cameras import HEIGHT, WIDTH, assert_same_cameras, rig
 from deliffas.cli import _CAMERA_FORMATS, main
-from deliffas.io.calibration import read_calibration, write_calibration
+from deliffas.io.formats.dynacap.calibration import read_calibration, write_calibration
 from deliffas.io.camera_formats import CAMERA_FORMATS
 from deliffas.io.cameras import Camera
 

@@ -7,8 +7,8 @@ import pytest
 
 from deliffas.cli import main as cli_main
 from deliffas.io.cameras import Camera
-from deliffas.io.colmap import cameras_from_colmap, cameras_to_colmap, opencv_principal_point
-from deliffas.io.calibration import read_calibration, write_calibration
+from deliffas.io.formats.colmap import cameras_from_colmap, cameras_to_colmap, opencv_principal_point
+from deliffas.io.formats.dynacap.calibration import read_calibration, write_calibration
 from deliffas.data.synth import dome_cameras
 
 

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from capture_cameras import POINTS_MM, rig
-from deliffas.io.capture_format import CaptureFormatError
-from deliffas.io.dna_rendering import SmcFile, SmcSmplx, cameras_to_smc, read_smc_calibration, smc_to_cameras, write_smc
+from deliffas.io.infra.reader_checks import CaptureFormatError
+from deliffas.io.formats.dna_rendering import SmcFile, SmcSmplx, cameras_to_smc, read_smc_calibration, smc_to_cameras, write_smc
 
 K = np.array([[2400.0, 0, 1223.1], [0, 2398.0, 1025.6], [0, 0, 1]])
 A = 2.1
@@ -112,7 +112,7 @@ def test_damaged_global_heap_is_refused_not_a_hang(tmp_path):
     """A variable-length attribute (a camera name) lives in a global heap; an object size damaged so that the
     next object header is zeros made libhdf5 2.0 loop forever reading the name (found by the soak). The file
     is refused before h5py reads it, naming the heap and the object."""
-    from deliffas.io.hdf5_heaps import looping_global_heap
+    from deliffas.io.infra.hdf5_heaps import looping_global_heap
 
     path = _smc(tmp_path / "x.smc")
     with h5py.File(path, "a") as h5:

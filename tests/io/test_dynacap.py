@@ -1,4 +1,4 @@
-"""Readers/writers of deliffas.io.dynacap on the real sample and on malformed files."""
+"""Readers/writers of deliffas.io.formats.dynacap.character on the real sample and on malformed files."""
 
 from __future__ import annotations
 
@@ -8,12 +8,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from deliffas.io import dynacap as dc
-from deliffas.io import skeleton as skeleton_io
-from deliffas.io.calibration import read_calibration, write_calibration
-from deliffas.io.meshes import MeshSequence, read_meshes, write_meshes
+from deliffas.io.formats.dynacap import character as dc
+from deliffas.io.formats.dynacap import skeleton as skeleton_io
+from deliffas.io.formats.dynacap.calibration import read_calibration, write_calibration
+from deliffas.io.formats.dynacap.meshes import MeshSequence, read_meshes, write_meshes
 from deliffas.io.cameras import Camera
-from deliffas.io.dynacap import DynaCapFormatError
+from deliffas.io.formats.dynacap.character import DynaCapFormatError
 
 
 # ---------------------------------------------------------------- real sample: counts and decoding

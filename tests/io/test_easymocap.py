@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from capture_cameras import POINTS_MM, rig
-from deliffas.io.capture_format import CaptureFormatError
-from deliffas.io.easymocap import (EasyMocapSmpl, camera_to_easymocap, easymocap_to_camera, read_easymocap_cameras,
+from deliffas.io.infra.reader_checks import CaptureFormatError
+from deliffas.io.formats.easymocap import (EasyMocapSmpl, camera_to_easymocap, easymocap_to_camera, read_easymocap_cameras,
                                    read_easymocap_smpl, write_easymocap_cameras, write_easymocap_smpl)
 
 K_CV = np.array([[1100.0, 0, 511.3], [0, 1090.0, 383.9], [0, 0, 1]])

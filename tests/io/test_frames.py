@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from deliffas.io.frames import (
+from deliffas.io.formats.dynacap.frames import (
     FrameSource,
     ImageFolderSource,
     MaskFolderSource,

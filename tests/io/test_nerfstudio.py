@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from capture_cameras import POINTS_MM
-from deliffas.io.capture_format import CaptureFormatError
-from deliffas.io.nerfstudio import nerfstudio_to_camera, read_transforms
+from deliffas.io.infra.reader_checks import CaptureFormatError
+from deliffas.io.formats.nerfstudio import nerfstudio_to_camera, read_transforms
 
 A = 0.4
 C2W = [[np.cos(A), 0, np.sin(A), 1.2], [0, 1, 0, 0.9], [-np.sin(A), 0, np.cos(A), 3.1], [0, 0, 0, 1]]

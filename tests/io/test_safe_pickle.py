@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from deliffas.io.safe_pickle import UnsafePickleError, load_numpy_pickle
+from deliffas.io.infra.safe_pickle import UnsafePickleError, load_numpy_pickle
 
 VALUE = {"K": [np.eye(3), np.arange(6, dtype=">i4").reshape(2, 3)], "f": np.asfortranarray(np.ones((2, 3), np.float32)),
          "s": np.float64(2.5), "names": ["cam0", "cam1"], "t": (1, 2.0, None, b"x"), "obj": np.array([{"a": 1}, "b"], object),

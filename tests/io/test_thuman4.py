@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from capture_cameras import POINTS_MM
-from deliffas.io.capture_format import CaptureFormatError
-from deliffas.io.thuman4 import (read_thuman4_calibration, read_thuman4_smplx, thuman4_image_path, thuman4_mask_path,
+from deliffas.io.infra.reader_checks import CaptureFormatError
+from deliffas.io.formats.thuman4 import (read_thuman4_calibration, read_thuman4_smplx, thuman4_image_path, thuman4_mask_path,
                                  thuman4_to_camera)
 
 K = [[1500.0, 0, 610.4], [0, 1498.0, 505.6], [0, 0, 1]]

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from capture_cameras import POINTS_MM
-from deliffas.io.capture_format import CaptureFormatError
-from deliffas.io.easymocap import EasyMocapSmpl
-from deliffas.io.zju_mocap import (read_zju_annots, read_zju_params, write_zju_params, zju_params_path, zju_to_cameras)
+from deliffas.io.infra.reader_checks import CaptureFormatError
+from deliffas.io.formats.easymocap import EasyMocapSmpl
+from deliffas.io.formats.zju_mocap import (read_zju_annots, read_zju_params, write_zju_params, zju_params_path, zju_to_cameras)
 
 K = np.array([[1120.0, 0, 505.2], [0, 1118.0, 512.7], [0, 0, 1]])
 ANGLE = 0.7

@@ -49,7 +49,7 @@ def _image(seed: int, shape: tuple[int, ...]) -> np.ndarray:
 
 def _smpl_model_arrays() -> dict:
     """An SMPL-layout model of 12 vertices (an octahedron-ish ball): SMPL's tree, random small blend shapes."""
-    from deliffas.io.smpl import SMPLModelData
+    from deliffas.io.body_models.smpl import SMPLModelData
 
     parents = np.array([-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21])
     rng = np.random.default_rng(0)
@@ -63,14 +63,14 @@ def _smpl_model_arrays() -> dict:
 
 def write_seeds(root: Path) -> None:
     """Write the seed files of every format under ``root`` (see the module docstring)."""
-    from deliffas.io.actorshq import write_actorshq_calibration, camera_to_actorshq
-    from deliffas.io.amass import SMPLMotion, write_smpl_motion
-    from deliffas.io.capture_frames import write_image_file
-    from deliffas.io.dna_rendering import SmcSmplx, cameras_to_smc, write_smc
-    from deliffas.io.easymocap import EasyMocapSmpl, write_easymocap_smpl
-    from deliffas.io.smpl import write_smpl_model
-    from deliffas.io.thuman4 import Thuman4Smplx, camera_to_thuman4, write_thuman4_calibration, write_thuman4_smplx
-    from deliffas.io.zju_mocap import cameras_to_zju, write_zju_annots, write_zju_params
+    from deliffas.io.formats.actorshq import write_actorshq_calibration, camera_to_actorshq
+    from deliffas.io.body_models.amass import SMPLMotion, write_smpl_motion
+    from deliffas.io.formats.capture_frames import write_image_file
+    from deliffas.io.formats.dna_rendering import SmcSmplx, cameras_to_smc, write_smc
+    from deliffas.io.formats.easymocap import EasyMocapSmpl, write_easymocap_smpl
+    from deliffas.io.body_models.smpl import write_smpl_model
+    from deliffas.io.formats.thuman4 import Thuman4Smplx, camera_to_thuman4, write_thuman4_calibration, write_thuman4_smplx
+    from deliffas.io.formats.zju_mocap import cameras_to_zju, write_zju_annots, write_zju_params
 
     full, none = rig(FULL), rig(None)
     rng = np.random.default_rng(1)

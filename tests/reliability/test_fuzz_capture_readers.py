@@ -29,17 +29,17 @@ from hypothesis import strategies as st
 from reliability_support import COUNTS, FUZZ_EXAMPLES
 
 import capture_seeds as cs
-from deliffas.io.amass import read_smpl_motion
+from deliffas.io.body_models.amass import read_smpl_motion
 from deliffas.io.camera_conventions import DISTORTION
 from deliffas.io.camera_formats import read_cameras
-from deliffas.io.capture_format import CaptureFormatError
-from deliffas.io.capture_frames import FileFramesSpec, SmcFramesSpec, Undistortion
+from deliffas.io.infra.reader_checks import CaptureFormatError
+from deliffas.io.formats.capture_frames import FileFramesSpec, SmcFramesSpec, Undistortion
 from deliffas.io.cameras import ROTATION_TOLERANCE, Camera
-from deliffas.io.dna_rendering import SmcFile
-from deliffas.io.easymocap import read_easymocap_smpl
-from deliffas.io.smpl import NUM_JOINTS, NUM_POSE_BASIS, load_smpl_model
-from deliffas.io.thuman4 import read_thuman4_smplx
-from deliffas.io.zju_mocap import read_zju_params
+from deliffas.io.formats.dna_rendering import SmcFile
+from deliffas.io.formats.easymocap import read_easymocap_smpl
+from deliffas.io.body_models.smpl import NUM_JOINTS, NUM_POSE_BASIS, load_smpl_model
+from deliffas.io.formats.thuman4 import read_thuman4_smplx
+from deliffas.io.formats.zju_mocap import read_zju_params
 from fuzz_mutations import bytes_cases, text_cases, tree_cases
 
 pytestmark = pytest.mark.timeout(300 if FUZZ_EXAMPLES <= 1000 else 3600)

@@ -19,12 +19,12 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from deliffas.io import dynacap as dc
-from deliffas.io import skeleton as skeleton_io
-from deliffas.io.calibration import read_calibration, write_calibration
-from deliffas.io.meshes import MeshSequence, read_meshes, write_meshes
+from deliffas.io.formats.dynacap import character as dc
+from deliffas.io.formats.dynacap import skeleton as skeleton_io
+from deliffas.io.formats.dynacap.calibration import read_calibration, write_calibration
+from deliffas.io.formats.dynacap.meshes import MeshSequence, read_meshes, write_meshes
 from deliffas.io.cameras import Camera
-from deliffas.io.dynacap import DynaCapFormatError
+from deliffas.io.formats.dynacap.character import DynaCapFormatError
 from reliability_support import COUNTS, FUZZ_EXAMPLES
 
 pytestmark = pytest.mark.timeout(300 if FUZZ_EXAMPLES <= 1000 else 3600)

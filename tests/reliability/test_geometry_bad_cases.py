@@ -83,7 +83,7 @@ def test_non_watertight_mesh_is_reported_with_where(caplog):
 
 def test_convert_warns_on_a_non_watertight_template(rel_subject, rel_character, tmp_path, caplog):
     from deliffas.data.convert import ConvertConfig, convert
-    from deliffas.io.dynacap import read_obj, write_obj
+    from deliffas.io.formats.dynacap.character import read_obj, write_obj
     from deliffas.data.shards import verify_shards
 
     char_dir = tmp_path / "character"
@@ -138,7 +138,7 @@ def test_zero_area_uv_faces_cover_nothing_and_are_listed(caplog):
 
 # ------------------------------------------------------------------------------------- non-finite input
 def test_non_finite_inputs_raise_naming_the_array(rel_character, tmp_path):
-    from deliffas.io.dynacap import DynaCapFormatError, Motion, read_character, read_motion, write_motion
+    from deliffas.io.formats.dynacap.character import DynaCapFormatError, Motion, read_character, read_motion, write_motion
     from deliffas.geometry.templates import DDCTemplate
 
     character = read_character(rel_character)
@@ -177,7 +177,7 @@ def test_non_finite_inputs_raise_naming_the_array(rel_character, tmp_path):
     K0[1, 1] = 0.0
     with pytest.raises(ValueError, match="singular intrinsics"):
         dataclasses.replace(cam, K=K0)
-    from deliffas.io.calibration import read_calibration, write_calibration
+    from deliffas.io.formats.dynacap.calibration import read_calibration, write_calibration
 
     write_calibration(tmp_path / "c.calibration", [cam])
     text = (tmp_path / "c.calibration").read_text().splitlines()
@@ -192,7 +192,7 @@ def test_non_finite_inputs_raise_naming_the_array(rel_character, tmp_path):
 
 # ------------------------------------------------------------------------------------- looking away
 def test_camera_looking_away_sees_nothing(rel_character):
-    from deliffas.io.dynacap import read_character
+    from deliffas.io.formats.dynacap.character import read_character
     from deliffas.data.render_gt import render_views
     from deliffas.engine.rays import camera_rays
 

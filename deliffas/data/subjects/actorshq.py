@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from deliffas.io.actorshq import actorshq_mask_path, actorshq_rgb_path, actorshq_to_camera, read_actorshq_calibration
-from deliffas.io.capture_frames import FileFramesSpec
-from deliffas.io.meshes import read_meshes
+from deliffas.io.formats.actorshq import actorshq_mask_path, actorshq_rgb_path, actorshq_to_camera, read_actorshq_calibration
+from deliffas.io.formats.capture_frames import FileFramesSpec
+from deliffas.io.formats.dynacap.meshes import read_meshes
 from deliffas.data.subjects.base import Subject, SubjectOptions, SubjectParser, SubjectSequence, register_subject_format
 from deliffas.data.subjects.capture_common import (SEQUENCE, read_test_cameras, require_template, split_distortion,
                                                    user_motion)

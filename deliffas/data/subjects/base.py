@@ -18,8 +18,8 @@ import numpy as np
 from jaxtyping import Integer
 
 from deliffas.io.cameras import Camera
-from deliffas.io.dynacap import Motion
-from deliffas.io.frames import FrameSource, FramesSpec, ImageFolderSource, open_frame_source
+from deliffas.io.formats.dynacap.character import Motion
+from deliffas.io.formats.dynacap.frames import FrameSource, FramesSpec, ImageFolderSource, open_frame_source
 from deliffas.geometry.templates import Skinning, TemplateSpec
 
 __all__ = [

@@ -15,12 +15,12 @@ from typing import Sequence
 
 import numpy as np
 
-from deliffas.io.amass import read_smpl_motion
+from deliffas.io.body_models.amass import read_smpl_motion
 from deliffas.io.camera_conventions import DISTORTION, camera_distortion
-from deliffas.io.capture_frames import Undistortion
+from deliffas.io.formats.capture_frames import Undistortion
 from deliffas.io.cameras import Camera
-from deliffas.io.dynacap import Motion
-from deliffas.io.smpl import SMPLModelData, load_smpl_model
+from deliffas.io.formats.dynacap.character import Motion
+from deliffas.io.body_models.smpl import SMPLModelData, load_smpl_model
 from deliffas.geometry.smpl_params import motion_to_dynacap, rest_root_joint, rhth_to_params
 from deliffas.geometry.templates import SMPL_MODEL_SUFFIXES, TemplateSpec, spec_from_file
 from deliffas.data.subjects.base import SubjectOptions

@@ -16,9 +16,9 @@ from typing import Sequence
 
 import numpy as np
 
-from deliffas.io.calibration import read_calibration
-from deliffas.io.meshes import read_meshes
-from deliffas.io.frames import image_size
+from deliffas.io.formats.dynacap.calibration import read_calibration
+from deliffas.io.formats.dynacap.meshes import read_meshes
+from deliffas.io.formats.dynacap.frames import image_size
 from deliffas.geometry.templates import SMPL_MODEL_SUFFIXES, Skinning, TemplateSpec, ddc_spec, spec_from_file
 from deliffas.data.pose_motions import MOTION_SUFFIXES, read_pose_motion
 from deliffas.data.subjects.capture_common import read_test_cameras

@@ -13,9 +13,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from deliffas.io.capture_frames import FileFramesSpec, image_file_size, numbered_files
-from deliffas.io.capture_format import CaptureFormatError
-from deliffas.io.easymocap import easymocap_to_camera, read_easymocap_cameras, read_easymocap_smpl
+from deliffas.io.formats.capture_frames import FileFramesSpec, image_file_size, numbered_files
+from deliffas.io.infra.reader_checks import CaptureFormatError
+from deliffas.io.formats.easymocap import easymocap_to_camera, read_easymocap_cameras, read_easymocap_smpl
 from deliffas.data.subjects.base import Subject, SubjectOptions, SubjectParser, SubjectSequence, register_subject_format
 from deliffas.data.subjects.capture_common import (SEQUENCE, read_test_cameras, rhth_motion, smpl_model_data,
                                                    smpl_template, split_distortion)

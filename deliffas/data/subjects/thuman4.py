@@ -14,9 +14,9 @@ from __future__ import annotations
 import numpy as np
 from pathlib import Path
 
-from deliffas.io.capture_frames import FileFramesSpec
-from deliffas.io.dynacap import Motion
-from deliffas.io.thuman4 import read_thuman4_calibration, read_thuman4_smplx, thuman4_to_camera
+from deliffas.io.formats.capture_frames import FileFramesSpec
+from deliffas.io.formats.dynacap.character import Motion
+from deliffas.io.formats.thuman4 import read_thuman4_calibration, read_thuman4_smplx, thuman4_to_camera
 from deliffas.geometry.smpl_params import smplx_to_smpl_pose
 from deliffas.data.subjects.base import Subject, SubjectOptions, SubjectParser, SubjectSequence, register_subject_format
 from deliffas.data.subjects.capture_common import SEQUENCE, fit_betas, read_test_cameras, smpl_template, split_distortion

@@ -12,8 +12,8 @@ from __future__ import annotations
 
 from pathlib import Path, PurePosixPath
 
-from deliffas.io.capture_frames import FileFramesSpec, image_file_size
-from deliffas.io.zju_mocap import read_zju_annots, read_zju_params, zju_params_path, zju_to_cameras
+from deliffas.io.formats.capture_frames import FileFramesSpec, image_file_size
+from deliffas.io.formats.zju_mocap import read_zju_annots, read_zju_params, zju_params_path, zju_to_cameras
 from deliffas.data.subjects.base import Subject, SubjectOptions, SubjectParser, SubjectSequence, register_subject_format
 from deliffas.data.subjects.capture_common import (SEQUENCE, read_test_cameras, rhth_motion, smpl_model_data,
                                                    smpl_template, split_distortion)

@@ -19,7 +19,7 @@ import torch
 from jaxtyping import Float, Integer
 from torch import Tensor
 
-from deliffas.io.files import sha256_file
+from deliffas.io.infra.files import sha256_file
 
 __all__ = [
     "Template",

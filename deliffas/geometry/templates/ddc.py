@@ -17,7 +17,7 @@ from jaxtyping import Float
 from torch import Tensor
 
 from deliffas.checks import check_finite, check_shape
-from deliffas.io.dynacap import Character, read_character, read_character_files
+from deliffas.io.formats.dynacap.character import Character, read_character, read_character_files
 from deliffas.geometry.arrays import require_tensor
 from deliffas.geometry.skeleton import SkeletonFK
 from deliffas.geometry.skinning import dqs, lbs

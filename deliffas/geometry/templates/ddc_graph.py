@@ -8,7 +8,7 @@ from typing import Literal
 import torch
 
 from deliffas.checks import check_finite, check_shape
-from deliffas.io.dynacap import Character, read_character
+from deliffas.io.formats.dynacap.character import Character, read_character
 from deliffas.geometry.embedded_graph import EmbeddedDeformation, bind_embedded_graph, blend_bone_transforms
 from deliffas.geometry.templates.base import TemplateSpec, make_spec, register_template_kind
 from deliffas.geometry.templates.ddc import DDCTemplate, Skinning, ddc_sources

@@ -1,7 +1,7 @@
 """The ``smpl`` template kind: SMPL posed by ``[transl, axis-angle pose, betas]`` from a user's model file.
 
 SMPL is not shipped (license): the user passes the path of an official-layout model file
-(:func:`deliffas.io.smpl.load_smpl_model`). SMPL is in metres; ``scale=1000`` (default) puts vertices
+(:func:`deliffas.io.body_models.smpl.load_smpl_model`). SMPL is in metres; ``scale=1000`` (default) puts vertices
 and translations in the mm world of deliffas. The maths are :mod:`deliffas.geometry.smpl`; this
 module only holds the model's arrays as buffers.
 """
@@ -19,7 +19,7 @@ from torch import Tensor
 
 from deliffas.checks import check_finite, check_shape
 from deliffas.io.obj import read_obj
-from deliffas.io.smpl import NUM_JOINTS, NUM_POSE_BASIS, SMPLModelData, SMPLModelError, load_smpl_model
+from deliffas.io.body_models.smpl import NUM_JOINTS, NUM_POSE_BASIS, SMPLModelData, SMPLModelError, load_smpl_model
 from deliffas.geometry.arrays import require_tensor
 from deliffas.geometry.atlas import UVAtlas
 from deliffas.geometry.smpl import smpl_lbs

@@ -23,7 +23,7 @@ Conventions, worked out from Neural Body (zju3dv/neuralbody @3c516b9), which def
   else a ``camera_names`` list, which deliffas adds when it writes (neuralbody ignores unknown keys),
   else "0".."C-1".
 
-``.npy`` files holding a dict are pickles. They are read with ``deliffas.io.safe_pickle``, which builds
+``.npy`` files holding a dict are pickles. They are read with ``deliffas.io.infra.safe_pickle``, which builds
 only numpy arrays, dtypes and scalars from checked arguments (never arbitrary objects).
 """
 
@@ -38,10 +38,10 @@ import numpy as np
 
 from deliffas.io.cameras import Camera
 from deliffas.io.camera_conventions import from_camera, require_distortion_fits, to_camera
-from deliffas.io.capture_format import CaptureFormatError, require_array, require_rotation, require_rows, require_vector
-from deliffas.io.easymocap import EasyMocapSmpl
-from deliffas.io.files import durable_replace, temp_path
-from deliffas.io.safe_pickle import UnsafePickleError, load_numpy_pickle
+from deliffas.io.infra.reader_checks import CaptureFormatError, require_array, require_rotation, require_rows, require_vector
+from deliffas.io.formats.easymocap import EasyMocapSmpl
+from deliffas.io.infra.files import durable_replace, temp_path
+from deliffas.io.infra.safe_pickle import UnsafePickleError, load_numpy_pickle
 
 __all__ = [
     "ZjuCamera",

@@ -39,10 +39,10 @@ import numpy as np
 
 from deliffas.io.cameras import Camera
 from deliffas.io.camera_conventions import from_camera, invert_rigid, require_distortion_fits, to_camera
-from deliffas.io.capture_format import (CaptureFormatError, naming_file, require_array, require_rotation, require_rows,
+from deliffas.io.infra.reader_checks import (CaptureFormatError, naming_file, require_array, require_rotation, require_rows,
                                         require_vector)
-from deliffas.io.files import durable_replace, temp_path
-from deliffas.io.hdf5_heaps import looping_global_heap
+from deliffas.io.infra.files import durable_replace, temp_path
+from deliffas.io.infra.hdf5_heaps import looping_global_heap
 
 __all__ = [
     "SmcCalibration",

@@ -34,8 +34,8 @@ import numpy as np
 from deliffas.io.cameras import Camera
 from deliffas.io.camera_conventions import (from_camera, invert_rigid, matrix_to_rotvec, require_distortion_fits,
                                             rotvec_to_matrix, to_camera)
-from deliffas.io.capture_format import CaptureFormatError, require_array, require_rotation, require_size
-from deliffas.io.files import durable_replace, temp_path
+from deliffas.io.infra.reader_checks import CaptureFormatError, require_array, require_rotation, require_size
+from deliffas.io.infra.files import durable_replace, temp_path
 
 __all__ = [
     "ActorsHQCamera",

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from deliffas.io.cameras import ROTATION_TOLERANCE
-from deliffas.io.files import durable_replace, temp_path
+from deliffas.io.infra.files import durable_replace, temp_path
 
 __all__ = [
     "CaptureFormatError", "require_numbers", "require_array", "require_rows", "require_vector", "require_rotation",

@@ -35,9 +35,9 @@ import numpy as np
 
 from deliffas.io.cameras import Camera
 from deliffas.io.camera_conventions import from_camera, require_distortion_fits, to_camera
-from deliffas.io.capture_format import (CaptureFormatError, read_json, read_npz, require_array, require_rotation,
+from deliffas.io.infra.reader_checks import (CaptureFormatError, read_json, read_npz, require_array, require_rotation,
                                         require_rows, require_size, require_vector, write_json_atomic)
-from deliffas.io.files import durable_replace, temp_path
+from deliffas.io.infra.files import durable_replace, temp_path
 
 __all__ = [
     "Thuman4Camera",

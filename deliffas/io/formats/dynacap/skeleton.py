@@ -10,7 +10,7 @@ from typing import Literal
 import numpy as np
 from jaxtyping import Float, Integer
 
-from deliffas.io.text_lines import DynaCapFormatError, TextLines, write_text_atomic
+from deliffas.io.infra.text_lines import DynaCapFormatError, TextLines, write_text_atomic
 
 __all__ = ["Joint", "Marker", "Dof", "Skeleton", "read_skeleton", "write_skeleton", "SKELETON_HEADER", "JointType"]
 

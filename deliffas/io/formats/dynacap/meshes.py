@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 from jaxtyping import Float, Integer
 
-from deliffas.io.text_lines import DynaCapFormatError, TextLines, write_text_atomic
+from deliffas.io.infra.text_lines import DynaCapFormatError, TextLines, write_text_atomic
 
 PathLike = str | os.PathLike
 

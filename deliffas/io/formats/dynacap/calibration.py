@@ -7,7 +7,7 @@ import os
 import numpy as np
 
 from deliffas.io.cameras import Camera
-from deliffas.io.text_lines import DynaCapFormatError, TextLines, write_text_atomic
+from deliffas.io.infra.text_lines import DynaCapFormatError, TextLines, write_text_atomic
 
 PathLike = str | os.PathLike
 

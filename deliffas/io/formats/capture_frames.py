@@ -1,7 +1,7 @@
 """Frame sources of the capture-dataset layouts: per-camera image/mask files and DNA-Rendering ``.smc`` files.
 
 Each source answers ``read(frame, camera) -> (rgb (H, W, 3) uint8, mask (H, W) uint8)`` (the
-``deliffas.io.frames.FrameSource`` protocol) with ``camera`` the calibration index. The picklable
+``deliffas.io.formats.dynacap.frames.FrameSource`` protocol) with ``camera`` the calibration index. The picklable
 specs (:class:`FileFramesSpec`, :class:`SmcFramesSpec`) travel to worker processes and ``open()``
 there. A camera with lens distortion (:class:`Undistortion`) gets its image and mask undistorted at
 read time with OpenCV (``initUndistortRectifyMap`` + ``remap``, new camera matrix = K, so the pinhole
@@ -20,9 +20,9 @@ from typing import ClassVar, Literal, Mapping
 
 import numpy as np
 
-from deliffas.io.capture_format import CaptureFormatError
-from deliffas.io.dna_rendering import SmcFile
-from deliffas.io.files import durable_replace, temp_path
+from deliffas.io.infra.reader_checks import CaptureFormatError
+from deliffas.io.formats.dna_rendering import SmcFile
+from deliffas.io.infra.files import durable_replace, temp_path
 
 __all__ = ["Undistortion", "FileFramesSpec", "FileFrameSource", "SmcFramesSpec", "SmcFrameSource", "undistort_maps",
            "image_file_size", "numbered_files", "write_image_file"]
@@ -203,7 +203,7 @@ class SmcFramesSpec:
     undistort: Mapping[int, Undistortion] | None = None
     keep_open: ClassVar[bool] = True
     """A conversion keeps one source open per worker across shards: any (frame, camera) reads at one cost, and each
-    open scans the whole file's HDF5 heaps (``io.hdf5_heaps``, about 0.7 s per GB)."""
+    open scans the whole file's HDF5 heaps (``io.infra.hdf5_heaps``, about 0.7 s per GB)."""
 
     def open(self) -> "SmcFrameSource":
         return SmcFrameSource(self)

@@ -18,9 +18,9 @@ from pathlib import Path
 import numpy as np
 from jaxtyping import Float, Integer
 
-from deliffas.io.capture_format import CaptureFormatError, read_npz, require_numbers
-from deliffas.io.files import durable_replace, temp_path
-from deliffas.io.safe_pickle import UnsafePickleError, load_numpy_pickle
+from deliffas.io.infra.reader_checks import CaptureFormatError, read_npz, require_numbers
+from deliffas.io.infra.files import durable_replace, temp_path
+from deliffas.io.infra.safe_pickle import UnsafePickleError, load_numpy_pickle
 
 __all__ = ["SMPL_NOT_SHIPPED", "SMPLModelError", "SMPLModelData", "load_smpl_model", "write_smpl_model", "NUM_JOINTS",
            "NUM_POSE_BASIS"]

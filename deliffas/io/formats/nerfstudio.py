@@ -34,7 +34,7 @@ import numpy as np
 
 from deliffas.io.cameras import Camera
 from deliffas.io.camera_conventions import OPENGL_FROM_OPENCV, from_camera, invert_rigid, require_distortion_fits, to_camera
-from deliffas.io.capture_format import (CaptureFormatError, read_json, require_array, require_rotation, require_size,
+from deliffas.io.infra.reader_checks import (CaptureFormatError, read_json, require_array, require_rotation, require_size,
                                         write_json_atomic)
 
 __all__ = [

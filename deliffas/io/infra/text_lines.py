@@ -6,7 +6,7 @@ import math
 import os
 from pathlib import Path
 
-from deliffas.io.files import temp_path
+from deliffas.io.infra.files import temp_path
 
 __all__ = ["DynaCapFormatError", "TextLines", "read_text", "write_text_atomic"]
 

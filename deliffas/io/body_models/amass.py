@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 from jaxtyping import Float, Integer
 
-from deliffas.io.capture_format import CaptureFormatError, read_npz
-from deliffas.io.files import durable_replace, temp_path
+from deliffas.io.infra.reader_checks import CaptureFormatError, read_npz
+from deliffas.io.infra.files import durable_replace, temp_path
 
 __all__ = ["SMPLMotion", "SMPLMotionError", "read_smpl_motion", "write_smpl_motion", "SMPL_POSE_DIM",
            "SMPL_BODY_POSE_DIM", "MIN_BETAS"]

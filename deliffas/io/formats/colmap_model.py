@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from deliffas.io.capture_format import CaptureFormatError
+from deliffas.io.infra.reader_checks import CaptureFormatError
 
 __all__ = ["ColmapCamera", "ColmapImage", "CAMERA_MODELS", "read_colmap_model"]
 

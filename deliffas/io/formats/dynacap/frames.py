@@ -26,7 +26,7 @@ from typing import Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
-from deliffas.io.files import temp_path
+from deliffas.io.infra.files import temp_path
 
 __all__ = [
     "FrameSource",
@@ -77,7 +77,7 @@ class FrameSource(Protocol):
 @runtime_checkable
 class FramesSpec(Protocol):
     """Where a sequence's frames are, picklable: ``open`` gives its ``FrameSource`` in the process that
-    reads (``data.subjects.FrameSourceSpec``, ``io.capture_frames.FileFramesSpec``, ``SmcFramesSpec``).
+    reads (``data.subjects.FrameSourceSpec``, ``io.formats.capture_frames.FileFramesSpec``, ``SmcFramesSpec``).
 
     A spec may set the class attribute ``keep_open = True`` when its source reads any (frame, camera) at one cost
     and is slow to open: a conversion then keeps one source per worker open across shards instead of opening one

@@ -18,7 +18,7 @@ millimetres (COLMAP is scale-free). Camera and image ids are 1-based calibration
 names are the calibration names.
 
 pycolmap is imported here only, at call time (docs/conventions.md), and only to write: models are read by
-``deliffas.io.colmap_model``, which checks every count of a binary model before trusting it.
+``deliffas.io.formats.colmap_model``, which checks every count of a binary model before trusting it.
 """
 
 from __future__ import annotations
@@ -30,8 +30,8 @@ from typing import Sequence
 import numpy as np
 
 from deliffas.io.cameras import Camera
-from deliffas.io.capture_format import CaptureFormatError, naming_file
-from deliffas.io.colmap_model import read_colmap_model
+from deliffas.io.infra.reader_checks import CaptureFormatError, naming_file
+from deliffas.io.formats.colmap_model import read_colmap_model
 
 __all__ = [
     "cameras_to_colmap",

@@ -16,8 +16,8 @@ import numpy as np
 from jaxtyping import Float, Integer
 
 from deliffas.io.obj import ObjData, read_obj, write_obj
-from deliffas.io.skeleton import Skeleton, read_skeleton, write_skeleton
-from deliffas.io.text_lines import DynaCapFormatError, TextLines, read_text, write_text_atomic
+from deliffas.io.formats.dynacap.skeleton import Skeleton, read_skeleton, write_skeleton
+from deliffas.io.infra.text_lines import DynaCapFormatError, TextLines, read_text, write_text_atomic
 
 __all__ = [
     "DynaCapFormatError",
@@ -259,7 +259,7 @@ class Character:
     Attributes:
         path: the ``.character`` file.
         files: the files it names.
-        skeleton: joints, DOFs and scaling groups (``deliffas.io.skeleton``).
+        skeleton: joints, DOFs and scaling groups (``deliffas.io.formats.dynacap.skeleton``).
         mesh: the template mesh in the rest pose: ``mesh.verts`` (V, 3) float64 mm, ``mesh.faces``
             (F, 3) int64, ``mesh.uvs`` (T, 2) float64 and ``mesh.face_uvs`` (F, 3) int64 per-corner
             uv indices (see :class:`~deliffas.io.obj.ObjData`). Its ``v`` order is the vertex order

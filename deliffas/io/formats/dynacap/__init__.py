@@ -1,0 +1,1 @@
+"""DynaCap / Skeletool captures: character, skin, motion and segmentation files, skeletons, calibrations, meshes, frames."""
