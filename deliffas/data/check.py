@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from deliffas.io.cameras import Camera
-from deliffas.io.formats.dynacap.character import Motion
+from deliffas.io.motion import Motion
 from deliffas.geometry.raycast import build_scene, first_hits
 from deliffas.geometry.shell import offset_shell
 from deliffas.geometry.templates import build_template

@@ -11,8 +11,9 @@ import os
 from pathlib import Path
 
 from deliffas.io.body_models.amass import read_smpl_motion
-from deliffas.io.formats.dynacap.character import Motion, read_motion
-from deliffas.geometry.smpl_params import motion_to_dynacap
+from deliffas.io.formats.dynacap.character import read_motion
+from deliffas.io.motion import Motion
+from deliffas.geometry.smpl_params import smpl_to_motion
 from deliffas.geometry.templates import TemplateSpec
 
 __all__ = ["read_pose_motion", "MOTION_SUFFIXES"]
@@ -37,5 +38,5 @@ def read_pose_motion(path: str | os.PathLike, spec: TemplateSpec, num_dofs: int 
     if p.suffix.lower() != expected:
         raise ValueError(f"{p}: a {spec.kind} template takes a {expected} motion, got '{p.suffix}'")
     if spec.kind == "smpl":
-        return motion_to_dynacap(read_smpl_motion(p), int(spec.option("num_betas", 10)))
+        return smpl_to_motion(read_smpl_motion(p), int(spec.option("num_betas", 10)))
     return read_motion(p, num_dofs=num_dofs)

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from jaxtyping import Float, Real
 
-from deliffas.io.formats.dynacap.character import Motion
+from deliffas.io.motion import Motion
 from deliffas.io.mesh_files import write_mesh
 from deliffas.geometry.templates import Skinning, Template, TemplateSpec, build_template, spec_from_file
 from deliffas.data.pose_motions import read_pose_motion

@@ -17,13 +17,14 @@ import cv2
 import numpy as np
 
 from deliffas.io.body_models.amass import read_smpl_motion, write_smpl_motion
-from deliffas.io.formats.dynacap.character import Motion, read_character, read_motion, write_character, write_motion
+from deliffas.io.formats.dynacap.character import read_character, read_motion, write_character, write_motion
+from deliffas.io.motion import Motion
 from deliffas.io.body_models.smpl import load_smpl_model
 from deliffas.geometry.motion_gen import procedural_motion
 from deliffas.geometry.procedural import make_procedural_character
 from deliffas.geometry.smpl_body import make_procedural_smpl
 from deliffas.geometry.smpl_motion import procedural_smpl_motion
-from deliffas.geometry.smpl_params import motion_to_dynacap, params_to_motion
+from deliffas.geometry.smpl_params import smpl_to_motion, params_to_motion
 from deliffas.geometry.templates import TemplateSpec, build_template, ddc_spec, smpl_spec
 from deliffas.data.garment import ddc_garment_region, smpl_garment_region
 
@@ -78,7 +79,7 @@ class SynthBody:
         if self.kind == "ddc":
             m = procedural_motion(self.skeleton, num_frames, seed, style="mixed", rest_dofs=self.rest_dofs, fps=fps)
             return Motion(np.arange(m.num_frames, dtype=np.int64), np.asarray(m.dofs, np.float64))
-        return motion_to_dynacap(procedural_smpl_motion(num_frames, seed, fps), SMPL_NUM_BETAS)
+        return smpl_to_motion(procedural_smpl_motion(num_frames, seed, fps), SMPL_NUM_BETAS)
 
     def _read_motion(self, path: Path) -> Motion:
         if self.kind == "ddc":
@@ -87,7 +88,7 @@ class SynthBody:
             return read_motion(path, num_dofs=len(self.rest_dofs))
         if path.suffix != ".npz":
             raise ValueError(f"{path}: an SMPL body takes an AMASS-style .npz motion (poses, trans, betas)")
-        return motion_to_dynacap(read_smpl_motion(path), SMPL_NUM_BETAS)
+        return smpl_to_motion(read_smpl_motion(path), SMPL_NUM_BETAS)
 
     def write_motion(self, seq_dir: Path, motion: Motion, fps: float) -> Path:
         """Write a sequence's pose parameters in the body's own motion format; returns the file."""

@@ -16,7 +16,7 @@ from typing import Literal
 
 import numpy as np
 
-from deliffas.io.formats.dynacap.character import Motion
+from deliffas.io.motion import Motion
 from deliffas.io.formats.dynacap.skeleton import Skeleton
 
 __all__ = ["MotionStyle", "procedural_motion", "known_dof_names", "MAX_YAW_RATE"]

@@ -2,7 +2,7 @@
 
 ``SMPLTemplate`` (``deliffas.geometry.templates.smpl``) poses a frame from one row
 ``[transl (3, model units), axis-angle pose (72), betas (num_betas)]``; the rest of deliffas reads
-per-frame pose parameters as a ``deliffas.io.formats.dynacap.character.Motion`` (frame numbers + rows). These pure
+per-frame pose parameters as a ``deliffas.io.motion.Motion`` (frame numbers + rows). These pure
 functions convert an AMASS-style :class:`~deliffas.io.body_models.amass.SMPLMotion` to those rows and that
 ``Motion`` and back, without changing units or axes (AMASS's z-up world stays in the root
 orientation and translation). Capture datasets store the same pose in other forms; the
@@ -16,10 +16,10 @@ import numpy as np
 
 from deliffas.io.body_models.amass import SMPL_BODY_POSE_DIM, SMPL_POSE_DIM, SMPLMotion
 from deliffas.io.camera_conventions import matrix_to_rotvec, rotvec_to_matrix
-from deliffas.io.formats.dynacap.character import Motion
+from deliffas.io.motion import Motion
 from deliffas.io.body_models.smpl import SMPLModelData
 
-__all__ = ["smpl_param_dim", "motion_to_params", "params_to_motion", "motion_to_dynacap", "rest_root_joint",
+__all__ = ["smpl_param_dim", "motion_to_params", "params_to_motion", "smpl_to_motion", "rest_root_joint",
            "rhth_to_params", "params_to_rhth", "smplx_to_smpl_pose"]
 
 
@@ -65,7 +65,7 @@ def params_to_motion(params: np.ndarray, fps: float | None = None, gender: str |
     return SMPLMotion(params[:, 3:3 + SMPL_POSE_DIM].copy(), params[:, :3].copy(), shared, fps, gender)
 
 
-def motion_to_dynacap(motion: SMPLMotion, num_betas: int = 10, first_frame: int = 0) -> Motion:
+def smpl_to_motion(motion: SMPLMotion, num_betas: int = 10, first_frame: int = 0) -> Motion:
     """The motion as deliffas's per-frame pose parameters: the motion's ``frames`` when it has them,
     else ``first_frame .. first_frame + N - 1`` (int64), and ``dofs`` = :func:`motion_to_params` rows
     (N, 3 + 72 + num_betas)."""

@@ -16,7 +16,7 @@ from deliffas.cli import main
 from deliffas.data.check import OPENGL_FROM_OPENCV, CheckConfig, check_subject
 from deliffas.data.subjects import SubjectOptions, parse_subject
 from deliffas.io.camera_conventions import rotvec_to_matrix
-from deliffas.io.formats.dynacap.character import Motion
+from deliffas.io.motion import Motion
 from deliffas.io.formats.easymocap import read_easymocap_cameras, write_easymocap_cameras
 
 

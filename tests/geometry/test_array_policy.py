@@ -105,7 +105,8 @@ def test_template_pose_is_torch_only_and_pose_frames_is_the_numpy_boundary(proce
     from deliffas.data.posing import pose_frames
     from deliffas.geometry.motion_gen import procedural_motion
     from deliffas.geometry.templates import build_template, ddc_spec
-    from deliffas.io.formats.dynacap.character import Motion, read_character
+    from deliffas.io.formats.dynacap.character import read_character
+    from deliffas.io.motion import Motion
 
     character = read_character(procedural_character_path)
     spec = ddc_spec(procedural_character_path)

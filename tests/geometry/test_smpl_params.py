@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from deliffas.geometry.smpl_params import motion_to_dynacap, motion_to_params, params_to_motion, smpl_param_dim
+from deliffas.geometry.smpl_params import smpl_to_motion, motion_to_params, params_to_motion, smpl_param_dim
 from deliffas.io.body_models.amass import SMPLMotion
-from deliffas.io.formats.dynacap.character import Motion
+from deliffas.io.motion import Motion
 
 
 def _motion(n: int = 5, pose_dim: int = 156, num_betas: int = 16) -> SMPLMotion:
@@ -22,7 +22,7 @@ def test_template_rows_and_dynacap_motion():
     np.testing.assert_array_equal(rows[:, :3], m.trans)
     np.testing.assert_array_equal(rows[:, 3:75], m.smpl_pose)
     np.testing.assert_array_equal(rows[:, 75:], np.tile(m.betas[:10], (5, 1)))
-    dm = motion_to_dynacap(m, num_betas=10)
+    dm = smpl_to_motion(m, num_betas=10)
     assert isinstance(dm, Motion) and dm.frames.tolist() == [0, 1, 2, 3, 4] and dm.row_of(3) == 3
     np.testing.assert_array_equal(dm.dofs, rows)
     back = params_to_motion(rows, fps=m.fps)

@@ -24,6 +24,7 @@ from deliffas.io.formats.dynacap import skeleton as skeleton_io
 from deliffas.io.formats.dynacap.calibration import read_calibration, write_calibration
 from deliffas.io.formats.dynacap.meshes import MeshSequence, read_meshes, write_meshes
 from deliffas.io.cameras import Camera
+from deliffas.io.motion import Motion
 from deliffas.io.formats.dynacap.character import DynaCapFormatError
 from reliability_support import COUNTS, FUZZ_EXAMPLES
 
@@ -48,7 +49,7 @@ def _valid_files(d: Path) -> dict[str, tuple[Path, object]]:
     files = {}
     skeleton_io.write_skeleton(d / "a.skeleton", skel)
     files["skeleton"] = (d / "a.skeleton", skeleton_io.read_skeleton)
-    motion = dc.Motion(np.arange(4), np.random.default_rng(0).normal(size=(4, 3)))
+    motion = Motion(np.arange(4), np.random.default_rng(0).normal(size=(4, 3)))
     dc.write_motion(d / "a.motion", motion)
     files["motion"] = (d / "a.motion", lambda p: dc.read_motion(p, 3))
     skin = dc.Skin(("Root", "Spine", "Head"), np.array([[0, 1], [1, 2], [2, -1], [0, -1]]),

@@ -138,7 +138,8 @@ def test_zero_area_uv_faces_cover_nothing_and_are_listed(caplog):
 
 # ------------------------------------------------------------------------------------- non-finite input
 def test_non_finite_inputs_raise_naming_the_array(rel_character, tmp_path):
-    from deliffas.io.formats.dynacap.character import DynaCapFormatError, Motion, read_character, read_motion, write_motion
+    from deliffas.io.formats.dynacap.character import DynaCapFormatError, read_character, read_motion, write_motion
+    from deliffas.io.motion import Motion
     from deliffas.geometry.templates import DDCTemplate
 
     character = read_character(rel_character)

@@ -18,7 +18,7 @@ import numpy as np
 from jaxtyping import Integer
 
 from deliffas.io.cameras import Camera
-from deliffas.io.formats.dynacap.character import Motion
+from deliffas.io.motion import Motion
 from deliffas.io.formats.dynacap.frames import FrameSource, FramesSpec, ImageFolderSource, open_frame_source
 from deliffas.geometry.templates import Skinning, TemplateSpec
 

@@ -19,9 +19,9 @@ from deliffas.io.body_models.amass import read_smpl_motion
 from deliffas.io.camera_conventions import DISTORTION, camera_distortion
 from deliffas.io.formats.capture_frames import Undistortion
 from deliffas.io.cameras import Camera
-from deliffas.io.formats.dynacap.character import Motion
+from deliffas.io.motion import Motion
 from deliffas.io.body_models.smpl import SMPLModelData, load_smpl_model
-from deliffas.geometry.smpl_params import motion_to_dynacap, rest_root_joint, rhth_to_params
+from deliffas.geometry.smpl_params import smpl_to_motion, rest_root_joint, rhth_to_params
 from deliffas.geometry.templates import SMPL_MODEL_SUFFIXES, TemplateSpec, spec_from_file
 from deliffas.data.subjects.base import SubjectOptions
 
@@ -95,7 +95,7 @@ def user_motion(options: SubjectOptions, fallback: Path | None) -> Motion | None
     path = Path(given[0]) if given else fallback
     if path is None or not path.is_file():
         return None
-    return motion_to_dynacap(read_smpl_motion(path), SMPL_NUM_BETAS)
+    return smpl_to_motion(read_smpl_motion(path), SMPL_NUM_BETAS)
 
 
 def split_distortion(cameras: Sequence[Camera], fmt: str) -> tuple[tuple[Camera, ...], dict[int, Undistortion]]:

@@ -19,7 +19,7 @@ import numpy as np
 from deliffas.io.infra.reader_checks import CaptureFormatError
 from deliffas.io.formats.capture_frames import SmcFramesSpec
 from deliffas.io.formats.dna_rendering import SmcFile, smc_to_cameras
-from deliffas.io.formats.dynacap.character import Motion
+from deliffas.io.motion import Motion
 from deliffas.geometry.smpl_params import smplx_to_smpl_pose
 from deliffas.data.subjects.base import Subject, SubjectOptions, SubjectParser, SubjectSequence, register_subject_format
 from deliffas.data.subjects.capture_common import SEQUENCE, fit_betas, read_test_cameras, smpl_template, split_distortion

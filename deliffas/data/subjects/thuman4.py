@@ -15,7 +15,7 @@ import numpy as np
 from pathlib import Path
 
 from deliffas.io.formats.capture_frames import FileFramesSpec
-from deliffas.io.formats.dynacap.character import Motion
+from deliffas.io.motion import Motion
 from deliffas.io.formats.thuman4 import read_thuman4_calibration, read_thuman4_smplx, thuman4_to_camera
 from deliffas.geometry.smpl_params import smplx_to_smpl_pose
 from deliffas.data.subjects.base import Subject, SubjectOptions, SubjectParser, SubjectSequence, register_subject_format

@@ -16,12 +16,13 @@ import numpy as np
 from jaxtyping import Float, Integer
 
 from deliffas.io.obj import ObjData, read_obj, write_obj
+from deliffas.io.motion import Motion
 from deliffas.io.formats.dynacap.skeleton import Skeleton, read_skeleton, write_skeleton
 from deliffas.io.infra.text_lines import DynaCapFormatError, TextLines, read_text, write_text_atomic
 
 __all__ = [
     "DynaCapFormatError",
-    "Motion", "read_motion", "write_motion",
+    "read_motion", "write_motion",
     "Skin", "read_skin", "write_skin",
     "Character", "CharacterFiles", "read_character", "write_character", "read_character_files",
     "read_segmentation", "write_segmentation",
@@ -38,31 +39,6 @@ CHARACTER_HEADERS = ("skeletool character file v1.0", "skeletool character file 
 
 
 # --------------------------------------------------------------------------------------------- motion
-@dataclass(frozen=True)
-class Motion:
-    """A Skeletool motion: per line a frame index and D DOF values (DOF units).
-
-    Attributes:
-        frames: (N,) int64 frame number of each row (absolute, as written; ``row_of`` maps back).
-        dofs: (N, D) float64 DOF values in the skeleton's DOF order (DOF units: metres for root
-            translations, radians for angles).
-    """
-
-    frames: Integer[np.ndarray, "N"]
-    dofs: Float[np.ndarray, "N D"]
-
-    @property
-    def num_frames(self) -> int:
-        return int(self.dofs.shape[0])
-
-    def row_of(self, frame: int) -> int:
-        """Row index holding ``frame``; KeyError when the motion lacks it."""
-        rows = np.nonzero(self.frames == frame)[0]
-        if len(rows) == 0:
-            raise KeyError(f"frame {frame} not in motion (frames {int(self.frames.min())}..{int(self.frames.max())})")
-        return int(rows[0])
-
-
 def read_motion(path: PathLike, num_dofs: int | None = None) -> Motion:
     """Read a ``.motion`` file; ``num_dofs`` (the skeleton's) is checked on every line when given.
 
