@@ -19,7 +19,7 @@ WIDTH, HEIGHT = 1285, 940
 
 def main(shards: str, chunk: int) -> dict:
     from deliffas.engine.data_bridge import evaluation_samples
-    from deliffas.engine.evaluate import render_frame
+    from deliffas.engine.shading import render_frame
     from deliffas.engine.memory import peak_rss_growth, render_peak_bound
     from deliffas.engine.rays import camera_rays
     from deliffas.engine.timing import StageTimer

@@ -34,7 +34,7 @@ def _model(info, variant: str = "two_surface"):
 
 
 def _end_to_end(model, sample, info, camera, label: str) -> list[Result]:
-    from deliffas.engine.evaluate import render_frame
+    from deliffas.engine.shading import render_frame
     from deliffas.engine.timing import StageTimer
     from deliffas.geometry.raycast import UVRaycaster
 

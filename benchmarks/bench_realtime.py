@@ -6,17 +6,17 @@ Scene: the benchmark capture (``_capture.py``), frame 0, camera 0 rescaled to 94
 (``BENCH_THREADS``) on both sides of every ratio.
 
 * frame, pose held: ``engine.realtime.fast_render_camera`` with the frame's U-Net features cached
-  (the viewer while the pose holds), in the dtype ``FastRender()`` resolves to (bf16 where the CPU
+  (the viewer while the pose holds), in the dtype ``FastConfig()`` resolves to (bf16 where the CPU
   has native bf16).
 * irreducible work, measured in the same run: one plain z-buffer pass of the outer surface
   (``UVRasterizer.depth_pass``, incl. projecting its vertices), one ``torch.mm`` per MLP layer shape
   into preallocated outputs in the same dtype (no bias, activation or concatenation), and one
   ``index_select`` of every sampled feature value (nearest texel) from the two maps.
   The frame's fp32 pass takes the first layer's encoded part from per-coordinate tables
-  (``FastRender.pe_table``, on by default), so it does fewer multiply-adds than the GEMM chain counts
+  (``FastConfig.pe_table``, on by default), so it does fewer multiply-adds than the GEMM chain counts
   and the ratio can read below 1.
 * encoding table: the frame with the tables against the frame with the exact encoding
-  (``FastRender(pe_table=False)``), same run; no target.
+  (``FastConfig(pe_table=False)``), same run; no target.
 * frames in flight: a stream of 8 frames one after the other (1 and 2 intra-op threads) against
   ``render_stream`` with two frames in flight on one thread each; no target.
 * fps: 1000 / frame ms, with the U-Nets run per frame (``deliffas render``: the pose changes every
@@ -74,7 +74,7 @@ def _gather(features, n: int):
 
 
 def _frame_fns(model, sample, info, camera, fast):
-    from deliffas.engine.evaluate import render_camera
+    from deliffas.engine.shading import render_camera
     from deliffas.engine.timing import StageTimer
     from deliffas.geometry.raycast import UVRaycaster
 
@@ -98,10 +98,11 @@ def _frame_fns(model, sample, info, camera, fast):
 
 
 def _ratio_rows(sample, info) -> list[Result]:
-    from deliffas.engine.realtime import FastRender, _rasterizer, fast_camera_rays
+    from deliffas.engine.realtime import _rasterizer, fast_camera_rays
+    from deliffas.fast.config import FastConfig
     from deliffas.engine.timing import StageTimer
 
-    fast = FastRender()
+    fast = FastConfig()
     dtype = fast.torch_dtype()
     model = _model(info, "realtime")
     cam = sample.cameras[0].rescaled(*SIZES["940x1285"])
@@ -136,11 +137,12 @@ def _ratio_rows(sample, info) -> list[Result]:
 def _stream_rows(sample, info) -> list[Result]:
     """Frames per second of a stream of 940x1285 frames: one after the other on 1 and on 2 intra-op threads,
     and two frames in flight (``render_stream``, one thread each), interleaved; pose held and per frame."""
-    from deliffas.engine.realtime import FastRender, render_stream
+    from deliffas.engine.realtime import render_stream
+    from deliffas.fast.config import FastConfig
 
     model = _model(info, "realtime")
     cam = sample.cameras[0].rescaled(*SIZES["940x1285"])
-    held, full, _, _ = _frame_fns(model, sample, info, cam, FastRender())
+    held, full, _, _ = _frame_fns(model, sample, info, cam, FastConfig())
     frames = 8
 
     def sequential(fn, threads):
@@ -170,14 +172,14 @@ def _stream_rows(sample, info) -> list[Result]:
 
 
 def _fps_rows(sample, info) -> list[Result]:
-    from deliffas.engine.realtime import FastRender
+    from deliffas.fast.config import FastConfig
 
     rows = []
     for preset in ("realtime", "small", "paper"):
         model = _model(info, preset)
         for size, (w, h) in SIZES.items():
             cam = sample.cameras[0].rescaled(w, h)
-            fast_held, fast_full, _, _ = _frame_fns(model, sample, info, cam, FastRender())
+            fast_held, fast_full, _, _ = _frame_fns(model, sample, info, cam, FastConfig())
             plain_held, _, _, _ = _frame_fns(model, sample, info, cam, None)
             fns = {"fast_held": fast_held, "fast_full": fast_full}
             if preset == "small" and size == "940x1285":

@@ -1,6 +1,6 @@
 """The viewer's frame rate at 512^2 (small preset) against the engine's renderer alone.
 
-The viewer renders as ``deliffas view`` serves it: through the CPU fast path (``default_fast_render``), and
+The viewer renders as ``deliffas view`` serves it: through the CPU fast path (``ViewConfig.fast`` with the CLI's environment variables), and
 ``render_frame`` / ``render_camera`` are given the same path; the plain viewer's rate is a row without target."""
 
 from __future__ import annotations
@@ -43,8 +43,11 @@ def _orbit(sample, info) -> list:
 def run() -> list[Result]:
     import cv2
 
-    from deliffas.engine.evaluate import load_run, render_camera, render_frame
-    from deliffas.engine.realtime import default_fast_render
+    from deliffas.engine.runs import load_run
+    from deliffas.engine.shading import render_camera, render_frame
+    from deliffas.cli.fast_env import fast_from_env
+    from deliffas.engine.realtime import fast_for_device
+    from deliffas.engine.view.config import ViewConfig
     from deliffas.engine.timing import StageTimer
     from deliffas.engine.view.renderer import RenderWorker, ViewRenderer, ViewRequest
     from deliffas.engine.view.scene import ViewScene
@@ -57,7 +60,7 @@ def run() -> list[Result]:
     cams = _orbit(sample, info)
     device = torch.device("cpu")
     rc = UVRaycaster(sample.inner_verts, info["faces"], sample.outer_verts, info["atlas"])
-    fast = default_fast_render(device)
+    fast = fast_for_device(fast_from_env(ViewConfig.fast), device)
 
     def direct(with_cnn: bool) -> float:
         features = model.encode(*sample.normal_maps(device))

@@ -27,8 +27,10 @@ SIZES = {"256^2": (256, 256), "512^2": (512, 512), "940x1285": (1285, 940)}
 
 def _fps(run: str, max_frames: int | None) -> dict[str, str]:
     from deliffas.engine.data_bridge import evaluation_samples
-    from deliffas.engine.evaluate import load_run, render_camera
-    from deliffas.engine.realtime import FastRender, render_stream
+    from deliffas.engine.runs import load_run
+    from deliffas.engine.shading import render_camera
+    from deliffas.engine.realtime import render_stream
+    from deliffas.fast.config import FastConfig
     from deliffas.engine.timing import StageTimer
     from deliffas.geometry.raycast import UVRaycaster
 
@@ -37,7 +39,7 @@ def _fps(run: str, max_frames: int | None) -> dict[str, str]:
     samples, info = evaluation_samples(shards, "novel_view", max_frames=1, with_rays=False, protocol="all",
                                        temporal_window=model.config.temporal_window)
     sample = next(samples)
-    device, fast = torch.device("cpu"), FastRender()
+    device, fast = torch.device("cpu"), FastConfig()
     with torch.no_grad():
         features = model.encode(*sample.normal_maps(device))
     rc = UVRaycaster(sample.inner_verts, info["faces"], sample.outer_verts, info["atlas"])
@@ -67,8 +69,10 @@ def _fps(run: str, max_frames: int | None) -> dict[str, str]:
 
 def _psnr(run: str, fast: bool, max_frames: int | None) -> float:
     from deliffas.engine.evaluate import EvalConfig, evaluate
+    from deliffas.fast.config import FastConfig
 
-    return float(evaluate(EvalConfig(run=run, split="novel_view", max_frames=max_frames, fast=fast))["foreground"]["psnr"])
+    return float(evaluate(EvalConfig(run=run, split="novel_view", max_frames=max_frames,
+                                     fast=FastConfig() if fast else None))["foreground"]["psnr"])
 
 
 def main(argv: list[str] | None = None) -> str:

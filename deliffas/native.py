@@ -1,10 +1,11 @@
 """Small C kernels compiled at first use with the system C compiler and loaded through ctypes.
 
-The fused normal-map gather (``geometry/normal_maps.py``) and the U-Net's input conversion
-(``models/unet_cpu.py``) use one each. Each is built once per
-process, with ``-march=native`` first (the build machine is the run machine) and portable flags
-if that fails, from ``$CC`` or the first of ``cc``, ``gcc``, ``clang`` on PATH, in a temporary
-directory that is removed after loading (the library stays mapped). Nothing is cached on disk.
+The C sources are package data in ``deliffas/csrc/`` (:data:`CSRC`): the rasteriser and the shading passes of
+the real-time path (``deliffas/fast/``), the fused normal-map gather (``geometry/normal_maps.py``) and the
+U-Net's input conversion (``models/unet_cpu.py``). Each library is built once per process, with
+``-march=native`` first (the build machine is the run machine) and portable flags if that fails, from
+``$CC`` or the first of ``cc``, ``gcc``, ``clang`` on PATH, into a temporary directory that is removed after
+loading (the library stays mapped). Nothing is cached on disk.
 
 Callers hold a :class:`LazyLibrary`, which builds on first use and logs once when it falls back.
 Set ``DELIFFAS_NATIVE=0`` to never compile; every caller then keeps a pure-torch fallback.
@@ -25,7 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
 
-__all__ = ["NATIVE_ENV", "LazyLibrary", "NativeLibrary", "build_library"]
+__all__ = ["CSRC", "NATIVE_ENV", "LazyLibrary", "NativeLibrary", "build_library"]
 
 logger = logging.getLogger(__name__)
 
@@ -33,6 +34,9 @@ NATIVE_ENV = "DELIFFAS_NATIVE"
 """Environment variable: "0" disables every compiled kernel."""
 
 BASE_FLAGS = ("-O3", "-std=c99", "-fPIC", "-shared")
+
+CSRC = Path(__file__).with_name("csrc")
+"""The folder of the package's C sources (shipped in the wheel as package data)."""
 
 
 @dataclass(frozen=True)
@@ -53,11 +57,11 @@ class NativeLibrary:
 
 
 def build_library(name: str, source: str, flags: Sequence[str] = ()) -> NativeLibrary:
-    """Compile C ``source`` into a shared library and load it.
+    """Compile the C file ``source`` of :data:`CSRC` into a shared library and load it.
 
     Args:
-        name: file stem (for messages and the temporary file names).
-        source: C99 source.
+        name: library stem (for messages and the temporary file names).
+        source: file name in :data:`CSRC` (C99; a quoted ``#include`` finds its siblings there).
         flags: compiler flags added to ``-O3 -std=c99 -fPIC -shared``.
 
     Returns:
@@ -72,8 +76,7 @@ def build_library(name: str, source: str, flags: Sequence[str] = ()) -> NativeLi
     t0 = time.perf_counter()
     errors = []
     with tempfile.TemporaryDirectory(prefix=f"deliffas_{name}_", ignore_cleanup_errors=True) as tmp:
-        src, lib_path = Path(tmp) / f"{name}.c", Path(tmp) / f"{name}.so"
-        src.write_text(source)
+        src, lib_path = CSRC / source, Path(tmp) / f"{name}.so"
         for arch in (("-march=native",), ()):
             cmd = [*cc, *BASE_FLAGS, *flags, *arch, str(src), "-o", str(lib_path)]
             try:
@@ -90,7 +93,7 @@ def build_library(name: str, source: str, flags: Sequence[str] = ()) -> NativeLi
             lib = ctypes.CDLL(str(lib_path))  # stays mapped after the directory is removed
         except OSError as exc:
             return NativeLibrary(None, f"loading the built {name} library failed: {exc}")
-    command = " ".join([*cmd[:-3], f"{name}.c"])
+    command = " ".join([*cmd[:-3], source])
     return NativeLibrary(lib, "", time.perf_counter() - t0, command)
 
 
@@ -98,8 +101,8 @@ class LazyLibrary:
     """A C library built on first use, once per process (thread-safe), for one caller.
 
     Args:
-        name: file stem and the name in log messages.
-        source: C99 source.
+        name: library stem and the name in log messages.
+        source: file name in :data:`CSRC`.
         flags: extra compiler flags (see :func:`build_library`).
         setup: called once with the loaded library to declare its ctypes signatures; an
             ``AttributeError`` (a missing symbol) makes the library unavailable.

@@ -276,7 +276,8 @@ def _per_frame_metrics(run_dir: Path, shards: Path, split: str, max_frames: int 
     import torch
 
     from deliffas.engine.data_bridge import evaluation_samples
-    from deliffas.engine.evaluate import load_run, render_frame
+    from deliffas.engine.runs import load_run
+    from deliffas.engine.shading import render_frame
     from deliffas.engine.samples import composite_target
     from deliffas.engine.timing import StageTimer
     from deliffas.geometry.raycast import UVRaycaster

@@ -38,6 +38,8 @@ from deliffas.engine.memory import retain_freed_memory
 from deliffas.engine.render import RenderConfig, render_video
 from deliffas.engine.train import TrainConfig, train
 from deliffas.engine.view import SubjectViewConfig, ViewConfig, is_capture, view, view_subject
+from deliffas.fast.config import FastConfig
+from deliffas.cli.fast_env import fast_from_env
 
 
 def cmd_pose(args: argparse.Namespace) -> int:
@@ -226,7 +228,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     result = evaluate(EvalConfig(run=str(args.run), split=args.split, protocol=args.protocol, shards=args.shards,
                                  max_frames=args.max_frames, device=args.device, save_images=args.save_images,
                                  vgg16_path=args.vgg16_path, lpips_path=args.lpips_path,
-                                 inception_path=args.inception_path, grid=args.grid, fast=args.fast))
+                                 inception_path=args.inception_path, grid=args.grid,
+                                 fast=fast_from_env(FastConfig()) if args.fast else None))
     if args.json:
         print(json.dumps(result))
         return 0
@@ -252,7 +255,8 @@ def cmd_render(args: argparse.Namespace) -> int:
     out = render_video(RenderConfig(run=str(args.run), out=str(args.out), orbit=args.orbit,
                                     motion=str(args.motion) if args.motion else None, frames=args.frames,
                                     size=args.size, device=args.device, fps=args.fps, loop=args.loop,
-                                    camera=args.camera, overwrite=args.overwrite, fast=not args.plain))
+                                    camera=args.camera, overwrite=args.overwrite,
+                                    fast=None if args.plain else fast_from_env(RenderConfig.fast)))
     print(f"wrote {out}")
     return 0
 
@@ -287,7 +291,7 @@ def cmd_view(args: argparse.Namespace) -> int:
     cfg = ViewConfig(run=str(args.run), compare=str(args.compare) if args.compare else None,
                      motion=str(args.motion) if args.motion else None, shards=str(args.shards) if args.shards else None,
                      host=args.host, port=args.port, device=args.device, max_resolution=args.resolution,
-                     fast=not args.plain)
+                     fast=None if args.plain else fast_from_env(ViewConfig.fast))
     _print_view_address(cfg.host, cfg.port)
     view(cfg)
     return 0

@@ -56,13 +56,13 @@ MANIFEST_NAME = "manifest.json"
 META_NAME = "meta.h5"
 SHARD_DIR = "shards"
 IMAGE_GZIP_LEVEL = 4
-"""gzip level of raw RGBA image chunks: at 1285x940 as small as PNG level 3 (-3 %), 2.5x faster to
-encode and decode (docs/shards.md, measured)."""
+"""gzip level of raw RGBA image chunks: at 1285x940 as small as PNG level 3 (-3 %), faster to
+encode and decode (docs/shards.md)."""
 ARRAY_GZIP_LEVEL = 4
 """gzip level (+ byte shuffle) of vertex chunks."""
 NORMAL_MAP_COMPRESSION = None
 """Normal-map chunks are stored uncompressed: gzip 4 + shuffle made them 2.4x smaller (164 vs 386
-KiB per float16 map at S = 256) but cost 1.4 ms to decode per map against 0.04 ms, and a training
+KiB per float16 map at S = 256) but about 35x slower to read, and a training
 item reads 2 (T + 1) maps, which made decoding them the largest part of loading an item
 (docs/shards.md). Shards written with gzip maps are read as before."""
 
@@ -309,7 +309,7 @@ class ShardFile:
         uniq, inverse = np.unique(cols, return_inverse=True)
         if uniq[-1] - uniq[0] + 1 == len(uniq):  # adjacent chunks: one slice read
             return ds[row, int(uniq[0]) : int(uniq[-1]) + 1][inverse]
-        # h5py's point-list selection is pathologically slow (~120 ms for 4 of 6 images): one read each
+        # h5py's point-list selection is pathologically slow: one read each
         return np.stack([ds[row, int(c)] for c in cols])
 
     def image(self, row: int, col: int) -> tuple[np.ndarray, np.ndarray]:

@@ -24,7 +24,7 @@ import torch
 
 from deliffas.data.shard_meta import ShardMeta
 from deliffas.data.shards import ShardSet
-from deliffas.engine.evaluate import load_run
+from deliffas.engine.runs import load_run
 from deliffas.engine.identity import capture_identity
 from deliffas.geometry.templates import TemplateSpec
 from deliffas.io.avatar_file import AVATAR_SUFFIX, AvatarFileError, read_avatar_file, write_avatar_file

@@ -14,7 +14,6 @@ warns (``warnings`` in the result).
 
 from __future__ import annotations
 
-import json
 import logging
 import time
 from dataclasses import dataclass
@@ -28,18 +27,16 @@ from deliffas.engine.devices import resolve_device
 from deliffas.engine.data_bridge import EVAL_SPLITS, evaluation_samples, resolve_protocol
 from deliffas.engine.identity import check_run_shards
 from deliffas.engine.figures import GridImage, comparison_grid
-from deliffas.engine.rays import camera_rays, paint_images, ray_query, stack_rays
-from deliffas.engine.realtime import FastRender, fast_render_camera
-from deliffas.engine.samples import FrameSample, composite_target
+from deliffas.engine.runs import load_run
+from deliffas.engine.samples import composite_target
+from deliffas.engine.shading import render_frame
+from deliffas.engine.realtime import fast_for_device
 from deliffas.engine.timing import StageTimer
+from deliffas.fast.config import FastConfig
 from deliffas.geometry.raycast import UVRaycaster
-from deliffas.io.cameras import Camera
-from deliffas.models.deliffas import DeliffasModel, FrameFeatures
 from deliffas.models.metrics import METRICS, Evaluator
-from deliffas.models.unet import optimize_for_inference
-from deliffas.models.zoo import load_checkpoint
 
-__all__ = ["EvalConfig", "evaluate", "render_frame", "render_camera", "load_run", "MIN_IMAGES_WARNING", "HEADLINE"]
+__all__ = ["EvalConfig", "evaluate", "MIN_IMAGES_WARNING", "HEADLINE"]
 
 logger = logging.getLogger(__name__)
 
@@ -82,50 +79,9 @@ class EvalConfig:
     """PNG path of a comparison grid (GT | prediction | error heat map) of the first images, or None."""
     grid_images: int = 3
     """Rows of that grid (one image per frame, the first camera)."""
-    fast: bool = False
-    """Render by ``engine.realtime``'s CPU fast path (rasterised uvs, bf16 MLP where native) instead
-    of the reference path, to measure what it changes."""
-
-
-def load_run(run: str | Path, device: str | torch.device = "cpu") -> tuple[DeliffasModel, dict]:
-    """The trained model (eval mode, U-Nets on their fused inference forward: ``optimize_for_inference``)
-    and the run's recorded configuration."""
-    run = Path(run)
-    ckpt = load_checkpoint(run / "checkpoint", device)
-    record = json.loads((run / "train_config.json").read_text()) if (run / "train_config.json").is_file() else {}
-    return optimize_for_inference(ckpt.model.eval()), record
-
-
-@torch.no_grad()
-def render_frame(model: DeliffasModel, sample: FrameSample, raycaster, device: torch.device,
-                 timer: StageTimer, chunk_size: int = 262144, fast: FastRender | None = None) -> torch.Tensor:
-    """Render every camera of ``sample`` with per-stage timing; (K, H, W, 3) on black.
-
-    ``sample.rays`` is ignored: the rays are cast here so the ``uv`` stage is timed.
-    """
-    with timer.stage("cnn"):
-        features = model.encode(*sample.normal_maps(device))
-    return torch.stack([render_camera(model, features, raycaster, cam, device, timer, chunk_size, fast)
-                        for cam in sample.cameras])
-
-
-@torch.no_grad()
-def render_camera(model: DeliffasModel, features: FrameFeatures, raycaster, camera: Camera, device: torch.device,
-                  timer: StageTimer, chunk_size: int = 262144, fast: FastRender | None = None) -> torch.Tensor:
-    """One camera's (H, W, 3) image on black from the frame's encoded ``features`` (stages uv, sample, mlp);
-    with ``fast`` on CPU, by ``engine.realtime`` (rasterised uvs, fused inputs, bf16 MLP where native)."""
-    if fast is not None and torch.device(device).type == "cpu":
-        return fast_render_camera(model, features, raycaster, camera, timer, fast)
-    with timer.stage("uv"):
-        batch = stack_rays([camera_rays(raycaster, camera)], [0]).to(device)
-        query = ray_query(batch, model.spec)
-    pred_parts = []
-    for part in query.chunks(chunk_size):
-        with timer.stage("sample"):
-            encoded, feats = model.gather_inputs(features, part)
-        with timer.stage("mlp"):
-            pred_parts.append(model.mlp(encoded, feats))
-    return paint_images(torch.cat(pred_parts), batch, 1, camera.height, camera.width)[0]
+    fast: FastConfig | None = None
+    """Render by the CPU fast path (``deliffas.fast``: rasterised uvs, bf16 MLP where native) instead of the
+    reference path (None), to measure what it changes."""
 
 
 def evaluate(cfg: EvalConfig) -> dict:
@@ -137,14 +93,7 @@ def evaluate(cfg: EvalConfig) -> dict:
         raise ValueError(f"{cfg.run}: no shards recorded in train_config.json; pass --shards")
     check_run_shards(cfg.run, record, shards)
     protocol = cfg.protocol or _run_protocol(record, shards)
-    if cfg.split not in EVAL_SPLITS:
-        raise ValueError(f"split must be one of {EVAL_SPLITS}, got {cfg.split!r}")
-    split, cameras = cfg.split, None
-    if cfg.split == "validation":
-        cameras = record.get("data", {}).get("validation_cameras") or []
-        if not cameras:
-            raise ValueError(f"{cfg.run}: the run holds out no validation cameras (train with --val-cameras N)")
-        split = "train"
+    split, cameras = _split_cameras(cfg, record)
     samples, info = evaluation_samples(shards, split, max_frames=cfg.max_frames, with_rays=False,
                                        protocol=protocol, temporal_window=model.config.temporal_window,
                                        cameras=cameras)
@@ -152,16 +101,14 @@ def evaluate(cfg: EvalConfig) -> dict:
                           device=device)
     grid_rows: list[GridImage] = []
     timer = StageTimer(device)
-    fast = FastRender() if cfg.fast else None
+    fast = fast_for_device(cfg.fast, device)
     n_images = n_frames = 0
     cameras_seen: set[int] = set()
     t_wall = 0.0
-    warmed = False
-    for sample in samples:
-        if not warmed:  # first use of open3d and of the model's kernels is slow; keep it out of the timing
+    for i, sample in enumerate(samples):
+        if i == 0:  # first use of open3d and of the model's kernels is slow; keep it out of the timing
             render_frame(model, sample, UVRaycaster(sample.inner_verts, info["faces"], sample.outer_verts, info["atlas"]),
                          device, StageTimer(device), cfg.chunk_size, fast)
-            warmed = True
         t0 = time.perf_counter()
         with timer.stage("scene"):
             raycaster = UVRaycaster(sample.inner_verts, info["faces"], sample.outer_verts, info["atlas"])
@@ -183,20 +130,12 @@ def evaluate(cfg: EvalConfig) -> dict:
     if n_images == 0:
         raise ValueError(f"split {cfg.split!r} of {shards} holds no frames/cameras to evaluate")
     summary = evaluator.summary()
-    warnings = []
-    if n_images < MIN_IMAGES_WARNING:
-        warnings.append(f"only {n_images} image(s) evaluated (< {MIN_IMAGES_WARNING}): the means are noisy; "
-                        f"frames protocol {protocol!r}" + (", try --protocol all" if protocol == "paper" else ""))
-        logger.warning("eval %s: %s", cfg.split, warnings[-1])
+    warnings = _few_images_warnings(n_images, protocol, cfg.split)
     if cfg.grid and grid_rows:
         comparison_grid(grid_rows, cfg.grid, f"{record.get('train', {}).get('model')} · {cfg.split}")
-    per_image = timer.per_unit(n_images)
-    # The U-Net runs once per frame and is shared by the frame's cameras; a single-view render pays it fully.
-    cnn_per_frame = timer.total_ms.get("cnn", 0.0) / n_frames
-    stage_ms = {"uv": per_image["uv"] + timer.total_ms.get("scene", 0.0) / n_images, "cnn": cnn_per_frame,
-                "sample": per_image["sample"], "mlp": per_image["mlp"]}
+    stage_ms = _stage_ms(timer, n_images, n_frames)
     total_single = sum(stage_ms.values())
-    result = {
+    return {
         "run": str(cfg.run),
         "split": cfg.split,
         "is_test_split": cfg.split in ("novel_view", "novel_pose"),
@@ -224,7 +163,36 @@ def evaluate(cfg: EvalConfig) -> dict:
         "render_path": (f"fast ({'fused fp32' if fast.fused else fast.torch_dtype()})" if fast else "plain"),
         "perceptual_backbone": record.get("perceptual_backbone"),
     }
-    return result
+
+
+def _split_cameras(cfg: EvalConfig, record: dict) -> tuple[str, list[int] | None]:
+    """The shards' split to read and the cameras to keep (None = the split's own) for ``cfg.split``."""
+    if cfg.split not in EVAL_SPLITS:
+        raise ValueError(f"split must be one of {EVAL_SPLITS}, got {cfg.split!r}")
+    if cfg.split != "validation":
+        return cfg.split, None
+    cameras = record.get("data", {}).get("validation_cameras") or []
+    if not cameras:
+        raise ValueError(f"{cfg.run}: the run holds out no validation cameras (train with --val-cameras N)")
+    return "train", cameras
+
+
+def _few_images_warnings(n_images: int, protocol: str, split: str) -> list[str]:
+    """The result's warnings: one (also logged) when fewer than ``MIN_IMAGES_WARNING`` images were evaluated."""
+    if n_images >= MIN_IMAGES_WARNING:
+        return []
+    warning = (f"only {n_images} image(s) evaluated (< {MIN_IMAGES_WARNING}): the means are noisy; "
+               f"frames protocol {protocol!r}" + (", try --protocol all" if protocol == "paper" else ""))
+    logger.warning("eval %s: %s", split, warning)
+    return [warning]
+
+
+def _stage_ms(timer: StageTimer, n_images: int, n_frames: int) -> dict[str, float]:
+    """ms per image of each stage; the U-Net's per frame (shared by the frame's cameras; a single-view render
+    pays it fully)."""
+    per_image = timer.per_unit(n_images)
+    return {"uv": per_image["uv"] + timer.total_ms.get("scene", 0.0) / n_images,
+            "cnn": timer.total_ms.get("cnn", 0.0) / n_frames, "sample": per_image["sample"], "mlp": per_image["mlp"]}
 
 
 def _run_protocol(record: dict, shards: str) -> str:

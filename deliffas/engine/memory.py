@@ -126,8 +126,8 @@ def retain_freed_memory() -> bool:
     A render or training loop allocates and frees the same maps every frame or step (U-Net
     activations, conv outputs of 1-64 MiB). By default glibc serves such blocks by ``mmap`` and
     unmaps them when freed, or trims them off the top of the heap, so every next allocation
-    faults its pages in again, 4 kB at a time: 1.5-3 us per fault on the CI VM, about 10 ms for
-    one fresh 16 MiB conv output, a third of that convolution's time. This sets
+    faults its pages in again, 4 kB at a time; in a VM that can cost a large part of a convolution's
+    time for a fresh 16 MiB output. This sets
     ``M_MMAP_THRESHOLD`` to 32 MiB and ``M_TRIM_THRESHOLD`` to 1 GiB (the same as the environment
     variables ``MALLOC_MMAP_THRESHOLD_`` / ``MALLOC_TRIM_THRESHOLD_``). The resident set then stays
     near its peak until the process exits; peaks themselves do not change.

@@ -1,136 +1,58 @@
-"""The fast path of free-viewpoint rendering on CPU: rasterised uvs, fused per-ray inputs, an MLP in bf16 where native.
+"""The engine's side of the CPU fast path (``deliffas.fast``): a camera's image from the engine's rays and timers.
 
-A camera's image is rendered here as :func:`deliffas.engine.evaluate.render_camera` renders it,
+A camera's image is rendered here as :func:`deliffas.engine.shading.render_camera` renders it,
 stage by stage (``uv``, ``sample``, ``mlp``), with three replacements:
 
-* ``uv``: :class:`~deliffas.geometry.rasterize.UVRasterizer` instead of the open3d ray caster (same
+* ``uv``: :class:`~deliffas.fast.rasterize.UVRasterizer` instead of the open3d ray caster (same
   shaded pixels and uvs; the ray caster is used where a vertex is behind the camera);
-* ``sample``: :class:`~deliffas.models.fast_shade.FastShader` writes the encodings and sampled
+* ``sample``: :class:`~deliffas.fast.shade.FastShader` writes the encodings and sampled
   features straight into the MLP's operands (one C pass);
 * ``mlp``: the MLP as a chain of ``addmm`` in fp32, or in bf16 where the CPU has native bf16;
-* by default ``sample`` and ``mlp`` are one C pass instead (``FastShader.shade_fused``: 16 rays at a time in
+* by default ``sample`` and ``mlp`` are one C pass instead (``FastShader.shade_fused``: a tile of rays in
   the vector lanes, the hidden layers in bf16 with native bf16 dot products where the dtype is bf16, else fp32,
-  the first layer's encoded part from per-coordinate tables in fp32 (``FastRender.pe_table``), the feature
-  layer's feature part sampled from maps projected once per frame's features (``FastRender.project_features``);
+  the first layer's encoded part from per-coordinate tables in fp32 (``FastConfig.pe_table``), the feature
+  layer's feature part sampled from maps projected once per frame's features (``FastConfig.project_features``);
   every colour written to its pixel), timed as the ``mlp`` stage.
 
-:class:`FastRender` is the switch. ``deliffas render`` and ``deliffas view`` use
-:func:`default_fast_render` (on for CPU devices); ``deliffas eval`` keeps the plain path, whose
-numbers are the reference. The environment variable ``DELIFFAS_FAST_RENDER=0`` turns the fast
-path off everywhere, ``DELIFFAS_RENDER_DTYPE=float32`` keeps the MLP in fp32.
+:class:`~deliffas.fast.config.FastConfig` is the switch; a config's ``fast=None`` is the plain path.
+``deliffas render`` and ``deliffas view`` render by it on CPU devices (:func:`fast_for_device`);
+``deliffas eval`` keeps the plain path, whose numbers are the reference.
 
-:func:`render_stream` keeps two frames in flight on a 2-core CPU: each frame renders in a worker
-thread on one torch intra-op thread (every stage releases the GIL: oneDNN, the C kernels through
-ctypes, open3d), so consecutive frames overlap on the two cores and come out in order, identical to
-the sequential path (``in_flight=1``; ``DELIFFAS_FRAMES_IN_FLIGHT=1``).
+:func:`render_stream` keeps several frames in flight: each frame renders in a worker thread on one torch
+intra-op thread (every stage releases the GIL: oneDNN, the C kernels through ctypes, open3d), so consecutive
+frames overlap on the cores and come out in order, identical to the sequential path (``in_flight=1``).
 """
 
 from __future__ import annotations
 
 import collections
 import logging
-import os
 import weakref
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
-from typing import Callable, Iterable, Iterator, Literal, TypeVar
+from typing import Callable, Iterable, Iterator, TypeVar
 
 import torch
 
 from deliffas.engine.rays import CameraRays, RayBatch, camera_rays, paint_images, ray_query
 from deliffas.engine.timing import StageTimer
-from deliffas.geometry.rasterize import UVRasterizer
+from deliffas.fast.config import FastConfig
+from deliffas.fast.rasterize import UVRasterizer
+from deliffas.fast.shade import FastShader, supports
 from deliffas.geometry.raycast import UVRaycaster
 from deliffas.io.cameras import Camera
 from deliffas.models.deliffas import DeliffasModel, FrameFeatures
-from deliffas.models.fast_shade import FastShader, native_bf16, supports
 
-__all__ = ["FastRender", "default_fast_render", "fast_camera_rays", "fast_render_camera", "render_stream",
-           "FAST_RENDER_ENV", "RENDER_DTYPE_ENV", "FUSED_SHADE_ENV", "PE_TABLE_ENV", "PROJECT_FEATURES_ENV",
-           "FRAMES_IN_FLIGHT_ENV"]
+__all__ = ["fast_for_device", "fast_camera_rays", "fast_render_camera", "render_stream"]
 
 logger = logging.getLogger(__name__)
 
-FAST_RENDER_ENV = "DELIFFAS_FAST_RENDER"
-"""Environment variable: "0" makes :func:`default_fast_render` return None (the plain path)."""
-RENDER_DTYPE_ENV = "DELIFFAS_RENDER_DTYPE"
-"""Environment variable: "float32" or "bfloat16" overrides ``FastRender.dtype="auto"``."""
-
-FUSED_SHADE_ENV = "DELIFFAS_FUSED_SHADE"
-"""Environment variable: "0" makes :func:`default_fast_render` use the per-stage path (``FastRender.fused=False``)."""
-PE_TABLE_ENV = "DELIFFAS_PE_TABLE"
-"""Environment variable: "0" makes :func:`default_fast_render` encode every ray exactly (``FastRender.pe_table=False``)."""
-PROJECT_FEATURES_ENV = "DELIFFAS_PROJECT_FEATURES"
-"""Environment variable: "0" makes :func:`default_fast_render` sample the features themselves
-(``FastRender.project_features=False``)."""
-FRAMES_IN_FLIGHT_ENV = "DELIFFAS_FRAMES_IN_FLIGHT"
-"""Environment variable: frames :func:`render_stream` renders at once under ``FastRender.in_flight=0`` (auto);
-"1" = one after the other."""
-
-Dtype = Literal["auto", "float32", "bfloat16"]
 T = TypeVar("T")
 R = TypeVar("R")
 
 
-@dataclass(frozen=True)
-class FastRender:
-    """How the fast path renders."""
-
-    rasterize: bool = True
-    """uvs by rasterisation (False: the open3d ray caster, as the plain path)."""
-    dtype: Dtype = "auto"
-    """The MLP's dtype: "auto" = bf16 where the CPU has native bf16, else fp32."""
-    fused: bool = True
-    """Sampling, encodings and the whole MLP in one C pass (``FastShader.shade_fused``): its hidden layers in bf16
-    when ``dtype`` resolves to bf16 and the kernel has native bf16 dot products, else in fp32; False = the
-    per-stage path (inputs, then the MLP in ``dtype``). ``DELIFFAS_FUSED_SHADE=0`` turns it off."""
-    pe_table: bool = True
-    """The fused fp32 pass takes the first layer's encoded part from per-coordinate tables
-    (``FastShader.encoding_table``: within 1e-4 of the exact pass, about 95 dB); False = the exact encoding.
-    ``DELIFFAS_PE_TABLE=0`` turns it off."""
-    project_features: bool = True
-    """The fused fp32 pass samples the feature layer's feature part from maps projected once per frame's features
-    (``FastShader.projected_maps``: the same sums in another order, within 1e-6) instead of sampling the features
-    and multiplying; False = the features. ``DELIFFAS_PROJECT_FEATURES=0`` turns it off."""
-    in_flight: int = 0
-    """Frames :func:`render_stream` renders at once: 0 = auto (``DELIFFAS_FRAMES_IN_FLIGHT``, else one per CPU
-    core, at most 2), 1 = sequentially."""
-
-    def __post_init__(self) -> None:
-        if self.dtype not in ("auto", "float32", "bfloat16"):
-            raise ValueError(f"FastRender: dtype must be auto, float32 or bfloat16, got {self.dtype!r}")
-        if not isinstance(self.in_flight, int) or self.in_flight < 0:
-            raise ValueError(f"FastRender: in_flight must be an int >= 0 (0 = auto), got {self.in_flight!r}")
-
-    def frames_in_flight(self) -> int:
-        """The resolved number of frames in flight (>= 1)."""
-        if self.in_flight:
-            return self.in_flight
-        env = os.environ.get(FRAMES_IN_FLIGHT_ENV, "").strip()
-        if env:
-            if not env.isdigit() or int(env) < 1:
-                raise ValueError(f"{FRAMES_IN_FLIGHT_ENV} must be an integer >= 1, got {env!r}")
-            return int(env)
-        return max(1, min(2, os.cpu_count() or 1))
-
-    def torch_dtype(self) -> torch.dtype:
-        """The resolved MLP dtype."""
-        name = self.dtype
-        if name == "auto":
-            name = os.environ.get(RENDER_DTYPE_ENV, "").strip() or ("bfloat16" if native_bf16() else "float32")
-            if name not in ("float32", "bfloat16"):
-                raise ValueError(f"{RENDER_DTYPE_ENV} must be float32 or bfloat16, got {name!r}")
-        return torch.bfloat16 if name == "bfloat16" else torch.float32
-
-
-def default_fast_render(device: torch.device | str) -> FastRender | None:
-    """The fast path for ``device``: on for CPU unless ``DELIFFAS_FAST_RENDER=0`` (the fused pass unless
-    ``DELIFFAS_FUSED_SHADE=0``); None = the plain path."""
-    if torch.device(device).type != "cpu" or os.environ.get(FAST_RENDER_ENV, "1").strip() == "0":
-        return None
-    return FastRender(fused=os.environ.get(FUSED_SHADE_ENV, "1").strip() != "0",
-                      pe_table=os.environ.get(PE_TABLE_ENV, "1").strip() != "0",
-                      project_features=os.environ.get(PROJECT_FEATURES_ENV, "1").strip() != "0")
+def fast_for_device(fast: FastConfig | None, device: torch.device | str) -> FastConfig | None:
+    """``fast`` where ``device`` is a CPU (the fast path's only device), else None (the plain path)."""
+    return fast if torch.device(device).type == "cpu" else None
 
 
 # one rasteriser and one shader per frame geometry / model, alive as long as their owner
@@ -167,7 +89,7 @@ def fast_camera_rays(raycaster: UVRaycaster, camera: Camera, rasterize: bool = T
 
 def _camera_batch(rays: CameraRays) -> RayBatch:
     """``stack_rays([rays], [0])`` without copies: the batch's tensors share ``rays``' arrays (fresh ones from
-    :func:`fast_camera_rays`; the copies took 0.6 ms a 940 x 1285 frame); ``viewdir`` None where the rays have none."""
+    :func:`fast_camera_rays`); ``viewdir`` None where the rays have none."""
     zeros = torch.zeros(rays.num_rays, dtype=torch.long)
     return RayBatch(batch_index=zeros, image_index=zeros, pixels=torch.from_numpy(rays.pixels),
                     uv_inner=torch.from_numpy(rays.uv_inner), uv_outer=torch.from_numpy(rays.uv_outer),
@@ -177,7 +99,7 @@ def _camera_batch(rays: CameraRays) -> RayBatch:
 
 @torch.no_grad()
 def fast_render_camera(model: DeliffasModel, features: FrameFeatures, raycaster: UVRaycaster, camera: Camera,
-                       timer: StageTimer, fast: FastRender = FastRender(), background: float = 0.0) -> torch.Tensor:
+                       timer: StageTimer, fast: FastConfig = FastConfig(), background: float = 0.0) -> torch.Tensor:
     """One camera's (H, W, 3) float32 image on ``background``, as ``render_camera`` on CPU (stages uv, sample, mlp).
 
     Variants :class:`FastShader` does not support keep the model's own ``gather_inputs`` and MLP."""

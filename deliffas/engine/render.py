@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -18,8 +18,9 @@ from deliffas.geometry.templates import build_template
 from deliffas.engine.avatar import load_avatar
 from deliffas.engine.devices import resolve_device
 from deliffas.engine.rays import camera_rays, paint_images, ray_query, stack_rays
-from deliffas.engine.realtime import FastRender, default_fast_render, fast_render_camera, render_stream
+from deliffas.engine.realtime import fast_for_device, fast_render_camera, render_stream
 from deliffas.engine.timing import StageTimer
+from deliffas.fast.config import FastConfig
 from deliffas.geometry.raycast import UVRaycaster
 from deliffas.io.infra.files import claim_output_file
 from deliffas.io.video import VIDEO_SUFFIXES, write_video
@@ -55,9 +56,10 @@ class RenderConfig:
     device: str = "cpu"
     fps: float = 25.0
     chunk_size: int = 262144
-    fast: bool = True
-    """On CPU, render by ``engine.realtime`` (rasterised uvs, fused inputs, bf16 MLP where native);
-    False = the plain path of ``deliffas eval``."""
+    fast: FastConfig | None = FastConfig(project_features=False)
+    """On CPU, render by the fast path (``deliffas.fast``: rasterised uvs, fused inputs, bf16 MLP where native);
+    None = the plain path of ``deliffas eval``. A video shades each frame's features once, where projecting them
+    (``FastConfig.project_features``) costs more than it saves: off by default here."""
 
 
 def orbit_cameras(reference: Camera, centers: np.ndarray, radius: float, height: float,
@@ -77,14 +79,10 @@ def orbit_cameras(reference: Camera, centers: np.ndarray, radius: float, height:
 
 
 def render_images(model, normal_windows, geometry, faces, atlas, cameras: list[Camera], device: torch.device,
-                  chunk_size: int = 262144, background: float = 0.0, fast: FastRender | None = None):
+                  chunk_size: int = 262144, background: float = 0.0, fast: FastConfig | None = None):
     """Yield one (H, W, 3) uint8 image per frame: frame i seen by ``cameras[i]`` (``fast``: engine.realtime on CPU,
     ``fast.frames_in_flight()`` frames at once)."""
-    use_fast = fast is not None and device.type == "cpu"
-    if use_fast:
-        # every frame's features are shaded once (one pose, one camera): projecting them would cost more than the
-        # one frame saves (bench capture, S = 256: 17.3 -> 15.0 fps, two frames in flight)
-        fast = replace(fast, project_features=False)
+    fast = fast_for_device(fast, device)
 
     @torch.no_grad()
     def frame(i: int) -> np.ndarray:
@@ -92,7 +90,7 @@ def render_images(model, normal_windows, geometry, faces, atlas, cameras: list[C
         ni, no = (w.float()[None].to(device) for w in normal_windows(i))
         features = model.encode(ni, no)
         raycaster = UVRaycaster(geometry.inner[i], faces, geometry.outer[i], atlas)
-        if use_fast:
+        if fast is not None:
             image = fast_render_camera(model, features, raycaster, cam, StageTimer(device), fast, background)
         else:
             batch = stack_rays([camera_rays(raycaster, cam)], [0]).to(device)
@@ -100,7 +98,7 @@ def render_images(model, normal_windows, geometry, faces, atlas, cameras: list[C
             image = paint_images(rgb, batch, 1, cam.height, cam.width, background)[0]
         return (image.clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
 
-    yield from render_stream(frame, range(len(cameras)), fast.frames_in_flight() if use_fast else 1)
+    yield from render_stream(frame, range(len(cameras)), fast.frames_in_flight() if fast is not None else 1)
 
 
 def motion_geometry_builder(meta) -> tuple:
@@ -164,9 +162,8 @@ def render_video(cfg: RenderConfig) -> Path:
         cameras = [base] * n
     atlas = UVAtlas(meta.uvs, meta.face_uvs)
     out.parent.mkdir(parents=True, exist_ok=True)
-    fast = default_fast_render(device) if cfg.fast else None
     images = render_images(model, lambda i: geometry.window(i, T), geometry, meta.faces, atlas, cameras, device,
-                           cfg.chunk_size, fast=fast)
+                           cfg.chunk_size, fast=cfg.fast)
     bar = tqdm(images, total=n, desc="render", unit="frame", dynamic_ncols=True)
     if not out.suffix:
         out.mkdir(parents=True, exist_ok=True)

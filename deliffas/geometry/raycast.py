@@ -376,7 +376,7 @@ class UVRaycaster:
         # the frame's surfaces as given (read by engine/realtime's rasteriser of the same frame)
         self.inner_verts, self.outer_verts, self.faces, self.atlas = inner_verts, outer_verts, faces, atlas
         self.corner_uvs = atlas.uvs.astype(np.float32)[atlas.face_uvs]  # (F, 3, 2) float32
-        # open3d scenes built at the first cast: the rasterising fast path never casts (1.3 ms a frame saved)
+        # open3d scenes built at the first cast: the rasterising fast path never casts
         self._scenes: tuple | None = None
         self._scenes_lock = threading.Lock()
         ov = np.asarray(outer_verts, dtype=np.float64)

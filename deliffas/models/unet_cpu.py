@@ -24,20 +24,19 @@ GEMM_MAX_PIXELS = 8 * 8
 """On CPU, every transposed convolution whose input has at most this many pixels runs as one
 matrix product with the input followed by ``fold`` (col2im). These deep layers are bound by
 reading their large weights (16-32 MB each at 512 channels), which oneDNN re-lays out on every
-call; the product reads them once (1.5-9x faster per layer on this 2-core CPU)."""
+call; the product reads them once."""
 
 CONV_GEMM_MAX_PIXELS = 16 * 16
-"""The same for convolutions (one matrix product with the unfolded input): 1.2-1.7x faster
-than oneDNN up to 16 x 16 inputs here (e.g. 128 -> 256 channels at 16^2: 1.7 against 2.1 ms)."""
+"""The same for convolutions (one matrix product with the unfolded input): faster than oneDNN up to
+16 x 16 inputs, where the weights outweigh the map."""
 
 CHANNELS_LAST_MIN_PIXELS = 32 * 32
 """On CPU, every convolution whose input has at least this many pixels runs in channels_last
-memory format: oneDNN is up to 7x faster there in that layout (e.g. the first 9 -> 16
+memory format: oneDNN is much faster there in that layout (e.g. the first 9 -> 16
 convolution at 1024^2), while the deep, small maps are faster in the default layout."""
 
 CONV_TRANSPOSE_CHANNELS_LAST_MIN_PIXELS = 16 * 16
-"""The same for transposed convolutions, which are faster in channels_last from 16 x 16 inputs
-on (256 -> 64 channels at 16^2: 1.9 against 2.4 ms)."""
+"""The same for transposed convolutions, which are faster in channels_last from 16 x 16 inputs on."""
 
 
 @dataclass(frozen=True)
@@ -113,66 +112,21 @@ def cpu_layout(x: torch.Tensor, min_pixels: int | None = None) -> torch.Tensor:
     return x.contiguous()
 
 
-# dst[n][p][c] = src[n][c][p] for float32: N maps of C planes of P pixels to channels_last order.
-# Loops specialised for the U-Net's usual 3 (T + 1) input channels (gcc vectorises them), a
-# pixel-blocked loop otherwise. Exact copies: no arithmetic.
-_LAYOUT_SOURCE = r"""
-#include <stdint.h>
-#define INTERLEAVE(C) \
-    static void interleave_##C(const float *restrict src, float *restrict dst, int64_t pixels) { \
-        for (int64_t p = 0; p < pixels; p++) \
-            for (int c = 0; c < C; c++) dst[p * C + c] = src[c * pixels + p]; \
-    }
-INTERLEAVE(3)
-INTERLEAVE(6)
-INTERLEAVE(9)
-INTERLEAVE(12)
-
-static void interleave_any(const float *restrict src, float *restrict dst, int64_t channels, int64_t pixels) {
-    const int64_t block = 64;
-    for (int64_t p0 = 0; p0 < pixels; p0 += block) {
-        int64_t n = pixels - p0 < block ? pixels - p0 : block;
-        for (int64_t c = 0; c < channels; c++) {
-            const float *s = src + c * pixels + p0;
-            float *d = dst + p0 * channels + c;
-            for (int64_t p = 0; p < n; p++) d[p * channels] = s[p];
-        }
-    }
-}
-
-void deliffas_planar_to_interleaved_f32(const float *src, float *dst, int64_t batch, int64_t channels,
-                                        int64_t pixels) {
-    for (int64_t n = 0; n < batch; n++) {
-        const float *s = src + n * channels * pixels;
-        float *d = dst + n * channels * pixels;
-        switch (channels) {
-            case 3: interleave_3(s, d, pixels); break;
-            case 6: interleave_6(s, d, pixels); break;
-            case 9: interleave_9(s, d, pixels); break;
-            case 12: interleave_12(s, d, pixels); break;
-            default: interleave_any(s, d, channels, pixels);
-        }
-    }
-}
-"""
-
-
 def _declare_layout(lib: ctypes.CDLL) -> None:
     i64 = ctypes.c_int64
     lib.deliffas_planar_to_interleaved_f32.argtypes = [ctypes.c_void_p, ctypes.c_void_p, i64, i64, i64]
     lib.deliffas_planar_to_interleaved_f32.restype = None
 
 
-_LAYOUT_KERNEL = LazyLibrary("unet_layout", _LAYOUT_SOURCE, setup=_declare_layout,
-                             fallback="torch's channels_last copy for the U-Net input, about 2x slower")
+_LAYOUT_KERNEL = LazyLibrary("unet_layout", "unet_layout.c", setup=_declare_layout,
+                             fallback="torch's channels_last copy for the U-Net input, slower")
 
 
 def channels_last(x: torch.Tensor) -> torch.Tensor:
     """``x`` (N, C, H, W) in channels_last memory format (``x`` itself when it already is).
 
     A dense float32 CPU map in the default layout (the U-Net's input) is converted by a compiled
-    loop into a fresh :func:`new_map`: 0.12 against 0.32 ms for torch's copy at 9 x 256^2, 3.7
-    against 5.8 ms at 9 x 1024^2, the same values. Other inputs, inputs that autograd tracks, or
+    loop into a fresh :func:`new_map`, faster than torch's copy, the same values. Other inputs, inputs that autograd tracks, or
     without a C compiler (or with ``DELIFFAS_NATIVE=0``, see :mod:`deliffas.native`), use torch's
     copy."""
     if x.is_contiguous(memory_format=torch.channels_last):
@@ -192,9 +146,9 @@ HUGE_PAGE_MIN_BYTES = 4 << 20
 """Fresh CPU maps of at least this size that the U-Net allocates itself (skip concatenations, the
 channels_last copy of the input) are advised to the kernel as transparent huge pages (Linux
 ``madvise(MADV_HUGEPAGE)``; a no-op elsewhere or when THP is disabled). Their pages are touched
-first by the U-Net's own writes, which otherwise fault in one 4 kB page at a time: on this VM a
-fault costs ~2.5 us, ~40 ms for the 64 MB concatenation before the last layer of the paper U-Net
-at 1024^2."""
+first by the U-Net's own writes, which otherwise fault in one 4 kB page at a time (in a VM, a
+noticeable part of the paper U-Net's time at 1024^2, e.g. for the 64 MB concatenation before its
+last layer)."""
 
 _MADV_HUGEPAGE = 14
 _HUGE_PAGE = 2 << 20

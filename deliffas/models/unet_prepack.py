@@ -182,20 +182,20 @@ def _narrow_form(conv: nn.Module, x: torch.Tensor) -> str:
 
     oneDNN vectorises CPU convolutions over output channels, so a layer whose output channels fill
     at most half the SIMD lanes (8 channels with AVX-512's 16) leaves lanes idle (the small
-    widths' 9 -> 8 first conv ran at ~50 GFLOP/s against ~100 for a full-width conv here).
+    widths' 9 -> 8 first conv runs at about half the rate of a full-width conv).
     Such layers on maps of >= ``CHANNELS_LAST_MIN_PIXELS`` output pixels are widened:
 
     * ``"column_pairs"`` (conv): one conv computes two horizontally adjacent output pixels per
       position (kernel 4 x 6, stride 2 x 4, 2 C_out channels, zero taps where a pixel's window
       does not reach). Its channels_last output *is* the C_out-channel map, as a view. 1.5x the
-      multiply-adds, full lanes: 9 -> 8 at 256^2 0.70 -> 0.54 ms, bit-identical.
+      multiply-adds, full lanes, bit-identical.
     * ``"phases"`` (transposed conv): its sub-pixel decomposition, one 2 x 2 conv over the input
       padded by 1 that outputs the four output phases (4 C_out channels, exact multiply-adds plus
       one row and column), interleaved into the output (or the caller's ``out``, replacing the
-      copy into the skip concatenation). 32 -> 8 at 64^2 -> 128^2: 0.67 -> 0.44 ms.
+      copy into the skip concatenation).
 
     Everything else is ``"direct"`` (``"transposed"`` for transposed convs). With AVX2 (8 lanes) a
-    C_out of 8 fills the lanes and is left direct (column pairs were slower there: 0.78 -> 0.89 ms).
+    C_out of 8 fills the lanes and is left direct (column pairs are slower there).
     """
     transposed = isinstance(conv, nn.ConvTranspose2d)
     direct = "transposed" if transposed else "direct"

@@ -9,10 +9,12 @@ import pytest
 import torch
 
 from deliffas.engine import realtime
-from deliffas.engine.evaluate import render_camera
-from deliffas.engine.realtime import FastRender, default_fast_render, fast_camera_rays
+from deliffas.engine.shading import render_camera
+from deliffas.cli.fast_env import fast_from_env
+from deliffas.engine.realtime import fast_camera_rays, fast_for_device
 from deliffas.engine.rays import camera_rays
 from deliffas.engine.timing import StageTimer
+from deliffas.fast.config import FastConfig
 from deliffas.geometry.raycast import UVRaycaster
 from deliffas.models import DeliffasModel, get_config
 
@@ -51,7 +53,7 @@ def test_fast_fp32_equals_plain(frame):
     model, features, raycaster, cameras = frame
     for cam in cameras:
         plain = _render(model, features, raycaster, cam, None)
-        fast = _render(model, features, raycaster, cam, FastRender(dtype="float32"))
+        fast = _render(model, features, raycaster, cam, FastConfig(dtype="float32"))
         assert (plain.sum(-1) > 0).sum() > 50
         torch.testing.assert_close(fast, plain, atol=1e-4, rtol=0)
 
@@ -61,19 +63,19 @@ def test_exact_encoding_equals_plain_and_the_table_is_within_its_error(frame):
     table is within 1e-3 of it."""
     model, features, raycaster, cameras = frame
     plain = _render(model, features, raycaster, cameras[0], None)
-    exact = _render(model, features, raycaster, cameras[0], FastRender(dtype="float32", pe_table=False))
+    exact = _render(model, features, raycaster, cameras[0], FastConfig(dtype="float32", pe_table=False))
     torch.testing.assert_close(exact, plain, atol=1e-4, rtol=0)
     sampled = _render(model, features, raycaster, cameras[0],
-                      FastRender(dtype="float32", pe_table=False, project_features=False))
+                      FastConfig(dtype="float32", pe_table=False, project_features=False))
     torch.testing.assert_close(sampled, plain, atol=1e-4, rtol=0)
-    tabled = _render(model, features, raycaster, cameras[0], FastRender(dtype="float32"))
+    tabled = _render(model, features, raycaster, cameras[0], FastConfig(dtype="float32"))
     torch.testing.assert_close(tabled, exact, atol=1e-3, rtol=0)
 
 
 def test_per_stage_path_equals_plain(frame):
     model, features, raycaster, cameras = frame
     plain = _render(model, features, raycaster, cameras[0], None)
-    fast = _render(model, features, raycaster, cameras[0], FastRender(dtype="float32", fused=False))
+    fast = _render(model, features, raycaster, cameras[0], FastConfig(dtype="float32", fused=False))
     torch.testing.assert_close(fast, plain, atol=1e-4, rtol=0)
 
 
@@ -81,7 +83,7 @@ def test_per_stage_path_equals_plain(frame):
 def test_fast_bf16_within_its_precision(frame, fused):
     model, features, raycaster, cameras = frame
     plain = _render(model, features, raycaster, cameras[0], None)
-    fast = _render(model, features, raycaster, cameras[0], FastRender(dtype="bfloat16", fused=fused))
+    fast = _render(model, features, raycaster, cameras[0], FastConfig(dtype="bfloat16", fused=fused))
     mse = float(((fast - plain) ** 2).mean())
     assert float((fast - plain).abs().max()) < 0.02 and -10 * np.log10(max(mse, 1e-20)) > 50
 
@@ -89,37 +91,37 @@ def test_fast_bf16_within_its_precision(frame, fused):
 def test_ray_cast_fallback_and_unsupported_variant(frame, tiny_shards):
     model, features, raycaster, cameras = frame
     plain = _render(model, features, raycaster, cameras[0], None)
-    fast = _render(model, features, raycaster, cameras[0], FastRender(rasterize=False, dtype="float32"))
+    fast = _render(model, features, raycaster, cameras[0], FastConfig(rasterize=False, dtype="float32"))
     torch.testing.assert_close(fast, plain, atol=1e-5, rtol=0)
     viewdir = DeliffasModel(dataclasses.replace(model.config, variant="single_surface_viewdir")).eval()
     with torch.no_grad():
         feats = viewdir.encode(features.inner.new_zeros(1, 9, *features.inner.shape[2:]))
-    torch.testing.assert_close(_render(viewdir, feats, raycaster, cameras[0], FastRender(dtype="float32")),
+    torch.testing.assert_close(_render(viewdir, feats, raycaster, cameras[0], FastConfig(dtype="float32")),
                                _render(viewdir, feats, raycaster, cameras[0], None), atol=1e-4, rtol=0)
 
 
 def test_switches(monkeypatch, unchecked):
-    assert default_fast_render("cpu") == FastRender()
-    assert default_fast_render("meta") is None
-    monkeypatch.setenv(realtime.FUSED_SHADE_ENV, "0")
-    assert default_fast_render("cpu") == FastRender(fused=False)
-    monkeypatch.delenv(realtime.FUSED_SHADE_ENV)
-    monkeypatch.setenv(realtime.PE_TABLE_ENV, "0")
-    assert default_fast_render("cpu") == FastRender(pe_table=False)
-    monkeypatch.delenv(realtime.PE_TABLE_ENV)
-    monkeypatch.setenv(realtime.PROJECT_FEATURES_ENV, "0")
-    assert default_fast_render("cpu") == FastRender(project_features=False)
-    monkeypatch.delenv(realtime.PROJECT_FEATURES_ENV)
-    monkeypatch.setenv(realtime.FAST_RENDER_ENV, "0")
-    assert default_fast_render("cpu") is None
-    monkeypatch.setenv(realtime.RENDER_DTYPE_ENV, "float32")
-    assert FastRender().torch_dtype() == torch.float32
-    assert FastRender(dtype="bfloat16").torch_dtype() == torch.bfloat16
-    monkeypatch.setenv(realtime.RENDER_DTYPE_ENV, "half")
-    with unchecked(), pytest.raises(ValueError, match="DELIFFAS_RENDER_DTYPE"):
-        FastRender().torch_dtype()
+    """FastConfig reads no environment; the CLI maps the variables onto it at its edge (fast_from_env)."""
+    assert fast_for_device(FastConfig(), "cpu") == FastConfig()
+    assert fast_for_device(FastConfig(), "meta") is None
+    env = {"DELIFFAS_FUSED_SHADE": "0", "DELIFFAS_RENDER_DTYPE": "float32"}
+    monkeypatch.setenv("DELIFFAS_RENDER_DTYPE", "half")
+    assert FastConfig().torch_dtype() == FastConfig(dtype="auto").torch_dtype()  # the environment is not read
+    assert fast_from_env(FastConfig(), {}) == FastConfig()
+    assert fast_from_env(FastConfig(), env) == FastConfig(fused=False, dtype="float32")
+    assert fast_from_env(FastConfig(), {"DELIFFAS_PE_TABLE": "0"}) == FastConfig(pe_table=False)
+    assert fast_from_env(FastConfig(project_features=False), {"DELIFFAS_PROJECT_FEATURES": "1"}) == FastConfig()
+    assert fast_from_env(FastConfig(), {"DELIFFAS_FRAMES_IN_FLIGHT": "1"}) == FastConfig(in_flight=1)
+    assert fast_from_env(FastConfig(), {"DELIFFAS_FAST_RENDER": "0"}) is None
+    assert fast_from_env(None, {}) is None
+    assert FastConfig(dtype="float32").torch_dtype() == torch.float32
+    assert FastConfig(dtype="bfloat16").torch_dtype() == torch.bfloat16
+    for name, value in (("DELIFFAS_RENDER_DTYPE", "half"), ("DELIFFAS_FRAMES_IN_FLIGHT", "x"),
+                        ("DELIFFAS_PE_TABLE", "off")):
+        with unchecked(), pytest.raises(ValueError, match=name):
+            fast_from_env(FastConfig(), {name: value})
     with unchecked(), pytest.raises(ValueError, match="dtype"):
-        FastRender(dtype="fp8")
+        FastConfig(dtype="fp8")
 
 
 def test_render_stream_equals_sequential(frame):
@@ -127,7 +129,7 @@ def test_render_stream_equals_sequential(frame):
     cams = [*cameras, cameras[0].rescaled(97, 61)] * 2
 
     def one(cam):
-        return _render(model, features, raycaster, cam, FastRender())
+        return _render(model, features, raycaster, cam, FastConfig())
 
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # the stream's workers run on one intra-op thread each: compare like with like
@@ -144,12 +146,8 @@ def test_render_stream_equals_sequential(frame):
         next(realtime.render_stream(one, cams, in_flight=0))
 
 
-def test_frames_in_flight_switch(monkeypatch):
-    assert FastRender(in_flight=3).frames_in_flight() == 3
-    monkeypatch.setenv(realtime.FRAMES_IN_FLIGHT_ENV, "1")
-    assert FastRender().frames_in_flight() == 1
-    monkeypatch.setenv(realtime.FRAMES_IN_FLIGHT_ENV, "x")
-    with pytest.raises(ValueError, match="DELIFFAS_FRAMES_IN_FLIGHT"):
-        FastRender().frames_in_flight()
-    with pytest.raises(ValueError, match="in_flight"):
-        FastRender(in_flight=-1)
+def test_frames_in_flight_switch(unchecked):
+    assert FastConfig(in_flight=3).frames_in_flight() == 3
+    assert 1 <= FastConfig().frames_in_flight() <= 2
+    with unchecked(), pytest.raises(ValueError, match="in_flight"):
+        FastConfig(in_flight=-1)

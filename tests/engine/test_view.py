@@ -15,7 +15,8 @@ import pytest
 import torch
 
 from deliffas.engine.data_bridge import evaluation_samples
-from deliffas.engine.evaluate import load_run, render_frame
+from deliffas.engine.runs import load_run
+from deliffas.engine.shading import render_frame
 from deliffas.engine.timing import StageTimer
 from deliffas.engine.train import TrainConfig, train
 from deliffas.engine.view import ViewConfig

@@ -15,7 +15,7 @@ import torch
 from deliffas.geometry.atlas import TexelTable, UVAtlas, texel_centers_uv, uv_texel_table
 from deliffas.geometry.mesh_ops import face_normals, vertex_normals
 from deliffas.geometry.normal_maps import NormalMapGather, normal_maps, rasterize_normal_map_naive, temporal_window
-from deliffas.geometry.rasterize import ShadedPixels, UVRasterizer
+from deliffas.fast.rasterize import ShadedPixels, UVRasterizer
 from deliffas.geometry.raycast import RaycastHits, UVRaycaster
 from deliffas.geometry.sampling import sample_uv
 from deliffas.geometry.shell import (

@@ -121,10 +121,10 @@ def test_fused_kernel_fallback(monkeypatch, caplog):
     # a failed build is reported, not raised
     monkeypatch.delenv(NATIVE_ENV, raising=False)
     monkeypatch.setenv("CC", "/nonexistent/cc")
-    built = build_library("normal_maps", nm_module._KERNEL_SOURCE)
+    built = build_library("normal_maps", nm_module._KERNEL.source)
     assert built.lib is None and "nonexistent" in built.reason
     monkeypatch.setenv(NATIVE_ENV, "0")
-    assert "disabled" in build_library("normal_maps", nm_module._KERNEL_SOURCE).reason
+    assert "disabled" in build_library("normal_maps", nm_module._KERNEL.source).reason
     # with the kernel unavailable, "auto" falls back to the sparse product and says why once
     monkeypatch.setattr(nm_module._KERNEL, "_built", NativeLibrary(None, "test: no compiler"))
     monkeypatch.setattr(nm_module._KERNEL, "_logged", False)

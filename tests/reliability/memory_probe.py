@@ -41,7 +41,7 @@ def _paper_model(S: int):
 
 def render(shards: str, width: int, height: int, zoom: float, chunks: list[str]) -> dict:
     """``render_frame`` of one camera at W x H with chunk ``chunks[0]``; the shading stage alone per chunk."""
-    from deliffas.engine.evaluate import render_frame
+    from deliffas.engine.shading import render_frame
     from deliffas.engine.rays import camera_rays
     from deliffas.engine.timing import StageTimer
     from deliffas.geometry.raycast import UVRaycaster

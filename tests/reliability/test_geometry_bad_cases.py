@@ -236,7 +236,7 @@ def _tiny_model(info):
 
 
 def test_train_step_skips_a_sample_whose_cameras_all_look_away(sample_and_info):
-    from deliffas.engine.evaluate import render_frame
+    from deliffas.engine.shading import render_frame
     from deliffas.engine.rays import frame_rays
     from deliffas.engine.timing import StageTimer
     from deliffas.engine.train import train_step

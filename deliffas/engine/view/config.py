@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from deliffas.fast.config import FastConfig
+
 __all__ = ["ViewConfig", "SubjectViewConfig", "is_exposed"]
 
 
@@ -45,8 +47,9 @@ class ViewConfig:
     """Rays shaded at once (bounds peak memory)."""
     max_frames: int = 300
     """At most this many frames of ``motion`` on the timeline."""
-    fast: bool = True
-    """On CPU, render by ``engine.realtime`` (rasterised uvs, fused inputs, bf16 MLP where native)."""
+    fast: FastConfig | None = FastConfig()
+    """On CPU, render by the fast path (``deliffas.fast``: rasterised uvs, fused inputs, bf16 MLP where native);
+    None = the plain path of ``deliffas eval``."""
 
     def __post_init__(self) -> None:
         _check_port(self.port)

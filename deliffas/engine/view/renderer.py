@@ -19,8 +19,8 @@ from typing import Callable, Literal
 import numpy as np
 import torch
 
-from deliffas.engine.evaluate import render_camera
-from deliffas.engine.realtime import FastRender
+from deliffas.engine.shading import render_camera
+from deliffas.fast.config import FastConfig
 from deliffas.engine.rays import camera_rays, paint_images, stack_rays
 from deliffas.engine.timing import STAGES, StageTimer
 from deliffas.engine.view.scene import FrameData, ViewScene
@@ -137,10 +137,10 @@ def compose_panels(panels: list[np.ndarray], canvas: tuple[int, int] | None) -> 
 class ViewRenderer:
     """Renders :class:`ViewRequest` s of a :class:`ViewScene` (the U-Nets' features cached per frame and run)."""
 
-    def __init__(self, scene: ViewScene, chunk_size: int = 262144, fast: FastRender | None = None):
+    def __init__(self, scene: ViewScene, chunk_size: int = 262144, fast: FastConfig | None = None):
         self.scene = scene
         self.chunk_size = chunk_size
-        self.fast = fast  # engine.realtime's fast path (server: default_fast_render), None = plain
+        self.fast = fast  # the CPU fast path (deliffas.fast), None = plain
         self._features: OrderedDict[tuple[int, int], tuple[FrameFeatures, dict]] = OrderedDict()
 
     def features(self, run: int, frame: FrameData, timer: StageTimer) -> tuple[FrameFeatures, dict]:

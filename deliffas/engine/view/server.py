@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from deliffas.engine.realtime import default_fast_render
+from deliffas.engine.realtime import fast_for_device
 from deliffas.engine.view.config import ViewConfig
 from deliffas.engine.view.renderer import (
     VIEW_MODES,
@@ -132,7 +132,7 @@ class _Viewer:
 
     def __init__(self, cfg: ViewConfig, scene: ViewScene, server, vtf):
         self.cfg, self.scene, self.server, self.vtf = cfg, scene, server, vtf
-        self.renderer = ViewRenderer(scene, cfg.chunk_size, default_fast_render(cfg.device) if cfg.fast else None)
+        self.renderer = ViewRenderer(scene, cfg.chunk_size, fast_for_device(cfg.fast, cfg.device))
         self.clients: dict[int, _ClientView] = {}
         self.render_lock = threading.Lock()  # workers share the models and caches: one frame at a time
         self._build_gui()

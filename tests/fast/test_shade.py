@@ -7,10 +7,10 @@ import platform
 import pytest
 import torch
 
-import deliffas.models.fast_shade as fast_shade
+import deliffas.fast.shade as fast_shade
 from deliffas.models import DeliffasModel, get_config
 from deliffas.models.deliffas import FrameFeatures
-from deliffas.models.fast_shade import FastShader, supports
+from deliffas.fast.shade import FastShader, supports
 from deliffas.models.ray_query import RayQuery
 from deliffas.native import LazyLibrary
 
@@ -66,7 +66,7 @@ def test_weights_refresh_after_an_update():
 
 def test_fallback_without_the_kernel(monkeypatch):
     monkeypatch.setenv("DELIFFAS_NATIVE", "0")
-    monkeypatch.setattr(fast_shade, "_KERNEL", LazyLibrary("ray_inputs", fast_shade._SOURCE, fallback="torch"))
+    monkeypatch.setattr(fast_shade, "_KERNEL", LazyLibrary("ray_inputs", fast_shade._KERNEL.source, fallback="torch"))
     model, feats, query = _case("two_surface")
     with torch.no_grad():
         torch.testing.assert_close(FastShader(model).shade(feats, query), model.shade(feats, query), atol=2e-6, rtol=0)
@@ -161,7 +161,7 @@ def test_bf16_weight_pairs():
 def _fused_built_with(flag: str, monkeypatch) -> LazyLibrary:
     """The fused kernel built with one more compiler ``flag``, patched in as ``fast_shade._FUSED`` (skips when there
     is no compiler, or one that does not know the flag)."""
-    lib = LazyLibrary(f"fused_shade{flag.replace('-', '_')}", fast_shade._FUSED_SOURCE,
+    lib = LazyLibrary(f"fused_shade{flag.replace('-', '_')}", fast_shade._FUSED.source,
                       (*fast_shade._FUSED.flags, flag), setup=fast_shade._declare_fused, fallback="none")
     if lib.get() is None:
         pytest.skip(f"kernel not built with {flag}: {lib.load().reason}")
@@ -174,7 +174,7 @@ def test_fused_pass_builds_and_agrees_without_avx(monkeypatch):
     """The kernel builds for x86 CPUs without AVX (SSE registers only; ``build_library`` also falls back to no
     ``-march`` at all, the same case) and agrees with ``shade``: the asm that keeps a tile in a register is left out
     where a tile is wider than the registers, which would not compile."""
-    lib = LazyLibrary("fused_shade_no_avx", fast_shade._FUSED_SOURCE, (*fast_shade._FUSED.flags, "-mno-avx"),
+    lib = LazyLibrary("fused_shade_no_avx", fast_shade._FUSED.source, (*fast_shade._FUSED.flags, "-mno-avx"),
                       setup=fast_shade._declare_fused, fallback="none")
     built = lib.load()
     if built.lib is None and ("no C compiler" in built.reason or built.reason.startswith("disabled")):

@@ -2,14 +2,18 @@
 
 from __future__ import annotations
 
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 
+from deliffas.fast.rasterize import UVRasterizer, raster_kernel_available
 from deliffas.geometry.atlas import UVAtlas
-from deliffas.geometry.rasterize import UVRasterizer, raster_kernel_available
 from deliffas.geometry.raycast import UVRaycaster, uv_inner_or_exit
 from deliffas.geometry.shell import offset_shell
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "geometry"))  # the geometry tests' loop references
 import reference as ref  # noqa: E402
 
 EDGE_PIXELS_MAX = 1e-3
@@ -115,11 +119,11 @@ def test_vertex_behind_the_camera_returns_none(blob):
 
 
 def test_disabled_native_falls_back(blob, monkeypatch):
-    import deliffas.geometry.rasterize as rasterize
+    import deliffas.fast.rasterize as rasterize
     from deliffas.native import LazyLibrary
 
     monkeypatch.setenv("DELIFFAS_NATIVE", "0")
-    monkeypatch.setattr(rasterize, "_KERNEL", LazyLibrary("rasterize", rasterize._SOURCE, fallback="numpy"))
+    monkeypatch.setattr(rasterize, "_KERNEL", LazyLibrary("rasterize", rasterize._KERNEL.source, fallback="numpy"))
     v, f, outer, atlas = blob
     cam = ref.look_at([0, 0, 2500.0], [0.0, 0.0, 0.0], 64, 64, focal=80.0)
     assert not raster_kernel_available()

@@ -1,0 +1,160 @@
+/* Per-ray inputs of the MLP (deliffas/fast/shade.py, FastShader.inputs): positional encodings of the ray's
+   uvs and bilinearly sampled features written straight into the MLP's row-major GEMM operands; and the output
+   layer's colours written to their pixels. Built without FMA contraction and without fast-math. */
+#include <math.h>
+#include <stdint.h>
+#include <string.h>
+
+static inline uint16_t to_bf16(float f) {
+    uint32_t u;
+    memcpy(&u, &f, 4);
+    u += 0x7FFFu + ((u >> 16) & 1u);
+    return (uint16_t)(u >> 16);
+}
+
+/* sin and cos of a (|a| up to a few pi) to ~1e-12: reduction by the nearest multiple of pi, Taylor to degree 16
+   (error (pi/2)^17/17! < 1e-11); libm's sincos took ~4x longer per ray than the rest of this pass. */
+static inline void sin_cos(double a, double *s, double *c) {
+    const double pi = 3.14159265358979323846;
+    double k = nearbyint(a * (1.0 / pi)), r = a - k * pi, r2 = r * r;
+    double sn = r * (1.0 + r2 * (-1.0 / 6 + r2 * (1.0 / 120 + r2 * (-1.0 / 5040 + r2 * (1.0 / 362880 + r2 * (-1.0 / 39916800
+                  + r2 * (1.0 / 6227020800.0 + r2 * (-1.0 / 1307674368000.0))))))));
+    double cs = 1.0 + r2 * (-0.5 + r2 * (1.0 / 24 + r2 * (-1.0 / 720 + r2 * (1.0 / 40320 + r2 * (-1.0 / 3628800
+                  + r2 * (1.0 / 479001600.0 + r2 * (-1.0 / 87178291200.0 + r2 * (1.0 / 20922789888000.0))))))));
+    double sign = ((int64_t)k & 1) ? -1.0 : 1.0;
+    *s = sign * sn;
+    *c = sign * cs;
+}
+
+#define PUT_F32(out, i, v) ((out)[i] = (v))
+#define PUT_BF16(out, i, v) ((out)[i] = to_bf16(v))
+
+/* One variant per output type T with store PUT:
+   encode: positional encoding of one uv into out[i0 ..]: u v, then per k: sin(a_k u) sin(a_k v) cos(a_k u)
+   cos(a_k v), a_k x = 2^k float(x * float(pi)) (what torch rounds x * float(2^k pi) to), by the double-angle
+   recurrence in float64.
+   sample: bilinear lookup of a channels_last (S, S, C) map at uv (grid_sample, align_corners False, border).
+   rows: rows [start, stop) of enc (n, E): PE(uv_outer) if outer_encoded, then PE(uv_inner); and of
+   feats (n, F): the outer map at uv_outer if map_out is given, then the inner feature (the outer map at
+   uv_inner where from_outer). */
+#define VARIANT(NAME, T, PUT)                                                                                  \
+static void encode_##NAME(const float *uv, int L, int include_input, T *out) {                                 \
+    int64_t i = 0;                                                                                             \
+    if (include_input) { PUT(out, i, uv[0]); i++; PUT(out, i, uv[1]); i++; }                                  \
+    if (L == 0) return;                                                                                        \
+    const float pi = (float)3.14159265358979323846;                                                            \
+    double s0, c0, s1, c1;                                                                                     \
+    sin_cos((double)(uv[0] * pi), &s0, &c0);                                                                   \
+    sin_cos((double)(uv[1] * pi), &s1, &c1);                                                                    \
+    for (int k = 0; k < L; k++) {                                                                              \
+        PUT(out, i, (float)s0); PUT(out, i + 1, (float)s1); PUT(out, i + 2, (float)c0); PUT(out, i + 3, (float)c1); \
+        i += 4;                                                                                                \
+        double t0 = 2.0 * s0 * c0, t1 = 2.0 * s1 * c1;                                                        \
+        c0 = c0 * c0 - s0 * s0; c1 = c1 * c1 - s1 * s1; s0 = t0; s1 = t1;                                    \
+    }                                                                                                          \
+}                                                                                                              \
+static void sample_##NAME(const float *map, int64_t S, int64_t C, const float *uv, T *out) {                  \
+    float gx = 2.0f * uv[0] - 1.0f, gy = 1.0f - 2.0f * uv[1];                                                  \
+    float ix = ((gx + 1.0f) * (float)S - 1.0f) / 2.0f, iy = ((gy + 1.0f) * (float)S - 1.0f) / 2.0f;            \
+    float hi = (float)(S - 1);                                                                                 \
+    ix = ix < 0.0f ? 0.0f : (ix > hi ? hi : ix);                                                               \
+    iy = iy < 0.0f ? 0.0f : (iy > hi ? hi : iy);                                                               \
+    if (ix != ix) ix = 0.0f;                                                                                   \
+    if (iy != iy) iy = 0.0f;                                                                                   \
+    int64_t x0 = (int64_t)floorf(ix), y0 = (int64_t)floorf(iy);                                                \
+    float fx = ix - (float)x0, fy = iy - (float)y0;                                                            \
+    int64_t x1 = x0 + 1 < S ? x0 + 1 : x0, y1 = y0 + 1 < S ? y0 + 1 : y0;                                      \
+    float w00 = (1.0f - fx) * (1.0f - fy), w01 = fx * (1.0f - fy), w10 = (1.0f - fx) * fy, w11 = fx * fy;      \
+    const float *p00 = map + (y0 * S + x0) * C, *p01 = map + (y0 * S + x1) * C;                                \
+    const float *p10 = map + (y1 * S + x0) * C, *p11 = map + (y1 * S + x1) * C;                                \
+    for (int64_t c = 0; c < C; c++) PUT(out, c, w00 * p00[c] + w01 * p01[c] + w10 * p10[c] + w11 * p11[c]);   \
+}                                                                                                              \
+static void rows_##NAME(int64_t start, int64_t stop, const float *uv_in, const uint8_t *from_outer,           \
+                        const float *uv_out, int outer_encoded, int L, int include_input, const float *map_in,\
+                        const float *map_out, int64_t S, int64_t C, T *enc, int64_t E, T *feats, int64_t F) { \
+    int64_t per_uv = (include_input ? 2 : 0) + 4 * (int64_t)L;                                                 \
+    for (int64_t r = start; r < stop; r++) {                                                                   \
+        T *e = enc + r * E, *f = feats + r * F;                                                                \
+        if (outer_encoded) { encode_##NAME(uv_out + 2 * r, L, include_input, e); e += per_uv; }                \
+        encode_##NAME(uv_in + 2 * r, L, include_input, e);                                                    \
+        if (map_out) { sample_##NAME(map_out, S, C, uv_out + 2 * r, f); f += C; }                              \
+        const float *m = (from_outer && from_outer[r] && map_out) ? map_out : map_in;                          \
+        sample_##NAME(m, S, C, uv_in + 2 * r, f);                                                              \
+    }                                                                                                          \
+}
+
+VARIANT(f32, float, PUT_F32)
+VARIANT(bf16, uint16_t, PUT_BF16)
+
+/* exp(x) for x in [-88, 88] to ~2 ulp, branch-free so the compiler vectorises the loop around it:
+   x = k ln2 + r, |r| <= ln2 / 2, exp(r) by a degree-7 polynomial, 2^k through the exponent bits. */
+static inline float exp_approx(float x) {
+    x = x < -87.0f ? -87.0f : (x > 88.0f ? 88.0f : x);
+    float k = nearbyintf(x * 1.44269504088896341f);
+    float r = x - k * 0.693145751953125f - k * 1.428606765330187e-06f;
+    float p = 1.0f + r * (1.0f + r * (0.5f + r * (1.6666667163e-01f + r * (4.1666667908e-02f + r * (8.3333337680e-03f
+              + r * (1.3888889225e-03f + r * 1.9841270114e-04f))))));
+    int32_t e = ((int32_t)k + 127) << 23;
+    float scale;
+    memcpy(&scale, &e, 4);
+    return p * scale;
+}
+
+static inline float bf16_to_f32(uint16_t v) {
+    uint32_t u = (uint32_t)v << 16;
+    float f;
+    memcpy(&f, &u, 4);
+    return f;
+}
+
+/* The MLP's output layer and its sigmoid: rgb = sigmoid(h W^T + b) in fp32 for rows [0, n) of h (n, K)
+   (leading dimension ld, bf16 or fp32), W (3, K) and b (3,) fp32. Row r goes to out[3 pixels[r] ..]
+   when pixels is given (the image canvas), else to out[3 r ..]. 16 partial sums per output so the
+   K loop vectorises without reassociating one sum. */
+void deliffas_rgb_out(int64_t n, const void *h, int64_t ld, int bf16, int64_t K, const float *w, const float *b,
+                      const int64_t *pixels, float *out) {
+    enum { B = 64 };
+    float logit[3 * B];
+    for (int64_t r0 = 0; r0 < n; r0 += B) {
+        int64_t m = n - r0 < B ? n - r0 : B;
+        for (int64_t i = 0; i < m; i++) {
+            float x[16];
+            float acc[3][16];
+            for (int j = 0; j < 3; j++) for (int l = 0; l < 16; l++) acc[j][l] = 0.0f;
+            int64_t k = 0;
+            for (; k + 16 <= K; k += 16) {
+                if (bf16) { const uint16_t *hr = (const uint16_t *)h + (r0 + i) * ld + k;
+                            for (int l = 0; l < 16; l++) x[l] = bf16_to_f32(hr[l]); }
+                else { const float *hr = (const float *)h + (r0 + i) * ld + k;
+                       for (int l = 0; l < 16; l++) x[l] = hr[l]; }
+                for (int j = 0; j < 3; j++) for (int l = 0; l < 16; l++) acc[j][l] += x[l] * w[j * K + k + l];
+            }
+            for (int j = 0; j < 3; j++) {
+                float s = b[j];
+                for (int l = 0; l < 16; l++) s += acc[j][l];
+                for (int64_t kk = k; kk < K; kk++) {
+                    float v = bf16 ? bf16_to_f32(((const uint16_t *)h)[(r0 + i) * ld + kk]) : ((const float *)h)[(r0 + i) * ld + kk];
+                    s += v * w[j * K + kk];
+                }
+                logit[3 * i + j] = s;
+            }
+        }
+        for (int64_t i = 0; i < 3 * m; i++) logit[i] = 1.0f / (1.0f + exp_approx(-logit[i]));
+        for (int64_t i = 0; i < m; i++) {
+            float *o = out + 3 * (pixels ? pixels[r0 + i] : r0 + i);
+            o[0] = logit[3 * i]; o[1] = logit[3 * i + 1]; o[2] = logit[3 * i + 2];
+        }
+    }
+}
+
+void deliffas_ray_inputs(int64_t start, int64_t stop, const float *uv_in, const uint8_t *from_outer,
+                         const float *uv_out, int outer_encoded, int L, int include_input, const float *map_in,
+                         const float *map_out, int64_t S, int64_t C, int bf16, void *enc, int64_t E, void *feats,
+                         int64_t F) {
+    if (bf16)
+        rows_bf16(start, stop, uv_in, from_outer, uv_out, outer_encoded, L, include_input, map_in, map_out, S, C,
+                  (uint16_t *)enc, E, (uint16_t *)feats, F);
+    else
+        rows_f32(start, stop, uv_in, from_outer, uv_out, outer_encoded, L, include_input, map_in, map_out, S, C,
+                 (float *)enc, E, (float *)feats, F);
+}
