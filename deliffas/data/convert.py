@@ -288,20 +288,7 @@ def _convert_planned(subject: Subject, out: Path, config: ConvertConfig, plan: _
                      t_start: float) -> ConvertResult:
     tasks = plan.tasks
     mconfig = _manifest_config(subject, config)
-    old = None
-    if (out / MANIFEST_NAME).is_file():
-        if config.overwrite:
-            shutil.rmtree(out / SHARD_DIR, ignore_errors=True)
-            (out / MANIFEST_NAME).unlink()
-            (out / META_NAME).unlink(missing_ok=True)
-        elif not config.resume:
-            raise FileExistsError(f"{out}: holds a conversion already; use --resume or --overwrite")
-        else:
-            old = read_manifest(out)
-            if old.get("config") != mconfig:
-                diff = sorted(k for k in set(mconfig) | set(old.get("config", {}))
-                              if mconfig.get(k) != old.get("config", {}).get(k))
-                raise ValueError(f"{out}: --resume with a different configuration (differs in {diff})")
+    old = _previous_manifest(out, config, mconfig)
     (out / SHARD_DIR).mkdir(parents=True, exist_ok=True)
     _remove_leftovers(out)
 
@@ -310,22 +297,7 @@ def _convert_planned(subject: Subject, out: Path, config: ConvertConfig, plan: _
     builder = ShardBuilder.create(subject, settings)
     meta = _build_meta(subject, plan, builder, config)
     meta_sha, meta_bytes = write_meta(out / META_NAME, meta)
-    done: dict[str, dict] = {}
-    if old is not None:
-        listed = {s["name"]: s for s in old.get("shards", [])}
-        for t in tasks:
-            p = out / t.name
-            if not p.is_file():
-                continue
-            sha = sha256_file(p)
-            entry = listed.get(t.name)
-            if entry is not None and entry["sha256"] == sha and entry["frames"] == list(t.frames):
-                done[t.name] = entry
-            elif entry is None and _is_complete_shard(p, t):
-                done[t.name] = {"name": t.name, "sequence": t.sequence, "frames": list(t.frames),
-                                "sha256": sha, "bytes": p.stat().st_size}  # renamed before the manifest update
-            else:
-                log.warning("%s: does not match the manifest; converting it again", t.name)
+    done = _resumable_shards(out, tasks, old) if old is not None else {}
     planned = [{"name": t.name, "sequence": t.sequence, "frames": list(t.frames)} for t in tasks]
     order = {t.name: i for i, t in enumerate(tasks)}
 
@@ -367,6 +339,46 @@ def _convert_planned(subject: Subject, out: Path, config: ConvertConfig, plan: _
     log.info("convert %s: %d shards (%d skipped), %d frames in %.1f s", out, len(tasks), skipped, frames_done, seconds)
     return ConvertResult(out, len(tasks), len(pending), skipped, frames_done, frames_done * num_cams, seconds, setup,
                          total)
+
+
+def _previous_manifest(out: Path, config: ConvertConfig, mconfig: dict) -> dict | None:
+    """The manifest of the conversion ``--resume`` continues (None: a fresh one; ``--overwrite`` removes it)."""
+    if not (out / MANIFEST_NAME).is_file():
+        return None
+    if config.overwrite:
+        shutil.rmtree(out / SHARD_DIR, ignore_errors=True)
+        (out / MANIFEST_NAME).unlink()
+        (out / META_NAME).unlink(missing_ok=True)
+        return None
+    if not config.resume:
+        raise FileExistsError(f"{out}: holds a conversion already; use --resume or --overwrite")
+    old = read_manifest(out)
+    if old.get("config") != mconfig:
+        diff = sorted(k for k in set(mconfig) | set(old.get("config", {}))
+                      if mconfig.get(k) != old.get("config", {}).get(k))
+        raise ValueError(f"{out}: --resume with a different configuration (differs in {diff})")
+    return old
+
+
+def _resumable_shards(out: Path, tasks: list[ShardTask], old: dict) -> dict[str, dict]:
+    """The manifest entries of the shards a resumed conversion keeps: listed with their sha256, or complete
+    shards renamed before the manifest update."""
+    done: dict[str, dict] = {}
+    listed = {s["name"]: s for s in old.get("shards", [])}
+    for t in tasks:
+        p = out / t.name
+        if not p.is_file():
+            continue
+        sha = sha256_file(p)
+        entry = listed.get(t.name)
+        if entry is not None and entry["sha256"] == sha and entry["frames"] == list(t.frames):
+            done[t.name] = entry
+        elif entry is None and _is_complete_shard(p, t):
+            done[t.name] = {"name": t.name, "sequence": t.sequence, "frames": list(t.frames),
+                            "sha256": sha, "bytes": p.stat().st_size}  # renamed before the manifest update
+        else:
+            log.warning("%s: does not match the manifest; converting it again", t.name)
+    return done
 
 
 def _remove_leftovers(out: Path) -> None:

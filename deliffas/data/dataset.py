@@ -22,7 +22,7 @@ from torch.utils.data import Dataset, Sampler
 from jaxtyping import Float, Integer, UInt8
 from torch import Tensor
 
-from deliffas.data.shards import ShardReadError, ShardSet
+from deliffas.data.shards import ShardReadError, ShardSet, open_shard_set
 
 __all__ = ["ShardDataset", "FrameItem", "RandomCameraSampler", "protocol_frames", "PAPER_FRAME_STEP", "SPLITS"]
 
@@ -90,14 +90,14 @@ class ShardDataset(Dataset):
     ``RandomCameraSampler``.
     """
 
-    def __init__(self, shards_dir: str | os.PathLike, split: Split = "train", cameras: Sequence[int] | None = None,
+    def __init__(self, shards_dir: ShardSet | str | os.PathLike, split: Split = "train", cameras: Sequence[int] | None = None,
                  frames: Sequence[int] | None = None, cameras_per_item: int | None = 1, temporal_window: int = 2,
                  protocol: Protocol = "paper"):
         if split not in SPLITS:
             raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
         if protocol not in ("paper", "all"):
             raise ValueError(f"protocol must be 'paper' or 'all', got {protocol!r}")
-        self.shards = ShardSet(shards_dir)
+        self.shards = open_shard_set(shards_dir)
         meta = self.shards.meta
         stored = int(meta.attrs.get("window", 0))
         if not 0 <= temporal_window <= stored:

@@ -31,6 +31,7 @@ from deliffas.data.shard_meta import SCHEMA_VERSION, ShardMeta, read_meta
 from deliffas.data.shard_schema import SHARD_FORMAT, inside, shard_problems
 
 __all__ = [
+    "open_shard_set",
     "ShardReadError",
     "SCHEMA_VERSION",
     "MANIFEST_NAME",
@@ -450,6 +451,14 @@ class ShardSet:
         self.shards = [ShardInfo(s["name"], self.out_dir / s["name"], s["sequence"], tuple(s["frames"]),
                                  s["sha256"], int(s["bytes"])) for s in m.get("shards", [])]
         self._index = {(s.sequence, f): (k, row) for k, s in enumerate(self.shards) for row, f in enumerate(s.frames)}
+
+
+def open_shard_set(shards: ShardSet | str | os.PathLike) -> ShardSet:
+    """``shards`` itself when it is a :class:`ShardSet`, else the shard set of that folder.
+
+    A command opens its shard set once and passes it down; functions that also accept a folder call this.
+    """
+    return shards if isinstance(shards, ShardSet) else ShardSet(shards)
 
 
 # --------------------------------------------------------------------------------------------- verify

@@ -243,15 +243,7 @@ def synthesize_capture(out_dir: str | os.PathLike, config: SynthConfig = SynthCo
     calib = out / "cameras.calibration"
     write_calibration(calib, cameras)
     frames = {seq: [int(f) for f in m.frames] for seq, m in motions.items()}
-    split = {
-        "camera_names": [c.name for c in cameras],
-        "train_cameras": train_cams,
-        "test_cameras": test_cams,
-        "sequences": {seq: {"frames": [frames[seq][0], frames[seq][-1] + 1]} for seq in SEQUENCES},
-        "protocol_frame_step": 10,
-    }
-    write_text_atomic(out / "split.json", json.dumps(split, indent=2) + "\n")
-    write_text_atomic(out / "test_cameras.txt", "".join(f"{c}\n" for c in test_cams))
+    _write_split(out, cameras, train_cams, test_cams, frames)
 
     for seq in SEQUENCES:
         seq_dir = out / seq
@@ -275,29 +267,12 @@ def synthesize_capture(out_dir: str | os.PathLike, config: SynthConfig = SynthCo
         for k, seq in enumerate(SEQUENCES)}
     tasks = [(seq, [int(i) for i in idx]) for seq in SEQUENCES
              for idx in _chunks(len(frames[seq]), 2 * max(1, config.jobs))]
-    if config.jobs <= 1:
-        _init_worker(static)
-        for task in tasks:
-            _render_chunk(*task)
-        _WORKER.clear()
-    else:
-
-        for _ in process_map(_render_chunk, tasks, min(config.jobs, len(tasks)), _init_worker, (static,)):
-            pass
+    _render_tasks(static, tasks, config.jobs)
     seconds["render"] = time.perf_counter() - t2  # ambient occlusion + ray casting + PNG writing
 
     if config.videos:
         t3 = time.perf_counter()
-        names = [c.name for c in cameras]
-        for seq in SEQUENCES:
-            src = ImageFolderSource(out / seq)
-            writers = VideoWriterSet(out / seq, names, config.width, config.height, config.fps)
-            try:
-                for f in frames[seq]:
-                    for c in range(len(cameras)):
-                        writers.write(c, *src.read(f, c))
-            finally:
-                writers.close()
+        _write_videos(out, [c.name for c in cameras], frames, config)
         seconds["videos"] = time.perf_counter() - t3
 
     record = {"config": _jsonable(asdict(config)), "body": {"kind": body.kind, "path": str(body.path.relative_to(out))},
@@ -309,6 +284,45 @@ def synthesize_capture(out_dir: str | os.PathLike, config: SynthConfig = SynthCo
     seconds["total"] = time.perf_counter() - t0
     log.info("synth %s: %s", out, {k: round(v, 2) for k, v in seconds.items()})
     return SynthResult(out, body.path, calib, cameras, train_cams, test_cams, frames, seconds)
+
+
+def _write_split(out: Path, cameras: list[Camera], train_cams: list[int], test_cams: list[int],
+                 frames: dict[str, list[int]]) -> None:
+    """``split.json`` (camera names and split, frame ranges, the protocol's frame step) and ``test_cameras.txt``."""
+    split = {
+        "camera_names": [c.name for c in cameras],
+        "train_cameras": train_cams,
+        "test_cameras": test_cams,
+        "sequences": {seq: {"frames": [frames[seq][0], frames[seq][-1] + 1]} for seq in SEQUENCES},
+        "protocol_frame_step": 10,
+    }
+    write_text_atomic(out / "split.json", json.dumps(split, indent=2) + "\n")
+    write_text_atomic(out / "test_cameras.txt", "".join(f"{c}\n" for c in test_cams))
+
+
+def _render_tasks(static: dict, tasks: list[tuple[str, list[int]]], jobs: int) -> None:
+    """Render every (sequence, frame indices) task: in this process, or in ``jobs`` worker processes."""
+    if jobs <= 1:
+        _init_worker(static)
+        for task in tasks:
+            _render_chunk(*task)
+        _WORKER.clear()
+        return
+    for _ in process_map(_render_chunk, tasks, min(jobs, len(tasks)), _init_worker, (static,)):
+        pass
+
+
+def _write_videos(out: Path, names: list[str], frames: dict[str, list[int]], config: SynthConfig) -> None:
+    """One video per camera and sequence from the rendered PNG frames (``SynthConfig.videos``)."""
+    for seq in SEQUENCES:
+        src = ImageFolderSource(out / seq)
+        writers = VideoWriterSet(out / seq, names, config.width, config.height, config.fps)
+        try:
+            for f in frames[seq]:
+                for c in range(len(names)):
+                    writers.write(c, *src.read(f, c))
+        finally:
+            writers.close()
 
 
 def _jsonable(x):

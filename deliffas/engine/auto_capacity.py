@@ -287,19 +287,7 @@ def auto_capacity(train_cfg, ac_cfg: AutoCapacityConfig | None = None) -> dict:
                     entry["num_parameters"])
         record["candidates"].append(entry)
         _write_json(out / RESULT_FILE, record)  # progress survives an interruption
-    # Re-time round-robin (one frame per candidate per round): load bursts from other processes fall
-    # on every candidate alike; each stage keeps its minimum.
-    for _ in range(ac_cfg.timing_repeats - 1):
-        for entry in record["candidates"]:
-            if entry["error"] is not None:
-                continue
-            try:
-                again = evaluate(EvalConfig(run=entry["run"], split=ac_cfg.split, max_frames=1,
-                                            device=train_cfg.device))
-            except Exception as exc:  # timing only: keep what was measured
-                logger.warning("auto_capacity: re-timing %s failed: %s", entry["name"], exc)
-                continue
-            _set_costs(entry, {k: min(v, again["stage_ms"].get(k, v)) for k, v in entry["stage_ms"].items()})
+    _retime(record["candidates"], ac_cfg, train_cfg.device)
     cost_key = "frame_ms" if ac_cfg.cost == "frame_ms" else "model_ms"
     choice, best = choose(record["candidates"], ac_cfg.tolerance_db, ac_cfg.ms_tie_rel, cost_key, "fg_psnr")
     record["best_psnr"] = best  # foreground PSNR on the selection split
@@ -309,13 +297,31 @@ def auto_capacity(train_cfg, ac_cfg: AutoCapacityConfig | None = None) -> dict:
     chosen_run = out / "candidates" / choice
     record.update(choice=choice, chosen_run=str(chosen_run), chosen_link=str(_link_chosen(out, chosen_run)))
     if test_cameras:  # test numbers of the final choice only
-        ev = evaluate(EvalConfig(run=str(chosen_run), split="novel_view", max_frames=ac_cfg.max_frames,
-                                 device=train_cfg.device))
-        record["test"] = {"split": "novel_view", "candidate": choice, "images": ev["images"],
-                          "foreground": ev["foreground"], "psnr": ev["psnr"], "ssim": ev["ssim"],
-                          "metric_protocol": ev["metric_protocol"]}
+        record["test"] = _test_record(chosen_run, choice, ac_cfg, train_cfg.device)
     _write_json(out / RESULT_FILE, record)
     return record
+
+
+def _retime(candidates: list[dict], ac_cfg: AutoCapacityConfig, device: str) -> None:
+    """Re-time round-robin (one frame per candidate per round): load bursts from other processes fall on every
+    candidate alike; each stage keeps its minimum."""
+    for _ in range(ac_cfg.timing_repeats - 1):
+        for entry in candidates:
+            if entry["error"] is not None:
+                continue
+            try:
+                again = evaluate(EvalConfig(run=entry["run"], split=ac_cfg.split, max_frames=1, device=device))
+            except Exception as exc:  # timing only: keep what was measured
+                logger.warning("auto_capacity: re-timing %s failed: %s", entry["name"], exc)
+                continue
+            _set_costs(entry, {k: min(v, again["stage_ms"].get(k, v)) for k, v in entry["stage_ms"].items()})
+
+
+def _test_record(chosen_run: Path, choice: str, ac_cfg: AutoCapacityConfig, device: str) -> dict:
+    """The chosen candidate's numbers on the test split (novel_view)."""
+    ev = evaluate(EvalConfig(run=str(chosen_run), split="novel_view", max_frames=ac_cfg.max_frames, device=device))
+    return {"split": "novel_view", "candidate": choice, "images": ev["images"], "foreground": ev["foreground"],
+            "psnr": ev["psnr"], "ssim": ev["ssim"], "metric_protocol": ev["metric_protocol"]}
 
 
 def _recorded_validation_cameras(run: Path) -> list[int] | None:

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from deliffas.data.shard_meta import ShardMeta
-from deliffas.data.shards import ShardSet
+from deliffas.data.shards import ShardSet, open_shard_set
 from deliffas.engine.runs import load_run
 from deliffas.engine.identity import capture_identity
 from deliffas.geometry.templates import TemplateSpec
@@ -73,9 +73,9 @@ def capture_record(meta: ShardMeta) -> tuple[dict[str, np.ndarray], dict]:
     return arrays, record
 
 
-def write_run_capture(run_dir: str | os.PathLike, shards: str | os.PathLike) -> Path:
+def write_run_capture(run_dir: str | os.PathLike, shards: ShardSet | str | os.PathLike) -> Path:
     """Write ``RUN/capture.avatar`` from the shards' ``meta.h5`` (atomic)."""
-    arrays, record = capture_record(ShardSet(shards).meta)
+    arrays, record = capture_record(open_shard_set(shards).meta)
     return write_avatar_file(Path(run_dir) / CAPTURE_FILE, arrays, {"kind": "capture", **record})
 
 

@@ -15,7 +15,7 @@ import torch
 from torch.utils.data import DataLoader, Sampler
 
 from deliffas.data.dataset import FrameItem, RandomCameraSampler, ShardDataset
-from deliffas.data.shards import ShardSet
+from deliffas.data.shards import ShardSet, open_shard_set
 from deliffas.engine.rays import frame_rays
 from deliffas.engine.samples import FrameSample
 from deliffas.geometry.atlas import UVAtlas
@@ -34,7 +34,7 @@ TEST_SPLITS = ("novel_view", "novel_pose")
 """Splits that are test data: never used to choose a model, a capacity or a stopping point."""
 
 
-def resolve_protocol(shards_dir: str, requested: str) -> tuple[str, str]:
+def resolve_protocol(shards_dir: ShardSet | str, requested: str) -> tuple[str, str]:
     """The frames protocol a run uses and the sentence that says so.
 
     ``paper`` keeps every 10th frame (DELIFFAS, for DynaCap-scale captures of thousands of frames),
@@ -43,7 +43,7 @@ def resolve_protocol(shards_dir: str, requested: str) -> tuple[str, str]:
     """
     if requested not in ("auto", "paper", "all"):
         raise ValueError(f"protocol must be auto, paper or all, got {requested!r}")
-    shards = ShardSet(shards_dir)
+    shards = open_shard_set(shards_dir)
     n = len(shards.frames("training")) if "training" in shards.meta.sequence_frames else 0
     if requested == "auto":
         chosen = "paper" if n >= AUTO_PAPER_MIN_FRAMES else "all"
@@ -72,13 +72,14 @@ def validation_cameras(train_cameras: list[int], requested: int | tuple[int, ...
     return sorted(set(picks))
 
 
-def shard_info(shards_dir: str, temporal_window: int | None = None) -> dict:
+def shard_info(shards_dir: ShardSet | str, temporal_window: int | None = None) -> dict:
     """What the engine needs to know about a shard set (atlas, faces, window, cameras)."""
-    meta = ShardSet(shards_dir).meta
+    shard_set = open_shard_set(shards_dir)
+    meta = shard_set.meta
     stored = int(meta.attrs.get("window", 0))
     T = stored if temporal_window is None else min(int(temporal_window), stored)
     return {
-        "shards": str(shards_dir),
+        "shards": str(shard_set.out_dir),
         "atlas_res": meta.atlas_res,
         "temporal_window": T,
         "faces": np.asarray(meta.faces, dtype=np.int64),
@@ -128,8 +129,8 @@ class _EndlessCameraSampler(Sampler):
             yield from RandomCameraSampler(self.dataset, self.k, g)
 
 
-def training_stream(cfg, temporal_window: int, rank: int = 0, world: int = 1,
-                    start_iteration: int = 0) -> tuple[Iterator[FrameSample], dict]:
+def training_stream(cfg, temporal_window: int, rank: int = 0, world: int = 1, start_iteration: int = 0,
+                    shards: ShardSet | None = None) -> tuple[Iterator[FrameSample], dict]:
     """Endless training samples (one frame, ``cfg.cameras_per_frame`` random training cameras).
 
     Args:
@@ -139,14 +140,16 @@ def training_stream(cfg, temporal_window: int, rank: int = 0, world: int = 1,
         rank: distributed rank (each rank draws its own frames).
         world: distributed size (number of ranks).
         start_iteration: iteration resumed from (changes the draw so a resumed run sees new samples).
+        shards: ``cfg.shards`` opened by the caller (else opened here).
     """
-    info = shard_info(cfg.shards, temporal_window)
-    protocol, message = resolve_protocol(cfg.shards, getattr(cfg, "protocol", "paper"))
+    shards = open_shard_set(shards if shards is not None else cfg.shards)
+    info = shard_info(shards, temporal_window)
+    protocol, message = resolve_protocol(shards, getattr(cfg, "protocol", "paper"))
     if rank == 0:
         logger.warning("%s", message)
     held_out = validation_cameras(info["train_cameras"], getattr(cfg, "validation_cameras", 0))
     fit_cameras = [c for c in info["train_cameras"] if c not in held_out]
-    ds = ShardDataset(cfg.shards, split="train", cameras=fit_cameras, cameras_per_item=cfg.cameras_per_frame,
+    ds = ShardDataset(shards, split="train", cameras=fit_cameras, cameras_per_item=cfg.cameras_per_frame,
                       temporal_window=info["temporal_window"], protocol=protocol)
     if len(ds.frames) == 0:
         raise ValueError(f"{cfg.shards}: no training frames under protocol {protocol!r}")
@@ -161,11 +164,12 @@ def training_stream(cfg, temporal_window: int, rank: int = 0, world: int = 1,
     return iter(loader), info
 
 
-def evaluation_samples(shards: str, split: str, max_frames: int | None = None, with_rays: bool = False,
+def evaluation_samples(shards: ShardSet | str, split: str, max_frames: int | None = None, with_rays: bool = False,
                        protocol: str = "paper", temporal_window: int | None = None,
                        cameras: list[int] | None = None) -> tuple[Iterator[FrameSample], dict]:
     """Every camera of ``split`` (or the given calibration ``cameras``) for each of its frames (at most
     ``max_frames``, evenly spaced)."""
+    shards = open_shard_set(shards)
     info = shard_info(shards, temporal_window)
     ds = ShardDataset(shards, split=split, cameras=cameras, cameras_per_item=None,
                       temporal_window=info["temporal_window"], protocol=protocol)

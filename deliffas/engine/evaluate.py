@@ -23,6 +23,7 @@ from typing import Literal
 import numpy as np
 import torch
 
+from deliffas.data.shards import ShardSet
 from deliffas.engine.devices import resolve_device
 from deliffas.engine.data_bridge import EVAL_SPLITS, evaluation_samples, resolve_protocol
 from deliffas.engine.identity import check_run_shards
@@ -91,7 +92,7 @@ def evaluate(cfg: EvalConfig) -> dict:
     shards = cfg.shards or record.get("train", {}).get("shards")
     if shards is None:
         raise ValueError(f"{cfg.run}: no shards recorded in train_config.json; pass --shards")
-    check_run_shards(cfg.run, record, shards)
+    shards = check_run_shards(cfg.run, record, shards)  # opened once for the whole command and passed down
     protocol = cfg.protocol or _run_protocol(record, shards)
     split, cameras = _split_cameras(cfg, record)
     samples, info = evaluation_samples(shards, split, max_frames=cfg.max_frames, with_rays=False,
@@ -128,7 +129,7 @@ def evaluate(cfg: EvalConfig) -> dict:
         n_images += sample.num_cameras
         n_frames += 1
     if n_images == 0:
-        raise ValueError(f"split {cfg.split!r} of {shards} holds no frames/cameras to evaluate")
+        raise ValueError(f"split {cfg.split!r} of {shards.out_dir} holds no frames/cameras to evaluate")
     summary = evaluator.summary()
     warnings = _few_images_warnings(n_images, protocol, cfg.split)
     if cfg.grid and grid_rows:
@@ -195,7 +196,7 @@ def _stage_ms(timer: StageTimer, n_images: int, n_frames: int) -> dict[str, floa
             "cnn": timer.total_ms.get("cnn", 0.0) / n_frames, "sample": per_image["sample"], "mlp": per_image["mlp"]}
 
 
-def _run_protocol(record: dict, shards: str) -> str:
+def _run_protocol(record: dict, shards: ShardSet) -> str:
     """The frames protocol the run trained with (resolved ``auto`` as recorded, else resolved now)."""
     recorded = record.get("data", {}).get("protocol")
     if recorded in ("paper", "all"):

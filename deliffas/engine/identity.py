@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from deliffas.data.shards import ShardSet
+from deliffas.data.shards import ShardSet, open_shard_set
 
 __all__ = ["IdentityError", "capture_identity", "check_identity", "check_run_shards", "CHARACTER_KEYS",
            "CAPTURE_KEYS"]
@@ -75,15 +75,20 @@ def check_identity(expected: dict | None, expected_name: str, found: dict, found
                                 f"{b[:12]}... there, {a[:12]}... in {expected_name}")
 
 
-def check_run_shards(run: str | os.PathLike, record: dict, shards: str | os.PathLike) -> None:
+def check_run_shards(run: str | os.PathLike, record: dict, shards: ShardSet | str | os.PathLike) -> ShardSet:
     """Refuse ``shards`` for the run whose ``train_config.json`` is ``record``: gone, or another character.
+
+    Returns:
+        The shard set, opened (``shards`` itself when it is one): the command passes it down.
 
     Raises:
         FileNotFoundError: no shard set at ``shards`` (says to pass ``--shards``).
         IdentityError: the shards hold another character or atlas than the run was trained on.
     """
-    if not (Path(shards) / "manifest.json").is_file():
+    if not isinstance(shards, ShardSet) and not (Path(shards) / "manifest.json").is_file():
         raise FileNotFoundError(f"{shards}: no shard set there (moved or deleted?); pass --shards DIR with the "
                                 f"shards of {run}'s capture")
-    check_identity(record.get("identity"), f"the run {run}", capture_identity(ShardSet(shards).meta),
-                   f"the shards {shards}")
+    shard_set = open_shard_set(shards)
+    check_identity(record.get("identity"), f"the run {run}", capture_identity(shard_set.meta),
+                   f"the shards {shard_set.out_dir}")
+    return shard_set

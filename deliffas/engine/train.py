@@ -129,7 +129,8 @@ class Trainer:
         self.run_dir = run = Path(cfg.out)
         if resume and (run / STATE_FILE).is_file():
             read_training_state(run)  # a broken state is named before anything else is read
-        self.identity = capture_identity(ShardSet(cfg.shards).meta)
+        self.shards = ShardSet(cfg.shards)  # opened once for the whole command and passed down
+        self.identity = capture_identity(self.shards.meta)
         if resume and (run / RUN_MARKER).is_file():
             _check_resumed_capture(run, cfg.shards, self.identity)
         if self.rank == 0:
@@ -143,10 +144,10 @@ class Trainer:
             torch.set_num_threads(max(1, (os.cpu_count() or 1) // self.world - cfg.num_workers))
         resuming = resume and (run / STATE_FILE).is_file()
         self.start = read_training_state(run)["iteration"] if resuming else 0
-        stored = shard_info(cfg.shards)
+        stored = shard_info(self.shards)
         self.model_config = resolve_model_config(cfg, stored["atlas_res"], stored["temporal_window"])
         self.stream, self.data_info = training_stream(cfg, self.model_config.temporal_window, rank=self.rank,
-                                                      world=self.world, start_iteration=self.start)
+                                                      world=self.world, start_iteration=self.start, shards=self.shards)
         self.model = DeliffasModel(self.model_config).to(device)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.lr, betas=(0.9, 0.999), eps=1e-7)
         state: dict[str, Any] = {}
@@ -178,7 +179,7 @@ class Trainer:
                   "perceptual_backbone": self.backbone, "world_size": self.world, "device": str(self.device),
                   "num_parameters": self.model.num_parameters(), "identity": self.identity}
         (self.run_dir / RUN_MARKER).write_text(json.dumps(record, indent=2, default=str) + "\n")
-        write_run_capture(self.run_dir, self.cfg.shards)
+        write_run_capture(self.run_dir, self.shards)
 
     def _stage_weight(self, it: int, sample: FrameSample) -> float:
         """The perceptual weight of iteration ``it``: 0 in stage 1, balanced once at the start of stage 2."""

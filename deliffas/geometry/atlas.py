@@ -206,6 +206,59 @@ def _clamp_extrapolated(b: np.ndarray) -> np.ndarray:
     return b / b.sum(axis=-1, keepdims=True)  # sum >= 1 after raising negatives
 
 
+def _covering_candidates(p0: np.ndarray, e1: np.ndarray, e2: np.ndarray, det: np.ndarray, lo: np.ndarray,
+                         extent: np.ndarray, counts: np.ndarray, S: int) -> tuple[list, list, list, list]:
+    """Every (texel, face) pair whose texel centre a face covers, from each face's bounding-box candidates in
+    chunks of ``_CHUNK_CANDIDATES``: lists of flat texel ids, face ids, smallest barycentrics and barycentrics."""
+    texel_hits, face_hits, score_hits, bary_hits = [], [], [], []
+    cum = np.cumsum(counts)
+    start_face, num_faces = 0, len(det)
+    while start_face < num_faces:
+        base = cum[start_face - 1] if start_face else 0
+        stop_face = int(np.searchsorted(cum, base + _CHUNK_CANDIDATES, side="right"))
+        stop_face = max(stop_face, start_face + 1)
+        fids = np.arange(start_face, stop_face)
+        c = counts[fids]
+        total = int(c.sum())
+        if total:
+            fid = np.repeat(fids, c)  # (N,)
+            offsets = np.repeat(np.cumsum(c) - c, c)
+            k = np.arange(total) - offsets
+            w = extent[fid, 0]
+            col = lo[fid, 0] + k % w
+            row = lo[fid, 1] + k // w
+            b = _bary(col.astype(np.float64), row.astype(np.float64), p0[fid], e1[fid], e2[fid], det[fid])
+            bmin = b.min(axis=1)
+            ok = bmin >= -_INSIDE_TOL
+            texel_hits.append(row[ok] * S + col[ok])
+            face_hits.append(fid[ok])
+            score_hits.append(bmin[ok])
+            bary_hits.append(b[ok])
+        start_face = stop_face
+    return texel_hits, face_hits, score_hits, bary_hits
+
+
+def _fill_gutter(face: np.ndarray, bary: np.ndarray, valid: np.ndarray, covered: np.ndarray, S: int, gutter: int,
+                 frames: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]) -> None:
+    """Give the empty texels within ``gutter`` rings of the covered set the face of their nearest covered texel
+    with extrapolated barycentrics (in place: ``face`` (S*S,), ``bary`` (S*S, 3), ``valid`` (S*S,))."""
+    from scipy import ndimage  # scipy only where a gutter is grown
+
+    p0, e1, e2, det = frames
+    cov2 = covered.reshape(S, S)
+    grown = ndimage.binary_dilation(cov2, structure=np.ones((3, 3), bool), iterations=gutter)
+    fill = (grown & ~cov2).reshape(-1)
+    _, (near_r, near_c) = ndimage.distance_transform_edt(~cov2, return_indices=True)
+    fill_idx = np.flatnonzero(fill)
+    src = near_r.reshape(-1)[fill_idx] * S + near_c.reshape(-1)[fill_idx]
+    fface = face[src]
+    rows, cols = np.divmod(fill_idx, S)
+    b = _bary(cols.astype(np.float64), rows.astype(np.float64), p0[fface], e1[fface], e2[fface], det[fface])
+    face[fill_idx] = fface
+    bary[fill_idx] = _clamp_extrapolated(b)
+    valid[fill_idx] = True
+
+
 def uv_texel_table(atlas: UVAtlas, size: int, gutter: int = 2) -> TexelTable:
     """Rasterise the atlas in UV space at texel centres, then dilate by ``gutter`` rings.
 
@@ -238,7 +291,6 @@ def uv_texel_table(atlas: UVAtlas, size: int, gutter: int = 2) -> TexelTable:
         raise ValueError(f"uv_texel_table: gutter must be >= 0, got {gutter}")
     S = int(size)
     p0, e1, e2, det = _face_frames(atlas.corner_uvs, S)
-    num_faces = len(det)
     degenerate = np.abs(det) <= UV_AREA_EPS
     degenerate_ids = np.flatnonzero(degenerate).astype(np.int64)
     if len(degenerate_ids):
@@ -254,32 +306,7 @@ def uv_texel_table(atlas: UVAtlas, size: int, gutter: int = 2) -> TexelTable:
     inside_image = (corners.max(axis=1) >= -0.5).all(1) & (corners.min(axis=1) <= S - 0.5).all(1)
     counts = np.where(degenerate | ~inside_image, 0, extent[:, 0] * extent[:, 1])  # (F,)
 
-    texel_hits, face_hits, score_hits, bary_hits = [], [], [], []
-    cum = np.cumsum(counts)
-    start_face = 0
-    while start_face < num_faces:
-        base = cum[start_face - 1] if start_face else 0
-        stop_face = int(np.searchsorted(cum, base + _CHUNK_CANDIDATES, side="right"))
-        stop_face = max(stop_face, start_face + 1)
-        fids = np.arange(start_face, stop_face)
-        c = counts[fids]
-        total = int(c.sum())
-        if total:
-            fid = np.repeat(fids, c)  # (N,)
-            offsets = np.repeat(np.cumsum(c) - c, c)
-            k = np.arange(total) - offsets
-            w = extent[fid, 0]
-            col = lo[fid, 0] + k % w
-            row = lo[fid, 1] + k // w
-            b = _bary(col.astype(np.float64), row.astype(np.float64), p0[fid], e1[fid], e2[fid], det[fid])
-            bmin = b.min(axis=1)
-            ok = bmin >= -_INSIDE_TOL
-            texel_hits.append(row[ok] * S + col[ok])
-            face_hits.append(fid[ok])
-            score_hits.append(bmin[ok])
-            bary_hits.append(b[ok])
-        start_face = stop_face
-
+    texel_hits, face_hits, score_hits, bary_hits = _covering_candidates(p0, e1, e2, det, lo, extent, counts, S)
     face = np.full(S * S, -1, np.int64)
     bary = np.zeros((S * S, 3), np.float64)
     if texel_hits:
@@ -300,20 +327,7 @@ def uv_texel_table(atlas: UVAtlas, size: int, gutter: int = 2) -> TexelTable:
 
     valid = covered.copy()
     if gutter > 0 and covered.any() and not covered.all():
-        from scipy import ndimage
-
-        cov2 = covered.reshape(S, S)
-        grown = ndimage.binary_dilation(cov2, structure=np.ones((3, 3), bool), iterations=gutter)
-        fill = (grown & ~cov2).reshape(-1)
-        _, (near_r, near_c) = ndimage.distance_transform_edt(~cov2, return_indices=True)
-        fill_idx = np.flatnonzero(fill)
-        src = near_r.reshape(-1)[fill_idx] * S + near_c.reshape(-1)[fill_idx]
-        fface = face[src]
-        rows, cols = np.divmod(fill_idx, S)
-        b = _bary(cols.astype(np.float64), rows.astype(np.float64), p0[fface], e1[fface], e2[fface], det[fface])
-        face[fill_idx] = fface
-        bary[fill_idx] = _clamp_extrapolated(b)
-        valid[fill_idx] = True
+        _fill_gutter(face, bary, valid, covered, S, gutter, (p0, e1, e2, det))
 
     return TexelTable(
         face=face.reshape(S, S),

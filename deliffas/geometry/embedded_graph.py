@@ -150,51 +150,8 @@ def _greedy_nearest_unused(verts: np.ndarray, points: np.ndarray) -> np.ndarray:
     return out
 
 
-def bind_embedded_graph(verts: np.ndarray, faces: np.ndarray, graph: ObjData | np.ndarray,
-                        segmentation: np.ndarray | None = None, graph_faces: np.ndarray | None = None,
-                        refinement: bool = False) -> EmbeddedGraph:
-    """Bind an embedded graph to a template as the C++ tool does (formats doc 1.7).
-
-    1. Nodes: graph vertices in file order, each the nearest unused template vertex.
-    2. Radius r_k = max(MIN_NODE_RADIUS, max hops to the graph neighbours' vertices // 2), hops =
-       breadth-first distance over the template edges (scipy.sparse.csgraph).
-    3. Vertex i attaches to node k when d = hops(i, k) / r_k <= 1, with w = exp(-d^2 / 2),
-       normalised per vertex; a vertex attached to nothing takes its hop-nearest node (w = 1).
-    4. Rigidity ρ_k = mean ``rigidity_of_labels`` over the vertices attached to k (with
-       ``refinement``, values below 20 are divided by 10 first, as the C++ option).
-
-    The C++ restriction to the same connected component (for multi-component templates) is not
-    reproduced: hop distances across components are infinite, so such vertices simply do not
-    attach there.
-
-    Args:
-        verts: (V, 3) float, template rest vertices, mm.
-        faces: (F, 3) int template faces.
-        graph: the ``*_graph.obj`` (its vertices and triangles), or (K, 3) node positions with
-            ``graph_faces``.
-        segmentation: optional (V,) LIP labels for the node rigidity.
-        graph_faces: (G, 3) int graph triangles when ``graph`` is an array.
-
-    Returns:
-        EmbeddedGraph.
-    """
-    check_shape("verts", verts, "V 3")
-    check_shape("faces", faces, "F 3")
-    from scipy.sparse.csgraph import dijkstra
-
-    verts = np.asarray(verts, np.float64)
-    faces = np.asarray(faces, np.int64)
-    if isinstance(graph, ObjData):
-        gpos, gfaces = graph.verts, graph.faces
-    else:
-        if graph_faces is None:
-            raise ValueError("bind_embedded_graph: give graph_faces with an array of node positions")
-        gpos, gfaces = np.asarray(graph, np.float64), np.asarray(graph_faces, np.int64)
-    check_shape("graph vertices", gpos, "K 3")
-    V, K = len(verts), len(gpos)
-    node_verts = _greedy_nearest_unused(verts, gpos)
-    edges = _graph_edges(gfaces)
-    # padded neighbour lists (K, maxdeg), -1 padding
+def _neighbour_lists(edges: np.ndarray, K: int) -> np.ndarray:
+    """(K, maxdeg) int64 graph neighbours of each node, -1 padding."""
     both = np.concatenate([edges, edges[:, ::-1]])
     order = np.lexsort((both[:, 1], both[:, 0]))
     both = both[order]
@@ -202,8 +159,20 @@ def bind_embedded_graph(verts: np.ndarray, faces: np.ndarray, graph: ObjData | n
     nbr = np.full((K, max(int(deg.max(initial=0)), 1)), -1, np.int64)
     starts = np.concatenate([[0], np.cumsum(deg)[:-1]])
     nbr[both[:, 0], np.arange(len(both)) - starts[both[:, 0]]] = both[:, 1]
+    return nbr
 
-    adj = _mesh_adjacency(faces, V)
+
+def _attach_by_hops(adj, node_verts: np.ndarray, nbr: np.ndarray,
+                    V: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Steps 2-3 of :func:`bind_embedded_graph` by batched breadth-first searches over the template edges.
+
+    Returns:
+        radius (K,) hops; the attachments as node ids, vertex ids and weights (each (A,)); and each vertex's
+        hop-nearest node (V,).
+    """
+    from scipy.sparse.csgraph import dijkstra  # scipy's graph search, only when a graph is bound
+
+    K = len(node_verts)
     radius = np.empty(K, np.int64)
     rows_k, rows_i, rows_w = [], [], []
     best_hops = np.full(V, np.inf)
@@ -238,28 +207,25 @@ def bind_embedded_graph(verts: np.ndarray, faces: np.ndarray, graph: ObjData | n
     if len(far_verts):  # farther than the hop limit from every node: search from those vertices instead
         Dv = dijkstra(adj, unweighted=True, indices=far_verts)[:, node_verts]  # (n, K)
         best_node[far_verts] = np.argmin(Dv, axis=1)
-    kk = np.concatenate(rows_k)
-    ii = np.concatenate(rows_i)
-    ww = np.concatenate(rows_w)
-    attached = np.zeros(V, bool)
-    attached[ii] = True
-    lone = np.flatnonzero(~attached)
-    if len(lone):
-        log.info("bind_embedded_graph: %d vertices within no node radius take their hop-nearest node", len(lone))
-    rigidity = None
-    if segmentation is not None:
-        rho_v = rigidity_of_labels(np.asarray(segmentation))
-        if len(rho_v) != V:
-            raise ValueError(f"segmentation: expected {V} labels, got {len(rho_v)}")
-        if refinement:
-            rho_v = np.where(rho_v < 20, rho_v / 10.0, rho_v)
-        sums = np.bincount(kk, weights=rho_v[ii], minlength=K)
-        counts = np.bincount(kk, minlength=K)
-        rigidity = sums / np.maximum(counts, 1)
-    kk = np.concatenate([kk, best_node[lone]])
-    ii = np.concatenate([ii, lone])
-    ww = np.concatenate([ww, np.ones(len(lone))])
-    # per-vertex rows sorted by decreasing weight, padded to the largest attachment count
+    return radius, np.concatenate(rows_k), np.concatenate(rows_i), np.concatenate(rows_w), best_node
+
+
+def _node_rigidity(segmentation: np.ndarray, refinement: bool, kk: np.ndarray, ii: np.ndarray, V: int,
+                   K: int) -> np.ndarray:
+    """(K,) mean ``rigidity_of_labels`` of the vertices attached to each node (step 4)."""
+    rho_v = rigidity_of_labels(np.asarray(segmentation))
+    if len(rho_v) != V:
+        raise ValueError(f"segmentation: expected {V} labels, got {len(rho_v)}")
+    if refinement:
+        rho_v = np.where(rho_v < 20, rho_v / 10.0, rho_v)
+    sums = np.bincount(kk, weights=rho_v[ii], minlength=K)
+    counts = np.bincount(kk, minlength=K)
+    return sums / np.maximum(counts, 1)
+
+
+def _vertex_rows(kk: np.ndarray, ii: np.ndarray, ww: np.ndarray, V: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per-vertex rows sorted by decreasing weight, padded to the largest attachment count: node ids (V, M),
+    -1 padding, and weights (V, M) normalised per vertex."""
     order = np.lexsort((-ww, ii))
     kk, ii, ww = kk[order], ii[order], ww[order]
     counts = np.bincount(ii, minlength=V)
@@ -271,6 +237,63 @@ def bind_embedded_graph(verts: np.ndarray, faces: np.ndarray, graph: ObjData | n
     vertex_nodes[ii, slot] = kk
     vertex_weights[ii, slot] = ww
     vertex_weights /= vertex_weights.sum(axis=1, keepdims=True)
+    return vertex_nodes, vertex_weights
+
+
+def bind_embedded_graph(verts: np.ndarray, faces: np.ndarray, graph: ObjData | np.ndarray,
+                        segmentation: np.ndarray | None = None, graph_faces: np.ndarray | None = None,
+                        refinement: bool = False) -> EmbeddedGraph:
+    """Bind an embedded graph to a template as the C++ tool does (formats doc 1.7).
+
+    1. Nodes: graph vertices in file order, each the nearest unused template vertex.
+    2. Radius r_k = max(MIN_NODE_RADIUS, max hops to the graph neighbours' vertices // 2), hops =
+       breadth-first distance over the template edges (scipy.sparse.csgraph).
+    3. Vertex i attaches to node k when d = hops(i, k) / r_k <= 1, with w = exp(-d^2 / 2),
+       normalised per vertex; a vertex attached to nothing takes its hop-nearest node (w = 1).
+    4. Rigidity ρ_k = mean ``rigidity_of_labels`` over the vertices attached to k (with
+       ``refinement``, values below 20 are divided by 10 first, as the C++ option).
+
+    The C++ restriction to the same connected component (for multi-component templates) is not
+    reproduced: hop distances across components are infinite, so such vertices simply do not
+    attach there.
+
+    Args:
+        verts: (V, 3) float, template rest vertices, mm.
+        faces: (F, 3) int template faces.
+        graph: the ``*_graph.obj`` (its vertices and triangles), or (K, 3) node positions with
+            ``graph_faces``.
+        segmentation: optional (V,) LIP labels for the node rigidity.
+        graph_faces: (G, 3) int graph triangles when ``graph`` is an array.
+
+    Returns:
+        EmbeddedGraph.
+    """
+    check_shape("verts", verts, "V 3")
+    check_shape("faces", faces, "F 3")
+    verts = np.asarray(verts, np.float64)
+    faces = np.asarray(faces, np.int64)
+    if isinstance(graph, ObjData):
+        gpos, gfaces = graph.verts, graph.faces
+    else:
+        if graph_faces is None:
+            raise ValueError("bind_embedded_graph: give graph_faces with an array of node positions")
+        gpos, gfaces = np.asarray(graph, np.float64), np.asarray(graph_faces, np.int64)
+    check_shape("graph vertices", gpos, "K 3")
+    V, K = len(verts), len(gpos)
+    node_verts = _greedy_nearest_unused(verts, gpos)
+    edges = _graph_edges(gfaces)
+    nbr = _neighbour_lists(edges, K)
+    radius, kk, ii, ww, best_node = _attach_by_hops(_mesh_adjacency(faces, V), node_verts, nbr, V)
+    attached = np.zeros(V, bool)
+    attached[ii] = True
+    lone = np.flatnonzero(~attached)
+    if len(lone):
+        log.info("bind_embedded_graph: %d vertices within no node radius take their hop-nearest node", len(lone))
+    rigidity = _node_rigidity(segmentation, refinement, kk, ii, V, K) if segmentation is not None else None
+    kk = np.concatenate([kk, best_node[lone]])
+    ii = np.concatenate([ii, lone])
+    ww = np.concatenate([ww, np.ones(len(lone))])
+    vertex_nodes, vertex_weights = _vertex_rows(kk, ii, ww, V)
     return EmbeddedGraph(node_verts, verts[node_verts].copy(), radius, edges, vertex_nodes, vertex_weights,
                          rigidity, int(len(lone)))
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import asdict, dataclass, field
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
@@ -330,6 +330,44 @@ def _lipschitz_envelope(verts: np.ndarray, edges: np.ndarray, d: np.ndarray, slo
     return dijkstra(graph, directed=True, indices=n)[:n] - shift
 
 
+def _smooth_down(d: np.ndarray, edges: np.ndarray, iterations: int) -> np.ndarray:
+    """``iterations`` of d <- min(d, uniform 1-ring mean of d) over the mesh ``edges`` (E, 2)."""
+    from scipy import sparse  # the 1-ring mean as one sparse product
+
+    n = len(d)
+    adj = sparse.csr_matrix(
+        (np.ones(2 * len(edges)), (np.concatenate([edges[:, 0], edges[:, 1]]), np.concatenate([edges[:, 1], edges[:, 0]]))),
+        shape=(n, n),
+    )
+    degree = np.maximum(np.asarray(adj.sum(axis=1)).ravel(), 1)
+    for _ in range(iterations):  # a few global iterations, each one sparse product
+        d = np.minimum(d, (adj @ d) / degree)
+    return d
+
+
+def _repair_crossings(verts: np.ndarray, faces: np.ndarray, normals: np.ndarray, d: np.ndarray,
+                      limit: Callable[[np.ndarray], np.ndarray], iterations: int,
+                      shrink: float) -> tuple[np.ndarray, int]:
+    """Step 5 of :func:`safe_offsets`: shrink the offsets of crossing faces' vertices by ``shrink`` and
+    re-``limit`` them (slope limit and floor), at most ``iterations`` times; (offsets, faces still crossing)."""
+    num_left = 0
+    for _ in range(iterations):  # each pass is one vectorised self-intersection test
+        bad = self_intersecting_faces(verts + d[:, None] * normals, faces)
+        num_left = len(bad)
+        if not num_left:
+            break
+        ids = np.unique(faces[bad])
+        shrunk = d.copy()
+        shrunk[ids] *= shrink
+        shrunk = limit(shrunk)
+        if np.allclose(shrunk, d):
+            break  # everything involved already sits on the floor
+        d = shrunk
+    else:
+        num_left = len(self_intersecting_faces(verts + d[:, None] * normals, faces)) if iterations else 0
+    return d, num_left
+
+
 def safe_offsets(
     verts: Real[ArrayLike, "V 3"],
     faces: Integer[ArrayLike, "F 3"],
@@ -378,8 +416,6 @@ def safe_offsets(
         raise ValueError(f"fraction: expected in (0, 1], got {fraction}")
     if not 0 < repair_shrink < 1:
         raise ValueError(f"repair_shrink: expected in (0, 1), got {repair_shrink}")
-    from scipy import sparse
-
     given = verts
     verts = to_numpy(verts, np.float64)
     faces = to_numpy(faces, np.int64)
@@ -397,30 +433,10 @@ def safe_offsets(
         return np.minimum(x, _lipschitz_envelope(verts, edges, x, max_slope))
 
     if smooth_iterations > 0 and len(edges):
-        n = len(verts)
-        adj = sparse.csr_matrix(
-            (np.ones(2 * len(edges)), (np.concatenate([edges[:, 0], edges[:, 1]]), np.concatenate([edges[:, 1], edges[:, 0]]))),
-            shape=(n, n),
-        )
-        degree = np.maximum(np.asarray(adj.sum(axis=1)).ravel(), 1)
-        for _ in range(smooth_iterations):  # a few global iterations, each one sparse product
-            d = np.minimum(d, (adj @ d) / degree)
+        d = _smooth_down(d, edges, smooth_iterations)
     d = np.maximum(slope_limit(d), floor)
-    num_left = 0
-    for _ in range(repair_iterations):  # each pass is one vectorised self-intersection test
-        bad = self_intersecting_faces(verts + d[:, None] * normals, faces)
-        num_left = len(bad)
-        if not num_left:
-            break
-        ids = np.unique(faces[bad])
-        shrunk = d.copy()
-        shrunk[ids] *= repair_shrink
-        shrunk = np.maximum(slope_limit(shrunk), floor)
-        if np.allclose(shrunk, d):
-            break  # everything involved already sits on the floor
-        d = shrunk
-    else:
-        num_left = len(self_intersecting_faces(verts + d[:, None] * normals, faces)) if repair_iterations else 0
+    d, num_left = _repair_crossings(verts, faces, normals, d, lambda x: np.maximum(slope_limit(x), floor),
+                                    repair_iterations, repair_shrink)
     if num_left:
         log.warning("safe_offsets: %d shell faces still cross (floor %.3g mm, %d repair passes)", num_left, floor, repair_iterations)
     clamped = d < offset_mm - 1e-9

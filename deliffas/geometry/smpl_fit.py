@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import Callable
 
 import torch
 from jaxtyping import Float
@@ -138,6 +139,38 @@ def _initial_pose_from_parts(template: SMPLTemplate, target_verts: torch.Tensor)
     return pose
 
 
+def _minimise(objective: Callable[[], torch.Tensor], unknowns: list[torch.Tensor], config: SMPLFitConfig) -> None:
+    """``config.adam_steps`` of Adam, then ``config.lbfgs_rounds`` of L-BFGS on ``objective`` over ``unknowns``."""
+    from tqdm.auto import tqdm  # tqdm is a dependency; imported here so importing geometry stays light
+
+    bar = tqdm(total=config.adam_steps + config.lbfgs_rounds, desc="fit_smpl", disable=not config.progress)
+    if config.adam_steps:
+        adam = torch.optim.Adam(unknowns, lr=config.adam_lr)
+        for _ in range(config.adam_steps):
+            adam.zero_grad(set_to_none=True)
+            loss = objective()
+            loss.backward()
+            adam.step()
+            bar.update(1)
+            bar.set_postfix(loss=f"{loss.item():.4g}", refresh=False)
+    if config.lbfgs_rounds:
+        lbfgs = torch.optim.LBFGS(unknowns, lr=1.0, max_iter=config.lbfgs_iters, history_size=20,
+                                  line_search_fn="strong_wolfe",
+                                  tolerance_grad=1e-12, tolerance_change=1e-15)
+
+        def closure() -> torch.Tensor:
+            lbfgs.zero_grad(set_to_none=True)
+            value = objective()
+            value.backward()
+            return value
+
+        for _ in range(config.lbfgs_rounds):
+            loss = lbfgs.step(closure)
+            bar.update(1)
+            bar.set_postfix(loss=f"{float(loss.detach()):.4g}", refresh=False)
+    bar.close()
+
+
 def fit_smpl(template: SMPLTemplate, target_verts: torch.Tensor | None = None,
              target_joints: torch.Tensor | None = None, config: SMPLFitConfig = SMPLFitConfig(),
              init_betas: torch.Tensor | None = None) -> SMPLFitResult:
@@ -203,35 +236,7 @@ def fit_smpl(template: SMPLTemplate, target_verts: torch.Tensor | None = None,
         prior = config.pose_prior_weight * (pose[:, 3:] ** 2).sum(1).mean()
         return data + prior + config.betas_prior_weight * (betas ** 2).sum()
 
-    from tqdm.auto import tqdm  # tqdm is a dependency; imported here so importing geometry stays light
-
-    bar = tqdm(total=config.adam_steps + config.lbfgs_rounds, desc="fit_smpl", disable=not config.progress)
-    loss = torch.tensor(float("nan"))
-    if config.adam_steps:
-        adam = torch.optim.Adam(unknowns, lr=config.adam_lr)
-        for _ in range(config.adam_steps):
-            adam.zero_grad(set_to_none=True)
-            loss = objective()
-            loss.backward()
-            adam.step()
-            bar.update(1)
-            bar.set_postfix(loss=f"{loss.item():.4g}", refresh=False)
-    if config.lbfgs_rounds:
-        lbfgs = torch.optim.LBFGS(unknowns, lr=1.0, max_iter=config.lbfgs_iters, history_size=20,
-                                  line_search_fn="strong_wolfe",
-                                  tolerance_grad=1e-12, tolerance_change=1e-15)
-
-        def closure() -> torch.Tensor:
-            lbfgs.zero_grad(set_to_none=True)
-            value = objective()
-            value.backward()
-            return value
-
-        for _ in range(config.lbfgs_rounds):
-            loss = lbfgs.step(closure)
-            bar.update(1)
-            bar.set_postfix(loss=f"{float(loss.detach()):.4g}", refresh=False)
-    bar.close()
+    _minimise(objective, unknowns, config)
     with torch.no_grad():
         final = objective()
         verts, joints = template.pose_with_joints(params())

@@ -16,3 +16,27 @@ def test_training_import_graph_excludes_evaluation():
     leaked = sorted(m for m in imported if any(m == e or m.startswith(e + ".") for e in EVALUATION))
     assert not leaked, f"{TRAINING} imports {leaked}"
     assert "deliffas.engine.runs" in imported  # the run loader the avatar writer uses, without the evaluator
+
+
+def test_one_shard_set_per_command(tiny_shards, tmp_path, monkeypatch):
+    """train and eval open the shard folder once and pass the ShardSet down (avatar, identity, dataset...)."""
+    from deliffas.data.shards import ShardSet
+    from deliffas.engine.evaluate import EvalConfig, evaluate
+    from deliffas.engine.train import TrainConfig, train
+
+    opened: list[str] = []
+    original = ShardSet.__init__
+
+    def counting(self, out_dir):
+        opened.append(str(out_dir))
+        original(self, out_dir)
+
+    monkeypatch.setattr(ShardSet, "__init__", counting)
+    run = tmp_path / "run"
+    train(TrainConfig(shards=str(tiny_shards), out=str(run), model="two_surface", preset="tiny", iters=1,
+                      cameras_per_frame=1, protocol="all", num_workers=0, checkpoint_every=1, preview_every=0,
+                      log_every=1, progress=False))
+    assert len(opened) == 1, opened
+    opened.clear()
+    evaluate(EvalConfig(run=str(run), split="novel_view", max_frames=1))
+    assert len(opened) == 1, opened

@@ -95,16 +95,17 @@ class ViewScene:
         for r, run in zip(runs[1:], self.runs[1:]):
             check_identity(self.runs[0].record.get("identity"), str(runs[0]), run.record.get("identity") or {}, str(r))
         recorded = self.runs[0].record.get("train", {}).get("shards")
+        shard_set: ShardSet | None = None
         if motion is not None and shards is None and not (recorded and (Path(recorded) / "manifest.json").is_file()):
-            meta, shards = captures[0], None  # the shards moved: a motion needs only the run's capture record
+            meta = captures[0]  # the shards moved: a motion needs only the run's capture record
         else:
-            shards = shards or recorded
-            if not shards:
+            if not (shards or recorded):
                 raise ValueError(f"{runs[0]}: no shards recorded; pass --shards (or --motion to view without them)")
-            for r, run in zip(runs, self.runs):
-                check_run_shards(r, run.record, shards)
-            meta = ShardSet(str(shards)).meta
-        self.shards = str(shards) if shards else None
+            shard_set = check_run_shards(runs[0], self.runs[0].record, shards or recorded)  # opened once, passed on
+            for r, run in zip(runs[1:], self.runs[1:]):
+                check_run_shards(r, run.record, shard_set)
+            meta = shard_set.meta
+        self.shards = str(shard_set.out_dir) if shard_set else None
         self.meta = meta
         self.cameras: list[Camera] = meta.cameras()
         self.converted_cameras = [int(c) for c in meta.converted_cameras]
@@ -122,7 +123,7 @@ class ViewScene:
         self._cache: OrderedDict[int, FrameData] = OrderedDict()
         self._motion = None
         if motion is None:
-            self._dataset = ShardDataset(self.shards, split="all", cameras_per_item=1,
+            self._dataset = ShardDataset(shard_set, split="all", cameras_per_item=1,
                                          temporal_window=self.temporal_window, protocol="all")
             self.frame_labels = [int(f) for f in self._dataset.frames]
             self.source = "capture (training frames)"
