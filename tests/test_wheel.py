@@ -16,6 +16,7 @@ import subprocess
 import sys
 import sysconfig
 import venv
+import zipfile
 from pathlib import Path
 
 import pytest
@@ -77,6 +78,9 @@ def test_wheel_installs_and_runs_from_another_folder(wheel_venv, tmp_path):
     version = _run(env_dir, [str(env_dir / "bin" / "deliffas"), "--version"], tmp_path)  # the console script
     assert version.stdout.strip() == f"deliffas {deliffas.__version__}" and wheel.name.startswith(
         f"deliffas-{deliffas.__version__}-")
+    shipped = set(zipfile.ZipFile(wheel).namelist())  # the C kernels travel as package data
+    sources = {f"deliffas/csrc/{p.name}" for p in (REPO / "deliffas" / "csrc").glob("*.c")}
+    assert sources and sources <= shipped, sorted(sources - shipped)
     for argv in _example_args(tmp_path):
         example = _run(env_dir, [py, *argv], tmp_path)
         assert example.returncode == 0, f"{argv[0]}: {example.stderr[-2000:]}"
