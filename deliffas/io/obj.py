@@ -72,6 +72,57 @@ def _parse_floats(path: Path, line_no: int, toks: list[str], n: tuple[int, ...],
     return vals
 
 
+def _face_corners(p: Path, line_no: int, rest: list[str]) -> list[list[int]]:
+    """The three corners of an ``f`` line as [v, vt, vn] OBJ indices (0 = absent)."""
+    if len(rest) != 3:
+        raise DynaCapFormatError(p, line_no, f"expected a triangle (3 corners) after 'f', got {len(rest)} corners")
+    corners = []
+    for c in rest:
+        parts = c.split("/")
+        if len(parts) > 3 or not parts[0]:
+            raise DynaCapFormatError(p, line_no, f"expected a face corner 'v[/vt[/vn]]', got '{c[:30]}'")
+        try:
+            idx = [int(x) if x else 0 for x in parts] + [0] * (3 - len(parts))
+        except ValueError:
+            raise DynaCapFormatError(p, line_no, f"expected integer indices in face corner, got '{c[:30]}'") from None
+        if any(abs(i) >= 2**31 for i in idx):
+            raise DynaCapFormatError(p, line_no, f"face index out of range in corner '{c[:30]}'")
+        corners.append(idx)
+    return corners
+
+
+@no_type_check  # called per face corner: kept out of the test run's type checks
+def _resolve(p: Path, line_no: int, i: int, n: int, what: str) -> int:
+    """An OBJ index as 0-based: 1-based ones, negative ones counted back from the ``n`` lines so far; 0 (absent)
+    -> -1."""
+    if i > 0:
+        return i - 1
+    if i < 0 and n + i < 0:
+        raise DynaCapFormatError(p, line_no, f"relative {what} index {i} counts back past the first of "
+                                             f"the {n} {what} lines so far")
+    return n + i if i < 0 else -1
+
+
+def _check_face_indices(p: Path, face_lines: list[int], f: np.ndarray, ft: np.ndarray, fn: np.ndarray,
+                        num_verts: int, num_uvs: int, num_normals: int) -> None:
+    """Every face's vertex index in range, and its uv and normal indices where the file has uvs / normals."""
+    bad = np.nonzero((f < 0).any(1) | (f >= num_verts).any(1))[0]
+    if len(bad):
+        raise DynaCapFormatError(p, face_lines[bad[0]], f"face vertex index out of range 1..{num_verts}")
+    if num_uvs:
+        bad = np.nonzero((ft >= num_uvs).any(1))[0]
+        if len(bad):
+            raise DynaCapFormatError(p, face_lines[bad[0]], f"face uv index out of range 1..{num_uvs}")
+        bad = np.nonzero((ft < 0).any(1))[0]
+        if len(bad):  # a template's atlas needs every corner's uv: a partial one must not pass as complete
+            raise DynaCapFormatError(p, face_lines[bad[0]], f"face without a uv index in a file with {num_uvs} "
+                                                            "'vt' lines (expected 'f v/vt ...' on every face)")
+    if num_normals:
+        bad = np.nonzero((fn >= num_normals).any(1))[0]
+        if len(bad):
+            raise DynaCapFormatError(p, face_lines[bad[0]], f"face normal index out of range 1..{num_normals}")
+
+
 def read_obj(path: str | os.PathLike) -> ObjData:
     """Read a triangle OBJ keeping the file's ``v`` order and its per-corner UV indices.
 
@@ -111,32 +162,10 @@ def read_obj(path: str | os.PathLike) -> ObjData:
         elif key == "vn":
             normals.append(_parse_floats(p, line_no, rest, (3,), "vn"))
         elif key == "f":
-            if len(rest) != 3:
-                raise DynaCapFormatError(p, line_no, f"expected a triangle (3 corners) after 'f', got {len(rest)} corners")
-            corners = []
-            for c in rest:
-                parts = c.split("/")
-                if len(parts) > 3 or not parts[0]:
-                    raise DynaCapFormatError(p, line_no, f"expected a face corner 'v[/vt[/vn]]', got '{c[:30]}'")
-                try:
-                    idx = [int(x) if x else 0 for x in parts] + [0] * (3 - len(parts))
-                except ValueError:
-                    raise DynaCapFormatError(p, line_no, f"expected integer indices in face corner, got '{c[:30]}'") from None
-                if any(abs(i) >= 2**31 for i in idx):
-                    raise DynaCapFormatError(p, line_no, f"face index out of range in corner '{c[:30]}'")
-                corners.append(idx)
-            # OBJ indices are 1-based; negative ones count back from the current end; 0 = absent (-1 here).
-            @no_type_check  # defined per face line: kept out of the test run's type checks (~1 ms per definition)
-            def resolve(i: int, n: int, what: str) -> int:
-                if i > 0:
-                    return i - 1
-                if i < 0 and n + i < 0:
-                    raise DynaCapFormatError(p, line_no, f"relative {what} index {i} counts back past the first of "
-                                                         f"the {n} {what} lines so far")
-                return n + i if i < 0 else -1
-            faces.append(tuple(resolve(c[0], len(verts), "v") for c in corners))
-            fuv.append(tuple(resolve(c[1], len(uvs), "vt") for c in corners))
-            fvn.append(tuple(resolve(c[2], len(normals), "vn") for c in corners))
+            corners = _face_corners(p, line_no, rest)
+            faces.append(tuple(_resolve(p, line_no, c[0], len(verts), "v") for c in corners))
+            fuv.append(tuple(_resolve(p, line_no, c[1], len(uvs), "vt") for c in corners))
+            fvn.append(tuple(_resolve(p, line_no, c[2], len(normals), "vn") for c in corners))
             face_lines.append(line_no)
         elif key == "mtllib":
             mtllib = " ".join(rest)
@@ -148,24 +177,8 @@ def read_obj(path: str | os.PathLike) -> ObjData:
     if not faces:
         raise DynaCapFormatError(p, 0, "expected 'f' lines, found no faces")
     v = np.asarray(verts, dtype=np.float64)
-    f = np.asarray(faces, dtype=np.int64)
-    bad = np.nonzero((f < 0).any(1) | (f >= len(v)).any(1))[0]
-    if len(bad):
-        raise DynaCapFormatError(p, face_lines[bad[0]], f"face vertex index out of range 1..{len(v)}")
-    ft = np.asarray(fuv, dtype=np.int64)
-    if uvs:
-        bad = np.nonzero((ft >= len(uvs)).any(1))[0]
-        if len(bad):
-            raise DynaCapFormatError(p, face_lines[bad[0]], f"face uv index out of range 1..{len(uvs)}")
-        bad = np.nonzero((ft < 0).any(1))[0]
-        if len(bad):  # a template's atlas needs every corner's uv: a partial one must not pass as complete
-            raise DynaCapFormatError(p, face_lines[bad[0]], f"face without a uv index in a file with {len(uvs)} "
-                                                            "'vt' lines (expected 'f v/vt ...' on every face)")
-    fn = np.asarray(fvn, dtype=np.int64)
-    if normals:
-        bad = np.nonzero((fn >= len(normals)).any(1))[0]
-        if len(bad):
-            raise DynaCapFormatError(p, face_lines[bad[0]], f"face normal index out of range 1..{len(normals)}")
+    f, ft, fn = (np.asarray(x, dtype=np.int64) for x in (faces, fuv, fvn))
+    _check_face_indices(p, face_lines, f, ft, fn, len(v), len(uvs), len(normals))
     return ObjData(
         verts=v,
         faces=f,
