@@ -151,3 +151,28 @@ def test_frames_in_flight_switch(unchecked):
     assert 1 <= FastConfig().frames_in_flight() <= 2
     with unchecked(), pytest.raises(ValueError, match="in_flight"):
         FastConfig(in_flight=-1)
+
+
+def test_render_images_keeps_the_callers_fast_config(frame, monkeypatch):
+    """Videos default to FastConfig(project_features=False); a caller's FastConfig reaches the shader unchanged
+    (the render once overrode it)."""
+    import types
+
+    import deliffas.engine.render as render
+
+    model, _, raycaster, cameras = frame
+    seen = []
+
+    def spy(model, features, raycaster, camera, timer, fast, background):
+        seen.append(fast)
+        return torch.zeros(camera.height, camera.width, 3)
+
+    monkeypatch.setattr(render, "fast_render_camera", spy)
+    channels = 3 * (model.config.temporal_window + 1)
+    maps = torch.zeros(channels, model.config.atlas_res, model.config.atlas_res)
+    geometry = types.SimpleNamespace(inner=[raycaster.inner_verts], outer=[raycaster.outer_verts])
+    assert render.RenderConfig(run="r", out="v.mp4").fast == FastConfig(project_features=False)
+    for fast in (FastConfig(project_features=True, in_flight=1), FastConfig(project_features=False, in_flight=1)):
+        list(render.render_images(model, lambda i: (maps, maps), geometry, raycaster.faces, raycaster.atlas,
+                                  cameras[:1], torch.device("cpu"), fast=fast))
+        assert seen[-1] == fast
