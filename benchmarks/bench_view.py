@@ -1,6 +1,7 @@
 """The viewer's frame rate at 512^2 (small preset) against the engine's renderer alone.
 
-The viewer renders as ``deliffas view`` serves it: through the CPU fast path (``ViewConfig.fast`` with the CLI's environment variables), and
+The viewer renders as ``deliffas view`` serves it: through the CPU fast path (``ViewConfig.fast`` with the CLI's
+environment variables), and
 ``render_frame`` / ``render_camera`` are given the same path; the plain viewer's rate is a row without target."""
 
 from __future__ import annotations

@@ -77,7 +77,8 @@ class ShardDataset(Dataset):
     """Frames x camera groups of one split of a converted capture.
 
     Args:
-        shards_dir: output folder of ``deliffas convert`` (complete shards listed by its manifest).
+        shards_dir: output folder of ``deliffas convert`` (complete shards listed by its manifest), or its
+            ``ShardSet`` already opened by the command.
         split: ``train``, ``novel_view``, ``novel_pose`` or ``all`` (module docstring).
         cameras: calibration indices overriding the split's cameras.
         frames: capture frames overriding the protocol's frames (intersected with converted frames).
@@ -90,9 +91,9 @@ class ShardDataset(Dataset):
     ``RandomCameraSampler``.
     """
 
-    def __init__(self, shards_dir: ShardSet | str | os.PathLike, split: Split = "train", cameras: Sequence[int] | None = None,
-                 frames: Sequence[int] | None = None, cameras_per_item: int | None = 1, temporal_window: int = 2,
-                 protocol: Protocol = "paper"):
+    def __init__(self, shards_dir: ShardSet | str | os.PathLike, split: Split = "train",
+                 cameras: Sequence[int] | None = None, frames: Sequence[int] | None = None,
+                 cameras_per_item: int | None = 1, temporal_window: int = 2, protocol: Protocol = "paper"):
         if split not in SPLITS:
             raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
         if protocol not in ("paper", "all"):
