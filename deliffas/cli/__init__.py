@@ -13,16 +13,12 @@ import sys
 from pathlib import Path
 
 from deliffas import __version__
+from deliffas.io.camera_formats import camera_format_names  # numpy only: the formats' modules, no torch
 from deliffas.parallel.dask_target import parse_dask_target  # stdlib only: dask is imported when a conversion runs
 
 __all__ = ["main", "build_parser"]
 
 log = logging.getLogger(__name__)
-
-_CAMERA_FORMATS = ("dynacap", "colmap", "easymocap", "zju", "nerfstudio", "thuman4", "actorshq", "dna")
-"""``deliffas.io.camera_formats.CAMERA_FORMATS``, repeated so that parsing imports nothing (a test keeps
-the two equal)."""
-
 
 def _size(text: str) -> tuple[int, int]:
     try:
@@ -195,8 +191,8 @@ def _add_data_commands(sub) -> None:
     p.add_argument("--masks", metavar="SUBDIR", help="DDC mask folder in each sequence folder "
                                                      "(<cam>/image_c_<cam>_f_<frame>.png|jpg) replacing alpha/fg")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.add_argument("--format", default="auto", help="capture format: dynacap, zju, easymocap, thuman4, dna, actorshq "
-                                                    "(default: detected)")
+    p.add_argument("--format", default="auto", help="capture format (default: detected; an unknown name lists the "
+                                                    "registered ones)")
     p.add_argument("--no-check", action="store_true", help="convert even when the silhouette check fails")
     p.set_defaults(handler="convert")
 
@@ -237,7 +233,7 @@ def _add_data_commands(sub) -> None:
     p.add_argument("--quick", action="store_true", help="checksums only, do not read every dataset")
     p.set_defaults(handler="verify")
 
-    p = sub.add_parser("cameras", help="convert cameras between capture formats (DynaCap, COLMAP, EasyMocap, ZJU, ...)",
+    p = sub.add_parser("cameras", help="convert cameras between capture formats (--help lists them)",
                        description="Read the cameras of SRC (a camera file or a capture folder; format detected "
                                    "unless --from) and write them to OUT in the format --to, converting units, "
                                    "directions, axes and the pixel-centre convention (docs/data.md section 6). "
@@ -245,13 +241,15 @@ def _add_data_commands(sub) -> None:
                                    "Shorthands kept from earlier releases: CALIBRATION --to-colmap DIR and "
                                    "CALIBRATION --from-colmap DIR (writes CALIBRATION).")
     p.add_argument("src", type=Path, help="camera file or folder to read (for --from-colmap: the .calibration to write)")
-    p.add_argument("out", type=Path, nargs="?", help="file or folder to write (dynacap: a .calibration file; "
-                                                      "colmap, easymocap: a folder; others: a file or a folder)")
-    p.add_argument("--to", dest="to_format", choices=_CAMERA_FORMATS, help="format to write")
-    p.add_argument("--from", dest="from_format", choices=("auto",) + _CAMERA_FORMATS, default="auto",
+    p.add_argument("out", type=Path, nargs="?", help="file to write, or an existing folder (it gets the format's "
+                                                      "usual file name; formats whose cameras are a folder write "
+                                                      "into it)")
+    formats = camera_format_names()
+    p.add_argument("--to", dest="to_format", choices=formats, help="format to write")
+    p.add_argument("--from", dest="from_format", choices=("auto",) + formats, default="auto",
                    help="format of SRC (default: detected from its name)")
     p.add_argument("--size", type=_size, default=None,
-                   help="image size WxH, for formats that do not store it (ZJU-MoCap; EasyMocap without W_/H_)")
+                   help="image size WxH, for camera files that do not store it")
     p.add_argument("--drop-distortion", action="store_true",
                    help="write cameras whose distortion the target cannot hold without it (logged per camera)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing OUT")

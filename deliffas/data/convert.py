@@ -54,7 +54,7 @@ log = logging.getLogger(__name__)
 class ConvertConfig:
     """What ``convert`` writes."""
     format: str = "auto"
-    """Capture format (``deliffas.data.subjects.subject_formats()``); auto = detected."""
+    """Capture format (``deliffas.data.subjects.subject_format_names()``); auto = detected."""
     frames: str | None = None
     """``A:B:STEP`` (Python slice of capture frame indices, any part may be empty); None = every frame."""
     cameras: tuple[int, ...] | None = None

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from deliffas.data.convert import ConvertConfig, convert
-from deliffas.data.export_capture import EXPORT_FORMATS
+from deliffas.data.export_capture import export_format_names
 from deliffas.data.shards import ShardSet
 from deliffas.data.subjects import SubjectOptions, parse_subject
 from deliffas.io.formats.easymocap import read_easymocap_cameras, write_easymocap_cameras
@@ -34,7 +34,7 @@ def direct(tmp_path_factory, smpl_subject):
     return ShardSet(out)
 
 
-@pytest.mark.parametrize("fmt", EXPORT_FORMATS)
+@pytest.mark.parametrize("fmt", export_format_names())
 def test_round_trip(fmt, exported, smpl_model, direct, tmp_path):
     root = exported(fmt)
     subject = parse_subject(root, options=SubjectOptions(template=str(smpl_model)))

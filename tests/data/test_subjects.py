@@ -9,15 +9,8 @@ import pytest
 
 from deliffas.data.convert import ConvertConfig, convert
 from deliffas.data.shards import read_manifest
-from deliffas.data.subjects import (
-    Subject,
-    SubjectOptions,
-    SubjectParser,
-    parse_dynacap,
-    parse_subject,
-    register_subject_format,
-    subject_formats,
-)
+from deliffas.data.subjects import Subject, SubjectOptions, parse_dynacap, parse_subject, subject_format_names
+from deliffas.io.format_registry import CaptureFormat, register_capture_format
 
 
 def test_dynacap_is_detected(subject, tiny):
@@ -39,14 +32,16 @@ def test_options_reach_the_parser(subject):
 
 
 def test_unknown_and_unrecognised_formats(tmp_path):
-    with pytest.raises(ValueError, match=r"unknown capture format 'nosuchformat'; registered: .*dynacap"):
+    with pytest.raises(ValueError, match=r"unknown capture format 'nosuchformat'; expected one of .*dynacap"):
         parse_subject(tmp_path, "nosuchformat")
     with pytest.raises(ValueError, match=r"not a capture of any known format \(.*dynacap.*\); pass --format"):
         parse_subject(tmp_path)
     with pytest.raises(FileNotFoundError, match="capture folder not found"):
         parse_subject(tmp_path / "missing")
-    with pytest.raises(ValueError, match="registered already"):
-        register_subject_format(SubjectParser("dynacap", lambda p: False, parse_dynacap))
+    with pytest.raises(ValueError, match="'dynacap': detect_subject, parse_subject registered already"):
+        register_capture_format(CaptureFormat("dynacap", detect_subject=lambda p: False, parse_subject=parse_dynacap))
+    with pytest.raises(ValueError, match=r"capture format 'colmap' has no parse_subject; expected one of .*dynacap"):
+        parse_subject(tmp_path, "colmap")  # a camera-only format
 
 
 def test_a_format_is_one_registration_and_convert_takes_its_subject(tmp_path, subject, converted):
@@ -54,8 +49,8 @@ def test_a_format_is_one_registration_and_convert_takes_its_subject(tmp_path, su
     def parse(root, options):
         return dataclasses.replace(parse_dynacap(root, options), format="test_renamed")
 
-    register_subject_format(SubjectParser("test_renamed", lambda p: False, parse))
-    assert "test_renamed" in subject_formats()
+    register_capture_format(CaptureFormat("test_renamed", detect_subject=lambda p: False, parse_subject=parse))
+    assert "test_renamed" in subject_format_names()
     s = parse_subject(subject, "test_renamed")
     out = tmp_path / "out"
     convert(s, out, ConvertConfig(shard_frames=2, atlas_res=32, progress=False))

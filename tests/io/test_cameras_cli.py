@@ -8,24 +8,24 @@ import numpy as np
 import pytest
 
 from capture_cameras import HEIGHT, WIDTH, assert_same_cameras, rig
-from deliffas.cli import _CAMERA_FORMATS, main
+from deliffas.cli import build_parser, main
 from deliffas.io.formats.dynacap.calibration import read_calibration, write_calibration
-from deliffas.io.camera_formats import CAMERA_FORMATS
+from deliffas.io.camera_formats import camera_format_names
 from deliffas.io.cameras import Camera
-
-_OUT = {"dynacap": "c.calibration", "colmap": "model", "easymocap": "emc", "zju": "annots.npy",
-        "nerfstudio": "transforms.json", "thuman4": "calibration.json", "actorshq": "calibration.csv", "dna": "c.smc"}
+from deliffas.io.format_registry import capture_format
 
 
 def test_the_parser_knows_every_format():
-    assert _CAMERA_FORMATS == CAMERA_FORMATS
+    cameras = build_parser()._subparsers._group_actions[0].choices["cameras"]
+    to = next(a for a in cameras._actions if a.dest == "to_format")
+    assert tuple(to.choices) == camera_format_names()
 
 
-@pytest.mark.parametrize("fmt", CAMERA_FORMATS)
+@pytest.mark.parametrize("fmt", camera_format_names())
 def test_dynacap_to_every_format_and_back(tmp_path, fmt, capsys):
     cams = rig()
     write_calibration(tmp_path / "src.calibration", cams)
-    out = tmp_path / _OUT[fmt]
+    out = tmp_path / fmt / capture_format(fmt).camera_path
     assert main(["cameras", str(tmp_path / "src.calibration"), str(out), "--to", fmt]) == 0
     size = ["--size", f"{WIDTH}x{HEIGHT}"]
     assert main(["cameras", str(out), str(tmp_path / "back.calibration"), "--to", "dynacap", "--from", fmt, *size]) == 0

@@ -14,14 +14,19 @@ from pathlib import Path
 
 import numpy as np
 
-from deliffas.io.formats.actorshq import actorshq_mask_path, actorshq_rgb_path, actorshq_to_camera, read_actorshq_calibration
-from deliffas.io.formats.capture_frames import FileFramesSpec
+from deliffas.io.body_models.amass import write_smpl_motion
+from deliffas.io.format_registry import CaptureFormat, register_capture_format
+from deliffas.io.formats.actorshq import (actorshq_mask_path, actorshq_rgb_path, actorshq_to_camera, camera_to_actorshq,
+                                          read_actorshq_calibration, write_actorshq_calibration)
+from deliffas.io.formats.capture_frames import FileFramesSpec, write_image_file
 from deliffas.io.formats.dynacap.meshes import read_meshes
-from deliffas.data.subjects.base import Subject, SubjectOptions, SubjectParser, SubjectSequence, register_subject_format
+from deliffas.geometry.smpl_params import params_to_motion
+from deliffas.data.subjects.base import Subject, SubjectOptions, SubjectSequence
+from deliffas.data.subjects.export_frames import ExportFrames
 from deliffas.data.subjects.capture_common import (SEQUENCE, read_test_cameras, require_template, split_distortion,
                                                    user_motion)
 
-__all__ = ["parse_actorshq"]
+__all__ = ["parse_actorshq", "export_actorshq"]
 
 
 def _meshes(options: SubjectOptions) -> Path | None:
@@ -63,4 +68,15 @@ def parse_actorshq(root: Path, options: SubjectOptions = SubjectOptions()) -> Su
     return Subject(root, "actorshq", cameras, spec, {SEQUENCE: seq}, read_test_cameras(root, options.test_cameras))
 
 
-register_subject_format(SubjectParser("actorshq", lambda root: (root / "calibration.csv").is_file(), parse_actorshq))
+def export_actorshq(fr: ExportFrames, out: Path, q: int) -> None:
+    """Write ``fr`` as an ActorsHQ folder: ``calibration.csv``, rgbs, masks, ``poses.npz`` (AMASS-style)."""
+    write_actorshq_calibration(out / "calibration.csv", [camera_to_actorshq(c) for c in fr.cameras])
+    for f, c, rgb, mask in fr.pixels():
+        write_image_file(actorshq_rgb_path(out, fr.cameras[c].name, f), rgb, q)
+        write_image_file(actorshq_mask_path(out, fr.cameras[c].name, f), mask)
+    fr.require_frames_from_zero("actorshq", "poses.npz")
+    write_smpl_motion(out / "poses.npz", params_to_motion(fr.params))
+
+
+register_capture_format(CaptureFormat("actorshq", detect_subject=lambda root: (root / "calibration.csv").is_file(),
+                                      parse_subject=parse_actorshq, export=export_actorshq))

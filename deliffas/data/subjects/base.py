@@ -1,4 +1,4 @@
-"""The ``Subject`` record every capture format is parsed into, and the registry of format parsers.
+"""The ``Subject`` record every capture format is parsed into, and ``parse_subject`` over the format registry.
 
 A parser (one module per capture format, nerfstudio's DataParser idea with typed records) turns a
 capture folder into a :class:`Subject`: cameras in the deliffas convention (mm, world -> camera,
@@ -12,12 +12,13 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Literal, Mapping
+from typing import Literal, Mapping
 
 import numpy as np
 from jaxtyping import Integer
 
 from deliffas.io.cameras import Camera
+from deliffas.io.format_registry import capture_format, capture_formats
 from deliffas.io.motion import Motion
 from deliffas.io.formats.dynacap.frames import FrameSource, FramesSpec, ImageFolderSource, open_frame_source
 from deliffas.geometry.templates import Skinning, TemplateSpec
@@ -27,9 +28,7 @@ __all__ = [
     "SubjectSequence",
     "Subject",
     "SubjectOptions",
-    "SubjectParser",
-    "register_subject_format",
-    "subject_formats",
+    "subject_format_names",
     "parse_subject",
 ]
 
@@ -141,28 +140,9 @@ class SubjectOptions:
     """Format-specific options by name."""
 
 
-@dataclass(frozen=True)
-class SubjectParser:
-    """A registered capture format: ``detect(folder)`` says whether a folder is one, ``parse`` reads it."""
-
-    name: str
-    detect: Callable[[Path], bool]
-    parse: Callable[[Path, SubjectOptions], Subject]
-
-
-_PARSERS: dict[str, SubjectParser] = {}
-
-
-def register_subject_format(parser: SubjectParser) -> None:
-    """Register a capture format (once per name)."""
-    if parser.name in _PARSERS:
-        raise ValueError(f"capture format {parser.name!r} is registered already")
-    _PARSERS[parser.name] = parser
-
-
-def subject_formats() -> tuple[str, ...]:
-    """Registered capture format names, in registration order."""
-    return tuple(_PARSERS)
+def subject_format_names() -> tuple[str, ...]:
+    """The capture formats ``parse_subject`` reads (a ``CaptureFormat`` with ``parse_subject``), in registration order."""
+    return tuple(f.name for f in capture_formats("parse_subject"))
 
 
 def parse_subject(path: str | os.PathLike, format: str = "auto", options: SubjectOptions = SubjectOptions()) -> Subject:
@@ -180,11 +160,10 @@ def parse_subject(path: str | os.PathLike, format: str = "auto", options: Subjec
     if not root.is_dir():
         raise FileNotFoundError(f"{root}: capture folder not found")
     if format == "auto":
-        for parser in _PARSERS.values():
-            if parser.detect(root):
-                return parser.parse(root, options)
-        raise ValueError(f"{root}: not a capture of any known format ({', '.join(_PARSERS)}); pass --format")
-    parser = _PARSERS.get(format)
-    if parser is None:
-        raise ValueError(f"unknown capture format {format!r}; registered: {', '.join(_PARSERS)}")
-    return parser.parse(root, options)
+        formats = capture_formats("detect_subject", "parse_subject")
+        for f in formats:
+            if f.detect_subject(root):
+                return f.parse_subject(root, options)
+        names = ", ".join(f.name for f in formats)
+        raise ValueError(f"{root}: not a capture of any known format ({names}); pass --format")
+    return capture_format(format, "parse_subject").parse_subject(root, options)

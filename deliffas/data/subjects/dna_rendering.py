@@ -16,15 +16,17 @@ from pathlib import Path
 
 import numpy as np
 
-from deliffas.io.infra.reader_checks import CaptureFormatError
+from deliffas.io.format_registry import CaptureFormat, register_capture_format
 from deliffas.io.formats.capture_frames import SmcFramesSpec
-from deliffas.io.formats.dna_rendering import SmcFile, smc_to_cameras
+from deliffas.io.formats.dna_rendering import SmcFile, SmcSmplx, cameras_to_smc, smc_to_cameras, write_smc
+from deliffas.io.infra.reader_checks import CaptureFormatError
 from deliffas.io.motion import Motion
 from deliffas.geometry.smpl_params import smplx_to_smpl_pose
-from deliffas.data.subjects.base import Subject, SubjectOptions, SubjectParser, SubjectSequence, register_subject_format
+from deliffas.data.subjects.base import Subject, SubjectOptions, SubjectSequence
+from deliffas.data.subjects.export_frames import ExportFrames
 from deliffas.data.subjects.capture_common import SEQUENCE, fit_betas, read_test_cameras, smpl_template, split_distortion
 
-__all__ = ["parse_dna_rendering"]
+__all__ = ["parse_dna_rendering", "export_dna_rendering"]
 
 
 def _files(root: Path) -> tuple[Path, Path | None]:
@@ -67,4 +69,18 @@ def parse_dna_rendering(root: Path, options: SubjectOptions = SubjectOptions()) 
     return Subject(root, "dna", cameras, spec, {SEQUENCE: seq}, read_test_cameras(root, options.test_cameras))
 
 
-register_subject_format(SubjectParser("dna", lambda root: any(root.glob("*.smc")), parse_dna_rendering))
+def export_dna_rendering(fr: ExportFrames, out: Path, q: int) -> None:
+    """Write ``fr`` as one DNA-Rendering ``<out name>.smc`` (calibration, JPEG images and masks, SMPL-X)."""
+    fr.require_frames_from_zero("dna", ".smc")
+    calib = cameras_to_smc(fr.cameras)
+    images = {c.camera_id: [] for c in calib}
+    masks = {c.camera_id: [] for c in calib}
+    for _, c, rgb, mask in fr.pixels():
+        images[calib[c].camera_id].append(rgb)
+        masks[calib[c].camera_id].append(mask)
+    smplx = SmcSmplx(fr.betas[None], np.zeros((len(fr.frames), 10)), fr.smplx_pose(), fr.params[:, :3].copy())
+    write_smc(out / f"{out.name}.smc", calib, images, masks, smplx, jpeg_quality=q)
+
+
+register_capture_format(CaptureFormat("dna", detect_subject=lambda root: any(root.glob("*.smc")),
+                                      parse_subject=parse_dna_rendering, export=export_dna_rendering))

@@ -16,6 +16,7 @@ from typing import Sequence
 
 import numpy as np
 
+from deliffas.io.format_registry import CaptureFormat, register_capture_format
 from deliffas.io.formats.dynacap.calibration import read_calibration
 from deliffas.io.formats.dynacap.meshes import read_meshes
 from deliffas.io.formats.dynacap.frames import image_size
@@ -26,9 +27,7 @@ from deliffas.data.subjects.base import (
     FrameSourceSpec,
     Subject,
     SubjectOptions,
-    SubjectParser,
     SubjectSequence,
-    register_subject_format,
 )
 
 __all__ = ["SEQUENCES", "find_character", "find_template", "parse_dynacap"]
@@ -137,4 +136,4 @@ def _is_dynacap(folder: Path) -> bool:
     return (folder / "cameras.calibration").is_file()
 
 
-register_subject_format(SubjectParser("dynacap", _is_dynacap, parse_dynacap))
+register_capture_format(CaptureFormat("dynacap", detect_subject=_is_dynacap, parse_subject=parse_dynacap))

@@ -13,14 +13,17 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from deliffas.io.formats.capture_frames import FileFramesSpec, image_file_size, numbered_files
+from deliffas.io.format_registry import CaptureFormat, register_capture_format
+from deliffas.io.formats.capture_frames import FileFramesSpec, image_file_size, numbered_files, write_image_file
+from deliffas.io.formats.easymocap import (EasyMocapSmpl, camera_to_easymocap, easymocap_to_camera, read_easymocap_cameras,
+                                           read_easymocap_smpl, write_easymocap_cameras, write_easymocap_smpl)
 from deliffas.io.infra.reader_checks import CaptureFormatError
-from deliffas.io.formats.easymocap import easymocap_to_camera, read_easymocap_cameras, read_easymocap_smpl
-from deliffas.data.subjects.base import Subject, SubjectOptions, SubjectParser, SubjectSequence, register_subject_format
+from deliffas.data.subjects.base import Subject, SubjectOptions, SubjectSequence
+from deliffas.data.subjects.export_frames import ExportFrames
 from deliffas.data.subjects.capture_common import (SEQUENCE, read_test_cameras, rhth_motion, smpl_model_data,
                                                    smpl_template, split_distortion)
 
-__all__ = ["parse_easymocap"]
+__all__ = ["parse_easymocap", "export_easymocap"]
 
 
 def _smpl_dir(root: Path, options: SubjectOptions) -> Path:
@@ -74,4 +77,17 @@ def _is_easymocap(root: Path) -> bool:
     return (root / "intri.yml").is_file() and (root / "extri.yml").is_file()
 
 
-register_subject_format(SubjectParser("easymocap", _is_easymocap, parse_easymocap))
+def export_easymocap(fr: ExportFrames, out: Path, q: int) -> None:
+    """Write ``fr`` as an EasyMocap folder: cameras, ``images/``, ``mask/``, ``output/smpl/<frame>.json``."""
+    write_easymocap_cameras(out, [camera_to_easymocap(c) for c in fr.cameras])
+    for f, c, rgb, mask in fr.pixels():
+        write_image_file(out / "images" / fr.cameras[c].name / f"{f:06d}.jpg", rgb, q)
+        write_image_file(out / "mask" / fr.cameras[c].name / f"{f:06d}.png", mask)
+    Rh, Th, poses = fr.rhth()
+    for i, f in enumerate(fr.frames):
+        write_easymocap_smpl(out / "output" / "smpl" / f"{f:06d}.json",
+                             [EasyMocapSmpl(0, Rh[i:i + 1], Th[i:i + 1], poses[i:i + 1], fr.betas[None])])
+
+
+register_capture_format(CaptureFormat("easymocap", detect_subject=_is_easymocap, parse_subject=parse_easymocap,
+                                      export=export_easymocap))

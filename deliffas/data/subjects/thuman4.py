@@ -11,17 +11,22 @@ fit posed through SMPL differs by the models' shape spaces). Needs the SMPL mode
 
 from __future__ import annotations
 
-import numpy as np
 from pathlib import Path
 
-from deliffas.io.formats.capture_frames import FileFramesSpec
+import numpy as np
+
+from deliffas.io.format_registry import CaptureFormat, register_capture_format
+from deliffas.io.formats.capture_frames import FileFramesSpec, write_image_file
+from deliffas.io.formats.thuman4 import (Thuman4Smplx, camera_to_thuman4, read_thuman4_calibration, read_thuman4_smplx,
+                                          thuman4_image_path, thuman4_mask_path, thuman4_to_camera,
+                                          write_thuman4_calibration, write_thuman4_smplx)
 from deliffas.io.motion import Motion
-from deliffas.io.formats.thuman4 import read_thuman4_calibration, read_thuman4_smplx, thuman4_to_camera
 from deliffas.geometry.smpl_params import smplx_to_smpl_pose
-from deliffas.data.subjects.base import Subject, SubjectOptions, SubjectParser, SubjectSequence, register_subject_format
+from deliffas.data.subjects.base import Subject, SubjectOptions, SubjectSequence
+from deliffas.data.subjects.export_frames import ExportFrames
 from deliffas.data.subjects.capture_common import SEQUENCE, fit_betas, read_test_cameras, smpl_template, split_distortion
 
-__all__ = ["parse_thuman4"]
+__all__ = ["parse_thuman4", "export_thuman4"]
 
 
 def _calibration(root: Path) -> Path:
@@ -63,4 +68,17 @@ def _is_thuman4(root: Path) -> bool:
                                                         for n in ("calibration.json", "calibration_full.json"))
 
 
-register_subject_format(SubjectParser("thuman4", _is_thuman4, parse_thuman4))
+def export_thuman4(fr: ExportFrames, out: Path, q: int) -> None:
+    """Write ``fr`` as a THuman4.0 folder: ``calibration.json``, images, masks, ``smpl_params.npz`` (SMPL-X)."""
+    fr.require_frames_from_zero("thuman4", "smpl_params.npz")
+    write_thuman4_calibration(out / "calibration.json", [camera_to_thuman4(c) for c in fr.cameras])
+    for f, c, rgb, mask in fr.pixels():
+        write_image_file(thuman4_image_path(out, fr.cameras[c].name, f), rgb, q)
+        write_image_file(thuman4_mask_path(out, fr.cameras[c].name, f), mask, q)
+    pose = fr.smplx_pose()
+    write_thuman4_smplx(out / "smpl_params.npz", Thuman4Smplx(fr.betas[None], pose[:, 0], fr.params[:, :3],
+                                                              pose[:, 1:22].reshape(len(pose), -1), {}))
+
+
+register_capture_format(CaptureFormat("thuman4", detect_subject=_is_thuman4, parse_subject=parse_thuman4,
+                                      export=export_thuman4))

@@ -12,13 +12,19 @@ from __future__ import annotations
 
 from pathlib import Path, PurePosixPath
 
-from deliffas.io.formats.capture_frames import FileFramesSpec, image_file_size
-from deliffas.io.formats.zju_mocap import read_zju_annots, read_zju_params, zju_params_path, zju_to_cameras
-from deliffas.data.subjects.base import Subject, SubjectOptions, SubjectParser, SubjectSequence, register_subject_format
+import numpy as np
+
+from deliffas.io.format_registry import CaptureFormat, register_capture_format
+from deliffas.io.formats.capture_frames import FileFramesSpec, image_file_size, write_image_file
+from deliffas.io.formats.easymocap import EasyMocapSmpl
+from deliffas.io.formats.zju_mocap import (cameras_to_zju, read_zju_annots, read_zju_params, write_zju_annots,
+                                           write_zju_params, zju_params_path, zju_to_cameras)
+from deliffas.data.subjects.base import Subject, SubjectOptions, SubjectSequence
+from deliffas.data.subjects.export_frames import ExportFrames
 from deliffas.data.subjects.capture_common import (SEQUENCE, read_test_cameras, rhth_motion, smpl_model_data,
                                                    smpl_template, split_distortion)
 
-__all__ = ["parse_zju_mocap"]
+__all__ = ["parse_zju_mocap", "export_zju_mocap"]
 
 ONE_BASED = ("CoreView_313", "CoreView_315")
 """Subjects whose image names start at 1 (Neural Body subtracts one)."""
@@ -60,4 +66,19 @@ def parse_zju_mocap(root: Path, options: SubjectOptions = SubjectOptions()) -> S
     return Subject(root, "zju", cameras, spec, {SEQUENCE: seq}, read_test_cameras(root, options.test_cameras))
 
 
-register_subject_format(SubjectParser("zju", lambda root: (root / "annots.npy").is_file(), parse_zju_mocap))
+def export_zju_mocap(fr: ExportFrames, out: Path, q: int) -> None:
+    """Write ``fr`` as a ZJU-MoCap folder: ``Camera_B<i>/<frame>.jpg``, 0/1 masks, ``annots.npy``, ``params/``."""
+    names = [f"Camera_B{c + 1}" for c in range(len(fr.cameras))]
+    ims = [[f"{n}/{f:06d}.jpg" for n in names] for f in fr.frames]
+    for f, c, rgb, mask in fr.pixels():
+        write_image_file(out / names[c] / f"{f:06d}.jpg", rgb, q)
+        write_image_file(out / "mask_cihp" / names[c] / f"{f:06d}.png", (mask >= 128).astype(np.uint8))  # 0/1
+    write_zju_annots(out / "annots.npy", cameras_to_zju(fr.cameras, ims))
+    Rh, Th, poses = fr.rhth()
+    for i, f in enumerate(fr.frames):
+        write_zju_params(zju_params_path(out, f), EasyMocapSmpl(0, Rh[i:i + 1], Th[i:i + 1], poses[i:i + 1],
+                                                                fr.betas[None]))
+
+
+register_capture_format(CaptureFormat("zju", detect_subject=lambda root: (root / "annots.npy").is_file(),
+                                      parse_subject=parse_zju_mocap, export=export_zju_mocap))

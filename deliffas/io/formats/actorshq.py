@@ -36,6 +36,8 @@ from deliffas.io.camera_conventions import (from_camera, invert_rigid, matrix_to
                                             rotvec_to_matrix, to_camera)
 from deliffas.io.infra.reader_checks import CaptureFormatError, require_array, require_rotation, require_size
 from deliffas.io.infra.files import durable_replace, temp_path
+from deliffas.io.format_registry import CaptureFormat
+from deliffas.io.formats.camera_files import converted, file_detector, in_folder
 
 __all__ = [
     "ActorsHQCamera",
@@ -205,3 +207,18 @@ def actorshq_rgb_path(root: PathLike, camera: str, frame: int) -> Path:
 def actorshq_mask_path(root: PathLike, camera: str, frame: int) -> Path:
     """``root/masks/<camera>/<camera>_mask<frame:06d>.png``."""
     return Path(root) / "masks" / camera / f"{camera}_mask{int(frame):06d}.png"
+
+
+# ----------------------------------------------------------------------------------- capture format
+def _read_cameras(path: Path, size: tuple[int, int] | None) -> list[Camera]:
+    csv_path = in_folder(path, "calibration.csv")
+    return converted(csv_path, read_actorshq_calibration(csv_path), lambda c: actorshq_to_camera(c, csv_path))
+
+
+FORMAT = CaptureFormat(
+    "actorshq", "ActorsHQ calibration.csv", camera_path="calibration.csv", distortion=("k1", "k2", "k3"),
+    stores_size=True, detect_cameras=file_detector("calibration.csv", suffixes=(".csv",)),
+    read_cameras=_read_cameras,
+    write_cameras=lambda cameras, out, options: write_actorshq_calibration(
+        out, [camera_to_actorshq(c, options.drop_distortion) for c in cameras]))
+"""The cameras of this format, registered by ``deliffas.io.formats.builtin``."""

@@ -30,8 +30,11 @@ from typing import Sequence
 import numpy as np
 
 from deliffas.io.cameras import Camera
+from deliffas.io.camera_conventions import require_distortion_fits
 from deliffas.io.infra.reader_checks import CaptureFormatError, naming_file
 from deliffas.io.formats.colmap_model import read_colmap_model
+from deliffas.io.format_registry import CameraWriteOptions, CaptureFormat
+from deliffas.io.formats.camera_files import file_detector
 
 __all__ = [
     "cameras_to_colmap",
@@ -120,3 +123,18 @@ def _quaternion_matrix(q: np.ndarray) -> np.ndarray:
     return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
                      [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
                      [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+# ----------------------------------------------------------------------------------- capture format
+def _write_cameras(cameras: Sequence[Camera], out: Path, options: CameraWriteOptions) -> Path:
+    cams = [require_distortion_fits(c, "COLMAP PINHOLE", (), options.drop_distortion) for c in cameras]
+    cameras_to_colmap(cams, out, options.text)
+    return out
+
+
+FORMAT = CaptureFormat(
+    "colmap", "COLMAP sparse model", camera_path=".", distortion=(), stores_size=True,
+    detect_cameras=file_detector("cameras.bin", "cameras.txt"),
+    read_cameras=lambda path, size: cameras_from_colmap(path if path.is_dir() else path.parent),
+    write_cameras=_write_cameras)
+"""The cameras of this format, registered by ``deliffas.io.formats.builtin``."""

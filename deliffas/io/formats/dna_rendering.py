@@ -43,6 +43,8 @@ from deliffas.io.infra.reader_checks import (CaptureFormatError, naming_file, re
                                         require_vector)
 from deliffas.io.infra.files import durable_replace, temp_path
 from deliffas.io.infra.hdf5_heaps import looping_global_heap
+from deliffas.io.format_registry import CameraWriteOptions, CaptureFormat
+from deliffas.io.formats.camera_files import file_detector
 
 __all__ = [
     "SmcCalibration",
@@ -373,3 +375,16 @@ def write_smc(path: PathLike, calibration: Sequence[SmcCalibration],
                 gs[key] = np.asarray(getattr(smplx, key), np.float64)
             gs["scale"] = float(smplx.scale)
     durable_replace(tmp, p)
+
+
+# ----------------------------------------------------------------------------------- capture format
+def _write_cameras(cameras: Sequence[Camera], out: Path, options: CameraWriteOptions) -> Path:
+    write_smc(out, cameras_to_smc(cameras, options.drop_distortion))
+    return out
+
+
+FORMAT = CaptureFormat(
+    "dna", "DNA-Rendering .smc", camera_path="capture.smc", distortion=("k1", "k2", "p1", "p2", "k3"),
+    stores_size=False, detect_cameras=file_detector(suffixes=(".smc",)),
+    read_cameras=lambda path, size: smc_to_cameras(path, size), write_cameras=_write_cameras)
+"""The cameras of this format, registered by ``deliffas.io.formats.builtin``."""

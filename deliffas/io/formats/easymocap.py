@@ -40,6 +40,8 @@ from deliffas.io.camera_conventions import from_camera, require_distortion_fits,
 from deliffas.io.infra.reader_checks import (CaptureFormatError, read_json, require_array, require_rotation, require_rows,
                                         require_size, write_json_atomic)
 from deliffas.io.infra.files import durable_replace, temp_path
+from deliffas.io.format_registry import CaptureFormat
+from deliffas.io.formats.camera_files import converted, file_detector
 
 __all__ = [
     "EasyMocapCamera",
@@ -372,3 +374,18 @@ def write_easymocap_smpl(path: PathLike, people: Sequence[EasyMocapSmpl]) -> Non
             row["expression"] = np.asarray(s.expression).tolist()
         rows.append(row)
     write_json_atomic(path, rows)
+
+
+# ----------------------------------------------------------------------------------- capture format
+def _read_cameras(path: Path, size: tuple[int, int] | None) -> list[Camera]:
+    intri = path / "intri.yml" if path.is_dir() else path.with_name("intri.yml")
+    return converted(intri, read_easymocap_cameras(intri), lambda c: easymocap_to_camera(c, size))
+
+
+FORMAT = CaptureFormat(
+    "easymocap", "EasyMocap intri.yml / extri.yml", camera_path=".", distortion=("k1", "k2", "p1", "p2", "k3"),
+    stores_size=False, detect_cameras=file_detector("intri.yml", "extri.yml", suffixes=(".yml",)),
+    read_cameras=_read_cameras,
+    write_cameras=lambda cameras, out, options: write_easymocap_cameras(
+        out, [camera_to_easymocap(c, options.drop_distortion) for c in cameras])[0].parent)
+"""The cameras of this format, registered by ``deliffas.io.formats.builtin``."""

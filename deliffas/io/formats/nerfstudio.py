@@ -36,6 +36,8 @@ from deliffas.io.cameras import Camera
 from deliffas.io.camera_conventions import OPENGL_FROM_OPENCV, from_camera, invert_rigid, require_distortion_fits, to_camera
 from deliffas.io.infra.reader_checks import (CaptureFormatError, read_json, require_array, require_rotation, require_size,
                                         write_json_atomic)
+from deliffas.io.format_registry import CaptureFormat
+from deliffas.io.formats.camera_files import converted, file_detector, in_folder
 
 __all__ = [
     "NerfstudioFrame",
@@ -168,3 +170,19 @@ def camera_to_nerfstudio(camera: Camera, file_path: str | None = None, drop_dist
     return NerfstudioFrame(file_path or f"images/{camera.name}.png", c2w_gl, K[0, 0], K[1, 1], K[0, 2], K[1, 2],
                            camera.width, camera.height, np.array([k1, k2, k3, 0.0, p1, p2]))
 
+
+# ----------------------------------------------------------------------------------- capture format
+def _is_transforms(path: Path) -> bool:
+    data = read_json(path)
+    return isinstance(data, dict) and "frames" in data
+
+
+FORMAT = CaptureFormat(
+    "nerfstudio", "nerfstudio transforms.json", camera_path="transforms.json",
+    distortion=("k1", "k2", "p1", "p2", "k3"), stores_size=True,
+    detect_cameras=file_detector("transforms.json", suffixes=(".json",), accept=_is_transforms),
+    read_cameras=lambda path, size: converted(in_folder(path, "transforms.json"), read_transforms(path),
+                                              nerfstudio_to_camera),
+    write_cameras=lambda cameras, out, options: write_transforms(
+        out, [camera_to_nerfstudio(c, drop_distortion=options.drop_distortion) for c in cameras]))
+"""The cameras of this format, registered by ``deliffas.io.formats.builtin``."""

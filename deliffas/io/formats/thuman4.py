@@ -38,6 +38,8 @@ from deliffas.io.camera_conventions import from_camera, require_distortion_fits,
 from deliffas.io.infra.reader_checks import (CaptureFormatError, read_json, read_npz, require_array, require_rotation,
                                         require_rows, require_size, require_vector, write_json_atomic)
 from deliffas.io.infra.files import durable_replace, temp_path
+from deliffas.io.format_registry import CaptureFormat
+from deliffas.io.formats.camera_files import converted, file_detector
 
 __all__ = [
     "Thuman4Camera",
@@ -241,3 +243,22 @@ def thuman4_image_path(root: PathLike, camera: str, frame: int) -> Path:
 def thuman4_mask_path(root: PathLike, camera: str, frame: int) -> Path:
     """``root/masks/<camera>/<frame:08d>.jpg`` (THuman4.0 layout)."""
     return Path(root) / "masks" / camera / f"{int(frame):08d}.jpg"
+
+
+# ----------------------------------------------------------------------------------- capture format
+def _is_calibration(path: Path) -> bool:
+    """A JSON object of camera name -> object (and not nerfstudio's ``frames``)."""
+    data = read_json(path)
+    return isinstance(data, dict) and "frames" not in data and all(isinstance(v, dict) for v in data.values())
+
+
+FORMAT = CaptureFormat(
+    "thuman4", "THuman4.0 / AvatarReX calibration.json", camera_path="calibration.json", distortion=(),
+    stores_size=True,
+    detect_cameras=file_detector("calibration.json", "calibration_full.json", suffixes=(".json",),
+                                 accept=_is_calibration),
+    read_cameras=lambda path, size: converted(thuman4_calibration_path(path), read_thuman4_calibration(path),
+                                              thuman4_to_camera),
+    write_cameras=lambda cameras, out, options: write_thuman4_calibration(
+        out, [camera_to_thuman4(c, options.drop_distortion) for c in cameras]))
+"""The cameras of this format, registered by ``deliffas.io.formats.builtin``."""

@@ -38,10 +38,13 @@ import numpy as np
 
 from deliffas.io.cameras import Camera
 from deliffas.io.camera_conventions import from_camera, require_distortion_fits, to_camera
-from deliffas.io.infra.reader_checks import CaptureFormatError, require_array, require_rotation, require_rows, require_vector
+from deliffas.io.infra.reader_checks import (CaptureFormatError, naming_file, require_array, require_rotation, require_rows,
+                                             require_vector)
 from deliffas.io.formats.easymocap import EasyMocapSmpl
 from deliffas.io.infra.files import durable_replace, temp_path
 from deliffas.io.infra.safe_pickle import UnsafePickleError, load_numpy_pickle
+from deliffas.io.format_registry import CaptureFormat
+from deliffas.io.formats.camera_files import file_detector, in_folder, need_size
 
 __all__ = [
     "ZjuCamera",
@@ -264,3 +267,18 @@ def read_zju_params(path: PathLike) -> EasyMocapSmpl:
 def write_zju_params(path: PathLike, params: EasyMocapSmpl) -> None:
     """Write one ``params/<i>.npy`` dict (poses, Rh, Th, shapes), atomically."""
     _save_npy_dict(Path(path), {k: np.asarray(getattr(params, k), np.float64) for k in ("poses", "Rh", "Th", "shapes")})
+
+
+# ----------------------------------------------------------------------------------- capture format
+def _read_cameras(path: Path, size: tuple[int, int] | None) -> list[Camera]:
+    annots = read_zju_annots(path)
+    with naming_file(in_folder(path, "annots.npy"), "cams"):
+        return zju_to_cameras(annots, need_size("zju", size))
+
+
+FORMAT = CaptureFormat(
+    "zju", "ZJU-MoCap annots.npy", camera_path="annots.npy", distortion=("k1", "k2", "p1", "p2", "k3"),
+    stores_size=False, detect_cameras=file_detector("annots.npy", suffixes=(".npy",)), read_cameras=_read_cameras,
+    write_cameras=lambda cameras, out, options: write_zju_annots(
+        out, cameras_to_zju(cameras, drop_distortion=options.drop_distortion)))
+"""The cameras of this format, registered by ``deliffas.io.formats.builtin``."""

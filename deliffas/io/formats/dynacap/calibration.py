@@ -3,11 +3,16 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
 from deliffas.io.cameras import Camera
+from deliffas.io.camera_conventions import require_distortion_fits
 from deliffas.io.infra.text_lines import DynaCapFormatError, TextLines, write_text_atomic
+from deliffas.io.format_registry import CameraWriteOptions, CaptureFormat
+from deliffas.io.formats.camera_files import file_detector
 
 PathLike = str | os.PathLike
 
@@ -143,3 +148,17 @@ def write_calibration(path: PathLike, cameras: list[Camera], crlf: bool = False)
     write_text_atomic(path, "\n".join(out) + "\n", crlf)
 
 
+# ----------------------------------------------------------------------------------- capture format
+def _write_cameras(cameras: Sequence[Camera], out: Path, options: CameraWriteOptions) -> Path:
+    cams = [require_distortion_fits(c, "DynaCap .calibration", (), options.drop_distortion, radial_fits=True)
+            for c in cameras]
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_calibration(out, cams)
+    return out
+
+
+FORMAT = CaptureFormat(
+    "dynacap", "DynaCap / Skeletool cameras.calibration", camera_path="cameras.calibration", distortion=(),
+    stores_size=True, detect_cameras=file_detector("cameras.calibration", suffixes=(".calibration",)),
+    read_cameras=lambda path, size: read_calibration(path), write_cameras=_write_cameras)
+"""The cameras of this format, registered by ``deliffas.io.formats.builtin``."""
