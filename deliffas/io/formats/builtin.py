@@ -6,7 +6,7 @@ EasyMocap: ZJU-MoCap folders may also hold ``intri.yml``).
 """
 
 from deliffas.io.format_registry import register_capture_format
-from deliffas.io.formats import actorshq, colmap, dna_rendering, easymocap, nerfstudio, thuman4, zju_mocap
+from deliffas.io.formats import actorshq, calib_toml, colmap, dna_rendering, easymocap, nerfstudio, thuman4, zju_mocap
 from deliffas.io.formats.dynacap import calibration
 
 register_capture_format(calibration.FORMAT)
@@ -17,3 +17,4 @@ register_capture_format(nerfstudio.FORMAT)
 register_capture_format(thuman4.FORMAT)
 register_capture_format(actorshq.FORMAT)
 register_capture_format(dna_rendering.FORMAT)
+register_capture_format(calib_toml.FORMAT)
