@@ -6,7 +6,8 @@ EasyMocap: ZJU-MoCap folders may also hold ``intri.yml``).
 """
 
 from deliffas.io.format_registry import register_capture_format
-from deliffas.io.formats import actorshq, calib_toml, colmap, dna_rendering, easymocap, nerfstudio, thuman4, zju_mocap
+from deliffas.io.formats import (actorshq, calib_toml, colmap, dna_rendering, easymocap, nerfstudio, qualisys,
+                                 thuman4, zju_mocap)
 from deliffas.io.formats.dynacap import calibration
 
 register_capture_format(calibration.FORMAT)
@@ -18,3 +19,4 @@ register_capture_format(thuman4.FORMAT)
 register_capture_format(actorshq.FORMAT)
 register_capture_format(dna_rendering.FORMAT)
 register_capture_format(calib_toml.FORMAT)
+register_capture_format(qualisys.FORMAT)
