@@ -6,8 +6,8 @@ EasyMocap: ZJU-MoCap folders may also hold ``intri.yml``).
 """
 
 from deliffas.io.format_registry import register_capture_format
-from deliffas.io.formats import (actorshq, calib_toml, colmap, dna_rendering, easymocap, nerfstudio, qualisys,
-                                 thuman4, zju_mocap)
+from deliffas.io.formats import (actorshq, calib_toml, colmap, dna_rendering, easymocap, nerfstudio, panoptic,
+                                 qualisys, thuman4, zju_mocap)
 from deliffas.io.formats.dynacap import calibration
 
 register_capture_format(calibration.FORMAT)
@@ -20,3 +20,4 @@ register_capture_format(actorshq.FORMAT)
 register_capture_format(dna_rendering.FORMAT)
 register_capture_format(calib_toml.FORMAT)
 register_capture_format(qualisys.FORMAT)
+register_capture_format(panoptic.FORMAT)
