@@ -48,7 +48,7 @@ def cmd_pose(args: argparse.Namespace) -> int:
     verts, template = pose_frames(spec, args.motion, [args.frame], args.skinning)
     write_posed_mesh(args.out, verts[0], template)
     print(f"wrote {args.out}: {verts.shape[1]} vertices, {int(template.faces.shape[0])} faces "
-          f"(frame {args.frame}, {spec.kind}{', ' + args.skinning if spec.kind != 'smpl' else ''})")
+          f"(frame {args.frame}, {spec.kind}{', ' + spec.option('skinning') if spec.option('skinning') else ''})")
     return 0
 
 

@@ -22,7 +22,7 @@ from deliffas.io.cameras import Camera
 from deliffas.io.motion import Motion
 from deliffas.geometry.raycast import build_scene, first_hits
 from deliffas.geometry.shell import offset_shell
-from deliffas.geometry.templates import build_template
+from deliffas.geometry.templates import build_template, template_kind
 from deliffas.data.subjects import Subject, SubjectSequence
 
 __all__ = ["CheckConfig", "Finding", "CheckResult", "SubjectCheckError", "check_subject", "check_before_convert",
@@ -303,7 +303,7 @@ def _try_global(sc: _Scorer, base: np.ndarray, failed: list[int], tried: dict) -
         cams = [fn(c) if i in failed else c for i, c in enumerate(sc.cameras)]
         consider(cause, fix, sc.score(cams, which=failed), failed)
     motions = {k: s.poses for k, s in sc.subject.sequences.items() if s.poses is not None}
-    if sc.subject.template.kind == "smpl":
+    if template_kind(sc.subject.template.kind).smpl_params:
         for factor, cause, fix in ((0.001, "SMPL translation in mm read as metres",
                                     "divide the SMPL translations by 1000 (the smpl template takes metres)"),
                                    (1000.0, "SMPL translation in metres read as mm",

@@ -1,7 +1,8 @@
 """Reading a motion file as the per-frame pose parameters of a template (the ``Motion`` deliffas poses with).
 
-A DDC template (``ddc``, ``ddc_graph``) takes a Skeletool ``.motion`` (DOF rows); an ``smpl`` template
-takes an AMASS-style ``.npz`` (``poses``, ``trans``, ``betas``), turned into the template's rows
+Each template kind owns its motion files (``TemplateKind.motion_suffix`` and ``read_motion``): a DDC
+template (``ddc``, ``ddc_graph``) takes a Skeletool ``.motion`` (DOF rows); an ``smpl`` template takes
+an AMASS-style ``.npz`` (``poses``, ``trans``, ``betas``), turned into the template's rows
 ``[trans, pose (72), betas[:num_betas]]``. The file's kind must fit the template's.
 """
 
@@ -10,16 +11,22 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from deliffas.io.body_models.amass import read_smpl_motion
-from deliffas.io.formats.dynacap.character import read_motion
 from deliffas.io.motion import Motion
-from deliffas.geometry.smpl_params import smpl_to_motion
-from deliffas.geometry.templates import TemplateSpec
+from deliffas.geometry.templates import TemplateSpec, template_kind
 
-__all__ = ["read_pose_motion", "MOTION_SUFFIXES"]
+__all__ = ["read_pose_motion", "motion_suffix"]
 
-MOTION_SUFFIXES = {"ddc": ".motion", "ddc_graph": ".motion", "smpl": ".npz"}
-"""The motion file suffix of each template kind."""
+
+def motion_suffix(kind: str) -> str:
+    """The motion file suffix of template ``kind``.
+
+    Raises:
+        ValueError: an unknown kind, or one without motion files.
+    """
+    suffix = template_kind(kind).motion_suffix
+    if suffix is None:
+        raise ValueError(f"no motion format is known for template kind {kind!r}")
+    return suffix
 
 
 def read_pose_motion(path: str | os.PathLike, spec: TemplateSpec, num_dofs: int | None = None) -> Motion:
@@ -32,11 +39,9 @@ def read_pose_motion(path: str | os.PathLike, spec: TemplateSpec, num_dofs: int 
         ValueError: a motion file of another kind than the template takes, or one that breaks its format.
     """
     p = Path(path)
-    expected = MOTION_SUFFIXES.get(spec.kind)
-    if expected is None:
+    kind = template_kind(spec.kind)
+    if kind.motion_suffix is None or kind.read_motion is None:
         raise ValueError(f"{p}: no motion format is known for template kind {spec.kind!r}")
-    if p.suffix.lower() != expected:
-        raise ValueError(f"{p}: a {spec.kind} template takes a {expected} motion, got '{p.suffix}'")
-    if spec.kind == "smpl":
-        return smpl_to_motion(read_smpl_motion(p), int(spec.option("num_betas", 10)))
-    return read_motion(p, num_dofs=num_dofs)
+    if p.suffix.lower() != kind.motion_suffix:
+        raise ValueError(f"{p}: a {spec.kind} template takes a {kind.motion_suffix} motion, got '{p.suffix}'")
+    return kind.read_motion(p, spec, num_dofs)

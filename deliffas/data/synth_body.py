@@ -3,7 +3,7 @@
 :func:`make_synth_body` puts the body's files into the subject (``character/`` for a DDC character,
 ``body/`` for an SMPL model file and its uv OBJ) and returns a :class:`SynthBody`: the template spec,
 the rest mesh with its uvs, the garment region, the texture, and how the body's motions are made
-(procedural, or read from a file) and written (``poses.motion`` or AMASS-style ``poses.npz``).
+(procedural, or read from a file) and written (in the template kind's own motion format).
 """
 
 from __future__ import annotations
@@ -11,22 +11,22 @@ from __future__ import annotations
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Callable
 
 import cv2
 import numpy as np
 
-from deliffas.io.body_models.amass import read_smpl_motion, write_smpl_motion
-from deliffas.io.formats.dynacap.character import read_character, read_motion, write_character, write_motion
+from deliffas.io.formats.dynacap.character import read_character, write_character
 from deliffas.io.motion import Motion
 from deliffas.io.body_models.smpl import load_smpl_model
 from deliffas.geometry.motion_gen import procedural_motion
 from deliffas.geometry.procedural import make_procedural_character
 from deliffas.geometry.smpl_body import make_procedural_smpl
 from deliffas.geometry.smpl_motion import procedural_smpl_motion
-from deliffas.geometry.smpl_params import smpl_to_motion, params_to_motion
-from deliffas.geometry.templates import TemplateSpec, build_template, ddc_spec, smpl_spec
+from deliffas.geometry.smpl_params import smpl_to_motion
+from deliffas.geometry.templates import TemplateSpec, build_template, ddc_spec, smpl_spec, template_kind
 from deliffas.data.garment import ddc_garment_region, smpl_garment_region
+from deliffas.data.pose_motions import read_pose_motion
 
 __all__ = ["SynthBody", "make_synth_body", "PROCEDURAL", "SMPL_NUM_BETAS"]
 
@@ -41,7 +41,6 @@ class SynthBody:
     """A body placed into a subject folder, ready to pose and render.
 
     Attributes:
-        kind: ``ddc`` or ``smpl``.
         path: the body's main file inside the subject (``.character`` or SMPL ``.npz``).
         spec: the template spec the subject records (``build_template(spec)`` poses it, mm).
         faces: (F, 3) int64; uvs: (T, 2) float64; face_uvs: (F, 3) int64.
@@ -49,10 +48,9 @@ class SynthBody:
         garment: (V,) bool loose-garment region.
         texture: (Ht, Wt, 3) float32 albedo in [0, 1].
         rest_dofs: (D,) pose parameters of the rest pose (procedural motions start near it).
-        skeleton: the DDC skeleton (procedural DDC motions need it), or None for SMPL.
+        procedural: ``(num_frames, seed, fps) -> Motion``: a procedural motion of this body.
     """
 
-    kind: Literal["ddc", "smpl"]
     path: Path
     spec: TemplateSpec
     faces: np.ndarray
@@ -62,41 +60,31 @@ class SynthBody:
     garment: np.ndarray
     texture: np.ndarray
     rest_dofs: np.ndarray
-    skeleton: object | None = None
+    procedural: Callable[[int, int, float], Motion]
+
+    @property
+    def kind(self) -> str:
+        """The template kind (``ddc``, ``smpl``)."""
+        return self.spec.kind
 
     @property
     def motion_name(self) -> str:
-        """File name of a sequence's motion: ``poses.motion`` (DDC) or ``poses.npz`` (AMASS-style, SMPL)."""
-        return "poses.motion" if self.kind == "ddc" else "poses.npz"
+        """File name of a sequence's motion: ``poses`` + the template kind's motion suffix."""
+        return "poses" + template_kind(self.kind).motion_suffix
 
     def motion(self, path: str | None, num_frames: int, seed: int, fps: float) -> Motion:
         """``num_frames`` frames (numbered 0..N-1) of pose parameters: from ``path`` or procedural."""
         if path is not None:
-            m = self._read_motion(Path(path))
+            m = read_pose_motion(path, self.spec, num_dofs=len(self.rest_dofs))
             if m.num_frames < num_frames:
                 raise ValueError(f"{path}: has {m.num_frames} frames, {num_frames} requested")
             return Motion(np.arange(num_frames, dtype=np.int64), m.dofs[:num_frames].copy())
-        if self.kind == "ddc":
-            m = procedural_motion(self.skeleton, num_frames, seed, style="mixed", rest_dofs=self.rest_dofs, fps=fps)
-            return Motion(np.arange(m.num_frames, dtype=np.int64), np.asarray(m.dofs, np.float64))
-        return smpl_to_motion(procedural_smpl_motion(num_frames, seed, fps), SMPL_NUM_BETAS)
-
-    def _read_motion(self, path: Path) -> Motion:
-        if self.kind == "ddc":
-            if path.suffix != ".motion":
-                raise ValueError(f"{path}: a DDC character takes a .motion file")
-            return read_motion(path, num_dofs=len(self.rest_dofs))
-        if path.suffix != ".npz":
-            raise ValueError(f"{path}: an SMPL body takes an AMASS-style .npz motion (poses, trans, betas)")
-        return smpl_to_motion(read_smpl_motion(path), SMPL_NUM_BETAS)
+        return self.procedural(num_frames, seed, fps)
 
     def write_motion(self, seq_dir: Path, motion: Motion, fps: float) -> Path:
         """Write a sequence's pose parameters in the body's own motion format; returns the file."""
         path = seq_dir / self.motion_name
-        if self.kind == "ddc":
-            write_motion(path, motion)
-        else:
-            write_smpl_motion(path, params_to_motion(motion.dofs, fps=fps))
+        template_kind(self.kind).write_motion(path, motion, fps)
         return path
 
 
@@ -124,10 +112,16 @@ def _ddc_body(out: Path, character: str | None, seed: int, skinning: str) -> Syn
     c = read_character(path)
     if c.mesh.face_uvs is None:
         raise ValueError(f"{c.files.mesh}: the character has no per-corner uvs (vt); a synthetic capture needs them")
-    return SynthBody("ddc", path, ddc_spec(path, skinning), np.asarray(c.mesh.faces, np.int64),
+    rest_dofs = np.asarray(c.rest_dofs, np.float64)
+
+    def procedural(num_frames: int, seed: int, fps: float) -> Motion:
+        m = procedural_motion(c.skeleton, num_frames, seed, style="mixed", rest_dofs=rest_dofs, fps=fps)
+        return Motion(np.arange(m.num_frames, dtype=np.int64), np.asarray(m.dofs, np.float64))
+
+    return SynthBody(path, ddc_spec(path, skinning), np.asarray(c.mesh.faces, np.int64),
                      np.asarray(c.mesh.uvs, np.float64), np.asarray(c.mesh.face_uvs, np.int64),
                      np.asarray(c.mesh.verts, np.float64), ddc_garment_region(c), _texture(c.texture, seed),
-                     np.asarray(c.rest_dofs, np.float64), c.skeleton)
+                     rest_dofs, procedural)
 
 
 def _smpl_body(out: Path, model: str, uv_obj: str | None, seed: int) -> SynthBody:
@@ -147,9 +141,11 @@ def _smpl_body(out: Path, model: str, uv_obj: str | None, seed: int) -> SynthBod
     template = build_template(spec)
     data = load_smpl_model(path)
     rest = template.rest_verts.numpy().astype(np.float64)
-    return SynthBody("smpl", path, spec, template.faces.numpy(), template.uvs.numpy().astype(np.float64),
+    return SynthBody(path, spec, template.faces.numpy(), template.uvs.numpy().astype(np.float64),
                      template.face_uvs.numpy(), rest, smpl_garment_region(rest, data.weights), _texture(None, seed),
-                     np.zeros(template.num_dofs), None)
+                     np.zeros(template.num_dofs),
+                     lambda num_frames, seed, fps: smpl_to_motion(procedural_smpl_motion(num_frames, seed, fps),
+                                                                  SMPL_NUM_BETAS))
 
 
 def make_synth_body(out: Path, seed: int, character: str | None = None, body_model: str | None = None,

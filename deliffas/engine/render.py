@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from deliffas.io.cameras import Camera, look_at
-from deliffas.data.pose_motions import MOTION_SUFFIXES, read_pose_motion
+from deliffas.data.pose_motions import motion_suffix, read_pose_motion
 from deliffas.geometry.atlas import TexelTable, UVAtlas
 from deliffas.geometry.frame_geometry import FrameGeometryBuilder
 from deliffas.geometry.templates import build_template
@@ -135,7 +135,7 @@ def render_video(cfg: RenderConfig) -> Path:
     spec = meta.template_spec()
     template, builder = motion_geometry_builder(meta)
     motion_path = Path(cfg.motion) if cfg.motion else _default_motion(Path(meta.attrs["subject"]),
-                                                                      MOTION_SUFFIXES[spec.kind])
+                                                                      motion_suffix(spec.kind))
     motion = read_pose_motion(motion_path, spec, template.num_dofs)
     n = cfg.frames or min(motion.num_frames, 300)
     if n > motion.num_frames and not cfg.loop:

@@ -1,6 +1,7 @@
 """The registry of model variants: what each one's U-Nets and light-field MLP take and read.
 
-A variant is a :class:`VariantSpec`, registered by name (:func:`register_variant`). The model
+A variant is a :class:`VariantSpec`, registered by name (:func:`register_variant`; installed packages add
+theirs through the ``deliffas.variants`` entry-point group, loaded on the first lookup). The model
 (:class:`deliffas.models.deliffas.DeliffasModel`) builds its U-Nets and its MLP's input width from
 the spec, and the engine builds each ray's inputs (:class:`deliffas.models.ray_query.RayQuery`)
 from it; neither compares variant names. ``ModelConfig.variant`` stays the name, so configs,
@@ -24,7 +25,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-__all__ = ["VariantSpec", "register_variant", "unregister_variant", "get_variant", "variant_names", "PAPER_VARIANTS"]
+from deliffas.plugins import load_plugins
+
+__all__ = ["VariantSpec", "register_variant", "unregister_variant", "get_variant", "variant_names", "PAPER_VARIANTS",
+           "VARIANTS_ENTRY_POINT"]
+
+VARIANTS_ENTRY_POINT = "deliffas.variants"
+"""The entry-point group whose modules register model variants when imported (installed plug-ins)."""
 
 Surface = Literal["outer", "inner"]
 
@@ -122,6 +129,7 @@ def get_variant(name: str) -> VariantSpec:
     Raises:
         ValueError: unknown name (the message lists the registered ones).
     """
+    load_plugins(VARIANTS_ENTRY_POINT)
     try:
         return _REGISTRY[name]
     except (KeyError, TypeError):
@@ -130,6 +138,7 @@ def get_variant(name: str) -> VariantSpec:
 
 def variant_names() -> tuple[str, ...]:
     """Names of the registered variants, in registration order."""
+    load_plugins(VARIANTS_ENTRY_POINT)
     return tuple(_REGISTRY)
 
 

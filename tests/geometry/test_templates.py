@@ -9,12 +9,14 @@ import torch
 
 from deliffas.geometry.templates import (
     Template,
+    TemplateKind,
     TemplateSourceError,
     TemplateSpec,
     build_template,
     ddc_spec,
     make_spec,
     register_template_kind,
+    template_kind,
     template_kinds,
 )
 from deliffas.io.formats.dynacap.character import read_character
@@ -32,7 +34,12 @@ def test_unknown_kind_lists_the_registered_ones():
 
 def test_a_kind_registers_once():
     with pytest.raises(ValueError, match="registered already"):
-        register_template_kind("ddc", lambda spec, dtype: None)
+        register_template_kind(TemplateKind("ddc", lambda spec, dtype: None))
+
+
+def test_kinds_own_their_motion_files_and_body_model_facts():
+    assert [template_kind(k).motion_suffix for k in ("ddc", "ddc_graph", "smpl")] == [".motion", ".motion", ".npz"]
+    assert [template_kind(k).smpl_params for k in ("ddc", "ddc_graph", "smpl")] == [False, False, True]
 
 
 def test_spec_json_round_trip_and_errors(procedural_character_path):
@@ -82,7 +89,7 @@ class _RigidTemplate(torch.nn.Module):
 
 
 def test_a_new_kind_is_one_registration(tmp_path, procedural_character_path):
-    register_template_kind("test_rigid", lambda spec, dtype: _RigidTemplate(read_obj(spec.path("mesh")), dtype))
+    register_template_kind(TemplateKind("test_rigid", lambda spec, dtype: _RigidTemplate(read_obj(spec.path("mesh")), dtype)))
     mesh = read_character(procedural_character_path).mesh
     write_obj(tmp_path / "rigid.obj", mesh)
     t = build_template(make_spec("test_rigid", {"mesh": tmp_path / "rigid.obj"}))

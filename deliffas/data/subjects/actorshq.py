@@ -21,6 +21,7 @@ from deliffas.io.formats.actorshq import (actorshq_mask_path, actorshq_rgb_path,
 from deliffas.io.formats.capture_frames import FileFramesSpec, write_image_file
 from deliffas.io.formats.dynacap.meshes import read_meshes
 from deliffas.geometry.smpl_params import params_to_motion
+from deliffas.geometry.templates import template_kind
 from deliffas.data.subjects.base import Subject, SubjectOptions, SubjectSequence
 from deliffas.data.subjects.export_frames import ExportFrames
 from deliffas.data.subjects.capture_common import (SEQUENCE, read_test_cameras, require_template, split_distortion,
@@ -51,7 +52,7 @@ def parse_actorshq(root: Path, options: SubjectOptions = SubjectOptions()) -> Su
                          "training=POSES.npz --template SMPL.npz) or tracked surfaces (--meshes training=FILE.meshes "
                          "--template ...)")
     spec = require_template(options, "ActorsHQ")
-    if motion is not None and spec.kind != "smpl":
+    if motion is not None and not template_kind(spec.kind).smpl_params:
         raise ValueError(f"{root}: an AMASS-style SMPL motion needs an SMPL --template, got a {spec.kind} template")
     avail = read_meshes(meshes).frames if meshes is not None else motion.frames
     frames = [int(f) for f in np.unique(avail)

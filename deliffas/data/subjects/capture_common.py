@@ -22,7 +22,7 @@ from deliffas.io.cameras import Camera
 from deliffas.io.motion import Motion
 from deliffas.io.body_models.smpl import SMPLModelData, load_smpl_model
 from deliffas.geometry.smpl_params import smpl_to_motion, rest_root_joint, rhth_to_params
-from deliffas.geometry.templates import SMPL_MODEL_SUFFIXES, TemplateSpec, spec_from_file
+from deliffas.geometry.templates import SMPL_MODEL_SUFFIXES, TemplateSpec, spec_from_file, template_kind
 from deliffas.data.subjects.base import SubjectOptions
 
 __all__ = ["SMPL_NUM_BETAS", "SEQUENCE", "smpl_template", "smpl_model_data", "fit_betas", "rhth_motion",
@@ -58,7 +58,7 @@ def require_template(options: SubjectOptions, fmt: str) -> TemplateSpec:
 def smpl_template(options: SubjectOptions, fmt: str) -> TemplateSpec:
     """The ``smpl`` template spec of the user's model file; an error naming the option when there is none."""
     spec = require_template(options, fmt)
-    if spec.kind != "smpl":
+    if not template_kind(spec.kind).smpl_params:
         raise ValueError(f"{fmt}: its pose parameters are SMPL; --template must be an SMPL model file "
                          f"({', '.join(SMPL_MODEL_SUFFIXES)}), got {options.template}")
     return spec

@@ -21,7 +21,7 @@ from deliffas.io.formats.dynacap.calibration import read_calibration
 from deliffas.io.formats.dynacap.meshes import read_meshes
 from deliffas.io.formats.dynacap.frames import image_size
 from deliffas.geometry.templates import SMPL_MODEL_SUFFIXES, Skinning, TemplateSpec, ddc_spec, spec_from_file
-from deliffas.data.pose_motions import MOTION_SUFFIXES, read_pose_motion
+from deliffas.data.pose_motions import motion_suffix, read_pose_motion
 from deliffas.data.subjects.capture_common import read_test_cameras
 from deliffas.data.subjects.base import (
     FrameSourceSpec,
@@ -114,7 +114,7 @@ def parse_dynacap(subject: Path, options: SubjectOptions = SubjectOptions()) -> 
         if size is not None and size != (w, h):
             raise ValueError(f"{seq}: images are {w}x{h}, other sequences {size[0]}x{size[1]}")
         size = (w, h)
-        motion_path = motions.get(seq) or _find_motion(seq_dir, MOTION_SUFFIXES[template.kind])
+        motion_path = motions.get(seq) or _find_motion(seq_dir, motion_suffix(template.kind))
         motion = read_pose_motion(motion_path, template) if motion_path is not None else None
         mesh_path = meshes.get(seq)
         if mesh_path is not None:
@@ -122,7 +122,7 @@ def parse_dynacap(subject: Path, options: SubjectOptions = SubjectOptions()) -> 
         elif motion is not None:
             avail = motion.frames
         else:
-            raise FileNotFoundError(f"{seq_dir}: no poses{MOTION_SUFFIXES[template.kind]} (and no --motions or "
+            raise FileNotFoundError(f"{seq_dir}: no poses{motion_suffix(template.kind)} (and no --motions or "
                                     f"--meshes {seq}=FILE)")
         avail = np.unique(np.asarray(avail, np.int64))
         first = int(avail.min())

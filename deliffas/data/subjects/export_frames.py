@@ -12,6 +12,7 @@ import numpy as np
 from deliffas.io.body_models.amass import SMPL_BODY_POSE_DIM
 from deliffas.io.body_models.smpl import load_smpl_model
 from deliffas.geometry.smpl_params import params_to_rhth, rest_root_joint
+from deliffas.geometry.templates import template_kind
 from deliffas.data.subjects.base import Subject
 
 __all__ = ["ExportFrames"]
@@ -21,7 +22,7 @@ class ExportFrames:
     """The sequence's frames, SMPL rows (N, 3 + 72 + NB) and pixels, as the writers need them."""
 
     def __init__(self, subject: Subject, sequence: str):
-        if subject.template.kind != "smpl":
+        if not template_kind(subject.template.kind).smpl_params:
             raise ValueError(f"export: needs an SMPL subject (its pose parameters are written), got {subject.template.kind}")
         seq = subject.sequences[sequence]
         if seq.poses is None:

@@ -1,7 +1,10 @@
 """The ``Template`` protocol, the recorded ``TemplateSpec`` and the registry that builds one from the other.
 
-A template kind (``ddc``, ``ddc_graph``, ``smpl``, or a user's) is one module that registers a builder
-``(spec, dtype) -> Template`` under its kind name. Every deliffas command builds templates through
+A template kind (``ddc``, ``ddc_graph``, ``smpl``, or a user's) is one module that registers a
+:class:`TemplateKind`: its builder ``(spec, dtype) -> Template`` and what else only the kind knows (its
+motion files, whether its pose rows are SMPL parameters); nothing outside this registry compares kind
+names. Installed packages add kinds through the ``deliffas.templates`` entry-point group. Every
+deliffas command builds templates through
 :func:`build_template`, so a spec recorded in a shard set (``meta.h5``), a run or an avatar file is
 enough to rebuild the exact template: the spec names its source files with their sha256, and
 building checks them.
@@ -20,14 +23,19 @@ from jaxtyping import Float, Integer
 from torch import Tensor
 
 from deliffas.io.infra.files import sha256_file
+from deliffas.io.motion import Motion
+from deliffas.plugins import load_plugins
 
 __all__ = [
     "Template",
     "TemplateSpec",
     "TemplateSourceError",
     "TemplateBuilder",
+    "TemplateKind",
     "register_template_kind",
+    "template_kind",
     "template_kinds",
+    "TEMPLATES_ENTRY_POINT",
     "build_template",
     "make_spec",
 ]
@@ -146,19 +154,61 @@ def make_spec(kind: str, files: Mapping[str, str | os.PathLike | None], **option
 
 
 TemplateBuilder = Callable[[TemplateSpec, torch.dtype], Template]
-_BUILDERS: dict[str, TemplateBuilder] = {}
+
+TEMPLATES_ENTRY_POINT = "deliffas.templates"
+"""The entry-point group whose modules register template kinds when imported."""
 
 
-def register_template_kind(kind: str, builder: TemplateBuilder) -> None:
-    """Register ``builder`` as the way to build templates of ``kind`` (once per kind)."""
-    if kind in _BUILDERS:
-        raise ValueError(f"template kind {kind!r} is registered already")
-    _BUILDERS[kind] = builder
+@dataclass(frozen=True)
+class TemplateKind:
+    """A template kind and the facts only it knows.
+
+    Attributes:
+        name: the kind recorded in every ``TemplateSpec``.
+        build: ``(spec, dtype) -> Template``.
+        motion_suffix: the suffix of its motion files (``.motion``, ``.npz``), lower case; None: it has none.
+        read_motion: ``(path, spec, num_dofs) -> Motion``: a motion file as the template's pose rows
+            (``num_dofs``, when given, is checked against the file).
+        write_motion: ``(path, motion, fps) -> None``: pose rows written as its motion file.
+        smpl_params: its pose rows are SMPL parameters ``[transl (3, m), pose (72), betas]`` (captures
+            with SMPL fits, SMPL exports and the SMPL checks take it).
+    """
+
+    name: str
+    build: TemplateBuilder
+    motion_suffix: str | None = None
+    read_motion: Callable[[Path, "TemplateSpec", int | None], Motion] | None = None
+    write_motion: Callable[[Path, Motion, float], None] | None = None
+    smpl_params: bool = False
+
+
+_KINDS: dict[str, TemplateKind] = {}
+
+
+def register_template_kind(kind: TemplateKind) -> None:
+    """Register a template kind (once per name)."""
+    if kind.name in _KINDS:
+        raise ValueError(f"template kind {kind.name!r} is registered already")
+    _KINDS[kind.name] = kind
 
 
 def template_kinds() -> tuple[str, ...]:
     """The registered template kinds, sorted."""
-    return tuple(sorted(_BUILDERS))
+    load_plugins(TEMPLATES_ENTRY_POINT)
+    return tuple(sorted(_KINDS))
+
+
+def template_kind(name: str) -> TemplateKind:
+    """The registered kind ``name``.
+
+    Raises:
+        ValueError: an unknown kind (the message lists those that are registered).
+    """
+    load_plugins(TEMPLATES_ENTRY_POINT)
+    kind = _KINDS.get(name)
+    if kind is None:
+        raise ValueError(f"unknown template kind {name!r}; registered: {', '.join(template_kinds())}")
+    return kind
 
 
 def build_template(spec: TemplateSpec, dtype: torch.dtype = torch.float32, verify: bool = True) -> Template:
@@ -173,9 +223,7 @@ def build_template(spec: TemplateSpec, dtype: torch.dtype = torch.float32, verif
         ValueError: the kind is not registered (the message lists those that are).
         TemplateSourceError: ``verify`` and a source file is missing or changed.
     """
-    builder = _BUILDERS.get(spec.kind)
-    if builder is None:
-        raise ValueError(f"unknown template kind {spec.kind!r}; registered: {', '.join(template_kinds())}")
+    kind = template_kind(spec.kind)
     if verify:
         spec.verify()
-    return builder(spec, dtype)
+    return kind.build(spec, dtype)

@@ -17,13 +17,13 @@ from jaxtyping import Float
 from torch import Tensor
 
 from deliffas.checks import check_finite, check_shape
-from deliffas.io.formats.dynacap.character import Character, read_character, read_character_files
+from deliffas.io.formats.dynacap.character import Character, read_character, read_character_files, read_motion, write_motion
 from deliffas.geometry.arrays import require_tensor
 from deliffas.geometry.skeleton import SkeletonFK
 from deliffas.geometry.skinning import dqs, lbs
-from deliffas.geometry.templates.base import TemplateSpec, make_spec, register_template_kind
+from deliffas.geometry.templates.base import TemplateKind, TemplateSpec, make_spec, register_template_kind
 
-__all__ = ["DDCTemplate", "Skinning", "ddc_sources", "ddc_spec"]
+__all__ = ["DDCTemplate", "Skinning", "ddc_sources", "ddc_spec", "read_ddc_motion", "write_ddc_motion"]
 
 Skinning = Literal["dqs", "lbs"]
 
@@ -147,4 +147,14 @@ def _build(spec: TemplateSpec, dtype: torch.dtype) -> DDCTemplate:
     return DDCTemplate(read_character(spec.path("character")), spec.option("skinning", "dqs"), dtype=dtype)
 
 
-register_template_kind("ddc", _build)
+def read_ddc_motion(path, spec: TemplateSpec, num_dofs: int | None = None):
+    """A Skeletool ``.motion`` file as the template's DOF rows (the kinds ``ddc`` and ``ddc_graph``)."""
+    return read_motion(path, num_dofs=num_dofs)
+
+
+def write_ddc_motion(path, motion, fps: float) -> None:
+    """DOF rows written as a Skeletool ``.motion`` (it records no frame rate)."""
+    write_motion(path, motion)
+
+
+register_template_kind(TemplateKind("ddc", _build, ".motion", read_ddc_motion, write_ddc_motion))

@@ -10,8 +10,8 @@ import torch
 from deliffas.checks import check_finite, check_shape
 from deliffas.io.formats.dynacap.character import Character, read_character
 from deliffas.geometry.embedded_graph import EmbeddedDeformation, bind_embedded_graph, blend_bone_transforms
-from deliffas.geometry.templates.base import TemplateSpec, make_spec, register_template_kind
-from deliffas.geometry.templates.ddc import DDCTemplate, Skinning, ddc_sources
+from deliffas.geometry.templates.base import TemplateKind, TemplateSpec, make_spec, register_template_kind
+from deliffas.geometry.templates.ddc import DDCTemplate, Skinning, ddc_sources, read_ddc_motion, write_ddc_motion
 
 __all__ = ["EmbeddedGraphTemplate", "Deformation", "ddc_graph_spec"]
 
@@ -115,4 +115,4 @@ def _build(spec: TemplateSpec, dtype: torch.dtype) -> EmbeddedGraphTemplate:
                                  deformation=spec.option("deformation", "embedded_graph"), dtype=dtype)
 
 
-register_template_kind("ddc_graph", _build)
+register_template_kind(TemplateKind("ddc_graph", _build, ".motion", read_ddc_motion, write_ddc_motion))

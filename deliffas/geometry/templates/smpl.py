@@ -19,13 +19,15 @@ from torch import Tensor
 
 from deliffas.checks import check_finite, check_shape
 from deliffas.io.obj import read_obj
+from deliffas.io.body_models.amass import read_smpl_motion, write_smpl_motion
 from deliffas.io.body_models.smpl import NUM_JOINTS, NUM_POSE_BASIS, SMPLModelData, SMPLModelError, load_smpl_model
 from deliffas.geometry.arrays import require_tensor
 from deliffas.geometry.atlas import UVAtlas
 from deliffas.geometry.smpl import smpl_lbs
-from deliffas.geometry.templates.base import TemplateSpec, make_spec, register_template_kind
+from deliffas.geometry.smpl_params import params_to_motion, smpl_to_motion
+from deliffas.geometry.templates.base import TemplateKind, TemplateSpec, make_spec, register_template_kind
 
-__all__ = ["SMPLTemplate", "smpl_spec"]
+__all__ = ["SMPLTemplate", "smpl_spec", "read_smpl_rows", "write_smpl_rows"]
 
 log = logging.getLogger(__name__)
 
@@ -130,4 +132,14 @@ def _build(spec: TemplateSpec, dtype: torch.dtype) -> SMPLTemplate:
                         uv_obj=uv_obj, atlas_res=spec.option("atlas_res", 1024), dtype=dtype)
 
 
-register_template_kind("smpl", _build)
+def read_smpl_rows(path, spec: TemplateSpec, num_dofs: int | None = None):
+    """An AMASS-style ``.npz`` motion as the template's rows ``[trans, pose (72), betas[:num_betas]]``."""
+    return smpl_to_motion(read_smpl_motion(path), int(spec.option("num_betas", 10)))
+
+
+def write_smpl_rows(path, motion, fps: float) -> None:
+    """SMPL rows written as an AMASS-style ``.npz``."""
+    write_smpl_motion(path, params_to_motion(motion.dofs, fps=fps))
+
+
+register_template_kind(TemplateKind("smpl", _build, ".npz", read_smpl_rows, write_smpl_rows, smpl_params=True))
