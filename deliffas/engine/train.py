@@ -4,8 +4,9 @@ One iteration = one frame with K training cameras: the frame's temporal normal m
 once, every ray of the K images that meets the outer shell is shaded, and the loss compares the
 images composited on black (:mod:`deliffas.engine.train_step`). Stage 1 is L1 only; stage 2 (from
 ``perceptual_start``) adds the VGG-16 perceptual loss on the whole images (or 32x32 patches),
-weighted so both terms start with the same magnitude (paper, appendix "Training Details"). Adam,
-lr 2e-4 with the official exponential decay. Runs under ``torchrun`` with DistributedDataParallel
+weighted so both terms start with the same magnitude (paper, appendix "Training Details"). Adam with the
+schedule of ``TrainConfig.schedule`` (``converge`` by default; ``paper`` is the official lr 2e-4 with
+its exponential decay). Runs under ``torchrun`` with DistributedDataParallel
 (gloo on CPU, nccl on GPU). :class:`Trainer` holds one run; :func:`train` runs it.
 """
 
@@ -77,10 +78,6 @@ def _check_resumed_capture(run: Path, shards: str, found: dict) -> None:
     check_identity(recorded, f"the run {run}", found, f"the shards {shards}", CAPTURE_KEYS)
 
 
-def _lr_at(cfg: TrainConfig, step: int) -> float:
-    return cfg.lr * 0.1 ** (step / cfg.lr_decay_steps)
-
-
 def _save_preview(path: Path, pred: torch.Tensor, sample: FrameSample) -> None:
     gt = composite_target(sample.images[:1], sample.masks[:1])[0].numpy()
     img = np.concatenate([pred[0].detach().cpu().numpy(), gt], axis=1)
@@ -149,7 +146,7 @@ class Trainer:
         self.stream, self.data_info = training_stream(cfg, self.model_config.temporal_window, rank=self.rank,
                                                       world=self.world, start_iteration=self.start, shards=self.shards)
         self.model = DeliffasModel(self.model_config).to(device)
-        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.lr, betas=(0.9, 0.999), eps=1e-7)
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.peak_lr, betas=(0.9, 0.999), eps=1e-7)
         state: dict[str, Any] = {}
         if resuming:
             state = load_training_state(run, self.model, self.optimizer, device)
@@ -192,7 +189,7 @@ class Trainer:
 
     def step(self, it: int) -> tuple[dict, FrameSample]:
         """Iteration ``it``: draw a sample, take one optimisation step; returns its log record and the sample."""
-        lr = _lr_at(self.cfg, it)
+        lr = self.cfg.lr_at(it)
         for group in self.optimizer.param_groups:
             group["lr"] = lr
         ta = time.perf_counter()

@@ -24,6 +24,9 @@ logger = logging.getLogger(__name__)
 
 PerceptualChoice = Literal["none", "vgg16-imagenet", "vgg16-random"]
 
+SCHEDULE_LR: dict[str, float] = {"converge": 3e-3, "paper": 2e-4}
+"""The peak learning rate of each ``TrainConfig.schedule`` when ``TrainConfig.lr`` is None."""
+
 
 @dataclass(frozen=True)
 class TrainConfig:
@@ -41,10 +44,19 @@ class TrainConfig:
     """ModelConfig fields replacing the preset's (nested dicts for ``unet``/``mlp``)."""
     iters: int = 1000
     """Training iterations (one frame with ``cameras_per_frame`` images each)."""
-    lr: float = 2e-4
-    """Adam learning rate (paper)."""
+    schedule: Literal["converge", "paper"] = "converge"
+    """Learning-rate schedule. ``converge``: a linear warm-up over ``warmup_iters``, then an exponential
+    decay to ``lr_final`` x lr at the run's last iteration (the run's own length). ``paper``: the
+    official code's lr · 0.1^(step / lr_decay_steps), meant for GPU-days runs (1.29 M iterations)."""
+    lr: float | None = None
+    """Peak Adam learning rate; None = the schedule's (``converge`` 3e-3, ``paper`` 2e-4)."""
     lr_decay_steps: int = 800_000
-    """lr = lr · 0.1^(step / lr_decay_steps), as the official code."""
+    """``paper`` schedule: lr = lr · 0.1^(step / lr_decay_steps), as the official code."""
+    warmup_iters: int = 50
+    """``converge`` schedule: iterations of the linear warm-up from lr / warmup_iters to lr (at most a fifth
+    of the run)."""
+    lr_final: float = 0.1
+    """``converge`` schedule: the learning rate at the last iteration, as a fraction of the peak."""
     cameras_per_frame: int = 4
     """K training cameras per iteration; the U-Nets run once for all K."""
     protocol: Literal["auto", "paper", "all"] = "auto"
@@ -91,7 +103,7 @@ class TrainConfig:
             raise ValueError(f"preset: {self.model!r} has no preset {self.preset!r}; "
                              f"presets: {', '.join(list_presets(self.model))}")
         for name, minimum in (("iters", 1), ("cameras_per_frame", 1), ("checkpoint_every", 1), ("log_every", 1),
-                              ("preview_every", 0), ("num_workers", 0)):
+                              ("preview_every", 0), ("num_workers", 0), ("warmup_iters", 0), ("lr_decay_steps", 1)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
                 raise ValueError(f"{name}: expected a whole number >= {minimum}, got {value!r}")
@@ -101,7 +113,29 @@ class TrainConfig:
             raise ValueError(f"saturation_margin: expected a finite number > 0, got {self.saturation_margin!r}")
         if self.ray_chunk is not None and (not isinstance(self.ray_chunk, int) or self.ray_chunk < 1):
             raise ValueError(f"ray_chunk: expected None or a whole number >= 1, got {self.ray_chunk!r}")
+        if self.lr is not None and not (math.isfinite(self.lr) and self.lr > 0):
+            raise ValueError(f"lr: expected None or a finite number > 0, got {self.lr!r}")
+        if not (math.isfinite(self.lr_final) and 0 < self.lr_final <= 1):
+            raise ValueError(f"lr_final: expected a number in (0, 1], got {self.lr_final!r}")
+        if self.schedule not in SCHEDULE_LR:
+            raise ValueError(f"schedule: expected one of {', '.join(SCHEDULE_LR)}, got {self.schedule!r}")
         resolve_device(self.device)
+
+    @property
+    def peak_lr(self) -> float:
+        """``lr``, or the schedule's default when None."""
+        return SCHEDULE_LR[self.schedule] if self.lr is None else self.lr
+
+    def lr_at(self, step: int) -> float:
+        """The learning rate of 0-based iteration ``step`` under ``schedule``."""
+        lr = self.peak_lr
+        if self.schedule == "paper":
+            return lr * 0.1 ** (step / self.lr_decay_steps)
+        warmup = min(self.warmup_iters, self.iters // 5)
+        if step < warmup:
+            return lr * (step + 1) / warmup
+        span = max(self.iters - 1 - warmup, 1)
+        return lr * self.lr_final ** (min(step - warmup, span) / span)
 
 
 @dataclass(frozen=True)

@@ -81,6 +81,10 @@ class ModelConfig:
     """Frequencies of the view-direction encoding (``single_surface_viewdir`` only)."""
     feature_channels: int = 32
     """C: channels of each U-Net's feature map."""
+    texture_channels: int = 0
+    """C_t: channels of a learnable per-texel feature atlas (S x S, a neural texture) appended to each
+    U-Net's feature map (one atlas per map: inner and, with an outer U-Net, outer). It carries the
+    appearance that normal maps cannot predict; 0 = none (the paper's model)."""
 
     def __post_init__(self) -> None:
         try:
@@ -97,6 +101,8 @@ class ModelConfig:
             )
         if self.feature_channels < 1:
             raise ValueError(f"ModelConfig: feature_channels must be >= 1, got {self.feature_channels}")
+        if self.texture_channels < 0:
+            raise ValueError(f"ModelConfig: texture_channels must be >= 0, got {self.texture_channels}")
         if self.unet is None:
             object.__setattr__(
                 self, "unet", UNetConfig(in_channels=self.input_channels, out_channels=self.feature_channels)
@@ -129,6 +135,9 @@ class FrameFeatures:
             ``single_surface_two_unet``).
         outer: (B, C, S, S) float in [0, 1], outer U-Net's map; None unless the variant has an
             outer U-Net (``two_surface``).
+
+    With ``ModelConfig.texture_channels`` = C_t > 0 each map carries C_t more channels: its learnable
+    texture atlas, appended after the U-Net channels (same for every frame).
 
     :meth:`DeliffasModel.encode` stores both in channels_last memory format (texel channels
     adjacent), which makes the per-ray lookups several times faster on large maps.
@@ -172,10 +181,14 @@ class DeliffasModel(nn.Module):
         for i in range(2, spec.inner_unets + 1):
             setattr(self, f"unet_inner_{i}", UNet(unet_cfg, size))
         self.unet_outer = UNet(unet_cfg, size) if spec.outer_unet else None
+        ct = config.texture_channels
+        self.texture_inner = nn.Parameter(torch.zeros(1, ct, size, size)) if ct else None
+        self.texture_outer = nn.Parameter(torch.zeros(1, ct, size, size)) if ct and spec.outer_unet else None
         self.pe_uv = PositionalEncoding(2, config.pe_freqs)
         self.pe_viewdir = PositionalEncoding(3, config.viewdir_pe_freqs) if spec.viewdir else None
         in_dim = spec.encoded_dim(self.pe_uv.out_dim, self.pe_viewdir.out_dim if self.pe_viewdir else 0)
-        self.mlp = LightFieldMLP(config.mlp, in_dim, spec.feature_dim(config.feature_channels))
+        maps = 1 + int(spec.outer_unet)
+        self.mlp = LightFieldMLP(config.mlp, in_dim, spec.feature_dim(config.feature_channels) + maps * ct)
 
     def inner_unets(self) -> list[UNet]:
         """The U-Nets on the inner normal maps, in the order their maps are concatenated."""
@@ -203,14 +216,22 @@ class DeliffasModel(nn.Module):
         shape = f"B {cfg.input_channels} {cfg.atlas_res} {cfg.atlas_res}"
         sizes = check_shape("normal_inner", normal_inner, shape)
         maps = [net(normal_inner) for net in self.inner_unets()]
-        inner = maps[0] if len(maps) == 1 else torch.cat(maps, dim=1)  # (B, n C, S, S)
+        inner = self._with_texture(maps, self.texture_inner)  # (B, n C + C_t, S, S)
         outer = None
         if self.unet_outer is not None:
             if normal_outer is None:
                 raise ValueError(f"encode: normal_outer is required for variant {cfg.variant!r}")
             check_shape("normal_outer", normal_outer, shape, sizes)
-            outer = self.unet_outer(normal_outer).contiguous(memory_format=torch.channels_last)
+            outer = self._with_texture([self.unet_outer(normal_outer)], self.texture_outer)
+            outer = outer.contiguous(memory_format=torch.channels_last)
         return FrameFeatures(inner=inner.contiguous(memory_format=torch.channels_last), outer=outer)
+
+    @staticmethod
+    def _with_texture(maps: list[torch.Tensor], texture: torch.Tensor | None) -> torch.Tensor:
+        """The U-Nets' maps (each (B, C, S, S)) and the texture atlas (1, C_t, S, S), if any, along channels."""
+        if texture is not None:
+            maps = [*maps, texture.to(maps[0].dtype).expand(maps[0].shape[0], -1, -1, -1)]
+        return maps[0] if len(maps) == 1 else torch.cat(maps, dim=1)
 
     # ------------------------------------------------------------------ stage 2: per ray
     def gather_inputs(self, features: FrameFeatures, query: RayQuery) -> tuple[torch.Tensor, torch.Tensor]:

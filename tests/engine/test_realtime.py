@@ -176,3 +176,23 @@ def test_render_images_keeps_the_callers_fast_config(frame, monkeypatch):
         list(render.render_images(model, lambda i: (maps, maps), geometry, raycaster.faces, raycaster.atlas,
                                   cameras[:1], torch.device("cpu"), fast=fast))
         assert seen[-1] == fast
+
+
+def test_fast_path_renders_a_textured_model_as_the_plain_path(frame, tiny_shards):
+    """A model with texture atlases (``ModelConfig.texture_channels``) has wider maps; the fast path takes them."""
+    _, _, raycaster, cameras = frame
+    torch.manual_seed(1)
+    base = frame[0].config
+    model = DeliffasModel(dataclasses.replace(base, texture_channels=3)).eval()
+    with torch.no_grad():
+        model.texture_inner.normal_()
+        model.texture_outer.normal_()
+    S, C = base.atlas_res, base.input_channels
+    x = torch.rand(1, C, S, S) * 2 - 1
+    with torch.no_grad():
+        features = model.encode(x, x)
+    for cam in cameras:
+        plain = _render(model, features, raycaster, cam, None)
+        fast = _render(model, features, raycaster, cam, FastConfig(dtype="float32"))
+        assert (plain.sum(-1) > 0).sum() > 50
+        torch.testing.assert_close(fast, plain, atol=1e-4, rtol=0)

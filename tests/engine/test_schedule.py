@@ -1,0 +1,44 @@
+"""TrainConfig.schedule: the converge schedule (warm-up, decay over the run) and the paper's."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from deliffas.engine.train_config import SCHEDULE_LR, TrainConfig
+
+
+def _cfg(**kw) -> TrainConfig:
+    return TrainConfig(shards="s", out="o", **kw)
+
+
+def test_converge_warms_up_then_decays_to_lr_final_at_the_last_iteration():
+    cfg = _cfg(iters=1000, warmup_iters=50, lr_final=0.1)
+    assert cfg.peak_lr == SCHEDULE_LR["converge"]
+    assert cfg.lr_at(0) == pytest.approx(cfg.peak_lr / 50)
+    assert cfg.lr_at(49) == pytest.approx(cfg.peak_lr)
+    assert cfg.lr_at(50) == pytest.approx(cfg.peak_lr)
+    assert cfg.lr_at(999) == pytest.approx(0.1 * cfg.peak_lr)
+    lrs = [cfg.lr_at(i) for i in range(50, 1000)]
+    assert all(a >= b for a, b in zip(lrs, lrs[1:]))
+
+
+def test_warmup_is_at_most_a_fifth_of_a_short_run():
+    cfg = _cfg(iters=10, warmup_iters=50)
+    assert cfg.lr_at(1) == pytest.approx(cfg.peak_lr)  # 2 warm-up iterations
+    assert cfg.lr_at(9) == pytest.approx(cfg.peak_lr * cfg.lr_final)
+
+
+def test_paper_schedule_is_the_official_decay():
+    cfg = _cfg(schedule="paper", iters=10)
+    assert cfg.peak_lr == 2e-4
+    assert cfg.lr_at(400_000) == pytest.approx(2e-4 * math.sqrt(0.1))
+    assert _cfg(schedule="paper", lr=1e-3).lr_at(0) == 1e-3
+
+
+@pytest.mark.parametrize("field,value", [("lr", 0.0), ("lr", float("nan")), ("lr_final", 0.0), ("lr_final", 2.0),
+                                         ("warmup_iters", -1)])
+def test_bad_schedule_values_are_refused_naming_the_field(field, value):
+    with pytest.raises(ValueError, match=field):
+        _cfg(**{field: value})

@@ -1,0 +1,47 @@
+"""ModelConfig.texture_channels: learnable per-texel feature atlases appended to the U-Nets' maps."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from deliffas.models import DeliffasModel, get_config
+from deliffas.models.ray_query import RayQuery
+
+
+def _model(variant: str, channels: int) -> DeliffasModel:
+    torch.manual_seed(0)
+    return DeliffasModel(dataclasses.replace(get_config(variant, "tiny"), texture_channels=channels))
+
+
+@pytest.mark.parametrize("variant", ["two_surface", "single_surface", "single_surface_two_unet"])
+def test_texture_channels_widen_every_sampled_map(variant):
+    plain, textured = _model(variant, 0), _model(variant, 3)
+    maps = 1 + int(plain.spec.outer_unet)
+    assert textured.mlp.feature_dim == plain.mlp.feature_dim + 3 * maps
+    S, C = plain.config.atlas_res, plain.config.input_channels
+    x = torch.rand(2, C, S, S)
+    feats = textured.encode(x, x if plain.spec.outer_unet else None)
+    assert feats.inner.shape[1] == plain.encode(x, x if plain.spec.outer_unet else None).inner.shape[1] + 3
+    assert feats.batch_size == 2
+    if plain.spec.outer_unet:
+        assert feats.outer.shape[1] == feats.inner.shape[1]  # depth peeling reads either map
+
+
+def test_texture_is_learned_where_rays_sample_it():
+    model = _model("two_surface", 2)
+    S, C = model.config.atlas_res, model.config.input_channels
+    x = torch.rand(1, C, S, S)
+    n = 64
+    query = RayQuery(batch_index=torch.zeros(n, dtype=torch.long), uv_inner=torch.rand(n, 2), uv_outer=torch.rand(n, 2),
+                     inner_from_outer=torch.zeros(n, dtype=torch.bool))
+    model(x, x, query).sum().backward()
+    assert model.texture_inner.grad is not None and model.texture_inner.grad.abs().sum() > 0
+    assert model.texture_outer.grad is not None and model.texture_outer.grad.abs().sum() > 0
+
+
+def test_texture_channels_must_not_be_negative():
+    with pytest.raises(ValueError, match="texture_channels"):
+        dataclasses.replace(get_config("two_surface", "tiny"), texture_channels=-1)
