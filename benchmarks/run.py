@@ -21,6 +21,7 @@ MODULES = [
     "benchmarks.bench_data",
     "benchmarks.bench_scale",
     "benchmarks.bench_engine",
+    "benchmarks.bench_train",
     "benchmarks.bench_view",
     "benchmarks.bench_realtime",
     "benchmarks.bench_uv",

@@ -1,0 +1,124 @@
+"""Training speed: a training step against its irreducible work, and iterations per second at 128^2 and 256^2.
+
+The step is the default run's (``deliffas train`` without options: its model, K = 3 cameras of one
+frame, U-Nets once per frame, every shaded ray, L1, Adam), timed as ``engine.train_step`` runs it,
+with the rays already cast (the DataLoader workers cast them beside the step).
+
+Irreducible work, counted from the shapes of this very step:
+
+* the U-Nets: FLOPs of every (transposed) convolution in one forward (``bench_unet.conv_flops``),
+  times 3 for forward + backward (the backward computes the input and the weight gradients, each as
+  many multiply-adds as the forward), at the convolution rate measured in this run (one 3x3 conv
+  64 -> 64 at 256^2, forward);
+* the light-field MLP: 2 x multiply-adds per ray (``LightFieldMLP.flops_per_ray``) x rays, times 3,
+  at the GEMM rate measured in this run (a (rays x 64) @ (64 x 64) product).
+
+Sampling, encoding, the loss and the optimizer are counted as zero: the ratio step / irreducible is
+what the U-Nets and MLP would cost at the machine's dense rates, and the target is <= 2.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+from torch import nn
+
+from benchmarks._capture import bench_capture
+from benchmarks._timing import BENCH_THREADS, best_times, torch_threads
+from benchmarks.bench_unet import conv_flops
+from benchmarks.common import Result
+
+GROUP = "train"
+TARGET = 2.0
+K = 3
+
+
+def _sample(size: int):
+    """One frame of the bench capture seen by K cameras, images and rays at ``size``^2, normal maps at ``size``."""
+    import numpy as np
+    import torch.nn.functional as F
+
+    from deliffas.engine.data_bridge import evaluation_samples
+    from deliffas.engine.rays import camera_rays
+    from deliffas.geometry.raycast import UVRaycaster
+
+    _, shards, _ = bench_capture()
+    samples, info = evaluation_samples(str(shards), "all", max_frames=1, protocol="all", temporal_window=2)
+    s = next(samples)
+    cams = [c if c.width == size else c.rescaled(size, size) for c in s.cameras[:K]]
+    raycaster = UVRaycaster(s.inner_verts, info["faces"], s.outer_verts, info["atlas"])
+
+    def resize(a: np.ndarray, channels_last: bool) -> np.ndarray:
+        t = torch.from_numpy(np.ascontiguousarray(a))
+        t = t.permute(0, 3, 1, 2) if channels_last else t
+        if t.shape[-1] != size:
+            t = F.interpolate(t, size=(size, size), mode="area")
+        return (t.permute(0, 2, 3, 1) if channels_last else t).contiguous().numpy()
+
+    images = resize(s.images[:K], True)
+    masks = resize(s.masks[:K, None], False)[:, 0]
+    normals = [resize(m[None], False)[0] for m in (s.normal_inner, s.normal_outer)]
+    return dataclasses.replace(s, images=images, masks=masks, cameras=cams, camera_ids=s.camera_ids[:K],
+                               rays=[camera_rays(raycaster, c) for c in cams], normal_inner=normals[0],
+                               normal_outer=normals[1])
+
+
+def _model(size: int):
+    from deliffas.engine.train_config import TrainConfig, resolve_model_config
+    from deliffas.models.deliffas import DeliffasModel
+
+    torch.manual_seed(0)
+    return DeliffasModel(resolve_model_config(TrainConfig(shards="", out=""), size, 2))
+
+
+def _irreducible_s(model, sample, conv_rate: float, gemm_rate: float) -> tuple[float, float, float]:
+    """(seconds, U-Net FLOPs, MLP FLOPs) of forward + backward at the measured rates."""
+    ni = torch.from_numpy(sample.normal_inner)[None]
+    nets = [n for n in (*model.inner_unets(), model.unet_outer) if n is not None]
+    unet = 3 * sum(conv_flops(n, ni) for n in nets)
+    rays = sum(r.num_rays for r in sample.rays)
+    mlp = 3 * model.mlp.flops_per_ray() * rays
+    return unet / conv_rate + mlp / gemm_rate, unet, mlp
+
+
+def _rates(rays: int) -> tuple[float, float]:
+    """FLOP/s of a 3x3 conv 64 -> 64 at 256^2 and of a (rays x 64) @ (64 x 64) GEMM, best of interleaved rounds."""
+    gen = torch.Generator().manual_seed(0)
+    conv = nn.Conv2d(64, 64, 3, padding=1, bias=False)
+    xc = torch.rand(1, 64, 256, 256, generator=gen)
+    a, b = torch.rand(rays, 64, generator=gen), torch.rand(64, 64, generator=gen)
+    with torch.inference_mode():
+        t = best_times({"conv": lambda: conv(xc), "gemm": lambda: a @ b}, repeat=5, min_time=2.0, max_rounds=30)
+    return 2 * 256 * 256 * 64 * 64 * 9 / t["conv"], 2 * rays * 64 * 64 / t["gemm"]
+
+
+def run() -> list[Result]:
+    with torch_threads():
+        return _run()
+
+
+def _run() -> list[Result]:
+    from deliffas.engine.train_step import train_step
+
+    rows = []
+    for size in (128, 256):
+        sample = _sample(size)
+        model = _model(size)
+        opt = torch.optim.Adam(model.parameters(), lr=1e-4)
+        step = lambda: train_step(model, sample, opt, torch.device("cpu"))  # noqa: E731
+        rays = sum(r.num_rays for r in sample.rays)
+        conv_rate, gemm_rate = _rates(rays)
+        t_step = best_times({"step": step}, repeat=4, min_time=3.0, max_rounds=12)["step"]
+        rows.append(Result(GROUP, f"default run's step, {size}^2, K={K} ({rays} rays)", 1 / t_step, "it/s",
+                           note=f"{t_step * 1e3:.0f} ms per step, rays cast beforehand; {BENCH_THREADS} torch thread"))
+        if size == 256:
+            floor, unet, mlp = _irreducible_s(model, sample, conv_rate, gemm_rate)
+            ratio = t_step / floor
+            rows.append(Result(
+                GROUP, f"step / irreducible work, {size}^2, K={K}", ratio, "x",
+                baseline="U-Net + MLP forward and backward FLOPs at the measured conv / GEMM rates", ratio=ratio,
+                target=f"<= {TARGET:.1f}", passed=ratio <= TARGET,
+                note=f"U-Nets {unet / 1e9:.2f} GFLOP at {conv_rate / 1e9:.0f} GFLOP/s, MLP {mlp / 1e9:.2f} GFLOP at "
+                     f"{gemm_rate / 1e9:.0f} GFLOP/s: {floor * 1e3:.0f} ms against {t_step * 1e3:.0f} ms"))
+    return rows
