@@ -22,7 +22,7 @@ import time
 from pathlib import Path
 
 from deliffas.engine.run_sizes import RunSizes
-from recipes.common import prepare_capture, prepare_shards, recipe_parser, seed_list, write_outputs
+from recipes.common import prepare_capture, prepare_shards, recipe_parser, seed_list
 
 CAPTURE = RunSizes(frames=40, test_frames=10, cameras=12, size=256, atlas_res=256, iters=0, cameras_per_frame=3,
                    preset="small", eval_frames=10)
@@ -131,8 +131,14 @@ def main(argv=None) -> dict:
     notes += ["", f"Means over seeds {seeds}; {iters} iterations; capture {sizes.frames} frames, {sizes.cameras} cameras "
               f"at {sizes.size} px.", "", "![time to quality](time_to_quality.png)",
               *(["", "Quick mode: a few iterations; the numbers show the pipeline works."] if args.quick else [])]
-    return write_outputs(args.out, title, [], {"quick": args.quick, "sizes": dataclasses.asdict(sizes), "seeds": seeds,
-                                               "configurations": rows}, notes, chart=False)
+    payload = {"title": title, "quick": args.quick, "sizes": dataclasses.asdict(sizes), "seeds": seeds,
+               "configurations": rows}
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "results.json").write_text(json.dumps(payload, indent=2, default=str) + "\n")
+    md = "\n".join([f"# {title}", *notes]) + "\n"
+    (args.out / "results.md").write_text(md)
+    print(md)
+    return payload
 
 
 if __name__ == "__main__":

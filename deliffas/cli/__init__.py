@@ -324,6 +324,11 @@ def _add_engine_commands(sub) -> None:
                    help="rays per backward pass (bounds training memory; single process)")
     p.add_argument("--checkpoint-every", type=_positive_int, default=None)
     p.add_argument("--preview-every", type=_non_negative_int, default=None)
+    p.add_argument("--schedule", choices=["converge", "paper"], default=None,
+                   help="learning-rate schedule: converge (default) = warm-up, then decay 10x over the run's own "
+                        "--iters; paper = the official Adam 2e-4 with its decay over 800 k steps (GPU-days runs)")
+    p.add_argument("--lr", type=_positive_float, default=None,
+                   help="peak learning rate (default: the schedule's, converge 3e-3, paper 2e-4)")
     p.add_argument("--saturation-weight", type=_non_negative_float, default=None,
                    help="weight of the penalty on U-Net feature logits beyond +-4, which keeps feature maps off "
                         "the rails of their sigmoid (default 0.01; 0 = off)")

@@ -199,7 +199,7 @@ def _train_config(args: argparse.Namespace):
     values.update(shards=str(args.shards), out=str(args.out))
     for key in ("model", "preset", "iters", "perceptual", "perceptual_mode", "cameras_per_frame", "device",
                 "num_workers", "seed", "vgg16_path", "checkpoint_every", "preview_every", "ray_chunk", "protocol",
-                "validation_cameras", "saturation_weight"):
+                "validation_cameras", "saturation_weight", "schedule", "lr"):
         v = getattr(args, key, None)
         if v is not None:
             values[key] = v
