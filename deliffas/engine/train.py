@@ -78,6 +78,15 @@ def _check_resumed_capture(run: Path, shards: str, found: dict) -> None:
     check_identity(recorded, f"the run {run}", found, f"the shards {shards}", CAPTURE_KEYS)
 
 
+def _optimizer(model: DeliffasModel, cfg: TrainConfig) -> torch.optim.Adam:
+    """Adam over the model: the texture atlases in a group of their own at ``cfg.texture_lr_scale`` x the rate."""
+    textures = {id(p) for p in model.texture_parameters()}
+    groups = [{"params": [p for p in model.parameters() if id(p) not in textures], "lr_scale": 1.0}]
+    if textures:
+        groups.append({"params": model.texture_parameters(), "lr_scale": cfg.texture_lr_scale})
+    return torch.optim.Adam(groups, lr=cfg.peak_lr, betas=(0.9, 0.999), eps=1e-7)
+
+
 def _save_preview(path: Path, pred: torch.Tensor, sample: FrameSample) -> None:
     gt = composite_target(sample.images[:1], sample.masks[:1])[0].numpy()
     img = np.concatenate([pred[0].detach().cpu().numpy(), gt], axis=1)
@@ -146,7 +155,7 @@ class Trainer:
         self.stream, self.data_info = training_stream(cfg, self.model_config.temporal_window, rank=self.rank,
                                                       world=self.world, start_iteration=self.start, shards=self.shards)
         self.model = DeliffasModel(self.model_config).to(device)
-        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.peak_lr, betas=(0.9, 0.999), eps=1e-7)
+        self.optimizer = _optimizer(self.model, cfg)
         state: dict[str, Any] = {}
         if resuming:
             state = load_training_state(run, self.model, self.optimizer, device)
@@ -191,7 +200,7 @@ class Trainer:
         """Iteration ``it``: draw a sample, take one optimisation step; returns its log record and the sample."""
         lr = self.cfg.lr_at(it)
         for group in self.optimizer.param_groups:
-            group["lr"] = lr
+            group["lr"] = lr * group["lr_scale"]
         ta = time.perf_counter()
         sample = next(self.stream)
         tb = time.perf_counter()

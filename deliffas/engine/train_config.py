@@ -56,6 +56,9 @@ class TrainConfig:
     """``converge`` schedule: iterations of the linear warm-up from lr / warmup_iters to lr (at most a fifth
     of the run)."""
     lr_final: float = 0.1
+    texture_lr_scale: float = 1.0
+    """The texture atlases' learning rate as a multiple of the schedule's (``ModelConfig.texture_channels``):
+    each texel sees the gradient of the few rays that sample it, so it may learn faster than the networks."""
     """``converge`` schedule: the learning rate at the last iteration, as a fraction of the peak."""
     cameras_per_frame: int = 4
     """K training cameras per iteration; the U-Nets run once for all K."""
@@ -115,6 +118,8 @@ class TrainConfig:
             raise ValueError(f"ray_chunk: expected None or a whole number >= 1, got {self.ray_chunk!r}")
         if self.lr is not None and not (math.isfinite(self.lr) and self.lr > 0):
             raise ValueError(f"lr: expected None or a finite number > 0, got {self.lr!r}")
+        if not (math.isfinite(self.texture_lr_scale) and self.texture_lr_scale > 0):
+            raise ValueError(f"texture_lr_scale: expected a finite number > 0, got {self.texture_lr_scale!r}")
         if not (math.isfinite(self.lr_final) and 0 < self.lr_final <= 1):
             raise ValueError(f"lr_final: expected a number in (0, 1], got {self.lr_final!r}")
         if self.schedule not in SCHEDULE_LR:

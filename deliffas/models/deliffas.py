@@ -35,6 +35,7 @@ import logging
 from dataclasses import dataclass, field
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from deliffas.checks import check_shape
@@ -85,6 +86,10 @@ class ModelConfig:
     """C_t: channels of a learnable per-texel feature atlas (S x S, a neural texture) appended to each
     U-Net's feature map (one atlas per map: inner and, with an outer U-Net, outer). It carries the
     appearance that normal maps cannot predict; 0 = none (the paper's model)."""
+    texture_res: int | None = None
+    """Side of the texture atlases; None = ``atlas_res``. A larger side holds finer detail than the
+    normal maps: the U-Nets' maps are then upsampled (bilinear) to it, so every map a ray samples has
+    this side."""
 
     def __post_init__(self) -> None:
         try:
@@ -103,6 +108,9 @@ class ModelConfig:
             raise ValueError(f"ModelConfig: feature_channels must be >= 1, got {self.feature_channels}")
         if self.texture_channels < 0:
             raise ValueError(f"ModelConfig: texture_channels must be >= 0, got {self.texture_channels}")
+        if self.texture_res is not None and self.texture_res < self.atlas_res:
+            raise ValueError(f"ModelConfig: texture_res must be None or >= atlas_res ({self.atlas_res}), "
+                             f"got {self.texture_res}")
         if self.unet is None:
             object.__setattr__(
                 self, "unet", UNetConfig(in_channels=self.input_channels, out_channels=self.feature_channels)
@@ -181,9 +189,9 @@ class DeliffasModel(nn.Module):
         for i in range(2, spec.inner_unets + 1):
             setattr(self, f"unet_inner_{i}", UNet(unet_cfg, size))
         self.unet_outer = UNet(unet_cfg, size) if spec.outer_unet else None
-        ct = config.texture_channels
-        self.texture_inner = nn.Parameter(torch.zeros(1, ct, size, size)) if ct else None
-        self.texture_outer = nn.Parameter(torch.zeros(1, ct, size, size)) if ct and spec.outer_unet else None
+        ct, side = config.texture_channels, config.texture_res or size
+        self.texture_inner = nn.Parameter(torch.zeros(1, ct, side, side)) if ct else None
+        self.texture_outer = nn.Parameter(torch.zeros(1, ct, side, side)) if ct and spec.outer_unet else None
         self.pe_uv = PositionalEncoding(2, config.pe_freqs)
         self.pe_viewdir = PositionalEncoding(3, config.viewdir_pe_freqs) if spec.viewdir else None
         in_dim = spec.encoded_dim(self.pe_uv.out_dim, self.pe_viewdir.out_dim if self.pe_viewdir else 0)
@@ -228,10 +236,18 @@ class DeliffasModel(nn.Module):
 
     @staticmethod
     def _with_texture(maps: list[torch.Tensor], texture: torch.Tensor | None) -> torch.Tensor:
-        """The U-Nets' maps (each (B, C, S, S)) and the texture atlas (1, C_t, S, S), if any, along channels."""
+        """The U-Nets' maps (each (B, C, S, S)) and the texture atlas (1, C_t, S_t, S_t), if any, along
+        channels; the maps upsampled to S_t first where S_t > S."""
         if texture is not None:
+            side = texture.shape[-1]
+            if maps[0].shape[-1] != side:
+                maps = [F.interpolate(m, size=(side, side), mode="bilinear", align_corners=False) for m in maps]
             maps = [*maps, texture.to(maps[0].dtype).expand(maps[0].shape[0], -1, -1, -1)]
         return maps[0] if len(maps) == 1 else torch.cat(maps, dim=1)
+
+    def texture_parameters(self) -> list[nn.Parameter]:
+        """The texture atlases (empty without ``texture_channels``): the optimiser may give them their own rate."""
+        return [t for t in (self.texture_inner, self.texture_outer) if t is not None]
 
     # ------------------------------------------------------------------ stage 2: per ray
     def gather_inputs(self, features: FrameFeatures, query: RayQuery) -> tuple[torch.Tensor, torch.Tensor]:

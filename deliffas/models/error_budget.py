@@ -117,4 +117,4 @@ def _band_names(sigmas: tuple[float, ...]) -> list[str]:
     edges = [2 * s for s in sigmas]
     names = [f"< {edges[0]:g} px"]
     names += [f"{a:g}-{b:g} px" for a, b in zip(edges, edges[1:])]
-    return names + [f"> {edges[-1]:g} px"]
+    return names + [f"> {edges[-1]:g} px (and the mean)"]

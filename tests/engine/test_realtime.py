@@ -196,3 +196,19 @@ def test_fast_path_renders_a_textured_model_as_the_plain_path(frame, tiny_shards
         fast = _render(model, features, raycaster, cam, FastConfig(dtype="float32"))
         assert (plain.sum(-1) > 0).sum() > 50
         torch.testing.assert_close(fast, plain, atol=1e-4, rtol=0)
+
+
+def test_fast_path_renders_a_finer_texture_as_the_plain_path(frame):
+    _, _, raycaster, cameras = frame
+    torch.manual_seed(2)
+    base = frame[0].config
+    model = DeliffasModel(dataclasses.replace(base, texture_channels=2, texture_res=2 * base.atlas_res)).eval()
+    with torch.no_grad():
+        model.texture_inner.normal_()
+        model.texture_outer.normal_()
+        x = torch.rand(1, base.input_channels, base.atlas_res, base.atlas_res) * 2 - 1
+        features = model.encode(x, x)
+    for cam in cameras[:2]:
+        plain = _render(model, features, raycaster, cam, None)
+        fast = _render(model, features, raycaster, cam, FastRender(dtype="float32"))
+        torch.testing.assert_close(fast, plain, atol=1e-4, rtol=0)

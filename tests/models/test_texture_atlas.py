@@ -45,3 +45,26 @@ def test_texture_is_learned_where_rays_sample_it():
 def test_texture_channels_must_not_be_negative():
     with pytest.raises(ValueError, match="texture_channels"):
         dataclasses.replace(get_config("two_surface", "tiny"), texture_channels=-1)
+
+
+def test_a_finer_texture_upsamples_the_unet_maps_to_its_side():
+    cfg = get_config("two_surface", "tiny")
+    model = DeliffasModel(dataclasses.replace(cfg, texture_channels=2, texture_res=2 * cfg.atlas_res))
+    S, C = cfg.atlas_res, cfg.input_channels
+    x = torch.rand(1, C, S, S)
+    feats = model.encode(x, x)
+    assert feats.inner.shape[-2:] == (2 * S, 2 * S) and feats.outer.shape[-2:] == (2 * S, 2 * S)
+    with pytest.raises(ValueError, match="texture_res"):
+        dataclasses.replace(cfg, texture_channels=2, texture_res=S // 2)
+
+
+def test_texture_atlases_get_their_own_learning_rate(tmp_path):
+    from deliffas.engine.train import _optimizer
+    from deliffas.engine.train_config import TrainConfig
+
+    model = _model("two_surface", 2)
+    opt = _optimizer(model, TrainConfig(shards="s", out="o", texture_lr_scale=10.0))
+    assert [g["lr_scale"] for g in opt.param_groups] == [1.0, 10.0]
+    assert opt.param_groups[1]["params"] == model.texture_parameters()
+    assert sum(p.numel() for g in opt.param_groups for p in g["params"]) == model.num_parameters()
+    assert len(_optimizer(_model("two_surface", 0), TrainConfig(shards="s", out="o")).param_groups) == 1
