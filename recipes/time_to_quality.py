@@ -53,7 +53,7 @@ def run_curve(shards: Path, run_dir: Path, fields: dict, iters: int, seed: int, 
     if done.is_file():
         return json.loads(done.read_text())
     cfg = TrainConfig(shards=str(shards), out=str(run_dir), iters=iters, protocol="all", seed=seed, device=device,
-                      validation_cameras=1, cameras_per_frame=CAPTURE.cameras_per_frame, checkpoint_every=iters,
+                      validation_cameras=1, checkpoint_every=iters,
                       preview_every=0, progress=False, **fields)
     trainer = Trainer(cfg, overwrite=True)
     marks = sorted({max(1, round(f * iters)) for f in CHECKPOINTS})
@@ -100,14 +100,20 @@ def main(argv=None) -> dict:
     from deliffas.engine.train_config import TrainConfig
 
     p = recipe_parser(__doc__.splitlines()[0], seeds=True)
+    p.add_argument("--configs", default=None,
+                   help=f"comma-separated configurations to run, of {','.join(CONFIGS)} (default all); finished "
+                        "runs in OUT are read back, so runs split over processes join in a last call without it")
     args = p.parse_args(argv)
+    names = [n.strip() for n in args.configs.split(",")] if args.configs else list(CONFIGS)
+    if any(n not in CONFIGS for n in names):
+        p.error(f"--configs: expected names from {','.join(CONFIGS)}, got {args.configs!r}")
     sizes = RunSizes.quick() if args.quick else CAPTURE
     iters = args.iters or (sizes.iters if args.quick else TrainConfig.iters)
     seeds = seed_list(args)
     jobs = 1 if args.quick else 2
     shards = args.shards or prepare_shards(args.out, prepare_capture(args.out, sizes, 0, args.subject, jobs=jobs),
                                            sizes, jobs=jobs)
-    configs = {name: ({**fields, "preset": "tiny"} if args.quick else fields) for name, fields in CONFIGS.items()}
+    configs = {name: ({**CONFIGS[name], "preset": "tiny"} if args.quick else CONFIGS[name]) for name in names}
     curves = {name: [run_curve(shards, args.out / "runs" / name.replace(" ", "_") / f"seed{s}", fields, iters, s,
                                sizes.eval_frames, args.device) for s in seeds]
               for name, fields in configs.items()}

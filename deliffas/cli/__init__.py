@@ -304,7 +304,7 @@ def _add_engine_commands(sub) -> None:
                        description="Train on SHARDS (from `deliffas convert`). L1 first, then L1 + perceptual "
                                    "when --perceptual is given. Distributed with `torchrun --nproc_per_node N -m deliffas train ...`.")
     p.add_argument("shards", type=Path)
-    p.add_argument("--model", default=None, help="zoo name (default two_surface)")
+    p.add_argument("--model", default=None, help="zoo name (default two_surface_texture; the paper's model: two_surface)")
     p.add_argument("--out", type=Path, required=True, help="run directory")
     p.add_argument("--preset", default=None, help="paper | small (default) | realtime | tiny")
     p.add_argument("--iters", type=_positive_int, default=None, help="training iterations (>= 1)")

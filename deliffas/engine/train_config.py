@@ -36,13 +36,14 @@ class TrainConfig:
     """Directory of converted HDF5 shards (``deliffas convert``)."""
     out: str
     """Run directory (checkpoints, log.jsonl, previews)."""
-    model: str = "two_surface"
-    """Zoo name (``deliffas zoo list``)."""
+    model: str = "two_surface_texture"
+    """Zoo name (``deliffas zoo list``): ``two_surface_texture`` is DELIFFAS with texture atlases; the paper's
+    model is ``two_surface``."""
     preset: str = "small"
     """Size preset of the zoo entry (``paper``, ``small``, ``tiny``)."""
     model_overrides: dict = field(default_factory=dict)
     """ModelConfig fields replacing the preset's (nested dicts for ``unet``/``mlp``)."""
-    iters: int = 1000
+    iters: int = 1500
     """Training iterations (one frame with ``cameras_per_frame`` images each)."""
     schedule: Literal["converge", "paper"] = "converge"
     """Learning-rate schedule. ``converge``: a linear warm-up over ``warmup_iters``, then an exponential
@@ -60,7 +61,7 @@ class TrainConfig:
     """The texture atlases' learning rate as a multiple of the schedule's (``ModelConfig.texture_channels``):
     each texel sees the gradient of the few rays that sample it, so it may learn faster than the networks."""
     """``converge`` schedule: the learning rate at the last iteration, as a fraction of the peak."""
-    cameras_per_frame: int = 4
+    cameras_per_frame: int = 3
     """K training cameras per iteration; the U-Nets run once for all K."""
     protocol: Literal["auto", "paper", "all"] = "auto"
     """Frames used: ``paper`` = every 10th frame (DELIFFAS, for DynaCap-scale captures), ``all`` = every

@@ -86,10 +86,10 @@ class ModelConfig:
     """C_t: channels of a learnable per-texel feature atlas (S x S, a neural texture) appended to each
     U-Net's feature map (one atlas per map: inner and, with an outer U-Net, outer). It carries the
     appearance that normal maps cannot predict; 0 = none (the paper's model)."""
-    texture_res: int | None = None
-    """Side of the texture atlases; None = ``atlas_res``. A larger side holds finer detail than the
-    normal maps: the U-Nets' maps are then upsampled (bilinear) to it, so every map a ray samples has
-    this side."""
+    texture_scale: int = 1
+    """Side of the texture atlases as a multiple of ``atlas_res``. Above 1 they hold finer detail than the
+    normal maps: the U-Nets' maps are then upsampled (bilinear) to that side, so every map a ray samples
+    has it."""
 
     def __post_init__(self) -> None:
         try:
@@ -108,9 +108,8 @@ class ModelConfig:
             raise ValueError(f"ModelConfig: feature_channels must be >= 1, got {self.feature_channels}")
         if self.texture_channels < 0:
             raise ValueError(f"ModelConfig: texture_channels must be >= 0, got {self.texture_channels}")
-        if self.texture_res is not None and self.texture_res < self.atlas_res:
-            raise ValueError(f"ModelConfig: texture_res must be None or >= atlas_res ({self.atlas_res}), "
-                             f"got {self.texture_res}")
+        if self.texture_scale < 1:
+            raise ValueError(f"ModelConfig: texture_scale must be >= 1, got {self.texture_scale}")
         if self.unet is None:
             object.__setattr__(
                 self, "unet", UNetConfig(in_channels=self.input_channels, out_channels=self.feature_channels)
@@ -189,7 +188,7 @@ class DeliffasModel(nn.Module):
         for i in range(2, spec.inner_unets + 1):
             setattr(self, f"unet_inner_{i}", UNet(unet_cfg, size))
         self.unet_outer = UNet(unet_cfg, size) if spec.outer_unet else None
-        ct, side = config.texture_channels, config.texture_res or size
+        ct, side = config.texture_channels, config.texture_scale * size
         self.texture_inner = nn.Parameter(torch.zeros(1, ct, side, side)) if ct else None
         self.texture_outer = nn.Parameter(torch.zeros(1, ct, side, side)) if ct and spec.outer_unet else None
         self.pe_uv = PositionalEncoding(2, config.pe_freqs)

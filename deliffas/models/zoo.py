@@ -18,7 +18,8 @@ on the recipe capture its foreground PSNR is 0.36 dB below ``small``'s (five see
 ``python -m recipes.presets``).
 
 for each of the four variants (``single_surface``, ``single_surface_viewdir``,
-``single_surface_two_unet``, ``two_surface``); the registered model names are the variant names.
+``single_surface_two_unet``, ``two_surface``), registered under the variant names, and for
+``two_surface_texture`` (``TEXTURED``: ``two_surface`` with texture atlases, the training default).
 
 Checkpoint directory layout (no pickle anywhere):
 
@@ -166,6 +167,15 @@ def _preset(variant: str, preset: str) -> ModelConfig:
 
 for _variant in VARIANTS:
     register(_variant, {p: _preset(_variant, p) for p in ("paper", "small", "realtime", "tiny")})
+
+TEXTURED = "two_surface_texture"
+"""DELIFFAS with texture atlases (the default of ``deliffas train``): ``two_surface`` plus
+``TEXTURE_CHANNELS`` learnable feature channels per map at ``TEXTURE_SCALE`` x the atlas side, which hold
+the appearance that normal maps cannot predict (docs/results.md, "Time to quality")."""
+TEXTURE_CHANNELS, TEXTURE_SCALE = 8, 2
+register(TEXTURED, {p: dataclasses.replace(_preset("two_surface", p), texture_channels=TEXTURE_CHANNELS,
+                                           texture_scale=TEXTURE_SCALE)
+                    for p in ("paper", "small", "realtime", "tiny")})
 
 
 # ---------------------------------------------------------------------------------------- config <-> dict

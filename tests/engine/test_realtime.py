@@ -202,7 +202,7 @@ def test_fast_path_renders_a_finer_texture_as_the_plain_path(frame):
     _, _, raycaster, cameras = frame
     torch.manual_seed(2)
     base = frame[0].config
-    model = DeliffasModel(dataclasses.replace(base, texture_channels=2, texture_res=2 * base.atlas_res)).eval()
+    model = DeliffasModel(dataclasses.replace(base, texture_channels=2, texture_scale=2)).eval()
     with torch.no_grad():
         model.texture_inner.normal_()
         model.texture_outer.normal_()

@@ -49,13 +49,13 @@ def test_texture_channels_must_not_be_negative():
 
 def test_a_finer_texture_upsamples_the_unet_maps_to_its_side():
     cfg = get_config("two_surface", "tiny")
-    model = DeliffasModel(dataclasses.replace(cfg, texture_channels=2, texture_res=2 * cfg.atlas_res))
+    model = DeliffasModel(dataclasses.replace(cfg, texture_channels=2, texture_scale=2))
     S, C = cfg.atlas_res, cfg.input_channels
     x = torch.rand(1, C, S, S)
     feats = model.encode(x, x)
     assert feats.inner.shape[-2:] == (2 * S, 2 * S) and feats.outer.shape[-2:] == (2 * S, 2 * S)
-    with pytest.raises(ValueError, match="texture_res"):
-        dataclasses.replace(cfg, texture_channels=2, texture_res=S // 2)
+    with pytest.raises(ValueError, match="texture_scale"):
+        dataclasses.replace(cfg, texture_channels=2, texture_scale=0)
 
 
 def test_texture_atlases_get_their_own_learning_rate(tmp_path):
