@@ -14,7 +14,8 @@ import torch
 
 from deliffas.engine.data_bridge import evaluation_samples
 from deliffas.engine.devices import resolve_device
-from deliffas.engine.evaluate import load_run, render_frame
+from deliffas.engine.runs import load_run
+from deliffas.engine.shading import render_frame
 from deliffas.engine.rays import camera_rays
 from deliffas.engine.samples import composite_target
 from deliffas.engine.timing import StageTimer

@@ -210,5 +210,5 @@ def test_fast_path_renders_a_finer_texture_as_the_plain_path(frame):
         features = model.encode(x, x)
     for cam in cameras[:2]:
         plain = _render(model, features, raycaster, cam, None)
-        fast = _render(model, features, raycaster, cam, FastRender(dtype="float32"))
+        fast = _render(model, features, raycaster, cam, FastConfig(dtype="float32"))
         torch.testing.assert_close(fast, plain, atol=1e-4, rtol=0)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import json
 import os
 
@@ -24,10 +26,14 @@ from deliffas.models.zoo import (
     register,
     save_checkpoint,
 )
+from deliffas.models.zoo import TEXTURE_CHANNELS, TEXTURE_SCALE, TEXTURED
 
 
 def test_registry_lists_variants_and_presets():
-    assert list_models() == sorted(VARIANTS)
+    assert list_models() == sorted([*VARIANTS, TEXTURED])
+    textured = get_config(TEXTURED)
+    assert textured == dataclasses.replace(get_config("two_surface"), texture_channels=TEXTURE_CHANNELS,
+                                           texture_scale=TEXTURE_SCALE)
     for name in VARIANTS:
         assert set(list_presets(name)) == {"paper", "small", "realtime", "tiny"}
         assert get_config(name).variant == name
