@@ -170,9 +170,10 @@ for _variant in VARIANTS:
 
 TEXTURED = "two_surface_texture"
 """DELIFFAS with texture atlases (the default of ``deliffas train``): ``two_surface`` plus
-``TEXTURE_CHANNELS`` learnable feature channels per map at ``TEXTURE_SCALE`` x the atlas side, which hold
+``TEXTURE_CHANNELS`` learnable feature channels per map at ``TEXTURE_SCALE`` x the atlas side (twice the side
+fits finer detail but doubles a training step), which hold
 the appearance that normal maps cannot predict (docs/results.md, "Time to quality")."""
-TEXTURE_CHANNELS, TEXTURE_SCALE = 8, 2
+TEXTURE_CHANNELS, TEXTURE_SCALE = 8, 1
 register(TEXTURED, {p: dataclasses.replace(_preset("two_surface", p), texture_channels=TEXTURE_CHANNELS,
                                            texture_scale=TEXTURE_SCALE)
                     for p in ("paper", "small", "realtime", "tiny")})
