@@ -162,4 +162,4 @@ def test_export_then_render_after_shards_and_subject_are_deleted(portable, tmp_p
     capsys.readouterr()
     _refused(capsys, ["eval", portable["run"]], "pass --shards")
     assert main(["zoo", "list", str(tmp_path / "share")]) == 0
-    assert "alice.avatar: two_surface (tiny)" in capsys.readouterr().out
+    assert "alice.avatar: two_surface_texture (tiny)" in capsys.readouterr().out  # the default model
