@@ -8,8 +8,7 @@ from pathlib import Path
 PACKAGE = Path(__file__).resolve().parents[1] / "deliffas"
 MAX_FILE_LINES = 600
 MAX_FUNCTION_LINES = 80
-KNOWN_LONG = {"deliffas/cli/__init__.py:_add_data_commands", "deliffas/cli/__init__.py:_add_engine_commands",
-              "deliffas/io/formats/dynacap/calibration.py:read_calibration"}
+KNOWN_LONG = {"deliffas/io/formats/dynacap/calibration.py:read_calibration"}
 """``module:function`` names still over the limit (to be split; a name that shrank must leave this set)."""
 
 

@@ -126,7 +126,8 @@ def _port(text: str) -> int:
     return port
 
 
-def _add_data_commands(sub) -> None:
+def _add_capture_commands(sub) -> None:
+    """synth and convert."""
     p = sub.add_parser("synth", help="render a synthetic DynaCap capture with a loose garment",
                        description="Write a synthetic subject folder in DynaCap layout (cameras, the body: a DDC "
                                    "character or an SMPL model, training + novel-pose motions, RGBA images, "
@@ -196,6 +197,9 @@ def _add_data_commands(sub) -> None:
     p.add_argument("--no-check", action="store_true", help="convert even when the silhouette check fails")
     p.set_defaults(handler="convert")
 
+
+def _add_capture_tool_commands(sub) -> None:
+    """fit-smpl, check, verify and cameras."""
     p = sub.add_parser("fit-smpl", help="fit SMPL to every frame of a capture (for converting it with SMPL)",
                        description="Fit an SMPL model (one shape, per-frame pose and translation) to the surface "
                                    "of every frame of SUBJECT (its posed template, or tracked .meshes), by "
@@ -291,7 +295,8 @@ def _add_geometry_commands(sub) -> None:
     p.set_defaults(handler="template")
 
 
-def _add_engine_commands(sub) -> None:
+def _add_training_commands(sub) -> None:
+    """zoo and train."""
     p = sub.add_parser("zoo", help="list the model zoo (named configurations and presets) and avatar files")
     p.add_argument("action", choices=["list"], help="what to do")
     p.add_argument("folder", type=Path, nargs="?", default=None,
@@ -344,6 +349,9 @@ def _add_engine_commands(sub) -> None:
     p.add_argument("--tolerance-db", type=float, default=0.5, help="auto-capacity tolerance in dB (default 0.5)")
     p.set_defaults(handler="train")
 
+
+def _add_evaluation_commands(sub) -> None:
+    """eval, render and export."""
     p = sub.add_parser("eval", help="evaluate a run: foreground and official PSNR/SSIM, FLIP (+LPIPS/FID when "
                                     "weights exist) and per-stage timing",
                        description="Score RUN on a split. Every number names its protocol: the official one (white "
@@ -401,6 +409,9 @@ def _add_engine_commands(sub) -> None:
     p.add_argument("--overwrite", action="store_true", help="replace an existing OUT")
     p.set_defaults(handler="export")
 
+
+def _add_viewer_commands(sub) -> None:
+    """view and demo."""
     p = sub.add_parser("view", help="interactive viewer in the browser (viser): a trained run, or a capture",
                        description="Serve a browser viewer of a trained run: free camera (orbit, pan, zoom), "
                                    "the capture's cameras as frustums and a menu, a motion timeline, RGB / uv / "
@@ -462,9 +473,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="output mesh, .ply or .obj (.obj keeps the uvs)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     p.set_defaults(handler="pose")
-    _add_data_commands(sub)
-    _add_geometry_commands(sub)
-    _add_engine_commands(sub)
+    for add in (_add_capture_commands, _add_capture_tool_commands, _add_geometry_commands, _add_training_commands,
+                _add_evaluation_commands, _add_viewer_commands):
+        add(sub)
     return parser
 
 
