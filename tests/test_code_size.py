@@ -8,7 +8,7 @@ from pathlib import Path
 PACKAGE = Path(__file__).resolve().parents[1] / "deliffas"
 MAX_FILE_LINES = 600
 MAX_FUNCTION_LINES = 80
-KNOWN_LONG = {"deliffas/io/formats/dynacap/calibration.py:read_calibration"}
+KNOWN_LONG: set[str] = set()
 """``module:function`` names still over the limit (to be split; a name that shrank must leave this set)."""
 
 

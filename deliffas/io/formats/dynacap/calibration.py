@@ -21,6 +21,47 @@ __all__ = ["read_calibration", "write_calibration", "CALIBRATION_HEADER"]
 CALIBRATION_HEADER = "Skeletool Camera Calibration File V1.0"
 
 
+def _camera_from_keys(path: PathLike, keys: dict, name: str, line: int) -> Camera:
+    """The Camera of one camera (or frame block) from its keys; refuses a missing key or a non-rigid extrinsic."""
+    for key in ("size", "intrinsic", "extrinsic"):
+        if key not in keys:
+            raise DynaCapFormatError(path, line, f"camera '{name}' lacks its '{key}' line")
+    K4, E = keys["intrinsic"], keys["extrinsic"]
+    if abs(E[3, 3] - 1) > 1e-6 or np.abs(E[3, :3]).max() > 1e-6:
+        raise DynaCapFormatError(path, line, f"camera '{name}': extrinsic last row must be 0 0 0 1")
+    try:
+        return Camera(name, K4[:3, :3].copy(), E.copy(), keys["size"][0], keys["size"][1],
+                      keys.get("sensor"), keys.get("radial", 0.0))
+    except ValueError as err:  # singular intrinsics, a scaled or mirrored rotation
+        raise DynaCapFormatError(path, line, f"camera '{name}': {err}") from None
+
+
+def _read_camera_key(t: TextLines, key: str, vals: list[str], target: dict) -> None:
+    """One ``sensor``, ``size``, ``animated``, ``intrinsic``, ``extrinsic`` or ``radial`` line into ``target``
+    (the camera, or its current frame block for the last three)."""
+    if key == "sensor":
+        if len(vals) != 2:
+            raise t.error(f"expected 'sensor w h', got {len(vals)} values")
+        target["sensor"] = tuple(t.floats(vals, "sensor size"))
+    elif key == "size":
+        if len(vals) != 2:
+            raise t.error(f"expected 'size W H', got {len(vals)} values")
+        w, h = (t.to_int(v, "image size") for v in vals)
+        if w <= 0 or h <= 0:
+            raise t.error(f"expected a positive image size, got {w}x{h}")
+        target["size"] = (w, h)
+    elif key == "animated":
+        if vals not in (["0"], ["1"]):
+            raise t.error(f"expected 'animated 0' or 'animated 1', got {' '.join(vals)[:20]!r}")
+        target["animated"] = vals == ["1"]
+    elif key in ("intrinsic", "extrinsic"):
+        if len(vals) != 16:
+            raise t.error(f"expected 16 numbers after '{key}' (row-major 4x4), got {len(vals)}")
+        target[key] = np.array(t.floats(vals, key)).reshape(4, 4)
+    elif vals:  # radial
+        target["radial"] = t.to_float(vals[0], "radial coefficient")
+
+
 def read_calibration(path: PathLike) -> list[Camera]:
     """Read ``cameras.calibration`` into Cameras (formats doc 1.9).
 
@@ -40,17 +81,7 @@ def read_calibration(path: PathLike) -> list[Camera]:
     block: dict | None = None  # the current frame block of an animated camera: frame, line, and its keys
 
     def emit(keys: dict, name: str, line: int) -> None:
-        for key in ("size", "intrinsic", "extrinsic"):
-            if key not in keys:
-                raise DynaCapFormatError(path, line, f"camera '{name}' lacks its '{key}' line")
-        K4, E = keys["intrinsic"], keys["extrinsic"]
-        if abs(E[3, 3] - 1) > 1e-6 or np.abs(E[3, :3]).max() > 1e-6:
-            raise DynaCapFormatError(path, line, f"camera '{name}': extrinsic last row must be 0 0 0 1")
-        try:
-            cams.append(Camera(name, K4[:3, :3].copy(), E.copy(), keys["size"][0], keys["size"][1],
-                               keys.get("sensor"), keys.get("radial", 0.0)))
-        except ValueError as err:  # singular intrinsics, a scaled or mirrored rotation
-            raise DynaCapFormatError(path, line, f"camera '{name}': {err}") from None
+        cams.append(_camera_from_keys(path, keys, name, line))
 
     def close_block() -> None:
         nonlocal block
@@ -86,22 +117,8 @@ def read_calibration(path: PathLike) -> list[Camera]:
             continue
         if cam is None:
             raise t.error(f"expected 'name <id>' before '{key}'")
-        target = block if block is not None else cam
-        if key == "sensor":
-            if len(vals) != 2:
-                raise t.error(f"expected 'sensor w h', got {len(vals)} values")
-            cam["sensor"] = tuple(t.floats(vals, "sensor size"))
-        elif key == "size":
-            if len(vals) != 2:
-                raise t.error(f"expected 'size W H', got {len(vals)} values")
-            w, h = (t.to_int(v, "image size") for v in vals)
-            if w <= 0 or h <= 0:
-                raise t.error(f"expected a positive image size, got {w}x{h}")
-            cam["size"] = (w, h)
-        elif key == "animated":
-            if vals not in (["0"], ["1"]):
-                raise t.error(f"expected 'animated 0' or 'animated 1', got {' '.join(vals)[:20]!r}")
-            cam["animated"] = vals == ["1"]
+        if key in ("sensor", "size", "animated"):
+            _read_camera_key(t, key, vals, cam)
         elif key == "frame":
             if not cam.get("animated"):
                 raise t.error(f"'frame' block in camera '{cam['name']}', which is not 'animated 1'")
@@ -111,13 +128,8 @@ def read_calibration(path: PathLike) -> list[Camera]:
                 raise t.error(f"camera '{cam['name']}' has frame {frame} twice")
             cam["frames"].add(frame)
             block = {"frame": frame, "line": t.line_no}
-        elif key in ("intrinsic", "extrinsic"):
-            if len(vals) != 16:
-                raise t.error(f"expected 16 numbers after '{key}' (row-major 4x4), got {len(vals)}")
-            target[key] = np.array(t.floats(vals, key)).reshape(4, 4)
-        elif key == "radial":
-            if vals:
-                target["radial"] = t.to_float(vals[0], "radial coefficient")
+        elif key in ("intrinsic", "extrinsic", "radial"):
+            _read_camera_key(t, key, vals, block if block is not None else cam)
         elif key in ("polynomial", "polynomialC2W", "polynomialW2C", "imageCircleRadius", "affine"):
             cam.setdefault("extra", {})[key] = vals  # fisheye model: kept out of the pinhole projection
         else:
