@@ -18,11 +18,18 @@ from jaxtyping import Float, Real
 
 from deliffas.checks import check_finite, check_shape
 
-__all__ = ["Camera", "pixel_centers", "look_at", "ROTATION_TOLERANCE"]
+__all__ = ["Camera", "pixel_centers", "look_at", "check_camera", "check_camera_names", "ROTATION_TOLERANCE",
+           "MIN_FOCAL_FRACTION", "PRINCIPAL_POINT_MARGIN"]
 
 ROTATION_TOLERANCE = 1e-4
 """How far a camera's R may be from a rotation (max |R R^T - I| and |det R - 1|): calibration files
 print ~10 significant digits; a scaled or mirrored R is an error, not rounding."""
+MIN_FOCAL_FRACTION = 1e-3
+"""The smallest focal length (fx, fy) a camera may have, as a fraction of its image's larger side (a field
+of view just under 180 degrees); a zero or negative focal length mirrors or collapses the image."""
+PRINCIPAL_POINT_MARGIN = 1.0
+"""How far the principal point may lie outside the image, in image sizes: cx in [-m W, (1 + m) W], cy in
+[-m H, (1 + m) H]. Crops move it off-centre; beyond this it is a unit or convention error."""
 
 
 def pixel_centers(width: int, height: int) -> Float[np.ndarray, "H W 2"]:
@@ -62,6 +69,68 @@ def look_at(eye: Real[np.ndarray, "3"] | Sequence[float], target: Real[np.ndarra
     return world_to_cam
 
 
+def check_camera(name: str, K: Real[np.ndarray, "3 3"], world_to_cam: Real[np.ndarray, "4 4"], width: int,
+                 height: int) -> None:
+    """The plausibility check every ``Camera`` passes (so every reader and writer of cameras): what no real
+    pinhole camera can be is refused.
+
+    Checked: shapes; finite values; a positive image size; K's last row exactly (0, 0, 1); fx and fy at least
+    ``MIN_FOCAL_FRACTION`` of the larger image side (positive: a negative one mirrors the image); a
+    non-singular K; the principal point within ``PRINCIPAL_POINT_MARGIN`` image sizes of the image;
+    world_to_cam's last row (0, 0, 0, 1); R orthonormal with det +1 within ``ROTATION_TOLERANCE``.
+
+    Raises:
+        ValueError: ``camera <name> <key>: expected ..., got ...`` (readers re-raise it naming their file).
+    """
+    check_shape(f"camera {name} K", K, "3 3")
+    check_shape(f"camera {name} world_to_cam", world_to_cam, "4 4")
+    check_finite(f"camera {name} K", K)  # NaN rays would silently hit nothing
+    check_finite(f"camera {name} world_to_cam", world_to_cam)
+    K = np.asarray(K, np.float64)
+    if width <= 0 or height <= 0:
+        raise ValueError(f"camera {name}: image size must be positive, got {width}x{height}")
+    if K[2].tolist() != [0.0, 0.0, 1.0]:
+        raise ValueError(f"camera {name} K: expected the last row (0, 0, 1), got {tuple(K[2].tolist())} "
+                         "(another last row rescales every pixel coordinate)")
+    least = MIN_FOCAL_FRACTION * max(width, height)
+    if not (K[0, 0] >= least and K[1, 1] >= least):
+        raise ValueError(f"camera {name} K: expected positive focal lengths of at least {least:g} px "
+                         f"({MIN_FOCAL_FRACTION:g} of the image's larger side), got fx = {K[0, 0]:g}, fy = {K[1, 1]:g}")
+    if abs(float(np.linalg.det(K))) < 1e-12:
+        raise ValueError(f"camera {name} K: singular intrinsics (fx, fy must be non-zero, last row 0 0 1)")
+    m = PRINCIPAL_POINT_MARGIN
+    if not (-m * width <= K[0, 2] <= (1 + m) * width and -m * height <= K[1, 2] <= (1 + m) * height):
+        raise ValueError(f"camera {name} K: expected the principal point within {m:g} image size of the "
+                         f"{width}x{height} image, got (cx, cy) = ({K[0, 2]:g}, {K[1, 2]:g})")
+    E = np.asarray(world_to_cam, np.float64)
+    if E[3].tolist() != [0.0, 0.0, 0.0, 1.0]:
+        raise ValueError(f"camera {name} world_to_cam: expected the last row (0, 0, 0, 1), got {tuple(E[3].tolist())}")
+    R = E[:3, :3]
+    with np.errstate(over="ignore", invalid="ignore"):  # a huge R overflows: NaN/inf fail the test below
+        orth = float(np.abs(R @ R.T - np.eye(3)).max())
+        det = float(np.linalg.det(R))
+    if not (orth <= ROTATION_TOLERANCE and abs(det - 1) <= ROTATION_TOLERANCE):
+        # a scaled or mirrored R projects differently in every other format (COLMAP stores a quaternion)
+        raise ValueError(f"camera {name} world_to_cam: R must be a rotation (R R^T = I, det +1 within "
+                         f"{ROTATION_TOLERANCE}); got |R R^T - I| = {orth:.2g}, det = {det:.6g}")
+
+
+def check_camera_names(names: Sequence[str], where: str = "cameras") -> None:
+    """Refuse a camera name given twice (a second camera of the same name would silently replace the first in
+    every lookup by name, and a format writes one file or entry per name).
+
+    Raises:
+        ValueError: ``<where>: camera name '<name>' appears N times (expected unique names)``.
+    """
+    seen: dict[str, int] = {}
+    for n in names:
+        seen[str(n)] = seen.get(str(n), 0) + 1
+    twice = [n for n, k in seen.items() if k > 1]
+    if twice:
+        raise ValueError(f"{where}: camera name {twice[0]!r} appears {seen[twice[0]]} times "
+                         f"({len(twice)} names repeated; expected unique names)")
+
+
 @dataclass(frozen=True)
 class Camera:
     """One calibrated pinhole camera. The projection is pinhole (as in DELIFFAS); a capture's lens
@@ -93,22 +162,7 @@ class Camera:
     extra: dict = field(default_factory=dict, compare=False)
 
     def __post_init__(self) -> None:
-        check_shape(f"camera {self.name} K", self.K, "3 3")
-        check_shape(f"camera {self.name} world_to_cam", self.world_to_cam, "4 4")
-        check_finite(f"camera {self.name} K", self.K)  # NaN rays would silently hit nothing
-        check_finite(f"camera {self.name} world_to_cam", self.world_to_cam)
-        if abs(float(np.linalg.det(np.asarray(self.K, np.float64)))) < 1e-12:
-            raise ValueError(f"camera {self.name} K: singular intrinsics (fx, fy must be non-zero, last row 0 0 1)")
-        if self.width <= 0 or self.height <= 0:
-            raise ValueError(f"camera {self.name}: image size must be positive, got {self.width}x{self.height}")
-        R = np.asarray(self.world_to_cam, np.float64)[:3, :3]
-        with np.errstate(over="ignore", invalid="ignore"):  # a huge R overflows: NaN/inf fail the test below
-            orth = float(np.abs(R @ R.T - np.eye(3)).max())
-            det = float(np.linalg.det(R))
-        if not (orth <= ROTATION_TOLERANCE and abs(det - 1) <= ROTATION_TOLERANCE):
-            # a scaled or mirrored R projects differently in every other format (COLMAP stores a quaternion)
-            raise ValueError(f"camera {self.name} world_to_cam: R must be a rotation (R R^T = I, det +1 within "
-                             f"{ROTATION_TOLERANCE}); got |R R^T - I| = {orth:.2g}, det = {det:.6g}")
+        check_camera(self.name, self.K, self.world_to_cam, self.width, self.height)
 
     @property
     def R(self) -> Float[np.ndarray, "3 3"]:
