@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["check_shape", "check_finite"]
+__all__ = ["check_shape", "check_finite", "finite_as"]
 
 
 def _shape_of(x: Any) -> tuple[int, ...]:
@@ -62,3 +62,20 @@ def check_finite(name: str, x: Any) -> None:
         bad = int((~np.isfinite(np.asarray(x))).sum())
     if bad:
         raise ValueError(f"{name}: {bad} non-finite values (NaN or inf) in array of shape {_shape_of(x)}")
+
+
+def finite_as(name: str, x: Any, dtype: Any) -> np.ndarray:
+    """``x`` as a numpy array of ``dtype``, refused when it holds NaN or inf in that dtype: what a writer stores
+    must read back as numbers (1e307 is finite in float64 and inf in a float32 PLY).
+
+    Raises:
+        ValueError: ``<name>: N of M values are not finite as <dtype> (NaN, inf or beyond its range); not written``.
+    """
+    with np.errstate(over="ignore", invalid="ignore"):  # an overflowing cast gives inf, refused below
+        a = np.asarray(x).astype(dtype, copy=False)
+    if a.dtype.kind in "fc":
+        bad = int((~np.isfinite(a)).sum())
+        if bad:
+            raise ValueError(f"{name}: {bad} of {a.size} values are not finite as {np.dtype(dtype).name} "
+                             "(NaN, inf or beyond its range); not written")
+    return a

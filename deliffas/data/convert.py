@@ -267,7 +267,11 @@ def convert(subject: Subject | str | os.PathLike, out_dir: str | os.PathLike,
         raise ValueError("shard_frames >= 1, window >= 0 and atlas_res >= 4 are required")
     Codec.parse(config.codec)
     if not (out / MANIFEST_NAME).is_file() and out.is_dir() and any(out.iterdir()) and not config.overwrite:
-        raise FileExistsError(f"{out}: not empty and holds no conversion; pass --overwrite to convert into it")
+        if not _is_partial_start(out):
+            raise FileExistsError(f"{out}: not empty and holds no conversion; pass --overwrite to convert into it")
+        if not config.resume:  # a conversion killed before its first manifest: nothing of the user's is here
+            raise FileExistsError(f"{out}: holds the start of an interrupted conversion (no manifest yet); "
+                                  "use --resume or --overwrite")
     if not isinstance(subject, Subject):
         root = Path(subject).resolve()
         if out == root or root in out.parents:
@@ -379,6 +383,18 @@ def _resumable_shards(out: Path, tasks: list[ShardTask], old: dict) -> dict[str,
         else:
             log.warning("%s: does not match the manifest; converting it again", t.name)
     return done
+
+
+def _is_partial_start(out: Path) -> bool:
+    """``out`` holds only what a conversion writes before its first manifest: the shard folder (empty or with
+    temporary files), ``meta.h5`` and temporary files; ``--resume`` starts such a conversion afresh."""
+    for p in out.iterdir():
+        if p.name == SHARD_DIR and p.is_dir() and not p.is_symlink():
+            if any(TMP_MARK not in q.name or not q.name.startswith(".") for q in p.iterdir()):
+                return False
+        elif not (p.name == META_NAME and p.is_file() or p.name.startswith(".") and TMP_MARK in p.name):
+            return False
+    return True
 
 
 def _remove_leftovers(out: Path) -> None:

@@ -26,6 +26,7 @@ from typing import Literal, Sequence
 import numpy as np
 from jaxtyping import Float, Integer
 
+from deliffas.checks import finite_as
 from deliffas.io.infra.files import durable_replace, sha256_file, temp_path
 from deliffas.data.shard_meta import SCHEMA_VERSION, ShardMeta, read_meta
 from deliffas.data.shard_schema import SHARD_FORMAT, inside, shard_problems
@@ -134,6 +135,11 @@ class ShardGeometry:
     normal_maps_outer: Float[np.ndarray, "G 3 S S"]
 
 
+_GEOMETRY_DTYPES = {"dofs": np.float64, "inner_verts": np.float32, "outer_verts": np.float32,
+                    "normal_maps_inner": np.float16, "normal_maps_outer": np.float16}
+"""The dtype each geometry dataset of a shard is stored in."""
+
+
 class ShardWriter:
     """Writes one shard under a temporary name; ``commit`` renames it and returns (sha256, bytes).
 
@@ -165,6 +171,9 @@ class ShardWriter:
         rows = np.searchsorted(gframes, want)
         if np.any(rows >= len(gframes)) or np.any(gframes[np.minimum(rows, len(gframes) - 1)] != want):
             raise ValueError(f"{self.path.name}: geometry lacks frames of the temporal window")
+        # NaN/inf (or a value beyond the stored dtype) is refused before anything is written
+        stored = {name: finite_as(f"{self.path}: geometry/{name}", getattr(geometry, name), dtype)
+                  for name, dtype in _GEOMETRY_DTYPES.items()}
         self.path.parent.mkdir(parents=True, exist_ok=True)
         # no chunk cache: each chunk gets its file space when it is written, not when the last handle of
         # its dataset closes (a thread that briefly holds this frame, as Dask's profiler does, would
@@ -189,13 +198,13 @@ class ShardWriter:
                              compression="gzip", compression_opts=IMAGE_GZIP_LEVEL)
         g = f.create_group("geometry")
         g.create_dataset("frames", data=gframes)
-        g.create_dataset("dofs", data=np.asarray(geometry.dofs, np.float64))
+        g.create_dataset("dofs", data=stored["dofs"])
         for name in ("inner_verts", "outer_verts"):
-            a = np.asarray(getattr(geometry, name), np.float32)
+            a = stored[name]
             g.create_dataset(name, data=a, chunks=(1,) + a.shape[1:], compression="gzip",
                              compression_opts=ARRAY_GZIP_LEVEL, shuffle=True)
         for name in ("normal_maps_inner", "normal_maps_outer"):
-            a = np.asarray(getattr(geometry, name), np.float16)
+            a = stored[name]
             g.create_dataset(name, data=a, chunks=(1,) + a.shape[1:], compression=NORMAL_MAP_COMPRESSION)
 
     def put(self, row: int, col: int, rgb: np.ndarray, mask: np.ndarray) -> None:

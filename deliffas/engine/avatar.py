@@ -60,7 +60,7 @@ def capture_record(meta: ShardMeta) -> tuple[dict[str, np.ndarray], dict]:
     """
     spec = meta.template_spec()
     spec.verify()
-    paths = {role: Path(p).resolve() for role, p in spec.files.items()}
+    paths = {role: Path(os.path.abspath(p)) for role, p in spec.files.items()}  # the layout the spec read
     root = Path(os.path.commonpath([str(p.parent) for p in paths.values()])) if paths else Path(".")
     arrays = {name: np.asarray(getattr(meta, name)) for name in _META_ARRAYS}
     for role, p in paths.items():

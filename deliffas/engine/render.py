@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from deliffas.checks import check_finite
 from deliffas.io.cameras import Camera, look_at
 from deliffas.data.pose_motions import motion_suffix, read_pose_motion
 from deliffas.geometry.atlas import TexelTable, UVAtlas
@@ -96,6 +97,7 @@ def render_images(model, normal_windows, geometry, faces, atlas, cameras: list[C
             batch = stack_rays([camera_rays(raycaster, cam)], [0]).to(device)
             rgb = model.shade_chunked(features, ray_query(batch, model.spec), chunk_size=chunk_size)
             image = paint_images(rgb, batch, 1, cam.height, cam.width, background)[0]
+        check_finite(f"render: frame {i} ({cam.name}) colours", image)  # NaN would be written as black pixels
         return (image.clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
 
     yield from render_stream(frame, range(len(cameras)), fast.frames_in_flight() if fast is not None else 1)
@@ -143,6 +145,7 @@ def render_video(cfg: RenderConfig) -> Path:
                          "play it again from its start, or fewer --frames")
     rows = np.arange(n) % motion.num_frames
     inner = template.pose(torch.as_tensor(motion.dofs[rows], dtype=torch.float64)).numpy()
+    check_finite(f"{motion_path}: the posed template", inner)
     geometry = builder.build(inner)
     T = model.config.temporal_window
     cams_all = meta.cameras()

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from deliffas.checks import finite_as
 from deliffas.io.infra.files import write_bytes_atomic
 
 __all__ = ["AvatarFile", "AvatarFileError", "write_avatar_file", "read_avatar_file", "AVATAR_FORMAT",
@@ -60,12 +61,15 @@ def write_avatar_file(path: str | os.PathLike, arrays: dict[str, np.ndarray], re
     """Write ``arrays`` and ``record`` (JSON-serialisable) to ``path`` atomically; returns the path.
 
     Raises:
-        ValueError: ``record`` is not JSON-serialisable or an array name is not a string.
+        ValueError: ``record`` is not JSON-serialisable, an array name is not a string, or a float array
+            holds NaN or inf.
     """
     from safetensors.numpy import save as safetensors_save
 
     out = Path(path)
     clean = {str(k): np.ascontiguousarray(v) for k, v in arrays.items()}
+    for name, a in clean.items():  # NaN weights render as corrupted pixels with exit 0: never written
+        finite_as(f"{out}: array {name!r}", a, a.dtype)
     try:
         record_json = json.dumps(record, sort_keys=True)
     except TypeError as exc:
@@ -94,7 +98,8 @@ def read_avatar_file(path: str | os.PathLike) -> AvatarFile:
 
     Raises:
         AvatarFileError: missing file, not safetensors (or truncated), another format or version, bad JSON,
-            an array missing, extra or whose bytes differ from its recorded sha256 (each named).
+            an array missing, extra or whose bytes differ from its recorded sha256, or a float array holding NaN
+            or inf (each named).
     """
     from safetensors.numpy import load as safetensors_load
 
@@ -120,4 +125,8 @@ def read_avatar_file(path: str | os.PathLike) -> AvatarFile:
     for name, array in arrays.items():
         if _array_sha256(array) != sums[name]:
             raise AvatarFileError(f"{p}: array {name!r} is corrupted (sha256 differs from the recorded one)")
+        if array.dtype.kind == "f" and not np.isfinite(array).all():  # e.g. a buggy export: valid sha256, NaN weights
+            bad = int((~np.isfinite(array)).sum())
+            raise AvatarFileError(f"{p}: array {name!r} holds {bad} NaN/inf of {array.size} values (expected finite "
+                                  "numbers; export the run again from a finite checkpoint)")
     return AvatarFile(arrays, record)

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 from jaxtyping import Float, Integer, Real
 
+from deliffas.checks import finite_as
 from deliffas.io.infra.files import durable_replace, temp_path
 from deliffas.io.obj import ObjData, write_obj
 
@@ -21,23 +22,19 @@ def write_mesh(path: str | os.PathLike, verts: Real[np.ndarray, "V 3"], faces: I
     """Write ``verts`` (V, 3) and ``faces`` (F, 3); ``.obj`` keeps ``uvs`` (T, 2) / ``face_uvs`` (F, 3).
 
     Raises:
-        ValueError: another suffix, or non-finite vertices (a mesh nobody can open).
+        ValueError: another suffix, or vertices that are not finite in the file (a mesh nobody can open).
     """
     p = Path(path)
     suffix = p.suffix.lower()
     if suffix not in MESH_SUFFIXES:
         raise ValueError(f"output must end in .obj or .ply, got '{p.name}'")
-    verts = np.asarray(verts, np.float64)
-    bad = ~np.isfinite(verts).all(axis=1)
-    if bad.any():
-        raise ValueError(f"{p}: {int(bad.sum())} of {len(verts)} vertices are not finite (first {int(np.argmax(bad))}); "
-                         "not written")
-    if suffix == ".obj":
-        write_obj(p, ObjData(verts, np.asarray(faces), uvs, face_uvs))
+    if suffix == ".obj":  # write_obj refuses non-finite values itself
+        write_obj(p, ObjData(verts, np.asarray(faces), np.zeros((0, 2)) if uvs is None else uvs, face_uvs))
         return p
     import trimesh  # heavy: only the .ply path needs it
 
     tmp = temp_path(p, keep_suffix=True)
+    verts = finite_as(f"{p}: vertices", verts, np.float32)  # a PLY stores float32: 1e307 mm would be inf
     trimesh.Trimesh(verts, np.asarray(faces), process=False).export(tmp)
     durable_replace(tmp, p)
     return p

@@ -14,6 +14,7 @@ from typing import no_type_check
 import numpy as np
 from jaxtyping import Float, Integer
 
+from deliffas.checks import finite_as
 from deliffas.io.infra.text_lines import DynaCapFormatError, read_text, write_text_atomic
 
 __all__ = ["ObjData", "read_obj", "write_obj"]
@@ -196,7 +197,13 @@ def write_obj(path: str | os.PathLike, obj: ObjData, crlf: bool = False, precisi
     """Write ``obj`` so that ``read_obj`` returns equal arrays (to ``precision`` decimals).
 
     Vertices are written in array order; faces as ``f v/vt[/vn]`` with 1-based indices.
+
+    Raises:
+        ValueError: a vertex, colour, normal or uv that is NaN or inf (nothing is written).
     """
+    for key in ("verts", "colors", "normals", "uvs"):
+        if getattr(obj, key) is not None:
+            finite_as(f"{path}: {key}", getattr(obj, key), np.float64)
     fmt = f"%.{precision}f"
     parts: list[str] = ["# written by deliffas"]
     if obj.mtllib:

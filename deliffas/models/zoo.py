@@ -342,7 +342,8 @@ def load_checkpoint(path_dir: str | os.PathLike, device: str | torch.device = "c
         The model (eval mode), its config and the ``extra`` dict.
 
     Raises:
-        CheckpointError: a missing, truncated, corrupted or inconsistent file (named in the message).
+        CheckpointError: a missing, truncated, corrupted or inconsistent file, or weights holding NaN or inf
+            (named in the message).
     """
     from safetensors.torch import load as safetensors_load
 
@@ -367,6 +368,10 @@ def load_checkpoint(path_dir: str | os.PathLike, device: str | torch.device = "c
         state = safetensors_load(blob)
     except Exception as exc:  # noqa: BLE001 - safetensors raises its own error types
         raise CheckpointError(f"{weights_path}: unreadable safetensors data ({exc})") from exc
+    for name, tensor in state.items():  # NaN weights would render corrupted pixels with no error
+        if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+            raise CheckpointError(f"{weights_path}: tensor {name!r} holds {int((~torch.isfinite(tensor)).sum())} "
+                                  "NaN/inf values (training diverged? resume from an earlier checkpoint)")
     try:
         model = DeliffasModel(config)
     except ValueError as exc:  # a config that parses but describes no buildable model (e.g. atlas side 22)

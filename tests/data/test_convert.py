@@ -119,6 +119,30 @@ def test_resume_after_interruption_gives_identical_manifest(subject, converted, 
     assert not list((out / "shards").glob(".*tmp*")) and verify_shards(out) == []
 
 
+def test_resume_recognises_its_own_start_before_the_first_manifest(subject, converted, tmp_path):
+    """SIGKILL after OUT/shards (and meta.h5, a temporary manifest) exist but before the first manifest: --resume
+    finishes the conversion; a plain run says to use --resume; a folder with anything else is still refused."""
+    out = tmp_path / "out"
+    (out / "shards").mkdir(parents=True)
+    with pytest.raises(FileExistsError, match="start of an interrupted conversion .* use --resume"):
+        convert(subject, out, ConvertConfig(**CFG))
+    (out / "meta.h5").write_bytes(b"half of meta")
+    (out / ".manifest.json.tmp-999").write_bytes(b"{")
+    (out / "shards" / ".training-00000.h5.tmp-999").write_bytes(b"half a shard")
+    res = convert(subject, out, ConvertConfig(**CFG, resume=True))
+    assert res.shards_skipped == 0
+    assert _manifest_bytes(out) == _manifest_bytes(converted) and verify_shards(out) == []
+    other = tmp_path / "other"
+    (other / "shards").mkdir(parents=True)
+    (other / "notes.txt").write_text("mine")
+    with pytest.raises(FileExistsError, match="holds no conversion; pass --overwrite"):
+        convert(subject, other, ConvertConfig(**CFG, resume=True))
+    (other / "notes.txt").unlink()
+    (other / "shards" / "mine.h5").write_bytes(b"mine")
+    with pytest.raises(FileExistsError, match="holds no conversion"):
+        convert(subject, other, ConvertConfig(**CFG, resume=True))
+
+
 @pytest.mark.slow  # a SIGKILL chain of real processes (17 s): `make test-slow`, as the others
 def test_resume_after_sigkill(subject, converted, tmp_path):
     """A real `deliffas convert --jobs 1` killed with SIGKILL once its first shard is listed."""

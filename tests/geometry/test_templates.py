@@ -96,3 +96,36 @@ def test_a_new_kind_is_one_registration(tmp_path, procedural_character_path):
     assert isinstance(t, Template)
     moved = t.pose(torch.tensor([[0.0, 10.0, 0.0]]))
     assert torch.allclose(moved[0, :, 1] - t.rest_verts[:, 1], torch.tensor(10.0))
+
+
+def test_a_symlinked_character_is_built_from_the_files_its_spec_records(sample_dir, tmp_path):
+    """A folder of symlinks to the sample with one link replaced by an edited copy: the spec hashes the files
+    beside the link, and the build must read those same files (as ``read_character`` on that path does)."""
+    import numpy as np
+
+    from deliffas.data.posing import pose_frames
+    from deliffas.geometry.templates.ddc import DDCTemplate
+
+    links = tmp_path / "links"
+    links.mkdir()
+    for p in sample_dir.iterdir():
+        (links / p.name).symlink_to(p)
+    (links / "ddc.skeleton").unlink()
+    lines = (sample_dir / "ddc.skeleton").read_text().splitlines()
+    assert lines[2].split()[0] == "Root_tx"
+    tok = lines[2].split()
+    tok[4] = str(float(tok[4]) + 500.0)  # the root's offset moves by 500 mm in y
+    lines[2] = "  " + "  ".join(tok)
+    (links / "ddc.skeleton").write_text("\n".join(lines) + "\n")
+    spec = ddc_spec(links / "ddc.character")
+    assert spec.files["skeleton"] == str(links / "ddc.skeleton")
+    motion = sample_dir / "skeletoolToGTPose" / "poseAngles.motion"
+    posed, _ = pose_frames(spec, motion, [5])
+    edited = DDCTemplate(read_character(links / "ddc.character"), dtype=torch.float64)
+    original, _ = pose_frames(ddc_spec(sample_dir / "ddc.character"), motion, [5])
+    from deliffas.io.formats.dynacap.character import read_motion
+
+    dofs = read_motion(motion, edited.num_dofs)
+    expected = edited.pose(torch.as_tensor(dofs.dofs[[dofs.row_of(5)]], dtype=torch.float64)).numpy()
+    np.testing.assert_allclose(posed, expected, atol=1e-6)
+    assert np.abs(posed - original).max() > 100.0

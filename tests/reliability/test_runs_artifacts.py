@@ -163,3 +163,44 @@ def test_export_then_render_after_shards_and_subject_are_deleted(portable, tmp_p
     _refused(capsys, ["eval", portable["run"]], "pass --shards")
     assert main(["zoo", "list", str(tmp_path / "share")]) == 0
     assert "alice.avatar: two_surface_texture (tiny)" in capsys.readouterr().out  # the default model
+
+
+def test_render_refuses_nan_weights_and_non_finite_colours(rel_run, tmp_path, capsys, monkeypatch):
+    """An .avatar whose NaN weight has a valid sha256 (a buggy export) is refused on loading; a model that shades
+    NaN anyway is refused by render before a frame is written."""
+    import json
+
+    import numpy as np
+    from safetensors.numpy import save
+
+    from deliffas.engine import render as render_mod
+    from deliffas.io.avatar_file import AVATAR_FORMAT, AVATAR_VERSION, _array_sha256, read_avatar_file
+
+    monkeypatch.setenv("DELIFFAS_CACHE", str(tmp_path / "cache"))
+    good = tmp_path / "good.avatar"
+    assert main(["export", str(rel_run), str(good)]) == 0
+    f = read_avatar_file(good)
+    arrays = dict(f.arrays)
+    name = next(k for k in sorted(arrays) if k.startswith("model/") and arrays[k].dtype.kind == "f")
+    arrays[name] = arrays[name].copy()
+    arrays[name].flat[0] = np.nan
+    bad = tmp_path / "bad.avatar"
+    bad.write_bytes(save(arrays, metadata={"format": AVATAR_FORMAT, "version": str(AVATAR_VERSION),
+                                           "record": json.dumps(f.record),
+                                           "sha256": json.dumps({k: _array_sha256(v) for k, v in arrays.items()})}))
+    capsys.readouterr()
+    _refused(capsys, ["render", bad, "--out", tmp_path / "v.mp4", "--frames", "2"], f"array {name!r} holds 1 NaN/inf")
+    load = render_mod.load_avatar
+
+    def poisoned(*args, **kwargs):
+        model, record, meta = load(*args, **kwargs)
+        with torch.no_grad():
+            for p in model.parameters():
+                p.fill_(float("nan"))
+        return model, record, meta
+
+    monkeypatch.setattr(render_mod, "load_avatar", poisoned)
+    assert main(["render", str(good), "--out", str(tmp_path / "v.mp4"), "--frames", "2"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()  # the progress bar, then one error line
+    assert "error: render: frame 0" in err[-1] and "non-finite values" in err[-1] and "Traceback" not in err[-1]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.avatar", "cache", "good.avatar"]

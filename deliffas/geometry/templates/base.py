@@ -145,8 +145,13 @@ class TemplateSpec:
 
 
 def make_spec(kind: str, files: Mapping[str, str | os.PathLike | None], **options: Any) -> TemplateSpec:
-    """A spec of ``kind`` with the given source files (None entries dropped), hashed now."""
-    paths = {role: str(Path(p).resolve()) for role, p in files.items() if p is not None}
+    """A spec of ``kind`` with the given source files (None entries dropped), hashed now.
+
+    Paths are made absolute without resolving symbolic links: a file names its neighbours relative to the
+    path it is read through (a symlinked ``.character`` reads the files beside the link), so the spec records
+    and the build reads the very files that were hashed.
+    """
+    paths = {role: os.path.abspath(p) for role, p in files.items() if p is not None}
     for role, p in paths.items():
         if not Path(p).is_file():
             raise FileNotFoundError(f"{p}: the {kind} template's '{role}' file does not exist")

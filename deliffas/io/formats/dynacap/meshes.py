@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 from jaxtyping import Float, Integer
 
+from deliffas.checks import finite_as
 from deliffas.io.infra.text_lines import DynaCapFormatError, TextLines, write_text_atomic
 
 PathLike = str | os.PathLike
@@ -64,7 +65,12 @@ def read_meshes(path: PathLike, num_verts: int | None = None) -> MeshSequence:
 
 
 def write_meshes(path: PathLike, seq: MeshSequence, crlf: bool = False, decimals: int = 1) -> None:
-    """Write a v2.1 sequence; DDC writes one decimal (``%.1f``), the default here too."""
+    """Write a v2.1 sequence; DDC writes one decimal (``%.1f``), the default here too.
+
+    Raises:
+        ValueError: a vertex that is NaN or inf (nothing is written).
+    """
+    finite_as(f"{path}: vertices", seq.verts, np.float64)
     out = ["Skeletool Meshes file v2.1 "]
     fmt = f"%.{decimals}f"
     for f, v in zip(seq.frames.tolist(), seq.verts):
