@@ -434,12 +434,29 @@ class ShardSet:
         return sorted(f for (seq, f) in self._index if seq == sequence)
 
     def locate(self, sequence: str, frame: int) -> tuple[ShardFile, int]:
-        """(shard reader, frame row) holding ``frame`` of ``sequence``; KeyError when no complete shard has it."""
+        """(shard reader, frame row) holding ``frame`` of ``sequence``; KeyError when no complete shard has it.
+
+        A shard is checked against its manifest entry and ``meta.h5`` once per process, when first opened (the
+        schema checks of ``verify``, without the checksum: small datasets and dtypes only), so a frame table that
+        maps a frame to another frame's row, or images of another dtype, are never served.
+
+        Raises:
+            ShardReadError: the shard does not match its schema (names the shard and the first problem).
+        """
         k, row = self._index[(sequence, int(frame))]
         info = self.shards[k]
         f = self._files.get(info.name)
         if f is None:
-            f = self._files[info.name] = ShardFile(info.path)
+            f = ShardFile(info.path)
+            try:
+                problems = shard_problems(f.h5, info.frames, self.meta)
+            except (OSError, KeyError, ValueError, TypeError) as err:  # h5py's errors on damaged files
+                problems = [f"{type(err).__name__}: {str(err)[:160]}"]
+            if problems:
+                f.close()
+                raise ShardReadError(f"{info.path}: cannot read frame {frame} ({problems[0]}); run "
+                                     f"`deliffas verify {self.out_dir}`")
+            self._files[info.name] = f
         return f, row
 
     def close(self) -> None:

@@ -377,3 +377,19 @@ def test_dataset_names_a_corrupt_shard(converted_copy):
     ds = ShardDataset(converted_copy, split="train", temporal_window=2, protocol="all")
     with pytest.raises(ShardReadError, match=r"training-00000\.h5: cannot read frame"):
         ds[0]
+
+
+@pytest.mark.parametrize("edit, match", [
+    # frame 1's window row points at frame 0's geometry: frame 1 would be served with frame 0's surface
+    (lambda f: _replace(f, "window_rows", np.zeros_like(f["window_rows"][()])), "points at geometry of other frames"),
+    (lambda f: _replace(f, "rgba", f["rgba"][()].astype(np.float32)), "'rgba' has dtype float32, expected uint8"),
+    (lambda f: _replace(f, "frames", f["frames"][()][::-1].copy()), "differ from the manifest"),
+])
+def test_dataset_refuses_what_verify_refuses(converted_copy, edit, match):
+    from deliffas.data.dataset import ShardDataset
+    from deliffas.data.shards import ShardReadError
+
+    _edit_shard(converted_copy, "shards/training-00000.h5", edit)
+    ds = ShardDataset(converted_copy, split="train", temporal_window=2, protocol="all")
+    with pytest.raises(ShardReadError, match=rf"training-00000\.h5: cannot read frame \d+ \(.*{match}"):
+        ds[0]
