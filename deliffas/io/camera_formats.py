@@ -19,8 +19,9 @@ import os
 from pathlib import Path
 from typing import Sequence
 
-from deliffas.io.cameras import Camera
+from deliffas.io.cameras import Camera, check_camera_names
 from deliffas.io.format_registry import CameraWriteOptions, capture_format, capture_formats
+from deliffas.io.infra.reader_checks import require_unique_names
 
 __all__ = ["camera_format_names", "camera_format_table", "detect_camera_format", "read_cameras", "write_cameras"]
 
@@ -69,11 +70,14 @@ def read_cameras(path: PathLike, fmt: str = "auto", size: tuple[int, int] | None
             ignored where the file has it.
 
     Raises:
-        CaptureFormatError: a malformed file (each reader names the file and key).
+        CaptureFormatError: a malformed file (each reader names the file and key), an implausible camera
+            (``check_camera``) or a camera name given twice.
         ValueError: an unknown format, or a required ``size`` missing.
     """
     name = detect_camera_format(path) if fmt == "auto" else fmt
-    return capture_format(name, "read_cameras", what="camera").read_cameras(Path(path), size)
+    cameras = capture_format(name, "read_cameras", what="camera").read_cameras(Path(path), size)
+    require_unique_names(path, "camera names", [c.name for c in cameras])  # every format, plug-ins included
+    return cameras
 
 
 def write_cameras(cameras: Sequence[Camera], out: PathLike, fmt: str, drop_distortion: bool = False,
@@ -86,12 +90,14 @@ def write_cameras(cameras: Sequence[Camera], out: PathLike, fmt: str, drop_disto
 
     Raises:
         LossyConversionError: distortion the format cannot hold (unless ``drop_distortion``).
-        ValueError: an unknown format, or a camera the format cannot represent (e.g. skew).
+        ValueError: an unknown format, a camera the format cannot represent (e.g. skew), or a camera name given
+            twice.
     """
     f = capture_format(fmt, "write_cameras", what="camera")
     cameras = list(cameras)
     if not cameras:
         raise ValueError("write_cameras: no cameras to write")
+    check_camera_names([c.name for c in cameras], f"{out}")  # one file or entry per name
     out_p = Path(out)
     if out_p.is_dir() and f.camera_path not in (None, "."):
         out_p = out_p / f.camera_path

@@ -115,19 +115,22 @@ def check_camera(name: str, K: Real[np.ndarray, "3 3"], world_to_cam: Real[np.nd
                          f"{ROTATION_TOLERANCE}); got |R R^T - I| = {orth:.2g}, det = {det:.6g}")
 
 
-def check_camera_names(names: Sequence[str], where: str = "cameras") -> None:
-    """Refuse a camera name given twice (a second camera of the same name would silently replace the first in
-    every lookup by name, and a format writes one file or entry per name).
+def check_camera_names(names: Sequence[str], where: str = "") -> None:
+    """Refuse an empty camera name or one given twice (a second camera of the same name would silently replace
+    the first in every lookup by name, and a format writes one file or entry per name).
 
     Raises:
-        ValueError: ``<where>: camera name '<name>' appears N times (expected unique names)``.
+        ValueError: ``[<where>: ]camera name '<name>' appears N times (expected unique names)``.
     """
+    prefix = f"{where}: " if where else ""
+    if any(not str(n).strip() for n in names):
+        raise ValueError(f"{prefix}an empty camera name (expected a name for every camera)")
     seen: dict[str, int] = {}
     for n in names:
         seen[str(n)] = seen.get(str(n), 0) + 1
     twice = [n for n, k in seen.items() if k > 1]
     if twice:
-        raise ValueError(f"{where}: camera name {twice[0]!r} appears {seen[twice[0]]} times "
+        raise ValueError(f"{prefix}camera name {twice[0]!r} appears {seen[twice[0]]} times "
                          f"({len(twice)} names repeated; expected unique names)")
 
 

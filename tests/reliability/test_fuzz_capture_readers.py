@@ -64,10 +64,13 @@ def _finite(a: Any, shape: tuple[int | None, ...]) -> np.ndarray:
 
 def check_cameras(cams: list) -> None:
     assert isinstance(cams, list) and cams
+    assert len({c.name for c in cams}) == len(cams), [c.name for c in cams]  # unique names
     for c in cams:
         assert isinstance(c, Camera) and isinstance(c.name, str)
         K = _finite(c.K, (3, 3))
         assert abs(np.linalg.det(K)) > 0
+        assert np.array_equal(K[2], [0, 0, 1]) and K[0, 0] > 0 and K[1, 1] > 0  # plausible (check_camera)
+        assert -c.width <= K[0, 2] <= 2 * c.width and -c.height <= K[1, 2] <= 2 * c.height
         E = _finite(c.world_to_cam, (4, 4))
         assert np.array_equal(E[3], [0, 0, 0, 1])
         R = E[:3, :3]

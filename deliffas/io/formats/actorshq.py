@@ -34,7 +34,8 @@ import numpy as np
 from deliffas.io.cameras import Camera
 from deliffas.io.camera_conventions import (from_camera, invert_rigid, matrix_to_rotvec, require_distortion_fits,
                                             rotvec_to_matrix, to_camera)
-from deliffas.io.infra.reader_checks import CaptureFormatError, require_array, require_rotation, require_size
+from deliffas.io.infra.reader_checks import (CaptureFormatError, require_array, require_rotation, require_size,
+                                             require_unique_names)
 from deliffas.io.infra.files import durable_replace, temp_path
 from deliffas.io.format_registry import CaptureFormat
 from deliffas.io.formats.camera_files import converted, file_detector, in_folder
@@ -133,6 +134,7 @@ def read_actorshq_calibration(path: PathLike) -> list[ActorsHQCamera]:
         out.append(ActorsHQCamera(name, w, h, rot, t, f, c, k))
     if not out:
         raise CaptureFormatError(p, "rows", "expected at least one camera row, got none")
+    require_unique_names(p, "name", [c.name for c in out])
     return out
 
 

@@ -5,7 +5,9 @@ Conventions, worked out from nerfstudio (nerfstudio-project/nerfstudio @50e0e3c)
 - Layout (``nerfstudio/data/dataparsers/nerfstudio_dataparser.py``): top-level ``frames``, each with
   ``file_path`` and ``transform_matrix`` (4 x 4); intrinsics ``fl_x, fl_y, cx, cy, w, h`` and
   distortion ``k1, k2, k3, k4, p1, p2`` either per frame or once at the top level (a per-frame value
-  wins); ``camera_model`` (``OPENCV`` for the pinhole + radial-tangential model).
+  wins); ``camera_model`` (``OPENCV`` for the pinhole + radial-tangential model; ``PINHOLE`` and
+  ``SIMPLE_PINHOLE`` are read the same way; ``OPENCV_FISHEYE``, ``EQUIRECTANGULAR`` and the other models
+  are refused: deliffas' cameras are pinholes and their k1..k4 mean something else).
 - Pose: ``transform_matrix`` is **camera-to-world** with **OpenGL camera axes** (x right, y up,
   looking along -z): ``process_data/colmap_utils.py::colmap_to_json`` builds it as the inverse of
   COLMAP's world-to-camera followed by ``c2w[0:3, 1:3] *= -1``. deliffas: c2w_opencv =
@@ -19,8 +21,8 @@ Conventions, worked out from nerfstudio (nerfstudio-project/nerfstudio @50e0e3c)
   ``pixel_offset=0.5``) and COLMAP's cx is copied unchanged: the deliffas convention, K unchanged.
 - Distortion: OpenCV's k1, k2, k3, p1, p2 (``camera_utils.radial_and_tangential_undistort``);
   k4 (an r^8 term) has no place in the deliffas 5-vector, and a non-zero k4 is refused on reading.
-- Camera names: the stem of ``file_path`` (``images/cam03.png`` -> ``cam03``); the writer uses
-  ``images/<name>.png`` unless given file paths.
+- Camera names: the stem of ``file_path`` (``images/cam03.png`` -> ``cam03``), unique in a file; the
+  writer uses ``images/<name>.png`` unless given file paths.
 """
 
 from __future__ import annotations
@@ -35,7 +37,7 @@ import numpy as np
 from deliffas.io.cameras import Camera
 from deliffas.io.camera_conventions import OPENGL_FROM_OPENCV, from_camera, invert_rigid, require_distortion_fits, to_camera
 from deliffas.io.infra.reader_checks import (CaptureFormatError, read_json, require_array, require_rotation, require_size,
-                                        write_json_atomic)
+                                        require_unique_names, write_json_atomic)
 from deliffas.io.format_registry import CaptureFormat
 from deliffas.io.formats.camera_files import converted, file_detector, in_folder
 
@@ -51,6 +53,9 @@ PathLike = str | os.PathLike
 
 _INTRINSICS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
 _DIST = ("k1", "k2", "k3", "k4", "p1", "p2")
+PINHOLE_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE")
+"""The ``camera_model`` values deliffas reads: nerfstudio's perspective camera with OpenCV's radial-tangential
+distortion (its default when the key is absent). Fisheye, equirectangular and other models are refused."""
 
 
 @dataclass(frozen=True)
@@ -120,7 +125,14 @@ def read_transforms(path: PathLike) -> list[NerfstudioFrame]:
         dist = require_array(p, f"frames[{i}].k1..p2", [get(k, 0.0) for k in _DIST], (6,))
         if dist[3] != 0:
             raise CaptureFormatError(p, f"frames[{i}].k4", "expected 0: deliffas carries OpenCV's k1, k2, p1, p2, k3 only")
+        model = fr.get("camera_model", meta.get("camera_model", "OPENCV"))
+        if model not in PINHOLE_MODELS:
+            where = f"frames[{i}].camera_model" if "camera_model" in fr else "camera_model"
+            raise CaptureFormatError(p, where, f"expected one of {', '.join(PINHOLE_MODELS)} (a pinhole, with OpenCV "
+                                               f"distortion), got {model!r}: deliffas cannot represent this lens; "
+                                               "undistort the images to a pinhole first")
         out.append(NerfstudioFrame(str(fr["file_path"]), M, *intr, w, h, dist))
+    require_unique_names(p, "frames[].file_path (camera names)", [f.name for f in out])
     return out
 
 

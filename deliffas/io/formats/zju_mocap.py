@@ -21,7 +21,8 @@ Conventions, worked out from Neural Body (zju3dv/neuralbody @3c516b9), which def
   CoreView_313/315 the image names are 1-based (the dataset subtracts one for the frame index).
 - Camera names are not in the file; the folder of each camera's first image is used (``Camera_B1``),
   else a ``camera_names`` list, which deliffas adds when it writes (neuralbody ignores unknown keys),
-  else "0".."C-1".
+  else "0".."C-1" (with a warning when image folders repeat). A ``camera_names`` list that repeats a name is
+  refused.
 
 ``.npy`` files holding a dict are pickles. They are read with ``deliffas.io.infra.safe_pickle``, which builds
 only numpy arrays, dtypes and scalars from checked arguments (never arbitrary objects).
@@ -29,6 +30,7 @@ only numpy arrays, dtypes and scalars from checked arguments (never arbitrary ob
 
 from __future__ import annotations
 
+import logging
 import os
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
@@ -39,12 +41,14 @@ import numpy as np
 from deliffas.io.cameras import Camera
 from deliffas.io.camera_conventions import from_camera, require_distortion_fits, to_camera
 from deliffas.io.infra.reader_checks import (CaptureFormatError, naming_file, require_array, require_rotation, require_rows,
-                                             require_vector)
+                                             require_unique_names, require_vector)
 from deliffas.io.formats.easymocap import EasyMocapSmpl
 from deliffas.io.infra.files import durable_replace, temp_path
 from deliffas.io.infra.safe_pickle import UnsafePickleError, load_numpy_pickle
 from deliffas.io.format_registry import CaptureFormat
 from deliffas.io.formats.camera_files import file_detector, in_folder, need_size
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "ZjuCamera",
@@ -187,14 +191,15 @@ def read_zju_annots(path: PathLike) -> ZjuAnnots:
 
 def _camera_names(p: Path, data: dict, ims: list, n: int) -> list[str]:
     given = data.get("camera_names")
-    if given is not None:
-        names = [str(x) for x in _list(p, "camera_names", given, n)]
-    elif ims:
+    if given is not None:  # deliffas' own list: a repeated name is an error, not a reason to renumber
+        return require_unique_names(p, "camera_names", [str(x) for x in _list(p, "camera_names", given, n)])
+    if ims:
         names = [PurePosixPath(str(x).replace("\\", "/")).parent.name for x in ims[0]]
     else:
         names = [str(i) for i in range(n)]
     if len(set(names)) != n or "" in names:
-        names = [str(i) for i in range(n)]  # image folders that do not name cameras uniquely
+        log.warning("%s: the image folders do not name the %d cameras uniquely; cameras are named 0..%d", p, n, n - 1)
+        names = [str(i) for i in range(n)]
     return names
 
 

@@ -12,16 +12,17 @@ import json
 import os
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 
-from deliffas.io.cameras import ROTATION_TOLERANCE
+from deliffas.io.cameras import ROTATION_TOLERANCE, check_camera_names
 from deliffas.io.infra.files import durable_replace, temp_path
 
 __all__ = [
     "CaptureFormatError", "require_numbers", "require_array", "require_rows", "require_vector", "require_rotation",
     "require_size", "read_json", "read_npz", "write_json_atomic", "naming_file",
+    "require_unique_names",
 ]
 
 
@@ -152,17 +153,38 @@ def require_size(path: str | os.PathLike, key: str, width: Any, height: Any) -> 
     return int(w), int(h)
 
 
+def require_unique_names(path: str | os.PathLike, key: str, names: Sequence[str]) -> list[str]:
+    """``names`` (camera names), refused when one is given twice (``check_camera_names``).
+
+    Raises:
+        CaptureFormatError: naming the file, ``key`` and the repeated name.
+    """
+    with naming_file(path, key):
+        check_camera_names(names)
+    return [str(n) for n in names]
+
+
 def read_json(path: str | os.PathLike):
     """The parsed JSON of ``path``.
 
     Raises:
-        CaptureFormatError: a missing file, non-UTF-8 bytes, or invalid (e.g. truncated) JSON, naming the line.
+        CaptureFormatError: a missing file, non-UTF-8 bytes, invalid (e.g. truncated) JSON, naming the line, or
+            a key given twice in one object.
     """
     p = Path(path)
     if not p.is_file():
         raise CaptureFormatError(p, "file", "not found")
+
+    def unique_keys(pairs: list[tuple[str, Any]]) -> dict:
+        out: dict = {}
+        for key, value in pairs:
+            if key in out:  # json.loads would keep the last silently (a second camera replacing the first)
+                raise CaptureFormatError(p, f"JSON key {key!r}", "given twice in one object (expected unique keys)")
+            out[key] = value
+        return out
+
     try:
-        return json.loads(p.read_text(encoding="utf-8"))
+        return json.loads(p.read_text(encoding="utf-8"), object_pairs_hook=unique_keys)
     except UnicodeDecodeError:
         raise CaptureFormatError(p, "JSON", "expected UTF-8 JSON text, got binary bytes") from None
     except json.JSONDecodeError as err:

@@ -8,7 +8,7 @@ from typing import Sequence
 
 import numpy as np
 
-from deliffas.io.cameras import Camera
+from deliffas.io.cameras import Camera, check_camera_names
 from deliffas.io.camera_conventions import require_distortion_fits
 from deliffas.io.infra.text_lines import DynaCapFormatError, TextLines, write_text_atomic
 from deliffas.io.format_registry import CameraWriteOptions, CaptureFormat
@@ -72,11 +72,12 @@ def read_calibration(path: PathLike) -> list[Camera]:
 
     Raises:
         DynaCapFormatError: naming the line, for a missing or malformed key, a frame block without
-            its extrinsic, a repeated frame, or an extrinsic that is not a rigid transform.
+            its extrinsic, a repeated frame or camera name, or a camera that fails ``check_camera``.
     """
     t = TextLines(path, what="calibration file")
     t.header((CALIBRATION_HEADER,))
     cams: list[Camera] = []
+    names: list[str] = []  # every camera's name so far (unique)
     cam: dict | None = None  # the camera being read: name, line, sensor, size, animated, and its latest keys
     block: dict | None = None  # the current frame block of an animated camera: frame, line, and its keys
 
@@ -113,6 +114,11 @@ def read_calibration(path: PathLike) -> list[Camera]:
             close_camera()
             if len(vals) != 1:
                 raise t.error(f"expected 'name <id>', got {len(vals)} values")
+            names.append(vals[0])
+            try:
+                check_camera_names(names)
+            except ValueError as err:  # a second camera of one name would replace the first in every lookup
+                raise t.error(str(err)) from None
             cam = {"name": vals[0], "line": t.line_no, "frames": set()}
             continue
         if cam is None:
