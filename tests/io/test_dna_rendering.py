@@ -24,7 +24,7 @@ def _smc(path, **over):
             val = over.get(key, val)
             if val is not None:
                 g[key] = val
-        ok, buf = cv2.imencode(".jpg", np.zeros((48, 64, 3), np.uint8))
+        ok, buf = cv2.imencode(".jpg", np.zeros((2048, 2448, 3), np.uint8))
         h5["Mask/0/mask/0"] = buf.ravel()
     return path
 
@@ -36,7 +36,7 @@ def test_projection_matches_opencv(tmp_path):
     theirs = cv2.projectPoints(POINTS_MM / 1000.0, rvec, w2c[:3, 3], K, np.zeros(5))[0].reshape(-1, 2)
     ours, _ = cam.project(POINTS_MM)
     assert np.abs((ours - 0.5) - theirs).max() < 1e-6
-    assert (cam.width, cam.height) == (64, 48)  # from the mask, since the file has no colour images
+    assert (cam.width, cam.height) == (2448, 2048)  # from the mask (no colour images)
 
 
 def test_images_masks_smplx(tmp_path):
@@ -45,7 +45,7 @@ def test_images_masks_smplx(tmp_path):
             "1": [np.zeros((24, 32, 3), np.uint8)]}
     masks = {"0": [np.pad(np.full((8, 16), 255, np.uint8), 8)]}  # (24, 32)
     smplx = SmcSmplx(np.zeros((1, 10)), np.zeros((3, 10)), np.zeros((3, 55, 3)), np.ones((3, 3)), 1.0)
-    write_smc(tmp_path / "m.smc", cameras_to_smc(rig()[:2]), imgs, masks, smplx, jpeg_quality=100)
+    write_smc(tmp_path / "m.smc", cameras_to_smc([c.rescaled(32, 24) for c in rig()[:2]]), imgs, masks, smplx, jpeg_quality=100)
     with SmcFile(tmp_path / "m.smc") as smc:
         assert smc.frame_count(0) == 2 and smc.frame_count(1) == 1 and smc.frame_count(0, kind="mask") == 1
         red = smc.image(0, 0)

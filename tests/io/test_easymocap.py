@@ -54,7 +54,7 @@ def test_size_required_without_w_h(tmp_path):
     cam = read_easymocap_cameras(tmp_path)[0]
     with pytest.raises(ValueError, match="pass size="):
         easymocap_to_camera(cam)
-    assert easymocap_to_camera(cam, size=(64, 48)).width == 64
+    assert easymocap_to_camera(cam, size=(1024, 768)).width == 1024
 
 
 def test_smpl_json(tmp_path):

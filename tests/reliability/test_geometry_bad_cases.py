@@ -176,7 +176,7 @@ def test_non_finite_inputs_raise_naming_the_array(rel_character, tmp_path):
             dataclasses.replace(cam, **{field: arr})
     K0 = cam.K.copy()
     K0[1, 1] = 0.0
-    with pytest.raises(ValueError, match="singular intrinsics"):
+    with pytest.raises(ValueError, match="expected positive focal lengths"):
         dataclasses.replace(cam, K=K0)
     from deliffas.io.formats.dynacap.calibration import read_calibration, write_calibration
 
@@ -185,7 +185,7 @@ def test_non_finite_inputs_raise_naming_the_array(rel_character, tmp_path):
     row = next(i for i, line in enumerate(text) if line.split()[:1] == ["intrinsic"])
     text[row] = "  intrinsic " + " ".join(["0.0"] + text[row].split()[2:])
     (tmp_path / "c.calibration").write_text("\n".join(text) + "\n")
-    with pytest.raises(DynaCapFormatError, match=r"c\.calibration:\d+: camera 'front'.*singular"):
+    with pytest.raises(DynaCapFormatError, match=r"c\.calibration:\d+: camera 'front'.*positive focal"):
         read_calibration(tmp_path / "c.calibration")
     cases += 8
     COUNTS["geometry: bad cases checked"] += cases
