@@ -62,6 +62,18 @@ def _read_camera_key(t: TextLines, key: str, vals: list[str], target: dict) -> N
         target["radial"] = t.to_float(vals[0], "radial coefficient")
 
 
+def _start_camera(t: TextLines, vals: list[str], names: list[str]) -> dict:
+    """The record of a camera's ``name`` line; ``names`` (the file's names so far) must stay unique."""
+    if len(vals) != 1:
+        raise t.error(f"expected 'name <id>', got {len(vals)} values")
+    names.append(vals[0])
+    try:
+        check_camera_names(names)
+    except ValueError as err:  # a second camera of one name would replace the first in every lookup
+        raise t.error(str(err)) from None
+    return {"name": vals[0], "line": t.line_no, "frames": set()}
+
+
 def read_calibration(path: PathLike) -> list[Camera]:
     """Read ``cameras.calibration`` into Cameras (formats doc 1.9).
 
@@ -112,14 +124,7 @@ def read_calibration(path: PathLike) -> list[Camera]:
         key, vals = toks[0], toks[1:]
         if key == "name":
             close_camera()
-            if len(vals) != 1:
-                raise t.error(f"expected 'name <id>', got {len(vals)} values")
-            names.append(vals[0])
-            try:
-                check_camera_names(names)
-            except ValueError as err:  # a second camera of one name would replace the first in every lookup
-                raise t.error(str(err)) from None
-            cam = {"name": vals[0], "line": t.line_no, "frames": set()}
+            cam = _start_camera(t, vals, names)
             continue
         if cam is None:
             raise t.error(f"expected 'name <id>' before '{key}'")
