@@ -308,7 +308,8 @@ def _add_training_commands(sub) -> None:
     p = sub.add_parser("train", help="train a model of the zoo on converted shards",
                        description="Train on SHARDS (from `deliffas convert`). L1 first, then L1 + perceptual "
                                    "when --perceptual is given. Distributed with `torchrun --nproc_per_node N -m deliffas train ...`.")
-    p.add_argument("shards", type=Path)
+    p.add_argument("shards", type=Path, nargs="?", default=None,
+                   help="folder written by 'deliffas convert' (with --resume: default the run's)")
     p.add_argument("--model", default=None, help="zoo name (default two_surface_texture; the paper's model: two_surface)")
     p.add_argument("--out", type=Path, required=True, help="run directory")
     p.add_argument("--preset", default=None, help="paper | small (default) | realtime | tiny")

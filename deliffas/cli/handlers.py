@@ -36,7 +36,8 @@ from deliffas.engine.demo import DemoConfig, run_demo
 from deliffas.engine.evaluate import EvalConfig, evaluate
 from deliffas.engine.memory import retain_freed_memory
 from deliffas.engine.render import RenderConfig, render_video
-from deliffas.engine.train import TrainConfig, train
+from deliffas.engine.resume import iterations_done, resumed_config
+from deliffas.engine.train import RUN_MARKER, TrainConfig, train
 from deliffas.engine.view import SubjectViewConfig, ViewConfig, is_capture, view, view_subject
 from deliffas.fast.config import FastConfig
 from deliffas.cli.fast_env import fast_from_env
@@ -192,17 +193,29 @@ def cmd_zoo(args: argparse.Namespace) -> int:
     return 0
 
 
+_TRAIN_FLAGS = {"model": "--model", "preset": "--preset", "iters": "--iters", "perceptual": "--perceptual",
+                "perceptual_mode": "--perceptual-mode", "cameras_per_frame": "--cameras-per-frame",
+                "device": "--device", "num_workers": "--workers", "seed": "--seed", "vgg16_path": "--vgg16-path",
+                "checkpoint_every": "--checkpoint-every", "preview_every": "--preview-every",
+                "ray_chunk": "--ray-chunk", "protocol": "--protocol", "validation_cameras": "--val-cameras",
+                "saturation_weight": "--saturation-weight", "schedule": "--schedule", "lr": "--lr", "shards": "SHARDS"}
+"""TrainConfig field -> the flag that sets it (fields without one are set by --config)."""
+
+
 def _train_config(args: argparse.Namespace):
     values: dict = {}
     if args.config:
         values.update(json.loads(Path(args.config).read_text()))
-    values.update(shards=str(args.shards), out=str(args.out))
-    for key in ("model", "preset", "iters", "perceptual", "perceptual_mode", "cameras_per_frame", "device",
-                "num_workers", "seed", "vgg16_path", "checkpoint_every", "preview_every", "ray_chunk", "protocol",
-                "validation_cameras", "saturation_weight", "schedule", "lr"):
+    for key in _TRAIN_FLAGS:
         v = getattr(args, key, None)
-        if v is not None:
+        if v is not None and key != "shards":
             values[key] = v
+    if args.resume and (args.out / RUN_MARKER).is_file():  # the run's own settings; flags change what may change
+        names = {f.name: _TRAIN_FLAGS.get(f.name, f"{f.name} (--config)") for f in dataclasses.fields(TrainConfig)}
+        return resumed_config(args.out, {**values, "shards": str(args.shards) if args.shards else None}, names)
+    if args.shards is None:
+        raise ValueError(f"give SHARDS, the folder written by 'deliffas convert' ({args.out} holds no run to --resume)")
+    values.update(shards=str(args.shards), out=str(args.out))
     known = {f.name for f in dataclasses.fields(TrainConfig)}
     unknown = sorted(set(values) - known)
     if unknown:
@@ -217,8 +230,13 @@ def cmd_train(args: argparse.Namespace) -> int:
         result = auto_capacity(cfg, AutoCapacityConfig(tolerance_db=args.tolerance_db))
         print(json.dumps(result, indent=2))
         return 0
+    done = iterations_done(cfg.out) if args.resume else None
+    if done is not None and done >= cfg.iters:
+        print(f"{cfg.out}: already at iteration {done} (the run's target is {cfg.iters}); pass --iters N "
+              f"(more than {done}) to train further")
+        return 0
     result = train(cfg, resume=args.resume, overwrite=args.overwrite)
-    print(f"trained {cfg.model} ({cfg.preset}) for {result.iterations} iterations in {result.seconds:.0f} s "
+    print(f"trained {cfg.model} ({cfg.preset}) to iteration {result.iterations} in {result.seconds:.0f} s "
           f"({result.iters_per_second:.2f} it/s); run in {result.run_dir}")
     return 0
 

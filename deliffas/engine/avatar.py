@@ -25,7 +25,7 @@ import torch
 from deliffas.data.shard_meta import ShardMeta
 from deliffas.data.shards import ShardSet, open_shard_set
 from deliffas.engine.runs import load_run
-from deliffas.engine.identity import capture_identity
+from deliffas.engine.identity import capture_identity, recorded_shards
 from deliffas.geometry.templates import TemplateSpec
 from deliffas.io.avatar_file import AVATAR_SUFFIX, AvatarFileError, read_avatar_file, write_avatar_file
 from deliffas.io.infra.files import claim_output_file, sha256_file
@@ -125,10 +125,10 @@ def run_capture(run: str | os.PathLike, cache: Path | None = None) -> tuple[Shar
         f = read_avatar_file(path)
         return _meta_from(path, f.arrays, f.record, cache or cache_root()), f.record.get("identity", {})
     record = _train_record(run)
-    shards = record.get("train", {}).get("shards")
-    if not shards or not (Path(shards) / "manifest.json").is_file():
+    shards = recorded_shards(run, record)
+    if shards is None:
         raise FileNotFoundError(f"{run}: no {CAPTURE_FILE} (a run from before runs carried their capture) and its "
-                                f"shards {shards or '(none recorded)'} are gone")
+                                f"shards {record.get('train', {}).get('shards') or '(none recorded)'} are gone")
     meta = ShardSet(shards).meta
     return meta, capture_identity(meta)
 

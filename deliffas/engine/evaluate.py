@@ -89,10 +89,7 @@ def evaluate(cfg: EvalConfig) -> dict:
     """Evaluate a run on a split; returns the JSON-ready result (see ``deliffas eval --json``)."""
     device = resolve_device(cfg.device)
     model, record = load_run(cfg.run, device)
-    shards = cfg.shards or record.get("train", {}).get("shards")
-    if shards is None:
-        raise ValueError(f"{cfg.run}: no shards recorded in train_config.json; pass --shards")
-    shards = check_run_shards(cfg.run, record, shards)  # opened once for the whole command and passed down
+    shards = check_run_shards(cfg.run, record, cfg.shards)  # opened once for the whole command and passed down
     protocol = cfg.protocol or _run_protocol(record, shards)
     split, cameras = _split_cameras(cfg, record)
     samples, info = evaluation_samples(shards, split, max_frames=cfg.max_frames, with_rays=False,

@@ -17,8 +17,8 @@ import numpy as np
 
 from deliffas.data.shards import ShardSet, open_shard_set
 
-__all__ = ["IdentityError", "capture_identity", "check_identity", "check_run_shards", "CHARACTER_KEYS",
-           "CAPTURE_KEYS"]
+__all__ = ["IdentityError", "capture_identity", "check_identity", "check_run_shards", "recorded_shards",
+           "shards_record", "CHARACTER_KEYS", "CAPTURE_KEYS"]
 
 CHARACTER_KEYS = ("character_sha256", "atlas_sha256")
 """The keys that must agree to render or evaluate a model on a shard set (same template, same atlas)."""
@@ -75,19 +75,54 @@ def check_identity(expected: dict | None, expected_name: str, found: dict, found
                                 f"{b[:12]}... there, {a[:12]}... in {expected_name}")
 
 
-def check_run_shards(run: str | os.PathLike, record: dict, shards: ShardSet | str | os.PathLike) -> ShardSet:
+def shards_record(run: str | os.PathLike, shards: str | os.PathLike) -> dict[str, str]:
+    """How a run records its shard set: the absolute path, and the path from the run folder (``shards``,
+    ``shards_from_run``), so the shards are found from any working folder, and after the run and its
+    shards moved together."""
+    absolute = Path(shards).resolve()
+    return {"shards": str(absolute), "shards_from_run": os.path.relpath(absolute, Path(run).resolve())}
+
+
+def _candidates(run: str | os.PathLike, record: dict) -> list[Path]:
+    train = record.get("train", {})
+    found = [Path(train["shards"])] if train.get("shards") else []
+    if train.get("shards_from_run"):
+        found.append(Path(run) / train["shards_from_run"])
+    elif found and not found[0].is_absolute():  # a run from before absolute paths: beside the run, too
+        found.append(Path(run).parent / found[0])
+    return found
+
+
+def recorded_shards(run: str | os.PathLike, record: dict) -> str | None:
+    """The shard set the run whose ``train_config.json`` is ``record`` trained on: its recorded path, else
+    the same place seen from the run folder (moved together); None when neither holds a shard set."""
+    for path in _candidates(run, record):
+        if (path / "manifest.json").is_file():
+            return str(path)
+    return None
+
+
+def check_run_shards(run: str | os.PathLike, record: dict, shards: ShardSet | str | os.PathLike | None) -> ShardSet:
     """Refuse ``shards`` for the run whose ``train_config.json`` is ``record``: gone, or another character.
+
+    ``shards`` None means the run's own (:func:`recorded_shards`).
 
     Returns:
         The shard set, opened (``shards`` itself when it is one): the command passes it down.
 
     Raises:
-        FileNotFoundError: no shard set at ``shards`` (says to pass ``--shards``).
+        FileNotFoundError: no shard set there, naming every folder looked in and ``--shards``.
         IdentityError: the shards hold another character or atlas than the run was trained on.
     """
-    if not isinstance(shards, ShardSet) and not (Path(shards) / "manifest.json").is_file():
-        raise FileNotFoundError(f"{shards}: no shard set there (moved or deleted?); pass --shards DIR with the "
-                                f"shards of {run}'s capture")
+    if shards is None:
+        shards = recorded_shards(run, record)
+        if shards is None:
+            looked = ", ".join(str(p.absolute()) for p in _candidates(run, record)) or "(none recorded)"
+            raise FileNotFoundError(f"{run}: its shards are not where the run recorded them (looked in {looked}); "
+                                    f"pass --shards DIR with the shards of {run}'s capture")
+    elif not isinstance(shards, ShardSet) and not (Path(shards) / "manifest.json").is_file():
+        raise FileNotFoundError(f"{Path(shards).absolute()}: no shard set there (no manifest.json); pass --shards "
+                                f"DIR with the shards of {run}'s capture")
     shard_set = open_shard_set(shards)
     check_identity(record.get("identity"), f"the run {run}", capture_identity(shard_set.meta),
                    f"the shards {shard_set.out_dir}")

@@ -31,7 +31,7 @@ from deliffas.engine.avatar import write_run_capture
 from deliffas.engine.checkpointing import STATE_FILE, load_training_state, read_training_state, save_training_state
 from deliffas.engine.data_bridge import shard_info, training_stream
 from deliffas.engine.devices import resolve_device
-from deliffas.engine.identity import CAPTURE_KEYS, capture_identity, check_identity
+from deliffas.engine.identity import CAPTURE_KEYS, capture_identity, check_identity, shards_record
 from deliffas.engine.samples import FrameSample, composite_target
 from deliffas.engine.train_config import TrainConfig, TrainResult, resolve_model_config
 from deliffas.engine.train_step import balance_weight, render_sample_images, train_step
@@ -127,7 +127,7 @@ class Trainer:
     """
 
     def __init__(self, cfg: TrainConfig, resume: bool = False, overwrite: bool = False) -> None:
-        self.cfg = cfg
+        cfg = self.cfg = dataclasses.replace(cfg, shards=str(Path(cfg.shards).resolve()))  # found from any folder
         self.rank, self.world = _distributed()
         if cfg.ray_chunk is not None and self.world > 1:
             raise ValueError("ray_chunk needs a single process (under DDP every rank shades its rays in one graph)")
@@ -181,7 +181,8 @@ class Trainer:
     def _write_record(self) -> None:
         info = self.data_info
         data = {k: v for k, v in info.items() if isinstance(v, (int, float, str, list)) and k != "cameras"}
-        record = {"train": dataclasses.asdict(self.cfg), "model": config_to_dict(self.model_config), "data": data,
+        record = {"train": {**dataclasses.asdict(self.cfg), **shards_record(self.run_dir, self.cfg.shards)},
+                  "model": config_to_dict(self.model_config), "data": data,
                   "perceptual_backbone": self.backbone, "world_size": self.world, "device": str(self.device),
                   "num_parameters": self.model.num_parameters(), "identity": self.identity}
         (self.run_dir / RUN_MARKER).write_text(json.dumps(record, indent=2, default=str) + "\n")

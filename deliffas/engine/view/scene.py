@@ -21,7 +21,7 @@ from deliffas.data.pose_motions import read_pose_motion
 from deliffas.data.shards import ShardSet
 from deliffas.engine.avatar import load_avatar
 from deliffas.engine.devices import resolve_device
-from deliffas.engine.identity import check_identity, check_run_shards
+from deliffas.engine.identity import check_identity, check_run_shards, recorded_shards
 from deliffas.engine.render import motion_geometry_builder
 from deliffas.geometry.atlas import UVAtlas
 from deliffas.geometry.raycast import UVRaycaster
@@ -94,14 +94,12 @@ class ViewScene:
             captures.append(capture)
         for r, run in zip(runs[1:], self.runs[1:]):
             check_identity(self.runs[0].record.get("identity"), str(runs[0]), run.record.get("identity") or {}, str(r))
-        recorded = self.runs[0].record.get("train", {}).get("shards")
+        recorded = recorded_shards(runs[0], self.runs[0].record)
         shard_set: ShardSet | None = None
-        if motion is not None and shards is None and not (recorded and (Path(recorded) / "manifest.json").is_file()):
+        if motion is not None and shards is None and recorded is None:
             meta = captures[0]  # the shards moved: a motion needs only the run's capture record
         else:
-            if not (shards or recorded):
-                raise ValueError(f"{runs[0]}: no shards recorded; pass --shards (or --motion to view without them)")
-            shard_set = check_run_shards(runs[0], self.runs[0].record, shards or recorded)  # opened once, passed on
+            shard_set = check_run_shards(runs[0], self.runs[0].record, shards)  # opened once, passed on
             for r, run in zip(runs[1:], self.runs[1:]):
                 check_run_shards(r, run.record, shard_set)
             meta = shard_set.meta
