@@ -1,5 +1,17 @@
 """``python -m deliffas`` = the ``deliffas`` command (also what ``torchrun -m deliffas`` runs)."""
 
-from deliffas.cli import main
+import os
+import signal
 
+
+def _interrupted_at_start(signum, frame) -> None:
+    """Ctrl-C while the command line module loads: one line, no traceback (``main`` handles it after)."""
+    os.write(2, b"deliffas: interrupted\n")
+    os._exit(130)
+
+
+signal.signal(signal.SIGINT, _interrupted_at_start)
+from deliffas.cli import main  # noqa: E402  (after the handler: the import is part of start-up)
+
+signal.signal(signal.SIGINT, signal.default_int_handler)
 raise SystemExit(main())

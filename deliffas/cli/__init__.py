@@ -9,12 +9,11 @@ from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
 from pathlib import Path
 
 from deliffas import __version__
-from deliffas.io.camera_formats import camera_format_names  # numpy only: the formats' modules, no torch
-from deliffas.parallel.dask_target import parse_dask_target  # stdlib only: dask is imported when a conversion runs
 
 __all__ = ["main", "build_parser"]
 
@@ -44,6 +43,8 @@ def _int_at_least(minimum: int):
 
 
 def _dask_target(text: str) -> str:
+    from deliffas.parallel.dask_target import parse_dask_target  # imported here: a Ctrl-C at start-up meets main()
+
     try:
         parse_dask_target(text)
     except ValueError as err:
@@ -248,6 +249,8 @@ def _add_capture_tool_commands(sub) -> None:
     p.add_argument("out", type=Path, nargs="?", help="file to write, or an existing folder (it gets the format's "
                                                       "usual file name; formats whose cameras are a folder write "
                                                       "into it)")
+    from deliffas.io.camera_formats import camera_format_names  # numpy only, no torch; here: a Ctrl-C meets main()
+
     formats = camera_format_names()
     p.add_argument("--to", dest="to_format", choices=formats, help="format to write")
     p.add_argument("--from", dest="from_format", choices=("auto",) + formats, default="auto",
@@ -481,19 +484,32 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
-                        format="%(levelname)s %(name)s: %(message)s")
-    from deliffas.cli import handlers  # start-up time: parsing and --help must not import torch
-
-    handler = getattr(handlers, f"cmd_{args.handler}")
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = None
     try:
-        return int(handler(args) or 0)
+        args = build_parser().parse_args(argv)
+        logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                            format="%(levelname)s %(name)s: %(message)s")
+        from deliffas.cli import handlers  # start-up time: parsing and --help must not import torch
+
+        return int(getattr(handlers, f"cmd_{args.handler}")(args) or 0)
     except (ValueError, OSError) as err:  # bad input: every deliffas format/config error is a ValueError
         log.debug("traceback of the error below", exc_info=True)
-        print(f"deliffas {args.command}: error: {err}", file=sys.stderr)
+        print(f"deliffas {args.command}: error: {_error_line(err)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C while the state is reported: no traceback
+        if args is None:
+            print("deliffas: interrupted", file=sys.stderr)
+            return 130
+        from deliffas.cli.interrupted import interrupted_line
+
+        print(f"deliffas {args.command}: interrupted{interrupted_line(args, argv)}", file=sys.stderr)
         return 130
+
+
+def _error_line(err: Exception) -> str:
+    """One line for a user: an OSError names its file and what failed (``[Errno 2] ...`` says neither)."""
+    if isinstance(err, OSError) and err.filename is not None and err.strerror and str(err.filename) not in str(err.args[-1]):
+        return f"{err.filename}: {err.strerror.lower()}"
+    return str(err)

@@ -235,7 +235,7 @@ class Trainer:
         t0 = time.perf_counter()
         data_s = step_s = 0.0
         last = {"loss": float("nan")}
-        it = self.start
+        it = n_done = saved = self.start
         try:
             for it in range(self.start, cfg.iters):
                 record, sample = self.step(it)
@@ -250,9 +250,15 @@ class Trainer:
                     self.preview(n_done, sample)
                 if lead and (n_done % cfg.checkpoint_every == 0 or n_done == cfg.iters):
                     self.checkpoint(n_done)
+                    saved = n_done
                 if bar is not None:
                     bar.update(1)
                     bar.set_postfix(loss=f"{record['loss']:.4f}", psnr=f"{record['psnr_rays']:.1f}")
+        except KeyboardInterrupt:  # keep every finished iteration: a checkpoint at the last one
+            if lead and n_done > saved:
+                self.checkpoint(n_done)
+                logger.info("interrupted: checkpoint at iteration %d", n_done)
+            raise
         finally:
             if bar is not None:
                 bar.close()
