@@ -52,6 +52,16 @@ def _dask_target(text: str) -> str:
     return text
 
 
+def _power_of_two(text: str) -> int:
+    """An argparse type: a power of two >= 16 (the U-Nets halve the atlas side down to a few texels)."""
+    value = _int_at_least(16)(text)
+    if value & (value - 1):
+        lower = 1 << (value.bit_length() - 1)
+        raise argparse.ArgumentTypeError(f"expected a power of two (the U-Nets halve it), got {value}; "
+                                         f"try {lower} or {2 * lower}")
+    return value
+
+
 _positive_int = _int_at_least(1)
 _non_negative_int = _int_at_least(0)
 
@@ -138,7 +148,8 @@ def _add_capture_commands(sub) -> None:
                                                   "built into OUT_DIR/character)")
     p.add_argument("--body-model", metavar="MODEL|procedural",
                    help="render an SMPL body instead of a DDC character: an SMPL model file (.npz/.pkl, official "
-                        "layout; not shipped, license) or 'procedural' (the license-free body in SMPL layout)")
+                        "layout; not shipped, license) or 'procedural' (the license-free body in SMPL layout) "
+                        "(default: a DDC character)")
     p.add_argument("--body-uv", type=Path, help="OBJ with the SMPL model's uv layout (default: an xatlas atlas)")
     p.add_argument("--motion", type=Path, help="training motion: .motion (DDC) or AMASS-style .npz (SMPL) "
                                                "(default: a procedural motion)")
@@ -173,7 +184,7 @@ def _add_capture_commands(sub) -> None:
     p.add_argument("--dask", type=_dask_target, metavar="ADDRESS|local:N",
                    help="convert on Dask, one task per shard: a running scheduler (tcp://HOST:8786) or local:N "
                         "(a LocalCluster of N worker processes on 127.0.0.1); OUT must be on a file system every "
-                        "worker shares and SUBJECT readable by them (docs/scale.md); replaces --jobs")
+                        "worker shares and SUBJECT readable by them (docs/scale.md); replaces --jobs (default: no Dask)")
     p.add_argument("--resume", action="store_true", help="keep complete shards of an interrupted run")
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing conversion in OUT (or convert into a non-empty folder that holds none)")
@@ -181,17 +192,22 @@ def _add_capture_commands(sub) -> None:
                    help="tracked .meshes instead of the skinned template (SEQ default training; repeatable)")
     p.add_argument("--template", type=Path, help="template variant folder (its .character + outer.obj), a "
                                                  ".character, or an SMPL model .npz/.pkl (with --motions fitted "
-                                                 "to a DDC capture, or the capture's own SMPL poses)")
+                                                 "to a DDC capture, or the capture's own SMPL poses) "
+                                                 "(default: the capture's own template)")
     p.add_argument("--motions", action="append", metavar="[SEQ=]FILE",
                    help="pose parameters instead of the sequence's own: .motion (DDC) or AMASS .npz (SMPL) "
                         "(SEQ default training; repeatable)")
-    p.add_argument("--atlas-res", type=int, default=256, help="normal-map side S (default 256; paper 1024)")
+    p.add_argument("--atlas-res", type=_power_of_two, default=256,
+                   help="normal-map side S, a power of two (default 256; paper 1024)")
     p.add_argument("--offset", type=float, default=30.0, help="outer-surface offset d in mm (default 30)")
     p.add_argument("--window", type=_non_negative_int, default=2, help="temporal window T stored per frame (default 2)")
     p.add_argument("--codec", default="raw", help="raw (lossless, default) | png | jpeg:Q")
-    p.add_argument("--layout", choices=["auto", "images", "videos"], default="auto", help="frame layout")
+    p.add_argument("--layout", choices=["auto", "images", "videos"], default="auto",
+                   help="where the frames are: images = image folders, videos = one video per camera, auto = images "
+                        "when present, else videos (default auto)")
     p.add_argument("--masks", metavar="SUBDIR", help="DDC mask folder in each sequence folder "
-                                                     "(<cam>/image_c_<cam>_f_<frame>.png|jpg) replacing alpha/fg")
+                                                     "(<cam>/image_c_<cam>_f_<frame>.png|jpg) replacing alpha/fg "
+                                                     "(default: the images' alpha or the fg videos)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--format", default="auto", help="capture format (default: detected; an unknown name lists the "
                                                     "registered ones)")
@@ -226,8 +242,10 @@ def _add_capture_tool_commands(sub) -> None:
     p.add_argument("--out", type=Path, required=True, help="report folder")
     p.add_argument("--format", default="auto", help="capture format (default: detected)")
     p.add_argument("--frames", type=_positive_int, default=4, help="frames sampled per sequence (default 4)")
-    p.add_argument("--template", type=Path, help="template: SMPL model .npz/.pkl (SMPL captures), or a DDC variant")
-    p.add_argument("--motions", action="append", metavar="[SEQ=]FILE", help="pose parameters instead of the capture's")
+    p.add_argument("--template", type=Path, help="template: SMPL model .npz/.pkl (SMPL captures), or a DDC variant "
+                                                 "(default: the capture's own)")
+    p.add_argument("--motions", action="append", metavar="[SEQ=]FILE",
+                   help="pose parameters instead of the capture's (default: the capture's own; repeatable)")
     p.add_argument("--min-iou", type=float, default=0.8, help="a camera fails below this IoU (default 0.8)")
     p.set_defaults(handler="check")
 
@@ -248,20 +266,21 @@ def _add_capture_tool_commands(sub) -> None:
     p.add_argument("src", type=Path, help="camera file or folder to read (for --from-colmap: the .calibration to write)")
     p.add_argument("out", type=Path, nargs="?", help="file to write, or an existing folder (it gets the format's "
                                                       "usual file name; formats whose cameras are a folder write "
-                                                      "into it)")
+                                                      "into it) (no default: required unless --to-colmap/--from-colmap)")
     from deliffas.io.camera_formats import camera_format_names  # numpy only, no torch; here: a Ctrl-C meets main()
 
     formats = camera_format_names()
-    p.add_argument("--to", dest="to_format", choices=formats, help="format to write")
+    p.add_argument("--to", dest="to_format", choices=formats, help="format to write (no default: required with OUT)")
     p.add_argument("--from", dest="from_format", choices=("auto",) + formats, default="auto",
                    help="format of SRC (default: detected from its name)")
     p.add_argument("--size", type=_size, default=None,
-                   help="image size WxH, for camera files that do not store it")
+                   help="image size WxH of every camera, for camera files that do not store it (default: read from "
+                        "the first image of each camera)")
     p.add_argument("--drop-distortion", action="store_true",
                    help="write cameras whose distortion the target cannot hold without it (logged per camera)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing OUT")
-    p.add_argument("--to-colmap", type=Path, metavar="DIR", help="shorthand: SRC --to colmap DIR")
-    p.add_argument("--from-colmap", type=Path, metavar="DIR", help="shorthand: DIR --to dynacap SRC")
+    p.add_argument("--to-colmap", type=Path, metavar="DIR", help="shorthand: SRC --to colmap DIR (default: not used)")
+    p.add_argument("--from-colmap", type=Path, metavar="DIR", help="shorthand: DIR --to dynacap SRC (default: not used)")
     p.add_argument("--text", action="store_true", help="COLMAP: write the .txt model instead of .bin")
     p.set_defaults(handler="cameras")
 
@@ -288,8 +307,8 @@ def _add_geometry_commands(sub) -> None:
                                    "smooth and coarse, plus OUT/report.json.")
     p.add_argument("character", type=Path, help=".character file")
     p.add_argument("--out", type=Path, required=True, help="output folder")
-    p.add_argument("--smooth", type=int, metavar="ITERS", help="also a Taubin-smoothed variant (ITERS lambda/mu pairs)")
-    p.add_argument("--coarse", type=int, metavar="FACES", help="also a decimated variant with about FACES faces")
+    p.add_argument("--smooth", type=int, metavar="ITERS", help="also a Taubin-smoothed variant (ITERS lambda/mu pairs) (default: none)")
+    p.add_argument("--coarse", type=int, metavar="FACES", help="also a decimated variant with about FACES faces (default: none)")
     p.add_argument("--offset", type=float, default=30.0, metavar="MM", help="outer-shell offset d in mm (default 30)")
     p.add_argument("--safe", action="store_true", help="limit d per vertex where the shell would cross another part")
     p.add_argument("--atlas-res", type=int, default=512, metavar="R",
@@ -300,10 +319,13 @@ def _add_geometry_commands(sub) -> None:
 
 def _add_training_commands(sub) -> None:
     """zoo and train."""
-    p = sub.add_parser("zoo", help="list the model zoo (named configurations and presets) and avatar files")
+    p = sub.add_parser("zoo", help="list the model zoo (named configurations and presets) and avatar files",
+                       description="List every model of the zoo with its presets (atlas side S, MLP, feature "
+                                   "channels, parameters) and, given FOLDER, the .avatar files under it.")
     p.add_argument("action", choices=["list"], help="what to do")
     p.add_argument("folder", type=Path, nargs="?", default=None,
-                   help="also list the .avatar files found under this folder (name, model, preset, size)")
+                   help="also list the .avatar files found under this folder (name, model, preset, size) "
+                        "(default: none)")
     p.add_argument("--json", action="store_true", help="print JSON")
     p.add_argument("--count-paper", action="store_true", help="also build the paper-size models to count parameters")
     p.set_defaults(handler="zoo")
@@ -316,23 +338,34 @@ def _add_training_commands(sub) -> None:
     p.add_argument("--model", default=None, help="zoo name (default two_surface_texture; the paper's model: two_surface)")
     p.add_argument("--out", type=Path, required=True, help="run directory")
     p.add_argument("--preset", default=None, help="paper | small (default) | realtime | tiny")
-    p.add_argument("--iters", type=_positive_int, default=None, help="training iterations (>= 1)")
-    p.add_argument("--config", type=Path, default=None, help="JSON file of TrainConfig fields (incl. model_overrides)")
+    p.add_argument("--iters", type=_positive_int, default=None,
+                   help="train to this iteration (default 1000; with --resume: the run's, more extends it)")
+    p.add_argument("--config", type=Path, default=None,
+                   help="JSON file of TrainConfig fields (incl. model_overrides) (default: none)")
     p.add_argument("--resume", action="store_true",
                    help="continue the run in --out from its last checkpoint (on the same capture)")
     p.add_argument("--overwrite", action="store_true", help="replace an earlier run in --out")
     p.add_argument("--perceptual", choices=["none", "vgg16-imagenet", "vgg16-random"], default=None,
-                   help="stage-2 perceptual backbone; vgg16-random is the explicit offline option")
-    p.add_argument("--perceptual-mode", choices=["image", "patch"], default=None)
-    p.add_argument("--vgg16-path", default=None, help="ImageNet VGG-16 weights (.pth/.safetensors)")
-    p.add_argument("--cameras-per-frame", type=_positive_int, default=None)
-    p.add_argument("--device", type=_device_name, default=None, help="cpu | cuda | cuda:N")
-    p.add_argument("--workers", dest="num_workers", type=_non_negative_int, default=None, help="DataLoader workers")
-    p.add_argument("--seed", type=int, default=None)
+                   help="stage-2 perceptual backbone; vgg16-random is the explicit offline option (default none: "
+                        "L1 only)")
+    p.add_argument("--perceptual-mode", choices=["image", "patch"], default=None,
+                   help="perceptual loss on whole images (paper) or on 32x32 patches (default image)")
+    p.add_argument("--vgg16-path", default=None,
+                   help="ImageNet VGG-16 weights (.pth/.safetensors) (default: $DELIFFAS_VGG16_WEIGHTS or the torch "
+                        "hub cache)")
+    p.add_argument("--cameras-per-frame", type=_positive_int, default=None,
+                   help="training cameras per iteration; the U-Nets run once for all of them (default 4)")
+    p.add_argument("--device", type=_device_name, default=None, help="cpu | cuda | cuda:N (default cpu)")
+    p.add_argument("--workers", dest="num_workers", type=_non_negative_int, default=None,
+                   help="DataLoader worker processes, 0 = in this process (default 1)")
+    p.add_argument("--seed", type=int, default=None, help="random seed of the model, the data order and the "
+                                                          "random backbone (default 0)")
     p.add_argument("--ray-chunk", type=_positive_int, default=None,
-                   help="rays per backward pass (bounds training memory; single process)")
-    p.add_argument("--checkpoint-every", type=_positive_int, default=None)
-    p.add_argument("--preview-every", type=_non_negative_int, default=None)
+                   help="rays per backward pass (bounds training memory; single process) (default: all rays at once)")
+    p.add_argument("--checkpoint-every", type=_positive_int, default=None,
+                   help="save a checkpoint every N iterations, and at the last (default 250)")
+    p.add_argument("--preview-every", type=_non_negative_int, default=None,
+                   help="write previews/iter_N.png every N iterations, 0 = never (default 250)")
     p.add_argument("--schedule", choices=["converge", "paper"], default=None,
                    help="learning-rate schedule: converge (default) = warm-up, then decay 10x over the run's own "
                         "--iters; paper = the official Adam 2e-4 with its decay over 800 k steps (GPU-days runs)")
@@ -368,21 +401,25 @@ def _add_evaluation_commands(sub) -> None:
     p.add_argument("--protocol", choices=["paper", "all"], default=None,
                    help="frames: paper = every 10th, all = every frame (default: the run's)")
     p.add_argument("--shards", default=None, help="shard directory (default: the run's)")
-    p.add_argument("--max-frames", type=_positive_int, default=None, help="at most this many frames, evenly spaced")
+    p.add_argument("--max-frames", type=_positive_int, default=None, help="at most this many frames, evenly spaced (default: all)")
     p.add_argument("--device", type=_device_name, default="cpu", help="cpu | cuda | cuda:N (default cpu)")
-    p.add_argument("--save-images", default=None, help="folder for predicted images (white background)")
+    p.add_argument("--save-images", default=None, help="folder for predicted images (white background) (default: none)")
     p.add_argument("--grid", default=None, metavar="PNG",
-                   help="write a comparison grid (GT | prediction | error heat map, >= 256 px panels)")
-    p.add_argument("--vgg16-path", default=None, help="ImageNet VGG-16 weights for LPIPS (.pth/.safetensors)")
-    p.add_argument("--lpips-path", default=None, help="LPIPS v0.1 VGG linear layers (lpips' weights/v0.1/vgg.pth)")
+                   help="write a comparison grid (GT | prediction | error heat map, >= 256 px panels) (default: none)")
+    p.add_argument("--vgg16-path", default=None, help="ImageNet VGG-16 weights for LPIPS (.pth/.safetensors) (default: env / torch hub cache)")
+    p.add_argument("--lpips-path", default=None, help="LPIPS v0.1 VGG linear layers (lpips' weights/v0.1/vgg.pth) (default: env / torch hub cache)")
     p.add_argument("--inception-path", default=None,
-                   help="pytorch-fid's pt_inception-2015-12-05-6726825d.pth for FID (else env / torch hub cache)")
+                   help="pytorch-fid's pt_inception-2015-12-05-6726825d.pth for FID (default: env / torch hub cache)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--fast", action="store_true",
                    help="render by the CPU fast path of 'deliffas render'/'view' (to measure what it changes)")
     p.set_defaults(handler="eval")
 
-    p = sub.add_parser("render", help="free-viewpoint video of a trained avatar driven by a motion")
+    p = sub.add_parser("render", help="free-viewpoint video of a trained avatar driven by a motion",
+                       description="Render RUN (a run folder or an .avatar file) driven by a motion into a video or "
+                                   "a folder of PNG frames, seen from a capture camera or an orbit. An orbit turns "
+                                   "once over the video: the capture's test motion may have few frames, so pass "
+                                   "--frames N --loop for a longer one.")
     p.add_argument("run", type=Path, help="run directory of 'deliffas train' or an .avatar file of 'deliffas export'")
     p.add_argument("--out", type=_video_or_folder, required=True,
                    help="video file (.mp4: H.264; .avi: Motion-JPEG) or a new folder for PNG frames")
@@ -395,7 +432,7 @@ def _add_evaluation_commands(sub) -> None:
                    help="number of frames (default: all of the motion, max 300); more than the motion has needs --loop")
     p.add_argument("--loop", action="store_true", help="play the motion again from its start to fill --frames")
     p.add_argument("--size", type=_size, default=None, help="WxH (default: the capture's)")
-    p.add_argument("--fps", type=_positive_float, default=25.0)
+    p.add_argument("--fps", type=_positive_float, default=25.0, help="frames per second of the video (default 25)")
     p.add_argument("--device", type=_device_name, default="cpu", help="cpu | cuda | cuda:N (default cpu)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out video")
     p.add_argument("--plain", action="store_true",
@@ -431,8 +468,9 @@ def _add_viewer_commands(sub) -> None:
                    help="run directory written by 'deliffas train', an .avatar file, or a capture folder (any supported format)")
     p.add_argument("--format", default="auto", help="SUBJECT: capture format (default: detected)")
     p.add_argument("--template", type=Path, default=None,
-                   help="SUBJECT: template, SMPL model .npz/.pkl (SMPL captures) or a DDC variant")
-    p.add_argument("--compare", type=Path, default=None, help="a second run on the same shards, side by side")
+                   help="SUBJECT: template, SMPL model .npz/.pkl (SMPL captures) or a DDC variant "
+                        "(default: the capture's own)")
+    p.add_argument("--compare", type=Path, default=None, help="a second run on the same shards, side by side (default: none)")
     p.add_argument("--motion", type=Path, default=None,
                    help="driving motion: DynaCap .motion or SMPL .npz (default: the capture's own frames)")
     p.add_argument("--shards", type=Path, default=None, help="shard directory (default: the run's)")
@@ -442,14 +480,16 @@ def _add_viewer_commands(sub) -> None:
     p.add_argument("--resolution", type=_positive_int, default=512,
                    help="longest side of the still image in pixels (default 512; halved while moving; SUBJECT: of the "
                         "overlay at a capture camera)")
-    p.add_argument("--device", type=_device_name, default="cpu", help="cpu | cuda | cuda:N")
+    p.add_argument("--device", type=_device_name, default="cpu", help="cpu | cuda | cuda:N (default cpu)")
     p.add_argument("--plain", action="store_true",
                    help="render as 'deliffas eval' does (ray-cast uvs, fp32 MLP) instead of the CPU fast path "
                         "(rasterised uvs, fused inputs, bf16 MLP where the CPU has native bf16)")
     p.set_defaults(handler="view")
 
-    p = sub.add_parser("demo", help="the whole path on the embedded procedural character, with a report")
-    p.add_argument("--out", type=Path, default=Path("demo_out"))
+    p = sub.add_parser("demo", help="the whole path on the embedded procedural character, with a report",
+                       description="Build the procedural character, render a synthetic capture, convert it, train, "
+                                   "evaluate and render a video, and write OUT/report.md with every number.")
+    p.add_argument("--out", type=Path, default=Path("demo_out"), help="output folder (default demo_out)")
     p.add_argument("--quick", action="store_true", help="a smaller run (used by tests)")
     p.set_defaults(handler="demo")
 
@@ -470,7 +510,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frame", type=_non_negative_int, default=0,
                    help="frame number as written in the motion file (AMASS: the row) (default 0)")
     p.add_argument("--skinning", choices=["dqs", "lbs"], default="dqs",
-                   help="DDC: dual-quaternion (the original tools' default) or linear blend skinning")
+                   help="DDC: dual-quaternion (the original tools' choice) or linear blend skinning (default dqs)")
     p.add_argument("--uv", type=Path, default=None,
                    help="SMPL: OBJ with the model's uv layout (default MODEL_uv.obj next to it, else none needed)")
     p.add_argument("--out", type=_path_with_suffix(".ply", ".obj"), required=True,

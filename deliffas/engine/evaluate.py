@@ -27,6 +27,7 @@ from deliffas.data.shards import ShardSet
 from deliffas.engine.devices import resolve_device
 from deliffas.engine.data_bridge import EVAL_SPLITS, evaluation_samples, resolve_protocol
 from deliffas.engine.identity import check_run_shards
+from deliffas.io.infra.files import check_writable
 from deliffas.engine.figures import GridImage, comparison_grid
 from deliffas.engine.runs import load_run
 from deliffas.engine.samples import composite_target
@@ -88,6 +89,10 @@ class EvalConfig:
 def evaluate(cfg: EvalConfig) -> dict:
     """Evaluate a run on a split; returns the JSON-ready result (see ``deliffas eval --json``)."""
     device = resolve_device(cfg.device)
+    if cfg.grid:
+        check_writable(cfg.grid)  # before the work: a late failure would lose the metrics
+    if cfg.save_images:
+        check_writable(cfg.save_images, folder=True)
     model, record = load_run(cfg.run, device)
     shards = check_run_shards(cfg.run, record, cfg.shards)  # opened once for the whole command and passed down
     protocol = cfg.protocol or _run_protocol(record, shards)

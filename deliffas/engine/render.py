@@ -23,7 +23,7 @@ from deliffas.engine.realtime import fast_for_device, fast_render_camera, render
 from deliffas.engine.timing import StageTimer
 from deliffas.fast.config import FastConfig
 from deliffas.geometry.raycast import UVRaycaster
-from deliffas.io.infra.files import claim_output_file
+from deliffas.io.infra.files import check_writable, claim_output_file
 from deliffas.io.video import VIDEO_SUFFIXES, write_video
 
 __all__ = ["RenderConfig", "render_video", "orbit_cameras", "render_images", "motion_geometry_builder"]
@@ -132,6 +132,8 @@ def render_video(cfg: RenderConfig) -> Path:
         claim_output_file(out, cfg.overwrite)
     elif out.is_dir() and any(out.iterdir()):
         raise FileExistsError(f"{out}: not empty; give a new or empty folder for the PNG frames")
+    else:
+        check_writable(out, folder=True)
     device = resolve_device(cfg.device)
     model, record, meta = load_avatar(cfg.run, device)
     spec = meta.template_spec()

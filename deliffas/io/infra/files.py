@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Iterator
 
 __all__ = ["sha256_file", "temp_path", "durable_replace", "atomic_path", "write_bytes_atomic", "claim_output",
-           "claim_output_file", "TMP_MARK"]
+           "claim_output_file", "check_writable", "TMP_MARK"]
 
 TMP_MARK = ".tmp-"
 """Part of every temporary file name (``.<name>.tmp-<pid>``)."""
@@ -106,5 +106,23 @@ def claim_output_file(path: str | os.PathLike, overwrite: bool) -> Path:
         raise FileExistsError(f"{p}: exists; pass --overwrite to replace it")
     if p.is_dir():
         raise FileExistsError(f"{p}: is a folder, expected a file name")
-    p.parent.mkdir(parents=True, exist_ok=True)
+    return check_writable(p)
+
+
+def check_writable(path: str | os.PathLike, folder: bool = False) -> Path:
+    """Make sure ``path`` (a file; with ``folder``, a folder) can be written, before any work is done: its
+    folder is created and a temporary file is written there and removed.
+
+    Raises:
+        PermissionError: naming the path, the reason and what to do.
+    """
+    p = Path(path)
+    where = p if folder else p.parent
+    probe = temp_path(where / ".deliffas-write-probe")
+    try:
+        where.mkdir(parents=True, exist_ok=True)
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as err:
+        raise PermissionError(f"{p}: cannot write there ({err.strerror or err}); choose another path") from None
     return p
