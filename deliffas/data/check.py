@@ -115,8 +115,9 @@ class CheckResult:
         line = f"{len(self.failed)} of {len(self.camera_names)} cameras fail the silhouette check (IoU {worst})"
         if self.findings:
             f = self.findings[0]
-            line += f"; likely cause: {f.cause} (IoU {f.iou_before:.2f} -> {f.iou_after:.2f}); fix: {f.fix}"
-        return line + "; override with --no-check"
+            change = f" -> {f.iou_after:.2f}" if np.isfinite(f.iou_after) else ""
+            line += f"; likely cause: {f.cause} (IoU {f.iou_before:.2f}{change}); fix: {f.fix}"
+        return line
 
 
 # --------------------------------------------------------------------------------------------- scoring
@@ -353,6 +354,33 @@ def _try_order(sc: _Scorer, base: np.ndarray, failed: list[int], tried: dict) ->
     return []
 
 
+MASK_FULL = 0.99
+"""A mask with at least this fraction of foreground pixels in every sampled frame is all foreground."""
+
+
+def _unusable_masks(sc: _Scorer) -> dict[str, list[int]]:
+    """``empty`` / ``all foreground`` -> the cameras whose every sampled mask is so (a missing mask reads as all
+    foreground)."""
+    out: dict[str, list[int]] = {}
+    for c in range(len(sc.cameras)):
+        cover = [float(sc.masks[s][c].mean()) for s in range(len(sc.samples))]
+        if max(cover) == 0.0:
+            out.setdefault("empty", []).append(c)
+        elif min(cover) >= MASK_FULL:
+            out.setdefault("all foreground", []).append(c)
+    return out
+
+
+def _mask_findings(unusable: dict[str, list[int]], cam_iou: np.ndarray) -> list[Finding]:
+    fix = ("give the capture its foreground masks (EasyMocap mask/<cam>/<frame>.png, ZJU-MoCap mask/ or "
+           "mask_cihp/, DynaCap: RGBA images, fg videos or convert --masks SUBDIR); without them the IoU cannot judge "
+           "the calibration")
+    causes = {"empty": "masks empty (no foreground pixel)",
+              "all foreground": "masks missing or all foreground (every pixel is the subject)"}
+    return [Finding(causes[kind], fix, tuple(cams), float(np.nanmean(cam_iou[cams])), float("nan"))
+            for kind, cams in unusable.items()]
+
+
 def check_subject(subject: Subject, config: CheckConfig = CheckConfig()) -> CheckResult:
     """Score the posed template's silhouette against the masks per camera; name likely causes of failures."""
     sc = _Scorer(subject, config)
@@ -365,8 +393,11 @@ def check_subject(subject: Subject, config: CheckConfig = CheckConfig()) -> Chec
         if c not in failed and C > 2 and np.isfinite(others).any() and cam_iou[c] < np.nanmedian(others) - config.outlier_gap:
             failed.append(c)
     tried: dict = {}
-    findings = _try_offsets(sc, iou, tried)
-    if findings:
+    unusable = _unusable_masks(sc)
+    findings = _mask_findings(unusable, cam_iou) if unusable else _try_offsets(sc, iou, tried)
+    if unusable:  # no hypothesis is scored against masks that cannot tell a silhouette from the background
+        failed = sorted(set(failed) | {c for cams in unusable.values() for c in cams})
+    elif findings:
         failed = sorted(set(failed) | set(findings[0].cameras))
     elif failed:
         failed.sort()
@@ -394,7 +425,8 @@ def check_before_convert(subject: Subject, frames: int = 2) -> CheckResult | Non
         return None
     result = check_subject(subject, CheckConfig(frames=frames))
     if not result.ok:
-        raise SubjectCheckError(f"{subject.root}: {result.reason} (details: deliffas check)")
+        raise SubjectCheckError(f"{subject.root}: {result.reason} (details: deliffas check {subject.root} --out "
+                                "REPORT; convert anyway with --no-check)")
     return result
 
 

@@ -67,8 +67,8 @@ def write_check_report(result: CheckResult, out_dir: str | os.PathLike) -> Path:
         lines += ["## Likely causes", ""]
         for f in result.findings:
             names = ", ".join(result.camera_names[c] for c in f.cameras)
-            lines.append(f"- **{f.cause}** (cameras {names}): IoU {f.iou_before:.3f} -> {f.iou_after:.3f} "
-                         f"with it undone. Fix: {f.fix}.")
+            undone = f" -> {f.iou_after:.3f} with it undone" if np.isfinite(f.iou_after) else ""
+            lines.append(f"- **{f.cause}** (cameras {names}): IoU {f.iou_before:.3f}{undone}. Fix: {f.fix}.")
         lines.append("")
     lines += ["## Cameras", "", "| camera | IoU | status | overlay (green: template, red: mask edge) |",
               "|---|---|---|---|"]

@@ -41,6 +41,7 @@ def resumed_config(run: str | os.PathLike, given: dict, names: dict[str, str] | 
         ValueError: a given field other than :data:`MAY_CHANGE` differs from the run's (names both values),
             or the run's record is unreadable; FileNotFoundError: the run's shards are gone.
     """
+    iterations_done(run)  # a broken training state is named before anything else is read
     path = Path(run) / "train_config.json"
     try:
         record = json.loads(path.read_text())
