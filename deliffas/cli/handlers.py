@@ -32,6 +32,7 @@ from deliffas.models.deliffas import DeliffasModel
 from deliffas.models.zoo import get_config, list_models, list_presets
 from deliffas.engine.avatar import export_avatar, list_avatars
 from deliffas.engine.auto_capacity import AutoCapacityConfig, auto_capacity
+from deliffas.engine.data_bridge import resolve_protocol
 from deliffas.engine.demo import DemoConfig, run_demo
 from deliffas.engine.evaluate import EvalConfig, evaluate
 from deliffas.engine.memory import retain_freed_memory
@@ -116,6 +117,8 @@ def cmd_check(args: argparse.Namespace) -> int:
 
 
 def cmd_verify(args: argparse.Namespace) -> int:
+    if not (args.out / "manifest.json").is_file():
+        raise FileNotFoundError(f"{args.out}: no manifest.json there; give the folder written by 'deliffas convert'")
     problems = verify_shards(args.out, deep=not args.quick)
     for p in problems:
         print(f"BROKEN {p}", file=sys.stderr)
@@ -181,10 +184,10 @@ def cmd_zoo(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps({"models": rows, "avatars": avatars} if args.folder is not None else rows, indent=2))
         return 0
-    print(f"{'model':<26} {'preset':<7} {'S':>5} {'mlp':>7} {'feat':>5} {'params':>12}")
+    print(f"{'model':<26} {'preset':<8} {'S':>5} {'mlp':>7} {'feat':>5} {'params':>12}")
     for r in rows:
         p = f"{r['parameters']:,}" if r["parameters"] is not None else "(--count-paper)"
-        print(f"{r['model']:<26} {r['preset']:<7} {r['atlas_res']:>5} {r['mlp']:>7} {r['features']:>5} {p:>12}")
+        print(f"{r['model']:<26} {r['preset']:<8} {r['atlas_res']:>5} {r['mlp']:>7} {r['features']:>5} {p:>12}")
     if args.folder is not None:
         print(f"\navatar files under {args.folder}: {len(avatars)}")
         for a in avatars:
@@ -235,6 +238,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         print(f"{cfg.out}: already at iteration {done} (the run's target is {cfg.iters}); pass --iters N "
               f"(more than {done}) to train further")
         return 0
+    print(resolve_protocol(cfg.shards, cfg.protocol)[1], file=sys.stderr)  # stated at start
     result = train(cfg, resume=args.resume, overwrite=args.overwrite)
     print(f"trained {cfg.model} ({cfg.preset}) to iteration {result.iterations} in {result.seconds:.0f} s "
           f"({result.iters_per_second:.2f} it/s); run in {result.run_dir}")
@@ -287,8 +291,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     retain_freed_memory()
-    report = run_demo(DemoConfig(out=str(args.out), quick=args.quick))
-    print(f"demo report: {report}")
+    run_demo(DemoConfig(out=str(args.out), quick=args.quick))  # prints the results and the report's path
     return 0
 
 
@@ -301,8 +304,7 @@ def cmd_view(args: argparse.Namespace) -> int:
         cfg = SubjectViewConfig(subject=str(args.run), format=args.format,
                                 template=str(args.template) if args.template else None, host=args.host,
                                 port=args.port, max_resolution=args.resolution)
-        _print_view_address(cfg.host, cfg.port)
-        view_subject(cfg)
+        view_subject(cfg, ready=lambda: _print_view_address(cfg.host, cfg.port))
         return 0
     if args.format != "auto" or args.template is not None:
         raise ValueError(f"{args.run} is a run: --format and --template apply to a capture folder")
@@ -310,8 +312,7 @@ def cmd_view(args: argparse.Namespace) -> int:
                      motion=str(args.motion) if args.motion else None, shards=str(args.shards) if args.shards else None,
                      host=args.host, port=args.port, device=args.device, max_resolution=args.resolution,
                      fast=None if args.plain else fast_from_env(ViewConfig.fast))
-    _print_view_address(cfg.host, cfg.port)
-    view(cfg)
+    view(cfg, ready=lambda: _print_view_address(cfg.host, cfg.port))
     return 0
 
 

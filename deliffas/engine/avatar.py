@@ -28,7 +28,7 @@ from deliffas.engine.runs import load_run
 from deliffas.engine.identity import capture_identity, recorded_shards
 from deliffas.geometry.templates import TemplateSpec
 from deliffas.io.avatar_file import AVATAR_SUFFIX, AvatarFileError, read_avatar_file, write_avatar_file
-from deliffas.io.infra.files import claim_output_file, sha256_file
+from deliffas.io.infra.files import claim_output_file, sha256_file, write_bytes_atomic
 from deliffas.models.deliffas import DeliffasModel, ModelConfig
 from deliffas.models.unet import optimize_for_inference
 from deliffas.models.zoo import config_from_dict, config_to_dict, load_checkpoint
@@ -96,10 +96,12 @@ def _unpack_template(where: Path, arrays: dict[str, np.ndarray], template: dict,
             raise AvatarFileError(f"{where}: the embedded '{role}' file differs from its recorded sha256")
         target = folder.joinpath(*parts)
         if not target.is_file() or sha256_file(target) != sums[role]:
-            target.parent.mkdir(parents=True, exist_ok=True)
-            tmp = target.with_name(f".{target.name}.tmp-{os.getpid()}")
-            tmp.write_bytes(blob.tobytes())
-            os.replace(tmp, target)
+            try:
+                target.parent.mkdir(parents=True, exist_ok=True)
+                write_bytes_atomic(target, blob.tobytes())
+            except OSError as err:
+                raise PermissionError(f"{cache}: the template cache folder cannot be written ({err.strerror or err}); "
+                                      "set $DELIFFAS_CACHE to a folder you can write") from None
         out[role] = str(target)
     return TemplateSpec(str(template.get("kind")), out, dict(sums), dict(template.get("options", {})))
 

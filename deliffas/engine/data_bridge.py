@@ -146,7 +146,7 @@ def training_stream(cfg, temporal_window: int, rank: int = 0, world: int = 1, st
     info = shard_info(shards, temporal_window)
     protocol, message = resolve_protocol(shards, getattr(cfg, "protocol", "paper"))
     if rank == 0:
-        logger.warning("%s", message)
+        logger.info("%s", message)
     held_out = validation_cameras(info["train_cameras"], getattr(cfg, "validation_cameras", 0))
     fit_cameras = [c for c in info["train_cameras"] if c not in held_out]
     ds = ShardDataset(shards, split="train", cameras=fit_cameras, cameras_per_item=cfg.cameras_per_frame,

@@ -145,6 +145,9 @@ def render_video(cfg: RenderConfig) -> Path:
     if n > motion.num_frames and not cfg.loop:
         raise ValueError(f"frames: {n} asked, the motion {motion_path} has {motion.num_frames}; pass --loop to "
                          "play it again from its start, or fewer --frames")
+    if cfg.orbit and cfg.frames is None and n < 2 * cfg.fps:
+        logger.warning("orbit: one turn over the motion's %d frames (%.2f s at %g fps); for a longer orbit pass "
+                       "--frames %d --loop", n, n / cfg.fps, cfg.fps, int(4 * cfg.fps))
     rows = np.arange(n) % motion.num_frames
     inner = template.pose(torch.as_tensor(motion.dofs[rows], dtype=torch.float64)).numpy()
     check_finite(f"{motion_path}: the posed template", inner)

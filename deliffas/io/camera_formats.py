@@ -39,7 +39,7 @@ def camera_format_table() -> str:
     for f in capture_formats("read_cameras"):
         where = "the folder" if f.camera_path == "." else f"`{f.camera_path}`"
         lens = ", ".join(f.distortion) if f.distortion else "none"
-        rows.append(f"| `{f.name}` | {f.title} | {where} | {lens} | {'stored' if f.stores_size else 'size= needed'} |")
+        rows.append(f"| `{f.name}` | {f.title} | {where} | {lens} | {'stored' if f.stores_size else 'from the images, or --size'} |")
     return "\n".join(rows)
 
 

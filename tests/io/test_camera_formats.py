@@ -77,12 +77,31 @@ def test_dynacap_radial_is_not_an_opencv_coefficient(tmp_path):
 
 def test_size_is_required_where_the_format_has_none(tmp_path):
     out = write_cameras(rig(), tmp_path / "z", "zju")
-    with pytest.raises(ValueError, match=r"zju .*pass size=\(width, height\)"):
+    with pytest.raises(ValueError, match=r"zju camera .*holds no image to read it from; pass --size WxH"):
         read_cameras(out)
     smc = write_cameras(rig(), tmp_path / "d.smc", "dna")
-    with pytest.raises(ValueError, match=r"camera 00 has no image or mask .*size="):
+    with pytest.raises(ValueError, match=r"camera 00 has no image or mask .*--size WxH"):
         read_cameras(smc)
     assert read_cameras(out, size=(64, 48))[0].width == 64
+
+
+@pytest.mark.parametrize("fmt", ["zju", "easymocap"])
+def test_missing_sizes_are_read_from_each_cameras_first_image(tmp_path, fmt):
+    import cv2
+
+    out = write_cameras(rig(), tmp_path / "cap", fmt)
+    root = out if out.is_dir() else out.parent
+    if fmt == "easymocap":  # EasyMocap's own intri.yml often has no H_/W_
+        for name in ("H_", "W_"):
+            text = (root / "intri.yml").read_text().splitlines()
+            (root / "intri.yml").write_text("\n".join(x for x in text if not x.startswith(name)) + "\n")
+    for i, c in enumerate(rig()):
+        folder = root / ("images" if fmt == "easymocap" else "") / c.name
+        folder.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(folder / "000000.jpg"), np.zeros((40 + i, 30 + i, 3), np.uint8))
+    read = read_cameras(root)
+    assert [(c.width, c.height) for c in read] == [(30 + i, 40 + i) for i in range(len(read))]
+    assert read_cameras(root, size=(64, 48))[0].width == 64  # --size stays the override
 
 
 def test_detection_and_unknown_formats(tmp_path):

@@ -52,7 +52,7 @@ def test_size_required_without_w_h(tmp_path):
     _write(tmp_path)
     (tmp_path / "intri.yml").write_text((tmp_path / "intri.yml").read_text().replace("H_1: 768\nW_1: 1024\n", ""))
     cam = read_easymocap_cameras(tmp_path)[0]
-    with pytest.raises(ValueError, match="pass size="):
+    with pytest.raises(ValueError, match="pass --size WxH"):
         easymocap_to_camera(cam)
     assert easymocap_to_camera(cam, size=(1024, 768)).width == 1024
 

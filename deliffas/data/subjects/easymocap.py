@@ -60,7 +60,9 @@ def parse_easymocap(root: Path, options: SubjectOptions = SubjectOptions()) -> S
         raise FileNotFoundError(f"{root}: no frame has an image in every camera (images/<cam>/<frame:06d>.jpg) "
                                 f"and an SMPL file ({len(smpl_files)} SMPL files)")
     size = image_file_size(per_cam[0][frames[0]])
-    cameras, undistort = split_distortion([easymocap_to_camera(c, size) for c in records], "EasyMocap")
+    cameras, undistort = split_distortion(  # no W_/H_ in intri.yml: the camera's first image
+        [easymocap_to_camera(c, None if c.width and c.height else image_file_size(per_cam[i][frames[0]]))
+         for i, c in enumerate(records)], "EasyMocap")
     mask_cam = [numbered_files(root / "mask" / n) for n in names]
     have_masks = all(f in m for m in mask_cam for f in frames)
     images = {f: tuple(str(per_cam[c][f].relative_to(root)) for c in range(len(names))) for f in frames}

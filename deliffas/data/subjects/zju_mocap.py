@@ -42,8 +42,9 @@ def parse_zju_mocap(root: Path, options: SubjectOptions = SubjectOptions()) -> S
     if not annots.ims:
         raise ValueError(f"{root / 'annots.npy'}: ims: expected image paths per frame, got none")
     spec = smpl_template(options, "ZJU-MoCap")
-    size = image_file_size(root / annots.ims[0][0])
-    cameras, undistort = split_distortion(zju_to_cameras(annots, size), "ZJU-MoCap")
+    sizes = [image_file_size(root / path) for path in annots.ims[0]]  # each camera's first image
+    size = sizes[0]
+    cameras, undistort = split_distortion(zju_to_cameras(annots, sizes), "ZJU-MoCap")
     mask_dir = next((d for d in ("mask_cihp", "mask") if (root / d).is_dir()), None)
     params_dir = "new_params" if (root / "new_params").is_dir() else "params"
     one_based = root.name in ONE_BASED

@@ -14,6 +14,7 @@ import math
 import signal
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -340,8 +341,9 @@ class _Viewer:
         self.frame.value = (int(self.frame.value) + 1) % self.scene.num_frames
 
 
-def serve(cfg: ViewConfig, stop: threading.Event | None = None) -> None:
-    """Serve the viewer at ``cfg.host:cfg.port`` until interrupted (or ``stop`` is set)."""
+def serve(cfg: ViewConfig, stop: threading.Event | None = None, ready: Callable[[], None] | None = None) -> None:
+    """Serve the viewer at ``cfg.host:cfg.port`` until interrupted (or ``stop`` is set); ``ready`` is called once
+    the runs are loaded and the server listens (the CLI prints the address then, not before a failure)."""
     viser, vtf = import_viser()
     if cfg.exposed:
         logger.warning("deliffas view: listening on %s: anyone who can reach this machine can see the viewer "
@@ -358,6 +360,8 @@ def serve(cfg: ViewConfig, stop: threading.Event | None = None) -> None:
         server.on_client_disconnect(viewer.disconnect)
         logger.info("deliffas view: http://%s:%d (%d frames, %d runs)", cfg.host, cfg.port, scene.num_frames,
                     len(scene.runs))
+        if ready is not None:
+            ready()
         next_frame = time.perf_counter()
         while not stop.is_set():
             time.sleep(_TICK_S)

@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 import os
 import threading
+from collections.abc import Callable
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -294,8 +295,10 @@ class _SubjectViewer:
             self._visibility()
 
 
-def serve_subject(cfg: SubjectViewConfig, stop: threading.Event | None = None) -> None:
-    """Serve the capture viewer at ``cfg.host:cfg.port`` until interrupted (or ``stop`` is set)."""
+def serve_subject(cfg: SubjectViewConfig, stop: threading.Event | None = None,
+                  ready: Callable[[], None] | None = None) -> None:
+    """Serve the capture viewer at ``cfg.host:cfg.port`` until interrupted (or ``stop`` is set); ``ready`` is
+    called once the capture is read and the server listens."""
 
     viser, _ = import_viser()
     if cfg.exposed:
@@ -315,6 +318,8 @@ def serve_subject(cfg: SubjectViewConfig, stop: threading.Event | None = None) -
         server.on_client_disconnect(viewer.disconnect)
         logger.info("deliffas view: capture %s at http://%s:%d (%d cameras, %d frames)", subject.root, cfg.host,
                     cfg.port, len(view.cameras), view.num_frames)
+        if ready is not None:
+            ready()
         next_frame = time.perf_counter()
         while stop is None or not stop.is_set():
             time.sleep(_TICK_S)

@@ -30,17 +30,26 @@ def in_folder(path: Path, name: str) -> Path:
     return p / name if p.is_dir() else p
 
 
-def need_size(fmt: str, size: tuple[int, int] | None) -> tuple[int, int]:
-    """``size`` (width, height) for a format whose file stores none.
+def need_size(fmt: str, size: tuple[int, int] | None, images: Path | None = None,
+              camera: str = "") -> tuple[int, int]:
+    """``size`` (width, height, ``--size``) for a format whose file stores none; without it, the size of the
+    camera's first image (``images``: that file, or the folder of its numbered images).
 
     Raises:
-        ValueError: ``size`` missing or not positive, saying to pass ``size=``.
+        ValueError: ``size`` not positive, or missing with no image to read it from, saying to pass ``--size``.
     """
     if size is None:
-        raise ValueError(f"{fmt} cameras: the file stores no image size; pass size=(width, height)")
+        from deliffas.io.formats.capture_frames import image_file_size, numbered_files  # (it imports this module)
+
+        files = {} if images is None else {0: images} if images.is_file() else numbered_files(images)
+        if not files:
+            where = f" and {images} holds no image to read it from" if images is not None else ""
+            who = f"{fmt} camera {camera}" if camera else f"{fmt} cameras"
+            raise ValueError(f"{who}: the file stores no image size{where}; pass --size WxH")
+        return image_file_size(files[min(files)])
     w, h = (int(v) for v in size)
     if w <= 0 or h <= 0:
-        raise ValueError(f"{fmt} cameras: size must be positive, got {size}")
+        raise ValueError(f"{fmt} cameras: --size must be positive, got {size}")
     return w, h
 
 

@@ -303,7 +303,7 @@ def smc_to_cameras(path: "PathLike | SmcFile", size: tuple[int, int] | None = No
         for c in smc.calibration():
             wh = frames.image_size(c.camera_id, group) or smc.image_size(c.camera_id, group) or size
             if wh is None:
-                raise ValueError(f"{smc.path}: camera {c.camera_id} has no image or mask to take its size from; pass size=(w, h)")
+                raise ValueError(f"{smc.path}: camera {c.camera_id} has no image or mask to take its size from; pass --size WxH")
             with naming_file(smc.path, f"Camera_Parameter/{c.camera_id}"):
                 out.append(to_camera(c.name or c.camera_id, c.K, invert_rigid(c.RT), wh[0], wh[1], units="m",
                                      pixel_centre="integer", distortion=c.D))

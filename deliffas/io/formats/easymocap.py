@@ -41,7 +41,7 @@ from deliffas.io.infra.reader_checks import (CaptureFormatError, read_json, requ
                                         require_size, write_json_atomic)
 from deliffas.io.infra.files import durable_replace, temp_path
 from deliffas.io.format_registry import CaptureFormat
-from deliffas.io.formats.camera_files import converted, file_detector
+from deliffas.io.formats.camera_files import converted, file_detector, need_size
 
 __all__ = [
     "EasyMocapCamera",
@@ -319,7 +319,7 @@ def easymocap_to_camera(cam: EasyMocapCamera, size: tuple[int, int] | None = Non
     elif size is not None:
         w, h = size
     else:
-        raise ValueError(f"EasyMocap camera {cam.name}: intri.yml has no W_/H_; pass size=(width, height)")
+        raise ValueError(f"EasyMocap camera {cam.name}: intri.yml has no W_/H_; pass --size WxH")
     E = np.eye(4)
     E[:3, :3], E[:3, 3] = cam.R, cam.T
     return to_camera(cam.name, cam.K, E, w, h, units="m", pixel_centre="integer", distortion=cam.dist)
@@ -379,7 +379,11 @@ def write_easymocap_smpl(path: PathLike, people: Sequence[EasyMocapSmpl]) -> Non
 # ----------------------------------------------------------------------------------- capture format
 def _read_cameras(path: Path, size: tuple[int, int] | None) -> list[Camera]:
     intri = path / "intri.yml" if path.is_dir() else path.with_name("intri.yml")
-    return converted(intri, read_easymocap_cameras(intri), lambda c: easymocap_to_camera(c, size))
+    def convert(c: EasyMocapCamera) -> Camera:  # no W_/H_: --size, else the camera's first image
+        missing = c.width is None or c.height is None
+        return easymocap_to_camera(c, need_size("easymocap", size, intri.parent / "images" / c.name, c.name)
+                                   if missing else None)
+    return converted(intri, read_easymocap_cameras(intri), convert)
 
 
 FORMAT = CaptureFormat(

@@ -224,10 +224,12 @@ def write_zju_annots(path: PathLike, annots: ZjuAnnots) -> Path:
     return p
 
 
-def zju_to_cameras(annots: ZjuAnnots, size: tuple[int, int]) -> list[Camera]:
-    """deliffas Cameras (mm kept, +0.5 pixel centres, D in ``extra``) for images of ``size`` = (width, height)."""
+def zju_to_cameras(annots: ZjuAnnots, size: tuple[int, int] | list[tuple[int, int]]) -> list[Camera]:
+    """deliffas Cameras (mm kept, +0.5 pixel centres, D in ``extra``) for images of ``size`` = (width, height),
+    one for every camera or a list of one per camera."""
+    sizes = size if isinstance(size, list) else [size] * len(annots.cameras)
     out = []
-    for c in annots.cameras:
+    for c, size in zip(annots.cameras, sizes):
         E = np.eye(4)
         E[:3, :3], E[:3, 3] = c.R, c.T
         out.append(to_camera(c.name, c.K, E, size[0], size[1], units="mm", pixel_centre="integer", distortion=c.D))
@@ -277,8 +279,11 @@ def write_zju_params(path: PathLike, params: EasyMocapSmpl) -> None:
 # ----------------------------------------------------------------------------------- capture format
 def _read_cameras(path: Path, size: tuple[int, int] | None) -> list[Camera]:
     annots = read_zju_annots(path)
-    with naming_file(in_folder(path, "annots.npy"), "cams"):
-        return zju_to_cameras(annots, need_size("zju", size))
+    file = in_folder(path, "annots.npy")
+    first = annots.ims[0] if annots.ims else ()  # each camera's first image: --size, else its size
+    with naming_file(file, "cams"):
+        return zju_to_cameras(annots, [need_size("zju", size, file.parent / first[i] if i < len(first) else
+                                                 file.parent / c.name, c.name) for i, c in enumerate(annots.cameras)])
 
 
 FORMAT = CaptureFormat(
