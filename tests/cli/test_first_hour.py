@@ -1,0 +1,192 @@
+"""A new user's first hour (issue 30), replayed as ``deliffas`` subprocess calls on a tiny capture.
+
+Each test is one item of the issue: runs found from another folder and after a move (1), masks that
+cannot judge a calibration (2), image sizes read from the images (3), ``train --resume`` continuing the
+run as it was (4), outputs checked before the work (5), Ctrl-C (6), help (7) and the smaller items (8).
+The SMPL captures (items 2, 3) and the Ctrl-C of ``convert`` are marked slow.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+TRAIN = ["--preset", "tiny", "--workers", "0", "--checkpoint-every", "100", "--preview-every", "0"]
+
+
+def deliffas(*args, cwd: Path | None = None, check: int | None = 0) -> subprocess.CompletedProcess:
+    """Run ``python -m deliffas ARGS`` (one intra-op thread, as the suite); ``check``: the expected exit code."""
+    env = dict(os.environ, PYTHONPATH=str(REPO), OMP_NUM_THREADS="1")
+    res = subprocess.run([sys.executable, "-m", "deliffas", *map(str, args)], cwd=cwd, env=env, text=True,
+                         capture_output=True, timeout=600)
+    if check is not None:
+        assert res.returncode == check, f"exit {res.returncode}\n{res.stdout}\n{res.stderr}"
+    return res
+
+
+def one_error_line(res: subprocess.CompletedProcess) -> str:
+    lines = [x for x in res.stderr.splitlines() if x.strip()]
+    assert res.returncode == 2 and len(lines) == 1 and "Traceback" not in res.stderr, res.stderr
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def home(tmp_path_factory) -> Path:
+    """``a/shards`` (a tiny converted capture) and ``a/run1`` trained from inside ``a`` with relative paths."""
+    from deliffas.data.convert import ConvertConfig, convert
+    from deliffas.data.synth import SynthConfig, synthesize_capture
+    from deliffas.geometry.procedural import make_procedural_character
+
+    root = tmp_path_factory.mktemp("first_hour")
+    a = root / "a"
+    character = make_procedural_character(root / "character", seed=0, target_faces=2000, texture_size=128)
+    synthesize_capture(a / "subject", SynthConfig(num_frames=3, num_test_frames=1, num_cameras=3, width=32, height=32,
+                                                  test_cameras=(2,), seed=0, character=str(character)))
+    convert(a / "subject", a / "shards", ConvertConfig(atlas_res=32, progress=False))
+    deliffas("train", "shards", "--out", "run1", "--iters", "2", *TRAIN, cwd=a)
+    return root
+
+
+def test_1_runs_find_their_shards_from_another_folder_and_after_a_move(home, tmp_path):
+    record = json.loads((home / "a" / "run1" / "train_config.json").read_text())["train"]
+    assert Path(record["shards"]).is_absolute() and record["shards_from_run"] == "../shards"
+    assert json.loads(deliffas("eval", "a/run1", "--json", "--max-frames", "1", cwd=home).stdout)["images"] >= 1
+    moved = tmp_path / "b"
+    shutil.copytree(home / "a", moved, ignore=shutil.ignore_patterns("subject"))  # run and shards move together
+    shutil.move(str(home / "a" / "shards"), str(home / "shards-away"))
+    try:
+        assert json.loads(deliffas("eval", moved / "run1", "--json", "--max-frames", "1").stdout)["images"] >= 1
+        line = one_error_line(deliffas("eval", home / "a" / "run1", check=2))  # gone: say where it looked
+        assert str((home / "a" / "shards").absolute()) in line and "--shards" in line
+    finally:
+        shutil.move(str(home / "shards-away"), str(home / "a" / "shards"))
+
+
+def test_4_resume_continues_the_run_as_it_was(home, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(home / "a" / "run1", run)
+    res = deliffas("train", "--resume", "--out", run)  # no --preset tiny, no --iters: the run's own
+    assert "already at iteration 2" in res.stdout and "it/s" not in res.stdout
+    line = one_error_line(deliffas("train", "--resume", "--out", run, "--preset", "small", check=2))
+    assert "--preset" in line and "'tiny'" in line and "'small'" in line
+    res = deliffas("train", "--resume", "--out", run, "--iters", "3", "--workers", "0")
+    assert "to iteration 3" in res.stdout
+    state = json.loads((run / "train_state.json").read_text())
+    assert state["iteration"] == 3 and json.loads((run / "train_config.json").read_text())["train"]["preset"] == "tiny"
+
+
+def test_5_outputs_are_checked_before_the_work(home):
+    for args in (["eval", "a/run1", "--grid", "/sys/deliffas-test/g.png"],
+                 ["render", "a/run1", "--out", "/sys/deliffas-test/v.mp4"]):
+        line = one_error_line(deliffas(*args, cwd=home, check=2))
+        assert "/sys/deliffas-test/" in line and "cannot write" in line, line
+    res = deliffas("convert", home / "a" / "subject", home / "x", "--atlas-res", "50", check=2)
+    assert "power of two" in res.stderr and not (home / "x").exists()
+
+
+def _interrupt(args: list, cwd: Path, when) -> subprocess.CompletedProcess:
+    """Start ``deliffas ARGS`` in its own process group, send the group SIGINT (Ctrl-C) once ``when(stderr so far)``."""
+    env = dict(os.environ, PYTHONPATH=str(REPO), OMP_NUM_THREADS="1")
+    err_path = cwd / "stderr.txt"
+    with open(err_path, "w") as err:
+        p = subprocess.Popen([sys.executable, "-m", "deliffas", *map(str, args)], cwd=cwd, env=env, text=True,
+                             stdout=subprocess.PIPE, stderr=err, start_new_session=True)
+        t0 = time.time()
+        while p.poll() is None and not when(err_path.read_text(), time.time() - t0):
+            time.sleep(0.1)
+        os.killpg(p.pid, signal.SIGINT)
+        out, _ = p.communicate(timeout=300)
+    return subprocess.CompletedProcess(p.args, p.returncode, out, err_path.read_text())
+
+
+def test_6_ctrl_c_in_train_keeps_the_iteration_and_says_how_to_resume(home, tmp_path):
+    shutil.copytree(home / "a" / "shards", tmp_path / "shards")
+    res = _interrupt(["train", "shards", "--out", "run", "--iters", "1000", *TRAIN], tmp_path,
+                     lambda err, t: "3/1000" in err or t > 240)
+    assert res.returncode == 130 and "Traceback" not in res.stderr, res.stderr
+    done = json.loads((tmp_path / "run" / "train_state.json").read_text())["iteration"]
+    assert 3 <= done < 100  # the interrupted iteration, not the last periodic checkpoint (none yet)
+    assert f"checkpoint at iteration {done} kept" in res.stderr
+    assert "resume with: deliffas train --resume --out run" in res.stderr
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("after_s", [0.5, 3.0, None])
+def test_6_ctrl_c_in_convert_at_any_moment(home, tmp_path, after_s):
+    args = ["convert", home / "a" / "subject", "out", "--atlas-res", "32", "--shard-frames", "1", "--no-progress"]
+    res = _interrupt(args, tmp_path, lambda err, t: (t > after_s if after_s is not None else
+                                                      (tmp_path / "out" / "manifest.json").is_file()))
+    assert res.returncode in (130, 0) and "Traceback" not in res.stderr, res.stderr
+    if res.returncode == 130:
+        assert "resume with: deliffas convert" in res.stderr and res.stderr.rstrip().endswith("--resume")
+
+
+def test_7_help_states_defaults():
+    out = deliffas("train", "--help").stdout
+    for text in ("default 1000", "default 4", "default cpu", "default 1)", "default 0", "default 250"):
+        assert text in " ".join(out.split()), text
+    assert "realtime" in (REPO / "README.md").read_text().split("deliffas zoo list")[1].split("\n")[0]
+
+
+def test_8_smaller_items(home):
+    one_error_line(deliffas("verify", home / "nonexistent", check=2))
+    rows = [re.match(r"\S+\s+\S+\s+\d+", r) for r in deliffas("zoo", "list").stdout.splitlines()]
+    assert len({m.end() for m in rows if m}) == 1  # the S column lines up, on 'realtime' too
+    res = deliffas("view", "a/run1", "--shards", "a/nonexistent", cwd=home, check=2)
+    assert "http://" not in res.stdout
+    res = deliffas("train", "shards", "--out", "run2", "--iters", "1", *TRAIN, cwd=home / "a")
+    assert "WARNING" not in res.stderr and "frames protocol auto -> all" in res.stderr
+    res = deliffas("render", "a/run1", "--out", "v", "--orbit", cwd=home)
+    assert "--frames 100 --loop" in res.stderr
+
+
+@pytest.fixture(scope="module")
+def easymocap_without_masks_or_sizes(tmp_path_factory) -> Path:
+    """An EasyMocap capture as EasyMocap writes it: no H_/W_ in intri.yml; and no mask/ folder."""
+    from deliffas.data.export_capture import export_capture
+    from deliffas.data.subjects import parse_subject
+    from deliffas.data.synth import SynthConfig, synthesize_capture
+
+    root = tmp_path_factory.mktemp("easymocap")
+    synthesize_capture(root / "smpl", SynthConfig(num_frames=2, num_test_frames=1, num_cameras=3, width=48, height=48,
+                                                  seed=1, body_model="procedural", fps=3.0))
+    cap = export_capture(parse_subject(root / "smpl"), root / "cap", "easymocap", jpeg_quality=100)
+    shutil.rmtree(cap / "mask")
+    intri = cap / "intri.yml"
+    intri.write_text("\n".join(x for x in intri.read_text().splitlines() if not x.startswith(("H_", "W_"))) + "\n")
+    return cap
+
+
+@pytest.mark.slow
+def test_2_missing_masks_are_named_and_no_units_fix_is_proposed(easymocap_without_masks_or_sizes, tmp_path):
+    cap = easymocap_without_masks_or_sizes
+    model = cap.parent / "smpl" / "body" / "smpl_procedural.npz"
+    res = deliffas("check", cap, "--out", tmp_path / "report", "--template", model, check=1)
+    assert "masks missing or all foreground" in res.stdout and "1000" not in res.stdout
+    assert "--no-check" not in res.stdout  # an option of convert, not of check
+    line = one_error_line(deliffas("convert", cap, tmp_path / "out", "--template", model, check=2))
+    assert "masks missing or all foreground" in line and "1000" not in line and "--no-check" in line
+
+
+@pytest.mark.slow
+def test_3_sizes_from_the_images(easymocap_without_masks_or_sizes, tmp_path):
+    deliffas("cameras", easymocap_without_masks_or_sizes, tmp_path / "c.calibration", "--to", "dynacap")
+    from deliffas.io.camera_formats import read_cameras
+
+    assert {(c.width, c.height) for c in read_cameras(tmp_path / "c.calibration")} == {(48, 48)}
+    empty = tmp_path / "bare"
+    empty.mkdir()
+    shutil.copy(easymocap_without_masks_or_sizes / "intri.yml", empty)
+    shutil.copy(easymocap_without_masks_or_sizes / "extri.yml", empty)
+    line = one_error_line(deliffas("cameras", empty, tmp_path / "d.calibration", "--to", "dynacap", check=2))
+    assert "--size WxH" in line and "size=" not in line
