@@ -548,8 +548,14 @@ def main(argv: list[str] | None = None) -> int:
         return 130
 
 
+_OS_HINTS = ((FileNotFoundError, "check the path"), (FileExistsError, "choose another path"),
+             (PermissionError, "choose a path you may read or write"),
+             (NotADirectoryError, "a file is where a folder is expected; check the path"))
+
+
 def _error_line(err: Exception) -> str:
-    """One line for a user: an OSError names its file and what failed (``[Errno 2] ...`` says neither)."""
+    """One line for a user: an OSError names its file, what failed and what to do (``[Errno 2] ...`` says none)."""
     if isinstance(err, OSError) and err.filename is not None and err.strerror and str(err.filename) not in str(err.args[-1]):
-        return f"{err.filename}: {err.strerror.lower()}"
+        hint = next((h for kind, h in _OS_HINTS if isinstance(err, kind)), "")
+        return f"{err.filename}: {err.strerror.lower()}" + (f"; {hint}" if hint else "")
     return str(err)

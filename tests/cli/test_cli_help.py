@@ -47,3 +47,14 @@ def test_train_help_states_the_config_defaults():
                         ("preview_every", "preview_every"), ("perceptual_mode", "perceptual_mode"),
                         ("perceptual", "perceptual")):
         assert f"default {TrainConfig.__dataclass_fields__[field].default}" in helps[dest], dest
+
+
+def test_os_errors_name_the_file_and_what_to_do():
+    import errno
+    import os
+
+    from deliffas.cli import _error_line
+
+    err = FileExistsError(errno.EEXIST, os.strerror(errno.EEXIST), "afile")
+    assert _error_line(err) == "afile: file exists; choose another path"
+    assert _error_line(FileNotFoundError("x.json: missing; pass --shards")) == "x.json: missing; pass --shards"

@@ -113,3 +113,22 @@ def test_cli_check_and_convert_gate(exported, smpl_model, tmp_path, capsys):
     assert "camera-to-world" in err and "--no-check" in err and "Traceback" not in err and len(err.splitlines()) == 1
     assert main(["convert", str(root), str(tmp_path / "shards"), "--template", str(smpl_model), "--atlas-res", "16",
                  "--no-progress", "--no-check"]) == 0
+
+
+@pytest.mark.parametrize("masks", ["missing", "empty", "full"])
+def test_unusable_masks_are_named_and_no_calibration_fix_is_proposed(exported, smpl_model, tmp_path, masks):
+    import cv2
+
+    root = tmp_path / "cap"
+    shutil.copytree(exported("easymocap"), root)
+    for p in sorted((root / "mask").rglob("*.*")):
+        if masks == "missing":
+            p.unlink()
+        else:
+            m = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
+            cv2.imwrite(str(p), np.full_like(m, 0 if masks == "empty" else 255))
+    result = check_subject(parse_subject(root, "easymocap", SubjectOptions(template=str(smpl_model))),
+                           CheckConfig(frames=2))
+    expected = "masks empty" if masks == "empty" else "masks missing or all foreground"
+    assert not result.ok and [f.cause for f in result.findings] == [expected]
+    assert expected in result.reason and "1000" not in result.reason and "--no-check" not in result.reason
