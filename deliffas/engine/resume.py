@@ -60,7 +60,7 @@ def resumed_config(run: str | os.PathLike, given: dict, names: dict[str, str] | 
                              f"{value!r}; leave {name(key, key)} out to continue it as it was trained (a resumed run "
                              f"may change only {', '.join(name(k, k) for k in MAY_CHANGE if k != 'out')})")
     values.update({k: v for k, v in given.items() if v is not None and k in MAY_CHANGE})
-    values["shards"] = check_run_shards(run, record, given.get("shards"))
+    values["shards"] = str(check_run_shards(run, record, given.get("shards")).out_dir)
     values["out"] = str(run)
     if isinstance(values.get("validation_cameras"), list):
         values["validation_cameras"] = tuple(values["validation_cameras"])
