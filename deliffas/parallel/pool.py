@@ -83,6 +83,7 @@ def _exit_when_parent_dies(parent_pid: int) -> None:
 
 
 def _worker_init(parent_pid: int, initializer, initargs: tuple) -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole group: the parent reports it, no traceback
     _exit_when_parent_dies(parent_pid)
     if initializer is not None:
         initializer(*initargs)
