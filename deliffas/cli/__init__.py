@@ -339,7 +339,7 @@ def _add_training_commands(sub) -> None:
     p.add_argument("--out", type=Path, required=True, help="run directory")
     p.add_argument("--preset", default=None, help="paper | small (default) | realtime | tiny")
     p.add_argument("--iters", type=_positive_int, default=None,
-                   help="train to this iteration (default 1000; with --resume: the run's, more extends it)")
+                   help="train to this iteration (default 1500; with --resume: the run's, more extends it)")
     p.add_argument("--config", type=Path, default=None,
                    help="JSON file of TrainConfig fields (incl. model_overrides) (default: none)")
     p.add_argument("--resume", action="store_true",
@@ -354,7 +354,7 @@ def _add_training_commands(sub) -> None:
                    help="ImageNet VGG-16 weights (.pth/.safetensors) (default: $DELIFFAS_VGG16_WEIGHTS or the torch "
                         "hub cache)")
     p.add_argument("--cameras-per-frame", type=_positive_int, default=None,
-                   help="training cameras per iteration; the U-Nets run once for all of them (default 4)")
+                   help="training cameras per iteration; the U-Nets run once for all of them (default 3)")
     p.add_argument("--device", type=_device_name, default=None, help="cpu | cuda | cuda:N (default cpu)")
     p.add_argument("--workers", dest="num_workers", type=_non_negative_int, default=None,
                    help="DataLoader worker processes, 0 = in this process (default 1)")

@@ -132,9 +132,12 @@ def test_6_ctrl_c_in_convert_at_any_moment(home, tmp_path, after_s):
 
 
 def test_7_help_states_defaults():
-    out = deliffas("train", "--help").stdout
-    for text in ("default 1000", "default 4", "default cpu", "default 1)", "default 0", "default 250"):
-        assert text in " ".join(out.split()), text
+    from deliffas.engine.train_config import TrainConfig
+
+    out = " ".join(deliffas("train", "--help").stdout.split())
+    for text in (f"default {TrainConfig.iters}", f"default {TrainConfig.cameras_per_frame}", "default cpu",
+                 "default 1)", "default 0", "default 250"):
+        assert text in out, text
     assert "realtime" in (REPO / "README.md").read_text().split("deliffas zoo list")[1].split("\n")[0]
 
 
