@@ -92,6 +92,9 @@ def write_seeds(root: Path) -> None:
         rng.normal(0, 1, (1, 10)), rng.normal(0, 0.3, (2, 3)), rng.normal(0, 1, (2, 3)), rng.normal(0, 0.2, (2, 63)),
         {"jaw_pose": np.zeros((2, 3)), "expression": rng.normal(0, 1, (2, 10)), "left_hand_pose": np.zeros((2, 45))}))
     write_actorshq_calibration(root / "actorshq", [camera_to_actorshq(c) for c in rig(RADIAL)])
+    for fmt in ("pose2sim", "qualisys", "panoptic"):  # the camera formats registered as plug-in modules
+        (root / fmt).mkdir()
+        write_cameras(full, root / fmt, fmt)
     write_cameras(none, root / "colmap_text", "colmap", text=True)
     write_cameras(none, root / "colmap_binary", "colmap")
     frames = {str(i): [_image(i + f, (24, 32, 3)) for f in range(2)] for i in range(2)}

@@ -1,7 +1,8 @@
 """Property-based fuzzing of the capture-format readers: valid data or a ValueError naming the file, nothing else.
 
 Every format ``read_cameras`` reads (EasyMocap, ZJU-MoCap, nerfstudio, THuman4.0, ActorsHQ, COLMAP text
-and binary, DNA-Rendering .smc; DynaCap's .calibration is fuzzed in ``test_fuzz_readers.py``), the
+and binary, DNA-Rendering .smc, Pose2Sim Calib.toml, Qualisys .qca.txt, CMU Panoptic; DynaCap's .calibration
+is fuzzed in ``test_fuzz_readers.py``), the
 SMPL records of the capture formats, the frame sources of ``capture_frames``, AMASS motions and SMPL
 model files (.npz, .pkl). Each case starts from a small valid file written by deliffas' own writers
 (``capture_seeds``) and damages one of its files (``fuzz_mutations``: bytes, text lines and tokens,
@@ -224,6 +225,12 @@ TARGETS = {
         ("read_thuman4_smplx", lambda d: read_thuman4_smplx(d / "smpl_params.npz"), check_thuman4_smplx),)),
     "actorshq": Target("actorshq", {"calibration.csv": FileKind(b",")}, (
         ("read_cameras actorshq", lambda d: read_cameras(d, "actorshq"), check_cameras),)),
+    "pose2sim calib.toml": Target("pose2sim", {"Calib.toml": FileKind(b" ")}, (
+        ("read_cameras pose2sim", lambda d: read_cameras(d, "pose2sim"), check_cameras),)),
+    "qualisys qca": Target("qualisys", {"Calib.qca.txt": FileKind(b" ")}, (
+        ("read_cameras qualisys", lambda d: read_cameras(d / "Calib.qca.txt", "qualisys"), check_cameras),)),
+    "panoptic calibration": Target("panoptic", {"calibration_panoptic.json": _JSON}, (
+        ("read_cameras panoptic", lambda d: read_cameras(d, "panoptic"), check_cameras),)),
     "colmap text": Target("colmap_text", {"cameras.txt": FileKind(b" "), "images.txt": FileKind(b" ")}, (
         ("read_cameras colmap", lambda d: read_cameras(d, "colmap"), check_cameras),)),
     "colmap binary": Target("colmap_binary", {"cameras.bin": BINARY, "images.bin": BINARY}, (
