@@ -1,11 +1,14 @@
 """From converted shards to the engine's ``FrameSample`` stream (training) and sequence (evaluation).
 
 The DataLoader workers read the shards and ray-cast each item's cameras (``_ItemToSample``), so
-geometry work overlaps with the model's forward/backward in the main process.
+geometry work overlaps with the model's forward/backward in the main process. With the torch uv source
+(``TrainConfig.uv``; the default on CUDA) the workers only read, and :func:`with_torch_rays` rasterises the
+sample's cameras on the model's device in the main process.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import logging
 from typing import Iterator
@@ -16,12 +19,12 @@ from torch.utils.data import DataLoader, Sampler
 
 from deliffas.data.dataset import FrameItem, RandomCameraSampler, ShardDataset
 from deliffas.data.shards import ShardSet, open_shard_set
-from deliffas.engine.rays import frame_rays
+from deliffas.engine.rays import frame_rays, torch_frame_rays, uv_source
 from deliffas.engine.samples import FrameSample
 from deliffas.geometry.atlas import UVAtlas
 
 __all__ = ["training_stream", "evaluation_samples", "shard_info", "resolve_protocol", "validation_cameras",
-           "AUTO_PAPER_MIN_FRAMES", "EVAL_SPLITS", "TEST_SPLITS"]
+           "with_torch_rays", "AUTO_PAPER_MIN_FRAMES", "EVAL_SPLITS", "TEST_SPLITS"]
 
 logger = logging.getLogger(__name__)
 
@@ -112,6 +115,12 @@ class _ItemToSample:
                            inner_verts=inner, outer_verts=outer, rays=rays)
 
 
+def with_torch_rays(sample: FrameSample, faces: np.ndarray, atlas: UVAtlas, device: torch.device | str) -> FrameSample:
+    """``sample`` with its cameras' rays rasterised by the torch rasteriser on ``device`` (tensors there)."""
+    rays = torch_frame_rays(sample.inner_verts, sample.outer_verts, faces, atlas, sample.cameras, device)
+    return dataclasses.replace(sample, rays=rays)
+
+
 def _one_thread_worker(_worker_id: int) -> None:
     """DataLoader workers ray-cast and read shards: one torch thread each, no oversubscription."""
     torch.set_num_threads(1)
@@ -155,12 +164,13 @@ def training_stream(cfg, temporal_window: int, rank: int = 0, world: int = 1, st
         raise ValueError(f"{cfg.shards}: no training frames under protocol {protocol!r}")
     k = min(cfg.cameras_per_frame, len(ds.cameras))
     sampler = _EndlessCameraSampler(ds, k, seed=cfg.seed + 7919 * rank + 104729 * start_iteration)
-    collate = _ItemToSample(info["faces"], info["atlas"], info["cameras"], with_rays=True)
+    raycast = uv_source(cfg.device, getattr(cfg, "uv", "auto")) == "raycast"
+    collate = _ItemToSample(info["faces"], info["atlas"], info["cameras"], with_rays=raycast)
     loader = DataLoader(ds, batch_size=1, sampler=sampler, collate_fn=collate, num_workers=cfg.num_workers,
                         persistent_workers=cfg.num_workers > 0, prefetch_factor=2 if cfg.num_workers > 0 else None,
                         worker_init_fn=_one_thread_worker if cfg.num_workers > 0 else None)
     info.update(train_frames=len(ds.frames), train_cameras=ds.cameras, protocol=ds.protocol, protocol_message=message,
-                validation_cameras=held_out)
+                validation_cameras=held_out, uv="raycast" if raycast else "torch")
     return iter(loader), info
 
 

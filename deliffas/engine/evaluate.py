@@ -1,6 +1,7 @@
 """Evaluation of a trained run: the official image metrics next to the per-stage timing.
 
-Per test frame, the U-Net(s) run once (``cnn``); per test camera the uv maps are ray-cast
+Per test frame, the U-Net(s) run once (``cnn``); per test camera the uv maps are ray-cast, or
+rasterised by the torch rasteriser on the model's device (``EvalConfig.uv``; the default on CUDA)
 (``uv``), the features bilinearly sampled at the hit uvs (``sample``) and the light-field MLP
 evaluated (``mlp``) — the paper's runtime breakdown.
 
@@ -29,6 +30,7 @@ from deliffas.engine.data_bridge import EVAL_SPLITS, evaluation_samples, resolve
 from deliffas.engine.identity import check_run_shards
 from deliffas.io.infra.files import check_writable
 from deliffas.engine.figures import GridImage, comparison_grid
+from deliffas.engine.rays import UVSource, uv_source
 from deliffas.engine.runs import load_run
 from deliffas.engine.samples import composite_target
 from deliffas.engine.shading import render_frame
@@ -84,6 +86,9 @@ class EvalConfig:
     fast: FastConfig | None = None
     """Render by the CPU fast path (``deliffas.fast``: rasterised uvs, bf16 MLP where native) instead of the
     reference path (None), to measure what it changes."""
+    uv: UVSource = "auto"
+    """uv maps of the reference path: ``raycast`` (open3d), ``torch`` (the torch rasteriser on ``device``),
+    ``auto`` = ``torch`` on CUDA, else ``raycast``."""
 
 
 def evaluate(cfg: EvalConfig) -> dict:
@@ -111,11 +116,11 @@ def evaluate(cfg: EvalConfig) -> dict:
     for i, sample in enumerate(samples):
         if i == 0:  # first use of open3d and of the model's kernels is slow; keep it out of the timing
             render_frame(model, sample, UVRaycaster(sample.inner_verts, info["faces"], sample.outer_verts, info["atlas"]),
-                         device, StageTimer(device), cfg.chunk_size, fast)
+                         device, StageTimer(device), cfg.chunk_size, fast, cfg.uv)
         t0 = time.perf_counter()
         with timer.stage("scene"):
             raycaster = UVRaycaster(sample.inner_verts, info["faces"], sample.outer_verts, info["atlas"])
-        preds = render_frame(model, sample, raycaster, device, timer, cfg.chunk_size, fast)
+        preds = render_frame(model, sample, raycaster, device, timer, cfg.chunk_size, fast, cfg.uv)
         t_wall += time.perf_counter() - t0
         gt = composite_target(sample.images, sample.masks)  # black background
         for k in range(sample.num_cameras):
@@ -164,6 +169,7 @@ def evaluate(cfg: EvalConfig) -> dict:
         "fps_shared_cnn": n_images / t_wall if t_wall > 0 else None,
         "device": str(device),
         "render_path": (f"fast ({'fused fp32' if fast.fused else fast.torch_dtype()})" if fast else "plain"),
+        "uv": "rasterize (C)" if fast else uv_source(device, cfg.uv),
         "perceptual_backbone": record.get("perceptual_backbone"),
     }
 

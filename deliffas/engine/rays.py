@@ -8,29 +8,43 @@ A pixel is shaded when its ray meets the outer surface (the offset shell enclose
 surface, so this is the template silhouette dilated by the offset — DELIFFAS uses a 4-px dilated
 silhouette of the same role). Its inner sample is the inner hit, or the outer exit hit where the
 ray misses the inner surface (depth peeling, ``uv_inner_or_exit``). Every other pixel is background.
+
+Two sources give the same rays (up to pixel centres within round-off of a triangle edge): the open3d ray
+caster (:func:`camera_rays`, numpy, in the DataLoader workers during training) and the torch rasteriser
+(:func:`torch_camera_rays`, tensors on the model's device, in the main process). :func:`uv_source` picks
+one: ``auto`` = the torch rasteriser when the device is CUDA, the ray caster on the CPU.
 """
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Literal, Sequence
 
 import numpy as np
 import torch
 
 from deliffas.checks import check_shape
 from deliffas.geometry.atlas import UVAtlas
+from deliffas.geometry.rasterize_torch import TorchUVRasterizer
 from deliffas.geometry.raycast import UVRaycaster, uv_inner_or_exit
 from deliffas.io.cameras import Camera
 from deliffas.models.ray_query import RayQuery
 from deliffas.models.variants import VariantSpec
 
-__all__ = ["CameraRays", "camera_rays", "frame_rays", "RayBatch", "stack_rays", "ray_query", "paint_images"]
+__all__ = ["CameraRays", "camera_rays", "frame_rays", "RayBatch", "stack_rays", "ray_query", "paint_images",
+           "UVSource", "UV_SOURCES", "uv_source", "torch_camera_rays", "torch_frame_rays", "device_camera_rays"]
+
+UVSource = Literal["auto", "raycast", "torch"]
+UV_SOURCES = ("auto", "raycast", "torch")
+"""Where the uv maps come from: ``raycast`` = the open3d ray caster (CPU), ``torch`` = the torch rasteriser on
+the model's device, ``auto`` = ``torch`` on CUDA, else ``raycast``."""
 
 
 @dataclass(frozen=True)
 class CameraRays:
-    """The shaded rays of one camera image.
+    """The shaded rays of one camera image: numpy arrays from the ray caster, tensors on the model's device from
+    the torch rasteriser (every consumer takes either).
 
     Attributes:
         pixels: (N,) int64 flat pixel index row * W + col of each shaded ray.
@@ -42,11 +56,11 @@ class CameraRays:
         height, width: image size.
     """
 
-    pixels: np.ndarray
-    uv_inner: np.ndarray
-    inner_from_outer: np.ndarray
-    uv_outer: np.ndarray
-    viewdir: np.ndarray | None
+    pixels: np.ndarray | torch.Tensor
+    uv_inner: np.ndarray | torch.Tensor
+    inner_from_outer: np.ndarray | torch.Tensor
+    uv_outer: np.ndarray | torch.Tensor
+    viewdir: np.ndarray | torch.Tensor | None
     height: int
     width: int
 
@@ -78,6 +92,59 @@ def frame_rays(inner_verts: np.ndarray, outer_verts: np.ndarray, faces: np.ndarr
     """Ray sets of several cameras of one frame (the ray-casting scenes are built once)."""
     raycaster = UVRaycaster(np.asarray(inner_verts, np.float32), faces, np.asarray(outer_verts, np.float32), atlas)
     return [camera_rays(raycaster, cam) for cam in cameras]
+
+
+def uv_source(device: torch.device | str, requested: str = "auto") -> Literal["raycast", "torch"]:
+    """The resolved uv source for a model on ``device`` (``UV_SOURCES``; ValueError naming the choices)."""
+    if requested not in UV_SOURCES:
+        raise ValueError(f"uv: expected one of {', '.join(UV_SOURCES)}, got {requested!r}")
+    if requested == "auto":
+        return "torch" if torch.device(device).type == "cuda" else "raycast"
+    return requested  # type: ignore[return-value]
+
+
+def torch_camera_rays(rasterizer: TorchUVRasterizer, camera: Camera, viewdir: bool = True,
+                      fallback: UVRaycaster | None = None) -> CameraRays:
+    """``camera_rays`` by the torch rasteriser: tensors on its device. Where a vertex is behind the camera the
+    rasteriser cannot project: the ray caster ``fallback`` casts then (built from the rasteriser's surfaces when
+    None; needs open3d)."""
+    got = rasterizer.shaded_pixels(camera, viewdir)
+    if got is None:
+        raycaster = fallback or UVRaycaster(rasterizer.inner.cpu().numpy(), rasterizer.faces.cpu().numpy(),
+                                            rasterizer.outer.cpu().numpy(), rasterizer.atlas)
+        rays = camera_rays(raycaster, camera)
+        as_t = lambda a: torch.from_numpy(a).to(rasterizer.device)  # noqa: E731
+        return CameraRays(as_t(rays.pixels), as_t(rays.uv_inner), as_t(rays.inner_from_outer), as_t(rays.uv_outer),
+                          as_t(rays.viewdir) if viewdir else None, camera.height, camera.width)
+    return CameraRays(pixels=got.pixels, uv_inner=got.uv_inner, inner_from_outer=got.inner_from_outer,
+                      uv_outer=got.uv_outer, viewdir=got.viewdir, height=camera.height, width=camera.width)
+
+
+def torch_frame_rays(inner_verts: np.ndarray, outer_verts: np.ndarray, faces: np.ndarray, atlas: UVAtlas,
+                     cameras: Sequence[Camera], device: torch.device | str) -> list[CameraRays]:
+    """``frame_rays`` by the torch rasteriser on ``device`` (the surfaces as ``frame_rays`` casts them: float32)."""
+    rasterizer = TorchUVRasterizer(np.asarray(inner_verts, np.float32), faces, np.asarray(outer_verts, np.float32),
+                                   atlas, device)
+    return [torch_camera_rays(rasterizer, cam) for cam in cameras]
+
+
+# one torch rasteriser per frame geometry (its ray caster) and device, alive as long as the ray caster
+_TORCH_RASTERIZERS: "weakref.WeakKeyDictionary[UVRaycaster, dict[torch.device, TorchUVRasterizer]]" = \
+    weakref.WeakKeyDictionary()
+
+
+def device_camera_rays(raycaster: UVRaycaster, camera: Camera, device: torch.device | str, uv: str = "auto",
+                       viewdir: bool = True) -> CameraRays:
+    """The shaded rays of ``camera`` from ``uv_source(device, uv)``: the ray caster's (numpy), or the torch
+    rasteriser's of the same frame on ``device`` (tensors; built once per ray caster and device)."""
+    device = torch.device(device)
+    if uv_source(device, uv) == "raycast":
+        return camera_rays(raycaster, camera)
+    per_device = _TORCH_RASTERIZERS.setdefault(raycaster, {})
+    if device not in per_device:
+        per_device[device] = TorchUVRasterizer(raycaster.inner_verts, raycaster.faces, raycaster.outer_verts,
+                                               raycaster.atlas, device)
+    return torch_camera_rays(per_device[device], camera, viewdir, fallback=raycaster)
 
 
 @dataclass(frozen=True)
@@ -112,11 +179,15 @@ class RayBatch:
 def stack_rays(rays: Sequence[CameraRays], frame_of_image: Sequence[int]) -> RayBatch:
     """Flatten per-image ray sets; ``frame_of_image[i]`` is the feature batch row of image i."""
     counts = [r.num_rays for r in rays]
-    cat = lambda name: torch.from_numpy(np.concatenate([getattr(r, name) for r in rays]))  # noqa: E731
+    cat = lambda name: torch.cat([torch.as_tensor(getattr(r, name)) for r in rays])  # noqa: E731
+    pixels = cat("pixels")
+    dev = pixels.device  # the rays' device: the torch rasteriser's rays stay where they were made
+    per_image = torch.as_tensor(counts, device=dev)
     return RayBatch(
-        batch_index=torch.repeat_interleave(torch.as_tensor(list(frame_of_image), dtype=torch.long), torch.as_tensor(counts)),
-        image_index=torch.repeat_interleave(torch.arange(len(rays)), torch.as_tensor(counts)),
-        pixels=cat("pixels"),
+        batch_index=torch.repeat_interleave(torch.as_tensor(list(frame_of_image), dtype=torch.long, device=dev),
+                                            per_image),
+        image_index=torch.repeat_interleave(torch.arange(len(rays), device=dev), per_image),
+        pixels=pixels,
         uv_inner=cat("uv_inner"),
         uv_outer=cat("uv_outer"),
         inner_from_outer=cat("inner_from_outer"),

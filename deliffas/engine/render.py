@@ -18,7 +18,7 @@ from deliffas.geometry.frame_geometry import FrameGeometryBuilder
 from deliffas.geometry.templates import build_template
 from deliffas.engine.avatar import load_avatar
 from deliffas.engine.devices import resolve_device
-from deliffas.engine.rays import camera_rays, paint_images, ray_query, stack_rays
+from deliffas.engine.rays import UVSource, device_camera_rays, paint_images, ray_query, stack_rays, uv_source
 from deliffas.engine.realtime import fast_for_device, fast_render_camera, render_stream
 from deliffas.engine.timing import StageTimer
 from deliffas.fast.config import FastConfig
@@ -61,6 +61,9 @@ class RenderConfig:
     """On CPU, render by the fast path (``deliffas.fast``: rasterised uvs, fused inputs, bf16 MLP where native);
     None = the plain path of ``deliffas eval``. A video shades each frame's features once, where projecting them
     (``FastConfig.project_features``) costs more than it saves: off by default here."""
+    uv: UVSource = "auto"
+    """uv maps of the plain path (every device but the CPU fast path): ``raycast`` (open3d), ``torch`` (the
+    torch rasteriser on ``device``), ``auto`` = ``torch`` on CUDA, else ``raycast``."""
 
 
 def orbit_cameras(reference: Camera, centers: np.ndarray, radius: float, height: float,
@@ -80,9 +83,10 @@ def orbit_cameras(reference: Camera, centers: np.ndarray, radius: float, height:
 
 
 def render_images(model, normal_windows, geometry, faces, atlas, cameras: list[Camera], device: torch.device,
-                  chunk_size: int = 262144, background: float = 0.0, fast: FastConfig | None = None):
+                  chunk_size: int = 262144, background: float = 0.0, fast: FastConfig | None = None,
+                  uv: UVSource = "auto"):
     """Yield one (H, W, 3) uint8 image per frame: frame i seen by ``cameras[i]`` (``fast``: engine.realtime on CPU,
-    ``fast.frames_in_flight()`` frames at once)."""
+    ``fast.frames_in_flight()`` frames at once; else the uvs from ``uv``, ``engine.rays.uv_source``)."""
     fast = fast_for_device(fast, device)
 
     @torch.no_grad()
@@ -94,7 +98,7 @@ def render_images(model, normal_windows, geometry, faces, atlas, cameras: list[C
         if fast is not None:
             image = fast_render_camera(model, features, raycaster, cam, StageTimer(device), fast, background)
         else:
-            batch = stack_rays([camera_rays(raycaster, cam)], [0]).to(device)
+            batch = stack_rays([device_camera_rays(raycaster, cam, device, uv)], [0]).to(device)
             rgb = model.shade_chunked(features, ray_query(batch, model.spec), chunk_size=chunk_size)
             image = paint_images(rgb, batch, 1, cam.height, cam.width, background)[0]
         check_finite(f"render: frame {i} ({cam.name}) colours", image)  # NaN would be written as black pixels
@@ -135,6 +139,7 @@ def render_video(cfg: RenderConfig) -> Path:
     else:
         check_writable(out, folder=True)
     device = resolve_device(cfg.device)
+    uv_source(device, cfg.uv)  # a bad choice is named before anything loads
     model, record, meta = load_avatar(cfg.run, device)
     spec = meta.template_spec()
     template, builder = motion_geometry_builder(meta)
@@ -171,7 +176,7 @@ def render_video(cfg: RenderConfig) -> Path:
     atlas = UVAtlas(meta.uvs, meta.face_uvs)
     out.parent.mkdir(parents=True, exist_ok=True)
     images = render_images(model, lambda i: geometry.window(i, T), geometry, meta.faces, atlas, cameras, device,
-                           cfg.chunk_size, fast=cfg.fast)
+                           cfg.chunk_size, fast=cfg.fast, uv=cfg.uv)
     bar = tqdm(images, total=n, desc="render", unit="frame", dynamic_ncols=True)
     if not out.suffix:
         out.mkdir(parents=True, exist_ok=True)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from deliffas.engine.rays import camera_rays, paint_images, ray_query, stack_rays
+from deliffas.engine.rays import UVSource, device_camera_rays, paint_images, ray_query, stack_rays
 from deliffas.engine.realtime import fast_for_device, fast_render_camera
 from deliffas.engine.samples import FrameSample
 from deliffas.engine.timing import StageTimer
@@ -17,27 +17,30 @@ __all__ = ["render_frame", "render_camera"]
 
 @torch.no_grad()
 def render_frame(model: DeliffasModel, sample: FrameSample, raycaster, device: torch.device,
-                 timer: StageTimer, chunk_size: int = 262144, fast: FastConfig | None = None) -> torch.Tensor:
+                 timer: StageTimer, chunk_size: int = 262144, fast: FastConfig | None = None,
+                 uv: UVSource = "auto") -> torch.Tensor:
     """Render every camera of ``sample`` with per-stage timing; (K, H, W, 3) on black.
 
     ``sample.rays`` is ignored: the rays are cast here so the ``uv`` stage is timed.
     """
     with timer.stage("cnn"):
         features = model.encode(*sample.normal_maps(device))
-    return torch.stack([render_camera(model, features, raycaster, cam, device, timer, chunk_size, fast)
+    return torch.stack([render_camera(model, features, raycaster, cam, device, timer, chunk_size, fast, uv)
                         for cam in sample.cameras])
 
 
 @torch.no_grad()
 def render_camera(model: DeliffasModel, features: FrameFeatures, raycaster, camera: Camera, device: torch.device,
-                  timer: StageTimer, chunk_size: int = 262144, fast: FastConfig | None = None) -> torch.Tensor:
+                  timer: StageTimer, chunk_size: int = 262144, fast: FastConfig | None = None,
+                  uv: UVSource = "auto") -> torch.Tensor:
     """One camera's (H, W, 3) image on black from the frame's encoded ``features`` (stages uv, sample, mlp);
-    with ``fast`` on CPU, by the fast path (``engine.realtime``) (rasterised uvs, fused inputs, bf16 MLP where native)."""
+    with ``fast`` on CPU, by the fast path (``engine.realtime``) (rasterised uvs, fused inputs, bf16 MLP where native);
+    else the uvs from ``uv`` (``engine.rays.uv_source``)."""
     fast = fast_for_device(fast, device)
     if fast is not None:
         return fast_render_camera(model, features, raycaster, camera, timer, fast)
     with timer.stage("uv"):
-        batch = stack_rays([camera_rays(raycaster, camera)], [0]).to(device)
+        batch = stack_rays([device_camera_rays(raycaster, camera, device, uv)], [0]).to(device)
         query = ray_query(batch, model.spec)
     pred_parts = []
     for part in query.chunks(chunk_size):

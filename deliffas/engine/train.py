@@ -29,7 +29,7 @@ from tqdm import tqdm
 from deliffas.data.shards import ShardSet
 from deliffas.engine.avatar import write_run_capture
 from deliffas.engine.checkpointing import STATE_FILE, load_training_state, read_training_state, save_training_state
-from deliffas.engine.data_bridge import shard_info, training_stream
+from deliffas.engine.data_bridge import shard_info, training_stream, with_torch_rays
 from deliffas.engine.devices import resolve_device
 from deliffas.engine.identity import CAPTURE_KEYS, capture_identity, check_identity, shards_record
 from deliffas.engine.samples import FrameSample, composite_target
@@ -204,6 +204,8 @@ class Trainer:
             group["lr"] = lr * group["lr_scale"]
         ta = time.perf_counter()
         sample = next(self.stream)
+        if self.data_info["uv"] == "torch":  # rasterised here, on the model's device (no ray casting in the workers)
+            sample = with_torch_rays(sample, self.data_info["faces"], self.data_info["atlas"], self.device)
         tb = time.perf_counter()
         weight = self._stage_weight(it, sample)
         out = train_step(self.model, sample, self.optimizer, self.device, self.perceptual, weight, net=self.net,

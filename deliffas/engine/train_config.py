@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Literal
 
 from deliffas.engine.devices import resolve_device
+from deliffas.engine.rays import UVSource, uv_source
 from deliffas.models.deliffas import DeliffasModel, ModelConfig
 from deliffas.models.zoo import config_from_dict, config_to_dict, get_config, list_models, list_presets
 
@@ -90,7 +91,10 @@ class TrainConfig:
     seed: int = 0
     device: str = "cpu"
     num_workers: int = 1
-    """DataLoader workers (they also ray-cast the uv maps)."""
+    """DataLoader workers (they read the shards and, with ``uv`` resolving to ``raycast``, ray-cast the uv maps)."""
+    uv: UVSource = "auto"
+    """Where the uv maps come from: ``raycast`` (open3d, in the DataLoader workers), ``torch`` (the torch
+    rasteriser on ``device``, in the main process), ``auto`` = ``torch`` on CUDA, else ``raycast``."""
     ray_chunk: int | None = None
     """Rays per backward pass (single process): bounds the light-field activations of a step to
     this many rays; None = every ray of the step's K images in one graph (docs/reliability.md)."""
@@ -125,7 +129,7 @@ class TrainConfig:
             raise ValueError(f"lr_final: expected a number in (0, 1], got {self.lr_final!r}")
         if self.schedule not in SCHEDULE_LR:
             raise ValueError(f"schedule: expected one of {', '.join(SCHEDULE_LR)}, got {self.schedule!r}")
-        resolve_device(self.device)
+        uv_source(resolve_device(self.device), self.uv)
 
     @property
     def peak_lr(self) -> float:
