@@ -88,6 +88,7 @@ class TorchUVRasterizer:
         if atlas.num_faces != sizes["F"]:
             raise ValueError(f"atlas: face_uvs has {atlas.num_faces} rows, faces has {sizes['F']}")
         self.device = torch.device(device)
+        self.atlas = atlas
         f64 = dict(dtype=torch.float64, device=self.device)
         self.inner = to_torch(inner_verts).to(**f64)
         self.outer = to_torch(outer_verts).to(**f64)
