@@ -358,6 +358,9 @@ def _add_training_commands(sub) -> None:
     p.add_argument("--device", type=_device_name, default=None, help="cpu | cuda | cuda:N (default cpu)")
     p.add_argument("--workers", dest="num_workers", type=_non_negative_int, default=None,
                    help="DataLoader worker processes, 0 = in this process (default 1)")
+    p.add_argument("--uv", choices=["auto", "raycast", "torch"], default=None,
+                   help="uv maps: raycast (open3d, CPU), torch (the torch rasteriser on --device), auto (default) = "
+                        "torch on CUDA, else raycast")
     p.add_argument("--seed", type=int, default=None, help="random seed of the model, the data order and the "
                                                           "random backbone (default 0)")
     p.add_argument("--ray-chunk", type=_positive_int, default=None,
@@ -413,6 +416,9 @@ def _add_evaluation_commands(sub) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--fast", action="store_true",
                    help="render by the CPU fast path of 'deliffas render'/'view' (to measure what it changes)")
+    p.add_argument("--uv", choices=["auto", "raycast", "torch"], default="auto",
+                   help="uv maps: raycast (open3d, CPU), torch (the torch rasteriser on --device), auto (default) = "
+                        "torch on CUDA, else raycast")
     p.set_defaults(handler="eval")
 
     p = sub.add_parser("render", help="free-viewpoint video of a trained avatar driven by a motion",
@@ -438,6 +444,9 @@ def _add_evaluation_commands(sub) -> None:
     p.add_argument("--plain", action="store_true",
                    help="render as 'deliffas eval' does (ray-cast uvs, fp32 MLP) instead of the CPU fast path "
                         "(rasterised uvs, fused inputs, bf16 MLP where the CPU has native bf16)")
+    p.add_argument("--uv", choices=["auto", "raycast", "torch"], default="auto",
+                   help="uv maps: raycast (open3d, CPU), torch (the torch rasteriser on --device), auto (default) = "
+                        "torch on CUDA, else raycast")
     p.set_defaults(handler="render")
 
     p = sub.add_parser("export", help="write a run as one .avatar file (model, template, atlas, cameras)",

@@ -201,7 +201,8 @@ _TRAIN_FLAGS = {"model": "--model", "preset": "--preset", "iters": "--iters", "p
                 "device": "--device", "num_workers": "--workers", "seed": "--seed", "vgg16_path": "--vgg16-path",
                 "checkpoint_every": "--checkpoint-every", "preview_every": "--preview-every",
                 "ray_chunk": "--ray-chunk", "protocol": "--protocol", "validation_cameras": "--val-cameras",
-                "saturation_weight": "--saturation-weight", "schedule": "--schedule", "lr": "--lr", "shards": "SHARDS"}
+                "saturation_weight": "--saturation-weight", "schedule": "--schedule", "lr": "--lr", "uv": "--uv",
+                "shards": "SHARDS"}
 """TrainConfig field -> the flag that sets it (fields without one are set by --config)."""
 
 
@@ -251,7 +252,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
                                  max_frames=args.max_frames, device=args.device, save_images=args.save_images,
                                  vgg16_path=args.vgg16_path, lpips_path=args.lpips_path,
                                  inception_path=args.inception_path, grid=args.grid,
-                                 fast=fast_from_env(FastConfig()) if args.fast else None))
+                                 fast=fast_from_env(FastConfig()) if args.fast else None, uv=args.uv))
     if args.json:
         print(json.dumps(result))
         return 0
@@ -278,7 +279,7 @@ def cmd_render(args: argparse.Namespace) -> int:
                                     motion=str(args.motion) if args.motion else None, frames=args.frames,
                                     size=args.size, device=args.device, fps=args.fps, loop=args.loop,
                                     camera=args.camera, overwrite=args.overwrite,
-                                    fast=None if args.plain else fast_from_env(RenderConfig.fast)))
+                                    fast=None if args.plain else fast_from_env(RenderConfig.fast), uv=args.uv))
     print(f"wrote {out}")
     return 0
 

@@ -20,7 +20,7 @@ from deliffas.engine.train_config import TrainConfig
 __all__ = ["MAY_CHANGE", "resumed_config", "iterations_done"]
 
 MAY_CHANGE = ("iters", "shards", "out", "device", "num_workers", "checkpoint_every", "preview_every", "log_every",
-              "progress", "ray_chunk", "vgg16_path")
+              "progress", "ray_chunk", "vgg16_path", "uv")
 """The fields a resumed run may change; every other one is the run's."""
 
 

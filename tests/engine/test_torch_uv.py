@@ -92,3 +92,16 @@ def test_train_eval_render_without_the_cpu_geometry_packages(tiny_shards, tmp_pa
     assert np.isfinite(got["psnr"])
     record = json.loads((tmp_path / "run" / "train_config.json").read_text())
     assert record["data"]["uv"] == "torch" and record["train"]["uv"] == "torch"
+
+
+def test_cli_passes_the_uv_source(tiny_shards, tmp_path):
+    from deliffas.cli import build_parser
+    from deliffas.cli.handlers import _train_config
+
+    args = build_parser().parse_args(["train", str(tiny_shards), "--out", str(tmp_path / "r"), "--uv", "torch"])
+    assert _train_config(args).uv == "torch"
+    assert _train_config(build_parser().parse_args(["train", str(tiny_shards), "--out", str(tmp_path)])).uv == "auto"
+    for cmd in (["eval", "RUN"], ["render", "RUN", "--out", str(tmp_path / "v.mp4")]):
+        assert build_parser().parse_args([*cmd, "--uv", "raycast"]).uv == "raycast"
+        with pytest.raises(SystemExit):
+            build_parser().parse_args([*cmd, "--uv", "gpu"])
