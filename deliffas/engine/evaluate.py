@@ -90,6 +90,9 @@ class EvalConfig:
     """uv maps of the reference path: ``raycast`` (open3d), ``torch`` (the torch rasteriser on ``device``),
     ``auto`` = ``torch`` on CUDA, else ``raycast``."""
 
+    def __post_init__(self) -> None:
+        uv_source("cpu", self.uv)  # a bad choice is named when the config is made (ValueError)
+
 
 def evaluate(cfg: EvalConfig) -> dict:
     """Evaluate a run on a split; returns the JSON-ready result (see ``deliffas eval --json``)."""

@@ -65,6 +65,9 @@ class RenderConfig:
     """uv maps of the plain path (every device but the CPU fast path): ``raycast`` (open3d), ``torch`` (the
     torch rasteriser on ``device``), ``auto`` = ``torch`` on CUDA, else ``raycast``."""
 
+    def __post_init__(self) -> None:
+        uv_source("cpu", self.uv)  # a bad choice is named when the config is made (ValueError)
+
 
 def orbit_cameras(reference: Camera, centers: np.ndarray, radius: float, height: float,
                   size: tuple[int, int] | None = None) -> list[Camera]:
@@ -139,7 +142,6 @@ def render_video(cfg: RenderConfig) -> Path:
     else:
         check_writable(out, folder=True)
     device = resolve_device(cfg.device)
-    uv_source(device, cfg.uv)  # a bad choice is named before anything loads
     model, record, meta = load_avatar(cfg.run, device)
     spec = meta.template_spec()
     template, builder = motion_geometry_builder(meta)

@@ -1,6 +1,6 @@
 """Rasterised uvs of the inner and outer surfaces in torch, on any device (the GPU path's ``uv`` stage).
 
-The same shaded pixels and uvs as :class:`deliffas.geometry.rasterize.UVRasterizer` (whose numpy version
+The same shaded pixels and uvs as :class:`deliffas.fast.rasterize.UVRasterizer` (whose numpy version
 is the reference), computed with tensor operations only, so they run where the model runs (CUDA, or the
 CPU) with no ray casting and no C kernel:
 
@@ -47,7 +47,7 @@ _MAX_BITS = 0x7FFFFFFF
 @dataclass(frozen=True)
 class TorchShadedPixels:
     """The pixels of one camera image the light field shades, in row-major order, as tensors on the
-    rasteriser's device (the fields of ``rasterize.ShadedPixels``).
+    rasteriser's device (the fields of ``fast.rasterize.ShadedPixels``).
 
     Attributes:
         pixels: (N,) int64 flat pixel index row * W + col.
@@ -102,7 +102,7 @@ class TorchUVRasterizer:
         self.peel_eps = PEEL_EPS_REL * diag.clamp_min(1e-6)
 
     def _project(self, camera: Camera, verts: torch.Tensor) -> torch.Tensor:
-        """(V, 3) float64 (x px, y px, camera z mm), as ``rasterize._project``."""
+        """(V, 3) float64 (x px, y px, camera z mm), as ``fast.rasterize._project``."""
         R = torch.as_tensor(camera.R, dtype=torch.float64, device=self.device)
         t = torch.as_tensor(camera.t, dtype=torch.float64, device=self.device)
         K = torch.as_tensor(np.asarray(camera.K, np.float64), device=self.device)
@@ -239,7 +239,8 @@ def _cover(A: torch.Tensor, B: torch.Tensor, C: torch.Tensor, area: torch.Tensor
 
 def _face_uv(P: torch.Tensor, faces: torch.Tensor, corner_uvs: torch.Tensor, face: torch.Tensor, x: torch.Tensor,
              y: torch.Tensor) -> torch.Tensor:
-    """(M, 2) float64 perspective-correct uvs of faces (M,) at pixel centres (x, y) (M,) (``rasterize._face_uv``)."""
+    """(M, 2) float64 perspective-correct uvs of faces (M,) at pixel centres (x, y) (M,), as
+    ``fast.rasterize._face_uv``."""
     tri = faces[face]
     A, B, C = P[tri[:, 0]], P[tri[:, 1]], P[tri[:, 2]]
     inv = 1.0 / ((B[:, 0] - A[:, 0]) * (C[:, 1] - A[:, 1]) - (B[:, 1] - A[:, 1]) * (C[:, 0] - A[:, 0]))

@@ -105,3 +105,13 @@ def test_cli_passes_the_uv_source(tiny_shards, tmp_path):
         assert build_parser().parse_args([*cmd, "--uv", "raycast"]).uv == "raycast"
         with pytest.raises(SystemExit):
             build_parser().parse_args([*cmd, "--uv", "gpu"])
+
+
+def test_configs_refuse_an_unknown_uv_source(tiny_shards, tmp_path, unchecked):
+    from deliffas.engine.evaluate import EvalConfig
+    from deliffas.engine.render import RenderConfig
+
+    for make in (lambda: EvalConfig(run="r", uv="gpu"), lambda: RenderConfig(run="r", out="v.mp4", uv="gpu"),
+                 lambda: _cfg(tiny_shards, tmp_path, uv="gpu")):
+        with unchecked(), pytest.raises(ValueError, match="uv: expected one of auto, raycast, torch, got 'gpu'"):
+            make()

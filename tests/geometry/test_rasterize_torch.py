@@ -2,17 +2,22 @@
 
 from __future__ import annotations
 
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
 
+from deliffas.fast.rasterize import ShadedPixels, UVRasterizer
 from deliffas.geometry.atlas import UVAtlas
-from deliffas.geometry.rasterize import ShadedPixels, UVRasterizer
 from deliffas.geometry.rasterize_torch import TorchUVRasterizer
 from deliffas.geometry.raycast import UVRaycaster
 from deliffas.geometry.shell import offset_shell
 
 import reference as ref  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "fast"))  # the C rasteriser's comparison with the caster
 from test_rasterize import _compare  # noqa: E402
 
 
