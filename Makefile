@@ -8,7 +8,7 @@ STAMP := $(VENV)/.setup-stamp
 DEMO_OUT ?= demo_out
 PYTEST_ARGS ?=
 
-.PHONY: setup test test-slow docs soak demo bench dist clean
+.PHONY: setup test test-slow docs soak demo bench results dist clean
 
 setup: $(STAMP)
 
@@ -48,9 +48,16 @@ demo: setup
 bench: setup
 	$(PY) -m benchmarks.run
 
+# Every recipe in full mode (3 seeds; hours on 2 cores, not in CI): the numbers of docs/results.md.
+RESULTS_OUT ?= results_out
+RECIPES := ablation_single_surface ablation_coarse_mesh ablation_perceptual time_to_quality where_it_fails presets
+results: setup
+	for r in $(RECIPES); do $(PY) -m recipes.$$r --out $(RESULTS_OUT)/$$r || exit 1; done
+	$(PY) -m recipes.ablation_template --out $(RESULTS_OUT)/ablation_template --smpl-model procedural
+
 # The sdist and the wheel (python -m build; the wheel is built from the sdist) into dist/.
 dist: setup
 	$(PY) -m build --outdir dist
 
 clean:
-	rm -rf $(VENV) $(DEMO_OUT) bench_out site dist .pytest_cache .import_linter_cache
+	rm -rf $(VENV) $(DEMO_OUT) $(RESULTS_OUT) bench_out site dist .pytest_cache .import_linter_cache
