@@ -79,7 +79,7 @@ def budget_figure(budgets: dict[str, dict], path: str | Path, title: str = "erro
     ax_c.set_xticks(np.arange(len(classes)) + 0.4 - width / 2, classes)
     ax_c.set_ylabel("share of the masked squared error")
     ax_c.set_title("by pixel class", fontsize=9)
-    ax_b.set_xticks(np.arange(len(first)) + 0.4 - width / 2, list(first))
+    ax_b.set_xticks(np.arange(len(first)) + 0.4 - width / 2, list(first), rotation=12, fontsize=8)
     ax_b.set_yscale("log")
     ax_b.set_ylabel("mean square per value (interior)")
     ax_b.set_title("by detail scale (difference of Gaussians)", fontsize=9)
