@@ -156,6 +156,9 @@ class Trainer:
                                                       world=self.world, start_iteration=self.start, shards=self.shards)
         self.model = DeliffasModel(self.model_config).to(device)
         self.optimizer = _optimizer(self.model, cfg)
+        # the groups' rate multiples come from this run's config, not from a loaded state (a run saved
+        # before the multiples existed has none)
+        self.lr_scales = [group["lr_scale"] for group in self.optimizer.param_groups]
         state: dict[str, Any] = {}
         if resuming:
             state = load_training_state(run, self.model, self.optimizer, device)
@@ -200,8 +203,8 @@ class Trainer:
     def step(self, it: int) -> tuple[dict, FrameSample]:
         """Iteration ``it``: draw a sample, take one optimisation step; returns its log record and the sample."""
         lr = self.cfg.lr_at(it)
-        for group in self.optimizer.param_groups:
-            group["lr"] = lr * group["lr_scale"]
+        for group, scale in zip(self.optimizer.param_groups, self.lr_scales):
+            group["lr"] = lr * scale
         ta = time.perf_counter()
         sample = next(self.stream)
         if self.data_info["uv"] == "torch":  # rasterised here, on the model's device (no ray casting in the workers)

@@ -42,3 +42,22 @@ def test_paper_schedule_is_the_official_decay():
 def test_bad_schedule_values_are_refused_naming_the_field(field, value):
     with pytest.raises(ValueError, match=field):
         _cfg(**{field: value})
+
+
+def test_a_run_saved_before_the_rate_multiples_resumes(tiny_shards, tmp_path):
+    """Optimizer groups loaded from an older run's state lack ``lr_scale``; the config's multiples apply."""
+    import json
+
+    from deliffas.engine.checkpointing import STATE_FILE
+    from deliffas.engine.train import train
+
+    kw = dict(shards=str(tiny_shards), out=str(tmp_path / "run"), model="two_surface", preset="tiny",
+              cameras_per_frame=2, protocol="all", num_workers=0, checkpoint_every=1, preview_every=0,
+              progress=False)
+    train(TrainConfig(iters=2, **kw))
+    path = tmp_path / "run" / STATE_FILE
+    state = json.loads(path.read_text())
+    for group in state["optimizer_param_groups"]:
+        del group["lr_scale"]
+    path.write_text(json.dumps(state))
+    assert train(TrainConfig(iters=3, **kw), resume=True).iterations == 3
