@@ -3,7 +3,7 @@
 A resumed run takes every :class:`TrainConfig` field from its ``train_config.json``. Of the settings
 given again, those in :data:`MAY_CHANGE` replace the run's (``iters`` extends it, the shards may have
 moved, the device and workers are the machine's); any other one must equal the run's, else a
-:class:`ValueError` names the field and both values.
+``ValueError`` names the field and both values.
 """
 
 from __future__ import annotations
