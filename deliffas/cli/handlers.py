@@ -38,7 +38,7 @@ from deliffas.engine.evaluate import EvalConfig, evaluate
 from deliffas.engine.memory import retain_freed_memory
 from deliffas.engine.render import RenderConfig, render_video
 from deliffas.engine.resume import iterations_done, resumed_config
-from deliffas.engine.train import RUN_MARKER, TrainConfig, train
+from deliffas.engine.train import RUN_MARKER, TrainConfig, Trainer
 from deliffas.engine.view import SubjectViewConfig, ViewConfig, is_capture, view, view_subject
 from deliffas.fast.config import FastConfig
 from deliffas.cli.fast_env import fast_from_env
@@ -239,8 +239,9 @@ def cmd_train(args: argparse.Namespace) -> int:
         print(f"{cfg.out}: already at iteration {done} (the run's target is {cfg.iters}); pass --iters N "
               f"(more than {done}) to train further")
         return 0
-    print(resolve_protocol(cfg.shards, cfg.protocol)[1], file=sys.stderr)  # stated at start
-    result = train(cfg, resume=args.resume, overwrite=args.overwrite)
+    trainer = Trainer(cfg, resume=args.resume, overwrite=args.overwrite)  # refuses a taken --out first
+    print(resolve_protocol(trainer.shards, cfg.protocol)[1], file=sys.stderr)  # stated before training
+    result = trainer.run()
     print(f"trained {cfg.model} ({cfg.preset}) to iteration {result.iterations} in {result.seconds:.0f} s "
           f"({result.iters_per_second:.2f} it/s); run in {result.run_dir}")
     return 0

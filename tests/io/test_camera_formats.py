@@ -98,9 +98,10 @@ def test_missing_sizes_are_read_from_each_cameras_first_image(tmp_path, fmt):
     for i, c in enumerate(rig()):
         folder = root / ("images" if fmt == "easymocap" else "") / c.name
         folder.mkdir(parents=True, exist_ok=True)
-        cv2.imwrite(str(folder / "000000.jpg"), np.zeros((40 + i, 30 + i, 3), np.uint8))
+        # sizes the file does not store, near the rig's own (a principal point must lie near the image)
+        cv2.imwrite(str(folder / "000000.jpg"), np.zeros((c.height + 2 * i, c.width + i, 3), np.uint8))
     read = read_cameras(root)
-    assert [(c.width, c.height) for c in read] == [(30 + i, 40 + i) for i in range(len(read))]
+    assert [(c.width, c.height) for c in read] == [(c.width + i, c.height + 2 * i) for i, c in enumerate(rig())]
     assert read_cameras(root, size=(64, 48))[0].width == 64  # --size stays the override
 
 
