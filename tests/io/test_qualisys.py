@@ -77,3 +77,11 @@ def test_the_real_pose2sim_demo_calibration_is_plausible():
         assert depth[0] > 2000 and 0 < pix[0, 0] < c.width and 0 < pix[0, 1] < c.height, (c.name, pix, depth)
         up, _ = c.project(np.array([[0.0, 0.0, 1400.0]]))
         assert up[0, 1] < pix[0, 1]  # higher in the world is higher in the image
+
+
+def test_an_unknown_xml_encoding_is_refused_naming_the_file(tmp_path):
+    """Found by the soak: an XML declaration naming an unknown encoding raised LookupError."""
+    body = ONE.split("?>", 1)[-1] if ONE.lstrip().startswith("<?xml") else ONE
+    (tmp_path / "e.qca.txt").write_text('<?xml version="1.0" encoding="ttf-8"?>\n' + body)
+    with pytest.raises(CaptureFormatError, match=r"e.qca.txt: file: expected Qualisys XML"):
+        read_cameras(tmp_path / "e.qca.txt", fmt="qualisys")

@@ -111,7 +111,7 @@ def read_qca(path: str | os.PathLike) -> list[Camera]:
         raise CaptureFormatError(p, "file", "not found")
     try:
         root = ET.fromstring(p.read_bytes())
-    except ET.ParseError as err:
+    except (ET.ParseError, LookupError) as err:  # LookupError: an XML declaration naming an unknown encoding
         raise CaptureFormatError(p, "file", f"expected Qualisys XML, got {err}") from None
     tags = [t for t in root.findall("cameras/camera") if t.attrib.get("model") in VIDEO_MODELS]
     if not tags:
