@@ -40,8 +40,58 @@ def uv_to_grid(uv: Float[Tensor, "*N 2"]) -> Float[Tensor, "*N 2"]:
     return torch.stack([2.0 * uv[..., 0] - 1.0, 1.0 - 2.0 * uv[..., 1]], dim=-1)
 
 
+def bilinear_corners(uv: Float[Tensor, "M 2"], height: int, width: int
+                     ) -> tuple[Integer[Tensor, "4 M"], Float[Tensor, "4 M"]]:
+    """The 4 texels (flat row-major indices) and bilinear weights of each uv on an H x W map.
+
+    Exactly ``grid_sample(mode="bilinear", padding_mode="border", align_corners=False)``'s lookup:
+    the texel coordinate ``x = u W - 0.5``, ``y = (1 - v) H - 0.5`` is clamped to the outermost texel
+    centres, corners ``(x0, y0), (x1, y0), (x0, y1), (x1, y1)``, weights summing to 1.
+    """
+    x = (uv[:, 0] * width - 0.5).clamp(0, width - 1)
+    y = ((1.0 - uv[:, 1]) * height - 0.5).clamp(0, height - 1)
+    x0f, y0f = x.floor(), y.floor()
+    wx, wy = x - x0f, y - y0f
+    x0, y0 = x0f.long(), y0f.long()
+    x1, y1 = (x0 + 1).clamp(max=width - 1), (y0 + 1).clamp(max=height - 1)
+    index = torch.stack([y0 * width + x0, y0 * width + x1, y1 * width + x0, y1 * width + x1])
+    weight = torch.stack([(1 - wx) * (1 - wy), wx * (1 - wy), (1 - wx) * wy, wx * wy])
+    return index, weight
+
+
+class _GatherBilinear(torch.autograd.Function):
+    """Bilinear lookup of a channels-last (1, C, H, W) map at fixed corners: a gather forward and a
+    scatter-add (``index_add_``) backward, 2-3x faster on CPU than ``grid_sample``'s backward. The
+    uv get no gradient (use ``grid_sample`` when they need one)."""
+
+    @staticmethod
+    def forward(ctx, feature_map: torch.Tensor, index: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+        flat = feature_map.permute(0, 2, 3, 1).reshape(-1, feature_map.shape[1])  # (H W, C), a view
+        out = flat.index_select(0, index[0]) * weight[0, :, None]
+        for k in range(1, 4):
+            out.addcmul_(flat.index_select(0, index[k]), weight[k, :, None])
+        ctx.save_for_backward(index, weight)
+        ctx.map_shape = feature_map.shape
+        return out
+
+    @staticmethod
+    def backward(ctx, grad_out: torch.Tensor):
+        index, weight = ctx.saved_tensors
+        _, channels, height, width = ctx.map_shape
+        grad = grad_out.new_zeros(height * width, channels)
+        grad.index_add_(0, index.reshape(-1), (weight[:, :, None] * grad_out[None]).reshape(-1, channels))
+        return grad.view(1, height, width, channels).permute(0, 3, 1, 2), None, None
+
+
 def _sample_one(feature_map: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
-    """Sample one (1, C, S, S) map at (M, 2) uv -> (M, C) (a transposed view)."""
+    """Sample one (1, C, S, S) map at (M, 2) uv -> (M, C) (a transposed view).
+
+    A channels-last map whose gradient is wanted, sampled at uv that need none (training), takes
+    the gather path; anything else ``grid_sample``. Both give the same values."""
+    if (feature_map.requires_grad and not uv.requires_grad and torch.is_grad_enabled()
+            and feature_map.is_contiguous(memory_format=torch.channels_last)):
+        index, weight = bilinear_corners(uv.to(feature_map.dtype), *feature_map.shape[-2:])
+        return _GatherBilinear.apply(feature_map, index, weight)
     grid = uv_to_grid(uv.to(feature_map.dtype)).view(1, 1, -1, 2)  # (1, 1, M, 2)
     out = F.grid_sample(feature_map, grid, mode="bilinear", padding_mode="border", align_corners=False)
     return out[0, :, 0, :].transpose(0, 1)  # (1, C, 1, M) -> (M, C)

@@ -107,3 +107,37 @@ def test_empty_and_errors(unchecked):
         sample_uv(maps, torch.tensor([0, 1]), torch.rand(2, 3))
     with unchecked(), pytest.raises(ValueError, match="batch_index"):
         sample_uv(maps[:1], torch.tensor([0, 1]), torch.rand(2, 2))
+
+
+@pytest.mark.parametrize("shape", [(1, 5, 8, 8), (3, 4, 6, 10)])
+def test_the_gather_path_agrees_with_grid_sample(shape):
+    """Training (map needs a gradient, uv not, channels-last) gathers and scatter-adds instead of
+    calling grid_sample: same values, same map gradient, uv outside [0, 1] included (border)."""
+    import torch.nn.functional as F
+
+    from deliffas.geometry.sampling import uv_to_grid
+
+    gen = torch.Generator().manual_seed(0)
+    B, C, H, W = shape
+    maps = torch.randn(shape, generator=gen).contiguous(memory_format=torch.channels_last).requires_grad_()
+    n = 400
+    uv = torch.rand(n, 2, generator=gen) * 1.2 - 0.1
+    uv[:4] = torch.tensor([[0.0, 0.0], [1.0, 1.0], [0.5 / W, 1 - 0.5 / H], [1 - 0.5 / W, 0.5 / H]])
+    batch = torch.randint(0, B, (n,), generator=gen)
+    got = sample_uv(maps, batch, uv)
+    grad_out = torch.randn(n, C, generator=gen)
+    (got_grad,) = torch.autograd.grad(got, maps, grad_out)
+    ref_maps = maps.detach().contiguous().requires_grad_()  # contiguous NCHW: the grid_sample path
+    ref = torch.stack([F.grid_sample(ref_maps[b : b + 1], uv_to_grid(uv[i : i + 1]).view(1, 1, 1, 2),
+                                     mode="bilinear", padding_mode="border", align_corners=False)[0, :, 0, 0]
+                       for i, b in enumerate(batch.tolist())])
+    (ref_grad,) = torch.autograd.grad(ref, ref_maps, grad_out)
+    torch.testing.assert_close(got, ref, rtol=0, atol=1e-5)
+    torch.testing.assert_close(got_grad, ref_grad, rtol=0, atol=1e-5)
+
+
+def test_uv_that_need_a_gradient_still_get_one():
+    maps = torch.randn(1, 3, 8, 8).contiguous(memory_format=torch.channels_last).requires_grad_()
+    uv = torch.rand(20, 2).requires_grad_()
+    (g,) = torch.autograd.grad(sample_uv(maps, torch.zeros(20, dtype=torch.long), uv).sum(), uv)
+    assert g.abs().sum() > 0
