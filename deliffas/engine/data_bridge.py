@@ -24,7 +24,7 @@ from deliffas.engine.samples import FrameSample
 from deliffas.geometry.atlas import UVAtlas
 
 __all__ = ["training_stream", "evaluation_samples", "shard_info", "resolve_protocol", "validation_cameras",
-           "with_torch_rays", "AUTO_PAPER_MIN_FRAMES", "EVAL_SPLITS", "TEST_SPLITS"]
+           "with_torch_rays", "AUTO_PAPER_MIN_FRAMES", "EVAL_SPLITS", "TEST_SPLITS", "split_cameras", "run_protocol"]
 
 logger = logging.getLogger(__name__)
 
@@ -73,6 +73,27 @@ def validation_cameras(train_cameras: list[int], requested: int | tuple[int, ...
     if len(set(picks)) >= len(train):
         raise ValueError(f"validation cameras {picks} would leave no training camera (training cameras: {train})")
     return sorted(set(picks))
+
+
+def split_cameras(split: str, record: dict, run: object = "the run") -> tuple[str, list[int] | None]:
+    """The shards' split to read and the cameras to keep (None = the split's own) for evaluation ``split``
+    of the run whose ``train_config.json`` is ``record``: ``validation`` is the training split's held-out cameras."""
+    if split not in EVAL_SPLITS:
+        raise ValueError(f"split must be one of {EVAL_SPLITS}, got {split!r}")
+    if split != "validation":
+        return split, None
+    cameras = record.get("data", {}).get("validation_cameras") or []
+    if not cameras:
+        raise ValueError(f"{run}: the run holds out no validation cameras (train with --val-cameras N)")
+    return "train", cameras
+
+
+def run_protocol(record: dict, shards: ShardSet | str) -> str:
+    """The frames protocol the run of ``record`` trained with (resolved ``auto`` as recorded, else resolved now)."""
+    recorded = record.get("data", {}).get("protocol")
+    if recorded in ("paper", "all"):
+        return recorded
+    return resolve_protocol(shards, record.get("train", {}).get("protocol", "paper"))[0]
 
 
 def shard_info(shards_dir: ShardSet | str, temporal_window: int | None = None) -> dict:

@@ -12,8 +12,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from deliffas.engine.data_bridge import evaluation_samples
+from deliffas.engine.data_bridge import evaluation_samples, run_protocol, split_cameras
 from deliffas.engine.devices import resolve_device
+from deliffas.engine.identity import check_run_shards
 from deliffas.engine.runs import load_run
 from deliffas.engine.shading import render_frame
 from deliffas.engine.rays import camera_rays
@@ -33,16 +34,9 @@ def measure_error_budget(run: str | Path, split: str = "validation", max_frames:
     """
     dev = resolve_device(device)
     model, record = load_run(run, dev)
-    shards = record["train"]["shards"]
-    cameras = None
-    data_split = split
-    if split == "validation":
-        cameras = record.get("data", {}).get("validation_cameras") or []
-        if not cameras:
-            raise ValueError(f"{run}: the run holds out no validation cameras (train with --val-cameras N)")
-        data_split = "train"
-    protocol = record.get("data", {}).get("protocol", "all")
-    samples, info = evaluation_samples(shards, data_split, max_frames=max_frames, protocol=protocol,
+    shards = check_run_shards(run, record, None)  # found as `eval` finds them (the run may have moved)
+    data_split, cameras = split_cameras(split, record, run)
+    samples, info = evaluation_samples(shards, data_split, max_frames=max_frames, protocol=run_protocol(record, shards),
                                        temporal_window=model.config.temporal_window, cameras=cameras)
     budget = ErrorBudget()
     images = 0

@@ -24,9 +24,8 @@ from typing import Literal
 import numpy as np
 import torch
 
-from deliffas.data.shards import ShardSet
 from deliffas.engine.devices import resolve_device
-from deliffas.engine.data_bridge import EVAL_SPLITS, evaluation_samples, resolve_protocol
+from deliffas.engine.data_bridge import evaluation_samples, run_protocol, split_cameras
 from deliffas.engine.identity import check_run_shards
 from deliffas.io.infra.files import check_writable
 from deliffas.engine.figures import GridImage, comparison_grid
@@ -103,8 +102,8 @@ def evaluate(cfg: EvalConfig) -> dict:
         check_writable(cfg.save_images, folder=True)
     model, record = load_run(cfg.run, device)
     shards = check_run_shards(cfg.run, record, cfg.shards)  # opened once for the whole command and passed down
-    protocol = cfg.protocol or _run_protocol(record, shards)
-    split, cameras = _split_cameras(cfg, record)
+    protocol = cfg.protocol or run_protocol(record, shards)
+    split, cameras = split_cameras(cfg.split, record, cfg.run)
     samples, info = evaluation_samples(shards, split, max_frames=cfg.max_frames, with_rays=False,
                                        protocol=protocol, temporal_window=model.config.temporal_window,
                                        cameras=cameras)
@@ -176,18 +175,6 @@ def evaluate(cfg: EvalConfig) -> dict:
     }
 
 
-def _split_cameras(cfg: EvalConfig, record: dict) -> tuple[str, list[int] | None]:
-    """The shards' split to read and the cameras to keep (None = the split's own) for ``cfg.split``."""
-    if cfg.split not in EVAL_SPLITS:
-        raise ValueError(f"split must be one of {EVAL_SPLITS}, got {cfg.split!r}")
-    if cfg.split != "validation":
-        return cfg.split, None
-    cameras = record.get("data", {}).get("validation_cameras") or []
-    if not cameras:
-        raise ValueError(f"{cfg.run}: the run holds out no validation cameras (train with --val-cameras N)")
-    return "train", cameras
-
-
 def _few_images_warnings(n_images: int, protocol: str, split: str) -> list[str]:
     """The result's warnings: one (also logged) when fewer than ``MIN_IMAGES_WARNING`` images were evaluated."""
     if n_images >= MIN_IMAGES_WARNING:
@@ -204,14 +191,6 @@ def _stage_ms(timer: StageTimer, n_images: int, n_frames: int) -> dict[str, floa
     per_image = timer.per_unit(n_images)
     return {"uv": per_image["uv"] + timer.total_ms.get("scene", 0.0) / n_images,
             "cnn": timer.total_ms.get("cnn", 0.0) / n_frames, "sample": per_image["sample"], "mlp": per_image["mlp"]}
-
-
-def _run_protocol(record: dict, shards: ShardSet) -> str:
-    """The frames protocol the run trained with (resolved ``auto`` as recorded, else resolved now)."""
-    recorded = record.get("data", {}).get("protocol")
-    if recorded in ("paper", "all"):
-        return recorded
-    return resolve_protocol(shards, record.get("train", {}).get("protocol", "paper"))[0]
 
 
 def _save_white(root: Path, cam: int, frame: int, pred: torch.Tensor, mask: np.ndarray) -> None:

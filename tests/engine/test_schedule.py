@@ -61,3 +61,23 @@ def test_a_run_saved_before_the_rate_multiples_resumes(tiny_shards, tmp_path):
         del group["lr_scale"]
     path.write_text(json.dumps(state))
     assert train(TrainConfig(iters=3, **kw), resume=True).iterations == 3
+
+
+def test_a_run_saved_with_the_per_tensor_adam_resumes(tiny_shards, tmp_path):
+    """Runs saved before the fused Adam (``fused`` None in their groups) resume, and a new run uses it."""
+    import json
+
+    from deliffas.engine.checkpointing import STATE_FILE
+    from deliffas.engine.train import train
+
+    kw = dict(shards=str(tiny_shards), out=str(tmp_path / "run"), model="two_surface", preset="tiny",
+              cameras_per_frame=2, protocol="all", num_workers=0, checkpoint_every=1, preview_every=0,
+              progress=False)
+    train(TrainConfig(iters=2, **kw))
+    path = tmp_path / "run" / STATE_FILE
+    state = json.loads(path.read_text())
+    assert all(group["fused"] for group in state["optimizer_param_groups"])
+    for group in state["optimizer_param_groups"]:
+        group["fused"] = None
+    path.write_text(json.dumps(state))
+    assert train(TrainConfig(iters=3, **kw), resume=True).iterations == 3
