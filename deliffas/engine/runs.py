@@ -11,7 +11,7 @@ from deliffas.models.deliffas import DeliffasModel
 from deliffas.models.unet import optimize_for_inference
 from deliffas.models.zoo import load_checkpoint
 
-__all__ = ["load_run"]
+__all__ = ["load_run", "read_run_record"]
 
 
 def load_run(run: str | Path, device: str | torch.device = "cpu") -> tuple[DeliffasModel, dict]:
@@ -19,5 +19,10 @@ def load_run(run: str | Path, device: str | torch.device = "cpu") -> tuple[Delif
     and the run's recorded configuration."""
     run = Path(run)
     ckpt = load_checkpoint(run / "checkpoint", device)
-    record = json.loads((run / "train_config.json").read_text()) if (run / "train_config.json").is_file() else {}
-    return optimize_for_inference(ckpt.model.eval()), record
+    return optimize_for_inference(ckpt.model.eval()), read_run_record(run)
+
+
+def read_run_record(run: str | Path) -> dict:
+    """The run's recorded configuration (``train_config.json``; empty when the run has none)."""
+    path = Path(run) / "train_config.json"
+    return json.loads(path.read_text()) if path.is_file() else {}
