@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 from deliffas import __version__
+from deliffas.optional import interrupted_import
 
 __all__ = ["main", "build_parser"]
 
@@ -546,7 +547,9 @@ def main(argv: list[str] | None = None) -> int:
         log.debug("traceback of the error below", exc_info=True)
         print(f"deliffas {args.command}: error: {_error_line(err)}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, ImportError) as err:
+        if not interrupted_import(err):  # an ImportError not caused by a Ctrl-C during the import
+            raise
         signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C while the state is reported: no traceback
         if args is None:
             print("deliffas: interrupted", file=sys.stderr)

@@ -21,6 +21,7 @@ import numpy as np
 from jaxtyping import Bool, Float, Integer, Real
 
 from deliffas.checks import check_shape
+from deliffas.optional import import_optional
 from deliffas.geometry.arrays import ArrayLike, to_numpy
 
 __all__ = [
@@ -117,10 +118,7 @@ class UVAtlas:
             check_shape("face_uvs", face_uvs, "F 3", {"F": len(faces)})
             return cls(uvs, face_uvs)
         check_shape("verts", verts, "V 3")
-        try:
-            import xatlas
-        except ImportError as exc:  # pragma: no cover - hard dependency
-            raise ImportError("UVAtlas.from_mesh without uvs needs the 'xatlas' package") from exc
+        xatlas = import_optional("xatlas", "UVAtlas.from_mesh without uvs needs the 'xatlas' package")
         atlas = xatlas.Atlas()
         atlas.add_mesh(np.ascontiguousarray(to_numpy(verts), dtype=np.float32), np.ascontiguousarray(faces, dtype=np.uint32))
         pack = xatlas.PackOptions()

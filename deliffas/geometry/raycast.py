@@ -29,6 +29,7 @@ import numpy as np
 from jaxtyping import Bool, Float, Integer, Real, Shaped
 
 from deliffas.checks import check_finite, check_shape
+from deliffas.optional import import_optional
 from deliffas.io.cameras import Camera
 from deliffas.geometry.arrays import ArrayLike, to_numpy
 from deliffas.geometry.atlas import UVAtlas
@@ -63,14 +64,8 @@ ExitRays = Literal["all", "inner_miss"]
 
 
 def _o3d():
-    try:
-        import open3d as o3d
-    except ImportError as exc:  # pragma: no cover - hard dependency, but may miss system libs
-        raise ImportError(
-            "deliffas.geometry.raycast needs the 'open3d' package (and its system libraries, "
-            "see scripts/system_deps.sh)"
-        ) from exc
-    return o3d
+    return import_optional("open3d", "deliffas.geometry.raycast needs the 'open3d' package (and its system "
+                                     "libraries, see scripts/system_deps.sh)")
 
 
 def build_scene(verts: Real[ArrayLike, "V 3"], faces: Integer[ArrayLike, "F 3"]):

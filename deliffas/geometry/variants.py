@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from deliffas.checks import check_shape
+from deliffas.optional import import_optional
 from deliffas.io.formats.dynacap.character import Character, ObjData, Skin, write_character
 from deliffas.geometry.mesh_ops import vertex_normals
 from deliffas.geometry.atlas import UVAtlas, uv_texel_table
@@ -48,11 +49,8 @@ _CHUNK_POINTS = 32768  # query points processed at once by closest_points_on_mes
 
 
 def _pymeshlab():
-    try:
-        import pymeshlab
-    except ImportError as exc:  # pragma: no cover - hard dependency
-        raise ImportError("deliffas.geometry.variants needs the 'pymeshlab' package (pip install pymeshlab)") from exc
-    return pymeshlab
+    return import_optional("pymeshlab", "deliffas.geometry.variants needs the 'pymeshlab' package (pip install "
+                                        "pymeshlab)")
 
 
 def _meshset(verts: np.ndarray, faces: np.ndarray):

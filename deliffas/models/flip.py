@@ -14,6 +14,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from deliffas.optional import import_optional
+
 __all__ = ["FLIP_PROTOCOL", "flip_status", "flip_error", "flip_map"]
 
 FLIP_PROTOCOL = "LDR-FLIP (flip-evaluator, default 67 pixels per degree), mean of the error map; lower is better"
@@ -21,10 +23,9 @@ FLIP_PROTOCOL = "LDR-FLIP (flip-evaluator, default 67 pixels per degree), mean o
 
 def _module():
     try:
-        import flip_evaluator  # heavy optional extension behind one door
+        return import_optional("flip_evaluator", "FLIP needs the flip-evaluator package")  # a heavy extension
     except ImportError:
         return None
-    return flip_evaluator
 
 
 def flip_status() -> str | None:

@@ -18,6 +18,7 @@ import uuid
 from typing import Any, Callable, no_type_check
 
 from deliffas.parallel.dask_target import parse_dask_target
+from deliffas.optional import import_optional
 
 __all__ = ["DaskExecutor"]
 
@@ -28,12 +29,7 @@ _TASK_LOCK = threading.Lock()
 
 
 def _import_distributed():
-    try:
-        import distributed
-    except ImportError as err:
-        raise ImportError(f"--dask needs the dask distributed scheduler: pip install \"dask[distributed]\" "
-                          f"({err})") from None
-    return distributed
+    return import_optional("distributed", '--dask needs the dask distributed scheduler: pip install "dask[distributed]"')
 
 
 def _make_plugin(name: str, setup: Callable, setup_args: tuple):

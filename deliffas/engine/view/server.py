@@ -32,6 +32,7 @@ from deliffas.engine.view.renderer import (
 )
 from deliffas.engine.view.scene import ViewScene
 from deliffas.io.cameras import Camera
+from deliffas.optional import import_optional
 
 __all__ = ["serve", "viewer_camera", "capture_camera_pose", "import_viser", "CaptureHold", "MM_PER_UNIT",
            "ECHO_TIMEOUT_S"]
@@ -48,12 +49,8 @@ camera that never showed it by then counts as moved away by the user (see :class
 
 
 def import_viser():
-    try:
-        import viser
-        import viser.transforms as vtf
-    except ImportError as err:
-        raise ImportError("deliffas view needs the 'viser' package (pip install viser)") from err
-    return viser, vtf
+    need = "deliffas view needs the 'viser' package (pip install viser)"
+    return import_optional("viser", need), import_optional("viser.transforms", need)
 
 
 def viewer_camera(wxyz: np.ndarray, position: np.ndarray, fov: float, width: int, height: int,

@@ -35,6 +35,7 @@ from deliffas.io.infra.reader_checks import CaptureFormatError, naming_file
 from deliffas.io.formats.colmap_model import read_colmap_model
 from deliffas.io.format_registry import CameraWriteOptions, CaptureFormat
 from deliffas.io.formats.camera_files import file_detector
+from deliffas.optional import import_optional
 
 __all__ = [
     "cameras_to_colmap",
@@ -44,11 +45,7 @@ __all__ = [
 
 
 def _pycolmap():
-    try:
-        import pycolmap
-    except ImportError as exc:  # pragma: no cover - hard dependency
-        raise ImportError("deliffas cameras --to-colmap/--from-colmap needs the 'pycolmap' package") from exc
-    return pycolmap
+    return import_optional("pycolmap", "deliffas cameras --to-colmap/--from-colmap needs the 'pycolmap' package")
 
 
 def opencv_principal_point(camera: Camera) -> tuple[float, float]:
