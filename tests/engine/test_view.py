@@ -26,7 +26,7 @@ from deliffas.engine.view.scene import ViewScene
 from deliffas.geometry.raycast import UVRaycaster
 from deliffas.io.cameras import Camera
 
-from view_browser import needs_chromium, viewer_page
+from view_browser import free_port, needs_chromium, viewer_page
 
 REPO = Path(__file__).resolve().parents[2]
 TEST_CAMERA = 3  # the tiny capture's held-out camera, where the viewer opens
@@ -132,6 +132,52 @@ def test_viewer_camera_round_trip(tiny_shards):
     back = viewer_camera(wxyz, position, fov, cam.width, cam.height, 4096)
     np.testing.assert_allclose(back.world_to_cam, cam.world_to_cam, atol=1e-6)
     np.testing.assert_allclose(back.K[1, 1], cam.K[1, 1], rtol=1e-9)
+
+
+def test_a_departing_client_is_logged_and_viser_does_not_warn(caplog):
+    """A frame sent to a browser tab that has just left: viser warns (the first departed tab, unfiltered); while the
+    viewer serves (``departures_quiet``) the warning is not shown, and the departure is one info line."""
+    viser = pytest.importorskip("viser")
+    import warnings
+
+    import msgspec
+    from viser._messages import ViewerCameraMessage
+    from websockets.sync.client import connect
+
+    from deliffas.engine.view.server import departures_quiet, log_departure
+
+    port = free_port()
+    server = viser.ViserServer(host="127.0.0.1", port=port, verbose=False)
+    joined, left = [], []
+    server.on_client_connect(joined.append)
+    server.on_client_disconnect(lambda client: (log_departure(client), left.append(client)))
+    caplog.set_level("INFO", logger="deliffas.engine.view.server")
+    image = np.zeros((8, 8, 3), np.uint8)
+    hello = msgspec.msgpack.encode(ViewerCameraMessage((1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 1.0), 1.0, 0.01, 100.0, 48, 64,
+                                                       (0.0, 0.0, 0.0), (0.0, 1.0, 0.0)).as_serializable_dict())
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            for tab in range(2):
+                with connect(f"ws://127.0.0.1:{port}", subprotocols=[f"viser-v{viser.__version__}"]) as tab_socket:
+                    tab_socket.send(hello)  # a tab joins with its first camera, as the page sends it
+                    deadline = time.time() + 30
+                    while len(joined) <= tab and time.time() < deadline:
+                        time.sleep(0.05)
+                deadline = time.time() + 30
+                while len(left) <= tab and time.time() < deadline:
+                    time.sleep(0.05)
+                assert len(left) == tab + 1, "the tab did not leave"
+                if tab == 0:
+                    left[0].scene.set_background_image(image)
+                else:
+                    with departures_quiet():
+                        left[1].scene.set_background_image(image)
+    finally:
+        server.stop()
+    assert len(caught) == 1 and "closed connection" in str(caught[0].message)  # the unfiltered tab only
+    assert [r.getMessage() for r in caplog.records] == [f"deliffas view: client {c.client_id} disconnected"
+                                                        for c in left]
 
 
 def test_capture_hold_leaves_only_after_the_pose_was_reported():

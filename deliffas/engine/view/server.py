@@ -14,7 +14,9 @@ import math
 import signal
 import threading
 import time
+import warnings
 from collections.abc import Callable
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -34,7 +36,8 @@ from deliffas.engine.view.scene import ViewScene
 from deliffas.io.cameras import Camera
 from deliffas.optional import import_optional
 
-__all__ = ["serve", "viewer_camera", "capture_camera_pose", "import_viser", "CaptureHold", "MM_PER_UNIT",
+__all__ = ["serve", "viewer_camera", "capture_camera_pose", "import_viser", "departures_quiet", "log_departure",
+           "CaptureHold", "MM_PER_UNIT",
            "ECHO_TIMEOUT_S"]
 
 logger = logging.getLogger(__name__)
@@ -51,6 +54,24 @@ camera that never showed it by then counts as moved away by the user (see :class
 def import_viser():
     need = "deliffas view needs the 'viser' package (pip install viser)"
     return import_optional("viser", need), import_optional("viser.transforms", need)
+
+
+DEPARTED_CLIENT_WARNING = r"Queued a \w+ on a closed connection"
+"""viser's UserWarning for a message sent to a browser tab that has left (a frame rendered for it while it closed):
+expected in a viewer, not a fault; :func:`log_departure` says that the tab left instead."""
+
+
+@contextmanager
+def departures_quiet():
+    """While a viewer serves: viser's departed-client warning is not shown (every other warning is)."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=DEPARTED_CLIENT_WARNING, category=UserWarning)
+        yield
+
+
+def log_departure(client) -> None:
+    """One info line when a browser tab leaves the viewer."""
+    logger.info("deliffas view: client %d disconnected", client.client_id)
 
 
 def viewer_camera(wxyz: np.ndarray, position: np.ndarray, fov: float, width: int, height: int,
@@ -242,6 +263,7 @@ class _Viewer:
             self._submit(view, moving=False)
 
     def disconnect(self, client) -> None:
+        log_departure(client)
         view = self.clients.pop(client.client_id, None)
         if view is not None and view.worker is not None:
             view.worker.stop(timeout=0)
@@ -351,22 +373,23 @@ def serve(cfg: ViewConfig, stop: threading.Event | None = None, ready: Callable[
     stop = stop or threading.Event()
     if threading.current_thread() is threading.main_thread():  # SIGTERM (a service manager, a test) stops cleanly
         signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    try:
-        viewer = _Viewer(cfg, scene, server, vtf)
-        server.on_client_connect(viewer.connect)
-        server.on_client_disconnect(viewer.disconnect)
-        logger.info("deliffas view: http://%s:%d (%d frames, %d runs)", cfg.host, cfg.port, scene.num_frames,
-                    len(scene.runs))
-        if ready is not None:
-            ready()
-        next_frame = time.perf_counter()
-        while not stop.is_set():
-            time.sleep(_TICK_S)
-            viewer.tick()
-            if viewer.playing.value and time.perf_counter() >= next_frame:
-                viewer.play()
-                next_frame = time.perf_counter() + 1.0 / max(float(viewer.speed.value), 1e-3)
-    finally:
-        for view in list(viewer.clients.values()) if "viewer" in locals() else []:
-            view.worker.stop(timeout=1)
-        server.stop()
+    with departures_quiet():
+        try:
+            viewer = _Viewer(cfg, scene, server, vtf)
+            server.on_client_connect(viewer.connect)
+            server.on_client_disconnect(viewer.disconnect)
+            logger.info("deliffas view: http://%s:%d (%d frames, %d runs)", cfg.host, cfg.port, scene.num_frames,
+                        len(scene.runs))
+            if ready is not None:
+                ready()
+            next_frame = time.perf_counter()
+            while not stop.is_set():
+                time.sleep(_TICK_S)
+                viewer.tick()
+                if viewer.playing.value and time.perf_counter() >= next_frame:
+                    viewer.play()
+                    next_frame = time.perf_counter() + 1.0 / max(float(viewer.speed.value), 1e-3)
+        finally:
+            for view in list(viewer.clients.values()) if "viewer" in locals() else []:
+                view.worker.stop(timeout=1)
+            server.stop()

@@ -28,7 +28,8 @@ from deliffas.data.check_report import overlay
 from deliffas.data.subjects import Subject, SubjectOptions, parse_subject
 from deliffas.engine.view.config import SubjectViewConfig
 from deliffas.engine.view.renderer import compose_panels
-from deliffas.engine.view.server import MM_PER_UNIT, CaptureHold, capture_camera_pose, import_viser
+from deliffas.engine.view.server import (MM_PER_UNIT, CaptureHold, capture_camera_pose, departures_quiet, import_viser,
+                                         log_departure)
 from deliffas.geometry.templates import build_template
 
 __all__ = ["CameraOverlay", "SubjectView", "serve_subject", "is_capture"]
@@ -290,6 +291,7 @@ class _SubjectViewer:
         self.camera_menu.value = _FREE  # choosing the same camera again moves back to it
 
     def disconnect(self, client) -> None:
+        log_departure(client)
         self.leaving.pop(client.client_id, None)
         if self.inside.pop(client.client_id, None) is not None:
             self._visibility()
@@ -312,21 +314,22 @@ def serve_subject(cfg: SubjectViewConfig, stop: threading.Event | None = None,
         raise ValueError(f"not a run (no train_config.json) and {err}") from err
     view = SubjectView(subject, cfg.max_resolution, cfg.tolerance_px)
     server = viser.ViserServer(host=cfg.host, port=cfg.port, label="deliffas view", verbose=False)
-    try:
-        viewer = _SubjectViewer(cfg, view, server)
-        server.on_client_connect(lambda client: client.camera.on_update(lambda _c: viewer.moved(client)))
-        server.on_client_disconnect(viewer.disconnect)
-        logger.info("deliffas view: capture %s at http://%s:%d (%d cameras, %d frames)", subject.root, cfg.host,
-                    cfg.port, len(view.cameras), view.num_frames)
-        if ready is not None:
-            ready()
-        next_frame = time.perf_counter()
-        while stop is None or not stop.is_set():
-            time.sleep(_TICK_S)
-            viewer.tick()
-            if viewer.playing.value and view.num_frames > 1 and time.perf_counter() >= next_frame:
-                viewer.frame.value = (int(viewer.frame.value) + 1) % view.num_frames
-                next_frame = time.perf_counter() + 1.0 / max(float(viewer.speed.value), 1e-3)
-    finally:
-        server.stop()
-        view.close()
+    with departures_quiet():
+        try:
+            viewer = _SubjectViewer(cfg, view, server)
+            server.on_client_connect(lambda client: client.camera.on_update(lambda _c: viewer.moved(client)))
+            server.on_client_disconnect(viewer.disconnect)
+            logger.info("deliffas view: capture %s at http://%s:%d (%d cameras, %d frames)", subject.root, cfg.host,
+                        cfg.port, len(view.cameras), view.num_frames)
+            if ready is not None:
+                ready()
+            next_frame = time.perf_counter()
+            while stop is None or not stop.is_set():
+                time.sleep(_TICK_S)
+                viewer.tick()
+                if viewer.playing.value and view.num_frames > 1 and time.perf_counter() >= next_frame:
+                    viewer.frame.value = (int(viewer.frame.value) + 1) % view.num_frames
+                    next_frame = time.perf_counter() + 1.0 / max(float(viewer.speed.value), 1e-3)
+        finally:
+            server.stop()
+            view.close()
