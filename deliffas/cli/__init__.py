@@ -14,58 +14,14 @@ import sys
 from pathlib import Path
 
 from deliffas import __version__
+from deliffas.cli.from_config import add_config_arguments
 from deliffas.optional import interrupted_import
+from deliffas.options import (count_or_indices, dask_target, device_name, image_size, int_list, non_negative_float,
+                              non_negative_int, port, positive_float, positive_int, power_of_two, video_or_folder)
 
 __all__ = ["main", "build_parser"]
 
 log = logging.getLogger(__name__)
-
-def _size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected WxH, e.g. 256x256, got {text!r}") from None
-    if w <= 0 or h <= 0:
-        raise argparse.ArgumentTypeError(f"image size must be positive, got {text!r}")
-    return w, h
-
-
-def _int_at_least(minimum: int):
-    """An argparse type: a whole number >= ``minimum``."""
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-        if value < minimum:
-            raise argparse.ArgumentTypeError(f"expected a number >= {minimum}, got {value}")
-        return value
-    return parse
-
-
-def _dask_target(text: str) -> str:
-    from deliffas.parallel.dask_target import parse_dask_target  # imported here: a Ctrl-C at start-up meets main()
-
-    try:
-        parse_dask_target(text)
-    except ValueError as err:
-        raise argparse.ArgumentTypeError(str(err)) from None
-    return text
-
-
-def _power_of_two(text: str) -> int:
-    """An argparse type: a power of two >= 16 (the U-Nets halve the atlas side down to a few texels)."""
-    value = _int_at_least(16)(text)
-    if value & (value - 1):
-        lower = 1 << (value.bit_length() - 1)
-        raise argparse.ArgumentTypeError(f"expected a power of two (the U-Nets halve it), got {value}; "
-                                         f"try {lower} or {2 * lower}")
-    return value
-
-
-_positive_int = _int_at_least(1)
-_non_negative_int = _int_at_least(0)
-
 
 def _path_with_suffix(*suffixes: str):
     """An argparse type: a path ending in one of ``suffixes`` (checked before any work starts)."""
@@ -75,67 +31,6 @@ def _path_with_suffix(*suffixes: str):
             raise argparse.ArgumentTypeError(f"expected a file ending in {' or '.join(suffixes)}, got {text!r}")
         return p
     return parse
-
-
-def _device_name(text: str) -> str:
-    """An argparse type: ``cpu``, ``cuda`` or ``cuda:N`` (whether this machine has it: engine.devices)."""
-    if text != "cpu" and text != "cuda" and not (text.startswith("cuda:") and text[5:].isdigit()):
-        raise argparse.ArgumentTypeError(f"expected cpu, cuda or cuda:N, got {text!r}")
-    return text
-
-
-def _video_or_folder(text: str) -> Path:
-    """An argparse type: a ``.mp4``/``.avi`` file, or a folder (no suffix) for PNG frames."""
-    p = Path(text)
-    if p.suffix and p.suffix.lower() not in (".mp4", ".avi"):
-        raise argparse.ArgumentTypeError(f"expected a .mp4 or .avi file or a folder without a suffix, got {text!r}")
-    return p
-
-
-def _finite_float(text: str, positive: bool) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not (value > 0 if positive else value >= 0) or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"expected a {'positive' if positive else 'non-negative'} finite number, "
-                                         f"got {text!r}")
-    return value
-
-
-def _positive_float(text: str) -> float:
-    return _finite_float(text, positive=True)
-
-
-def _non_negative_float(text: str) -> float:
-    return _finite_float(text, positive=False)
-
-
-def _int_list(text: str) -> tuple[int, ...]:
-    try:
-        return tuple(int(v) for v in text.replace(",", " ").split())
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
-
-
-def _test_cameras(text: str) -> int | tuple[int, ...]:
-    """``N`` (a count) or a list ``a,b,...`` (``3,`` names camera 3 alone)."""
-    if "," in text or "[" in text:
-        return _int_list(text.strip("[]"))
-    try:
-        return int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a count N or a list a,b,..., got {text!r}") from None
-
-
-def _port(text: str) -> int:
-    try:
-        port = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a port number, got {text!r}") from None
-    if not 0 < port < 65536:
-        raise argparse.ArgumentTypeError(f"port must be in 1..65535, got {port}")
-    return port
 
 
 def _add_capture_commands(sub) -> None:
@@ -155,16 +50,16 @@ def _add_capture_commands(sub) -> None:
     p.add_argument("--motion", type=Path, help="training motion: .motion (DDC) or AMASS-style .npz (SMPL) "
                                                "(default: a procedural motion)")
     p.add_argument("--test-motion", type=Path, help="novel-pose motion, as --motion (default: procedural, another seed)")
-    p.add_argument("--frames", type=_positive_int, default=20, help="training frames (default 20)")
-    p.add_argument("--test-frames", type=_positive_int, default=None, help="novel-pose frames (default frames // 2)")
-    p.add_argument("--cameras", type=_positive_int, default=8, help="cameras of the dome (default 8, at least 2)")
-    p.add_argument("--size", type=_size, default=(256, 256), help="image size WxH (default 256x256)")
-    p.add_argument("--test-cameras", type=_test_cameras, default=None,
+    p.add_argument("--frames", type=positive_int, default=20, help="training frames (default 20)")
+    p.add_argument("--test-frames", type=positive_int, default=None, help="novel-pose frames (default frames // 2)")
+    p.add_argument("--cameras", type=positive_int, default=8, help="cameras of the dome (default 8, at least 2)")
+    p.add_argument("--size", type=image_size, default=(256, 256), help="image size WxH (default 256x256)")
+    p.add_argument("--test-cameras", type=count_or_indices, default=None,
                    help="held-out cameras: a count N or a list a,b,... (default max(1, cameras // 8))")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--videos", action="store_true", help="also write FFV1 videos img/c_<cam>.avi + fg/c_<cam>.avi")
-    p.add_argument("--supersample", type=_positive_int, default=1, help="s x s rays per pixel (default 1)")
-    p.add_argument("--jobs", type=_positive_int, default=1, help="rendering processes (default 1)")
+    p.add_argument("--supersample", type=positive_int, default=1, help="s x s rays per pixel (default 1)")
+    p.add_argument("--jobs", type=positive_int, default=1, help="rendering processes (default 1)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace an earlier synthetic capture in OUT_DIR (a non-empty folder is refused otherwise)")
     p.set_defaults(handler="synth")
@@ -177,12 +72,12 @@ def _add_capture_commands(sub) -> None:
                                               "training/, testing/)")
     p.add_argument("out", type=Path, help="output folder")
     p.add_argument("--frames", default=None, help="A:B:STEP capture frames (default: all)")
-    p.add_argument("--cameras", type=_int_list, default=None, help="calibration indices a,b,... (default: all)")
-    p.add_argument("--test-cameras", type=_int_list, default=None,
+    p.add_argument("--cameras", type=int_list, default=None, help="calibration indices a,b,... (default: all)")
+    p.add_argument("--test-cameras", type=int_list, default=None,
                    help="held-out cameras a,b,... (default: SUBJECT/split.json or test_cameras.txt)")
-    p.add_argument("--shard-frames", type=_positive_int, default=10, help="frames per shard (default 10)")
-    p.add_argument("--jobs", type=_positive_int, default=1, help="worker processes (default 1)")
-    p.add_argument("--dask", type=_dask_target, metavar="ADDRESS|local:N",
+    p.add_argument("--shard-frames", type=positive_int, default=10, help="frames per shard (default 10)")
+    p.add_argument("--jobs", type=positive_int, default=1, help="worker processes (default 1)")
+    p.add_argument("--dask", type=dask_target, metavar="ADDRESS|local:N",
                    help="convert on Dask, one task per shard: a running scheduler (tcp://HOST:8786) or local:N "
                         "(a LocalCluster of N worker processes on 127.0.0.1); OUT must be on a file system every "
                         "worker shares and SUBJECT readable by them (docs/scale.md); replaces --jobs (default: no Dask)")
@@ -198,10 +93,10 @@ def _add_capture_commands(sub) -> None:
     p.add_argument("--motions", action="append", metavar="[SEQ=]FILE",
                    help="pose parameters instead of the sequence's own: .motion (DDC) or AMASS .npz (SMPL) "
                         "(SEQ default training; repeatable)")
-    p.add_argument("--atlas-res", type=_power_of_two, default=256,
+    p.add_argument("--atlas-res", type=power_of_two, default=256,
                    help="normal-map side S, a power of two (default 256; paper 1024)")
     p.add_argument("--offset", type=float, default=30.0, help="outer-surface offset d in mm (default 30)")
-    p.add_argument("--window", type=_non_negative_int, default=2, help="temporal window T stored per frame (default 2)")
+    p.add_argument("--window", type=non_negative_int, default=2, help="temporal window T stored per frame (default 2)")
     p.add_argument("--codec", default="raw", help="raw (lossless, default) | png | jpeg:Q")
     p.add_argument("--layout", choices=["auto", "images", "videos"], default="auto",
                    help="where the frames are: images = image folders, videos = one video per camera, auto = images "
@@ -229,8 +124,8 @@ def _add_capture_tool_commands(sub) -> None:
     p.add_argument("--model", type=Path, required=True, help="SMPL model .npz/.pkl (official layout; not shipped)")
     p.add_argument("--uv", type=Path, default=None, help="OBJ with the model's uv layout (default MODEL_uv.obj if present)")
     p.add_argument("--out", type=Path, required=True, help="folder for the fitted motions")
-    p.add_argument("--first-iters", type=_positive_int, default=300, help="Adam steps on the first frame (default 300)")
-    p.add_argument("--frame-iters", type=_positive_int, default=40, help="Adam steps per later frame (default 40)")
+    p.add_argument("--first-iters", type=positive_int, default=300, help="Adam steps on the first frame (default 300)")
+    p.add_argument("--frame-iters", type=positive_int, default=40, help="Adam steps per later frame (default 40)")
     p.add_argument("--overwrite", action="store_true", help="replace an earlier fit in --out")
     p.set_defaults(handler="fit_smpl")
 
@@ -242,7 +137,7 @@ def _add_capture_tool_commands(sub) -> None:
     p.add_argument("subject", type=Path, help="capture folder (any supported format)")
     p.add_argument("--out", type=Path, required=True, help="report folder")
     p.add_argument("--format", default="auto", help="capture format (default: detected)")
-    p.add_argument("--frames", type=_positive_int, default=4, help="frames sampled per sequence (default 4)")
+    p.add_argument("--frames", type=positive_int, default=4, help="frames sampled per sequence (default 4)")
     p.add_argument("--template", type=Path, help="template: SMPL model .npz/.pkl (SMPL captures), or a DDC variant "
                                                  "(default: the capture's own)")
     p.add_argument("--motions", action="append", metavar="[SEQ=]FILE",
@@ -274,7 +169,7 @@ def _add_capture_tool_commands(sub) -> None:
     p.add_argument("--to", dest="to_format", choices=formats, help="format to write (no default: required with OUT)")
     p.add_argument("--from", dest="from_format", choices=("auto",) + formats, default="auto",
                    help="format of SRC (default: detected from its name)")
-    p.add_argument("--size", type=_size, default=None,
+    p.add_argument("--size", type=image_size, default=None,
                    help="image size WxH of every camera, for camera files that do not store it (default: read from "
                         "the first image of each camera)")
     p.add_argument("--drop-distortion", action="store_true",
@@ -334,56 +229,14 @@ def _add_training_commands(sub) -> None:
     p = sub.add_parser("train", help="train a model of the zoo on converted shards",
                        description="Train on SHARDS (from `deliffas convert`). L1 first, then L1 + perceptual "
                                    "when --perceptual is given. Distributed with `torchrun --nproc_per_node N -m deliffas train ...`.")
-    p.add_argument("shards", type=Path, nargs="?", default=None,
-                   help="folder written by 'deliffas convert' (with --resume: default the run's)")
-    p.add_argument("--model", default=None, help="zoo name (default two_surface_texture; the paper's model: two_surface)")
-    p.add_argument("--out", type=Path, required=True, help="run directory")
-    p.add_argument("--preset", default=None, help="paper | small (default) | realtime | tiny")
-    p.add_argument("--iters", type=_positive_int, default=None,
-                   help="train to this iteration (default 1500; with --resume: the run's, more extends it)")
+    from deliffas.engine.train_config import TrainConfig  # light; imported here: a Ctrl-C at start-up meets main()
+
+    add_config_arguments(p, TrainConfig, sparse=True)
     p.add_argument("--config", type=Path, default=None,
                    help="JSON file of TrainConfig fields (incl. model_overrides) (default: none)")
     p.add_argument("--resume", action="store_true",
                    help="continue the run in --out from its last checkpoint (on the same capture)")
     p.add_argument("--overwrite", action="store_true", help="replace an earlier run in --out")
-    p.add_argument("--perceptual", choices=["none", "vgg16-imagenet", "vgg16-random"], default=None,
-                   help="stage-2 perceptual backbone; vgg16-random is the explicit offline option (default none: "
-                        "L1 only)")
-    p.add_argument("--perceptual-mode", choices=["image", "patch"], default=None,
-                   help="perceptual loss on whole images (paper) or on 32x32 patches (default image)")
-    p.add_argument("--vgg16-path", default=None,
-                   help="ImageNet VGG-16 weights (.pth/.safetensors) (default: $DELIFFAS_VGG16_WEIGHTS or the torch "
-                        "hub cache)")
-    p.add_argument("--cameras-per-frame", type=_positive_int, default=None,
-                   help="training cameras per iteration; the U-Nets run once for all of them (default 3)")
-    p.add_argument("--device", type=_device_name, default=None, help="cpu | cuda | cuda:N (default cpu)")
-    p.add_argument("--workers", dest="num_workers", type=_non_negative_int, default=None,
-                   help="DataLoader worker processes, 0 = in this process (default 1)")
-    p.add_argument("--uv", choices=["auto", "raycast", "torch"], default=None,
-                   help="uv maps: raycast (open3d, CPU), torch (the torch rasteriser on --device), auto (default) = "
-                        "torch on CUDA, else raycast")
-    p.add_argument("--seed", type=int, default=None, help="random seed of the model, the data order and the "
-                                                          "random backbone (default 0)")
-    p.add_argument("--ray-chunk", type=_positive_int, default=None,
-                   help="rays per backward pass (bounds training memory; single process) (default: all rays at once)")
-    p.add_argument("--checkpoint-every", type=_positive_int, default=None,
-                   help="save a checkpoint every N iterations, and at the last (default 250)")
-    p.add_argument("--preview-every", type=_non_negative_int, default=None,
-                   help="write previews/iter_N.png every N iterations, 0 = never (default 250)")
-    p.add_argument("--schedule", choices=["converge", "paper"], default=None,
-                   help="learning-rate schedule: converge (default) = warm-up, then decay 10x over the run's own "
-                        "--iters; paper = the official Adam 2e-4 with its decay over 800 k steps (GPU-days runs)")
-    p.add_argument("--lr", type=_positive_float, default=None,
-                   help="peak learning rate (default: the schedule's, converge 3e-3, paper 2e-4)")
-    p.add_argument("--saturation-weight", type=_non_negative_float, default=None,
-                   help="weight of the penalty on U-Net feature logits beyond +-4, which keeps feature maps off "
-                        "the rails of their sigmoid (default 0.01; 0 = off)")
-    p.add_argument("--protocol", choices=["auto", "paper", "all"], default=None,
-                   help="frames used: paper = every 10th (DELIFFAS), all = every frame, auto (default) = paper "
-                        "from 100 training frames on, else all; stated at start")
-    p.add_argument("--val-cameras", dest="validation_cameras", type=_test_cameras, default=None, metavar="N|a,b,...",
-                   help="training cameras held out as the validation split: a count N or calibration indices "
-                        "(default 0; --auto-capacity holds out at least 1)")
     p.add_argument("--auto-capacity", action="store_true",
                    help="search model capacities on the validation split and keep the cheapest within "
                         "--tolerance-db of the best foreground PSNR; the test split scores the chosen one only")
@@ -398,28 +251,13 @@ def _add_evaluation_commands(sub) -> None:
                        description="Score RUN on a split. Every number names its protocol: the official one (white "
                                    "composite, 600x496 crop: at small images mostly background) and the foreground "
                                    "block (padded mask box, masked PSNR), the headline.")
-    p.add_argument("run", type=Path, help="run directory written by `deliffas train`")
-    p.add_argument("--split", choices=["novel_view", "novel_pose", "validation", "train"], default="novel_view",
-                   help="novel_view / novel_pose: test splits; validation: the run's held-out training cameras "
-                        "(--val-cameras at training); train: the fitted cameras (default novel_view)")
-    p.add_argument("--protocol", choices=["paper", "all"], default=None,
-                   help="frames: paper = every 10th, all = every frame (default: the run's)")
-    p.add_argument("--shards", default=None, help="shard directory (default: the run's)")
-    p.add_argument("--max-frames", type=_positive_int, default=None, help="at most this many frames, evenly spaced (default: all)")
-    p.add_argument("--device", type=_device_name, default="cpu", help="cpu | cuda | cuda:N (default cpu)")
-    p.add_argument("--save-images", default=None, help="folder for predicted images (white background) (default: none)")
-    p.add_argument("--grid", default=None, metavar="PNG",
-                   help="write a comparison grid (GT | prediction | error heat map, >= 256 px panels) (default: none)")
-    p.add_argument("--vgg16-path", default=None, help="ImageNet VGG-16 weights for LPIPS (.pth/.safetensors) (default: env / torch hub cache)")
-    p.add_argument("--lpips-path", default=None, help="LPIPS v0.1 VGG linear layers (lpips' weights/v0.1/vgg.pth) (default: env / torch hub cache)")
-    p.add_argument("--inception-path", default=None,
-                   help="pytorch-fid's pt_inception-2015-12-05-6726825d.pth for FID (default: env / torch hub cache)")
+    from deliffas.engine.eval_config import EvalConfig  # light; imported here: a Ctrl-C at start-up meets main()
+    from deliffas.engine.render_config import RenderConfig
+
+    add_config_arguments(p, EvalConfig)
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--fast", action="store_true",
                    help="render by the CPU fast path of 'deliffas render'/'view' (to measure what it changes)")
-    p.add_argument("--uv", choices=["auto", "raycast", "torch"], default="auto",
-                   help="uv maps: raycast (open3d, CPU), torch (the torch rasteriser on --device), auto (default) = "
-                        "torch on CUDA, else raycast")
     p.set_defaults(handler="eval")
 
     p = sub.add_parser("render", help="free-viewpoint video of a trained avatar driven by a motion",
@@ -427,27 +265,10 @@ def _add_evaluation_commands(sub) -> None:
                                    "a folder of PNG frames, seen from a capture camera or an orbit. An orbit turns "
                                    "once over the video: the capture's test motion may have few frames, so pass "
                                    "--frames N --loop for a longer one.")
-    p.add_argument("run", type=Path, help="run directory of 'deliffas train' or an .avatar file of 'deliffas export'")
-    p.add_argument("--out", type=_video_or_folder, required=True,
-                   help="video file (.mp4: H.264; .avi: Motion-JPEG) or a new folder for PNG frames")
-    p.add_argument("--orbit", action="store_true", help="camera orbits the avatar (default: a capture camera)")
-    p.add_argument("--camera", type=_non_negative_int, default=None, metavar="INDEX",
-                   help="capture camera (calibration index) to render from (default: the first test camera)")
-    p.add_argument("--motion", type=Path, default=None,
-                   help=".motion (DDC template) or AMASS .npz (SMPL template) (default: the capture's test motion)")
-    p.add_argument("--frames", type=_positive_int, default=None,
-                   help="number of frames (default: all of the motion, max 300); more than the motion has needs --loop")
-    p.add_argument("--loop", action="store_true", help="play the motion again from its start to fill --frames")
-    p.add_argument("--size", type=_size, default=None, help="WxH (default: the capture's)")
-    p.add_argument("--fps", type=_positive_float, default=25.0, help="frames per second of the video (default 25)")
-    p.add_argument("--device", type=_device_name, default="cpu", help="cpu | cuda | cuda:N (default cpu)")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing --out video")
+    add_config_arguments(p, RenderConfig)
     p.add_argument("--plain", action="store_true",
                    help="render as 'deliffas eval' does (ray-cast uvs, fp32 MLP) instead of the CPU fast path "
                         "(rasterised uvs, fused inputs, bf16 MLP where the CPU has native bf16)")
-    p.add_argument("--uv", choices=["auto", "raycast", "torch"], default="auto",
-                   help="uv maps: raycast (open3d, CPU), torch (the torch rasteriser on --device), auto (default) = "
-                        "torch on CUDA, else raycast")
     p.set_defaults(handler="render")
 
     p = sub.add_parser("export", help="write a run as one .avatar file (model, template, atlas, cameras)",
@@ -486,11 +307,11 @@ def _add_viewer_commands(sub) -> None:
     p.add_argument("--shards", type=Path, default=None, help="shard directory (default: the run's)")
     p.add_argument("--host", default="127.0.0.1",
                    help="interface to bind (default 127.0.0.1; 0.0.0.0 exposes the viewer and warns)")
-    p.add_argument("--port", type=_port, default=8080, help="port (default 8080)")
-    p.add_argument("--resolution", type=_positive_int, default=512,
+    p.add_argument("--port", type=port, default=8080, help="port (default 8080)")
+    p.add_argument("--resolution", type=positive_int, default=512,
                    help="longest side of the still image in pixels (default 512; halved while moving; SUBJECT: of the "
                         "overlay at a capture camera)")
-    p.add_argument("--device", type=_device_name, default="cpu", help="cpu | cuda | cuda:N (default cpu)")
+    p.add_argument("--device", type=device_name, default="cpu", help="cpu | cuda | cuda:N (default cpu)")
     p.add_argument("--plain", action="store_true",
                    help="render as 'deliffas eval' does (ray-cast uvs, fp32 MLP) instead of the CPU fast path "
                         "(rasterised uvs, fused inputs, bf16 MLP where the CPU has native bf16)")
@@ -517,7 +338,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    ".npz with poses, trans, betas; SMPL metres become mm).")
     p.add_argument("template", type=Path, help=".character file, or SMPL model .npz/.pkl (official layout)")
     p.add_argument("motion", type=Path, help=".motion (DDC; its DOF count must match the skeleton) or AMASS .npz (SMPL)")
-    p.add_argument("--frame", type=_non_negative_int, default=0,
+    p.add_argument("--frame", type=non_negative_int, default=0,
                    help="frame number as written in the motion file (AMASS: the row) (default 0)")
     p.add_argument("--skinning", choices=["dqs", "lbs"], default="dqs",
                    help="DDC: dual-quaternion (the original tools' choice) or linear blend skinning (default dqs)")

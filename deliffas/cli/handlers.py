@@ -42,6 +42,7 @@ from deliffas.engine.train import RUN_MARKER, TrainConfig, Trainer
 from deliffas.engine.view import SubjectViewConfig, ViewConfig, is_capture, view, view_subject
 from deliffas.fast.config import FastConfig
 from deliffas.cli.fast_env import fast_from_env
+from deliffas.cli.from_config import config_from_args, given_values, option_names
 
 
 def cmd_pose(args: argparse.Namespace) -> int:
@@ -196,30 +197,21 @@ def cmd_zoo(args: argparse.Namespace) -> int:
     return 0
 
 
-_TRAIN_FLAGS = {"model": "--model", "preset": "--preset", "iters": "--iters", "perceptual": "--perceptual",
-                "perceptual_mode": "--perceptual-mode", "cameras_per_frame": "--cameras-per-frame",
-                "device": "--device", "num_workers": "--workers", "seed": "--seed", "vgg16_path": "--vgg16-path",
-                "checkpoint_every": "--checkpoint-every", "preview_every": "--preview-every",
-                "ray_chunk": "--ray-chunk", "protocol": "--protocol", "validation_cameras": "--val-cameras",
-                "saturation_weight": "--saturation-weight", "schedule": "--schedule", "lr": "--lr", "uv": "--uv",
-                "shards": "SHARDS"}
-"""TrainConfig field -> the flag that sets it (fields without one are set by --config)."""
-
-
-def _train_config(args: argparse.Namespace):
+def _train_config(args: argparse.Namespace) -> TrainConfig:
+    """--config, then the given options; with --resume of an existing run, the run's config they may change."""
     values: dict = {}
     if args.config:
         values.update(json.loads(Path(args.config).read_text()))
-    for key in _TRAIN_FLAGS:
-        v = getattr(args, key, None)
-        if v is not None and key != "shards":
-            values[key] = v
-    if args.resume and (args.out / RUN_MARKER).is_file():  # the run's own settings; flags change what may change
-        names = {f.name: _TRAIN_FLAGS.get(f.name, f"{f.name} (--config)") for f in dataclasses.fields(TrainConfig)}
-        return resumed_config(args.out, {**values, "shards": str(args.shards) if args.shards else None}, names)
-    if args.shards is None:
-        raise ValueError(f"give SHARDS, the folder written by 'deliffas convert' ({args.out} holds no run to --resume)")
-    values.update(shards=str(args.shards), out=str(args.out))
+    given = given_values(TrainConfig, args)
+    out, shards = given.pop("out"), given.pop("shards", None)  # SHARDS and --out, never --config's
+    values = {k: v for k, v in values.items() if k not in ("out", "shards")} | given
+    if args.resume and (Path(out) / RUN_MARKER).is_file():  # the run's own settings; flags change what may change
+        flags = option_names(TrainConfig)
+        names = {f.name: flags.get(f.name, f"{f.name} (--config)") for f in dataclasses.fields(TrainConfig)}
+        return resumed_config(Path(out), {**values, "shards": shards}, names)
+    if shards is None:
+        raise ValueError(f"give SHARDS, the folder written by 'deliffas convert' ({out} holds no run to --resume)")
+    values.update(shards=shards, out=out)
     known = {f.name for f in dataclasses.fields(TrainConfig)}
     unknown = sorted(set(values) - known)
     if unknown:
@@ -249,11 +241,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 def cmd_eval(args: argparse.Namespace) -> int:
     retain_freed_memory()
-    result = evaluate(EvalConfig(run=str(args.run), split=args.split, protocol=args.protocol, shards=args.shards,
-                                 max_frames=args.max_frames, device=args.device, save_images=args.save_images,
-                                 vgg16_path=args.vgg16_path, lpips_path=args.lpips_path,
-                                 inception_path=args.inception_path, grid=args.grid,
-                                 fast=fast_from_env(FastConfig()) if args.fast else None, uv=args.uv))
+    result = evaluate(config_from_args(EvalConfig, args, fast=fast_from_env(FastConfig()) if args.fast else None))
     if args.json:
         print(json.dumps(result))
         return 0
@@ -276,11 +264,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 def cmd_render(args: argparse.Namespace) -> int:
     retain_freed_memory()
-    out = render_video(RenderConfig(run=str(args.run), out=str(args.out), orbit=args.orbit,
-                                    motion=str(args.motion) if args.motion else None, frames=args.frames,
-                                    size=args.size, device=args.device, fps=args.fps, loop=args.loop,
-                                    camera=args.camera, overwrite=args.overwrite,
-                                    fast=None if args.plain else fast_from_env(RenderConfig.fast), uv=args.uv))
+    out = render_video(config_from_args(RenderConfig, args,
+                                        fast=None if args.plain else fast_from_env(RenderConfig.fast)))
     print(f"wrote {out}")
     return 0
 

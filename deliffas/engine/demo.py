@@ -98,7 +98,7 @@ def run_demo(cfg: DemoConfig = DemoConfig()) -> Path:
     video = None
     try:
         video = render_video(RenderConfig(run=str(out / "runs" / cfg.models[0]), out=str(out / "orbit.mp4"),
-                                          frames=min(sz.test_frames, 24)))
+                                          orbit=True, frames=min(sz.test_frames, 24)))
     except RuntimeError as exc:  # no video codec in this OpenCV build: the report says so
         logger.warning("orbit video skipped: %s", exc)
     comparison = _comparison_image(out, rows, subject)

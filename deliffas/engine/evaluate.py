@@ -17,25 +17,23 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 import torch
 
 from deliffas.engine.devices import resolve_device
+from deliffas.engine.eval_config import EvalConfig
 from deliffas.engine.data_bridge import evaluation_samples, run_protocol, split_cameras
 from deliffas.engine.identity import check_run_shards
 from deliffas.io.infra.files import check_writable
 from deliffas.engine.figures import GridImage, comparison_grid
-from deliffas.engine.rays import UVSource, uv_source
+from deliffas.engine.rays import uv_source
 from deliffas.engine.runs import load_run
 from deliffas.engine.samples import composite_target
 from deliffas.engine.shading import render_frame
 from deliffas.engine.realtime import fast_for_device
 from deliffas.engine.timing import StageTimer
-from deliffas.fast.config import FastConfig
 from deliffas.geometry.raycast import UVRaycaster
 from deliffas.models.metrics import METRICS, Evaluator
 
@@ -43,54 +41,10 @@ __all__ = ["EvalConfig", "evaluate", "MIN_IMAGES_WARNING", "HEADLINE"]
 
 logger = logging.getLogger(__name__)
 
-Split = Literal["validation", "novel_view", "novel_pose", "train"]
 MIN_IMAGES_WARNING = 10
 """An evaluation over fewer images than this warns: its mean is too noisy to rank models."""
 HEADLINE = "foreground.psnr"
 """The number tables, orderings and the demo lead with (``METRICS`` key)."""
-
-
-@dataclass(frozen=True)
-class EvalConfig:
-    """What to evaluate."""
-
-    run: str
-    """Run directory written by ``deliffas train``."""
-    split: Split = "novel_view"
-    """``novel_view``: held-out (test) cameras on training-motion frames; ``novel_pose``: the test motion;
-    ``validation``: the run's validation cameras (training cameras it held out, ``TrainConfig.validation_cameras``)
-    on the training frames, for choosing among runs; ``train``: the cameras it was fitted to (a sanity check)."""
-    protocol: Literal["paper", "all"] | None = None
-    """Frames protocol: ``paper`` = every 10th frame, ``all`` = every frame; None = the run's (as resolved
-    when it trained)."""
-    shards: str | None = None
-    """Shard directory (default: the one the run was trained on)."""
-    max_frames: int | None = None
-    """Evaluate at most this many frames (evenly spaced); None = all of the split."""
-    device: str = "cpu"
-    chunk_size: int = 262144
-    """Rays shaded at once (bounds peak memory for large images)."""
-    save_images: str | None = None
-    """Folder for predicted images ``<cam:03d>/<frame:06d>.png`` (white background), or None."""
-    vgg16_path: str | None = None
-    """ImageNet VGG-16 file for LPIPS (else ``$DELIFFAS_VGG16_WEIGHTS`` / torch hub cache)."""
-    lpips_path: str | None = None
-    """LPIPS v0.1 VGG lin-layer file (else ``$DELIFFAS_LPIPS_WEIGHTS`` / the lpips package)."""
-    inception_path: str | None = None
-    """pytorch-fid's Inception-v3 weights for FID (else ``$DELIFFAS_INCEPTION_WEIGHTS`` / torch hub cache)."""
-    grid: str | None = None
-    """PNG path of a comparison grid (GT | prediction | error heat map) of the first images, or None."""
-    grid_images: int = 3
-    """Rows of that grid (one image per frame, the first camera)."""
-    fast: FastConfig | None = None
-    """Render by the CPU fast path (``deliffas.fast``: rasterised uvs, bf16 MLP where native) instead of the
-    reference path (None), to measure what it changes."""
-    uv: UVSource = "auto"
-    """uv maps of the reference path: ``raycast`` (open3d), ``torch`` (the torch rasteriser on ``device``),
-    ``auto`` = ``torch`` on CUDA, else ``raycast``."""
-
-    def __post_init__(self) -> None:
-        uv_source("cpu", self.uv)  # a bad choice is named when the config is made (ValueError)
 
 
 def evaluate(cfg: EvalConfig) -> dict:

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from deliffas.checks import check_shape
+from deliffas.engine.config_fields import UV_SOURCES, UVSource, check_uv_source
 from deliffas.geometry.atlas import UVAtlas
 from deliffas.geometry.rasterize_torch import TorchUVRasterizer
 from deliffas.geometry.raycast import UVRaycaster, uv_inner_or_exit
@@ -34,11 +35,6 @@ from deliffas.models.variants import VariantSpec
 
 __all__ = ["CameraRays", "camera_rays", "frame_rays", "RayBatch", "stack_rays", "ray_query", "paint_images",
            "UVSource", "UV_SOURCES", "uv_source", "torch_camera_rays", "torch_frame_rays", "device_camera_rays"]
-
-UVSource = Literal["auto", "raycast", "torch"]
-UV_SOURCES = ("auto", "raycast", "torch")
-"""Where the uv maps come from: ``raycast`` = the open3d ray caster (CPU), ``torch`` = the torch rasteriser on
-the model's device, ``auto`` = ``torch`` on CUDA, else ``raycast``."""
 
 
 @dataclass(frozen=True)
@@ -96,8 +92,7 @@ def frame_rays(inner_verts: np.ndarray, outer_verts: np.ndarray, faces: np.ndarr
 
 def uv_source(device: torch.device | str, requested: str = "auto") -> Literal["raycast", "torch"]:
     """The resolved uv source for a model on ``device`` (``UV_SOURCES``; ValueError naming the choices)."""
-    if requested not in UV_SOURCES:
-        raise ValueError(f"uv: expected one of {', '.join(UV_SOURCES)}, got {requested!r}")
+    check_uv_source(requested)
     if requested == "auto":
         return "torch" if torch.device(device).type == "cuda" else "raycast"
     return requested  # type: ignore[return-value]

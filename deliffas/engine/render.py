@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +17,8 @@ from deliffas.geometry.frame_geometry import FrameGeometryBuilder
 from deliffas.geometry.templates import build_template
 from deliffas.engine.avatar import load_avatar
 from deliffas.engine.devices import resolve_device
-from deliffas.engine.rays import UVSource, device_camera_rays, paint_images, ray_query, stack_rays, uv_source
+from deliffas.engine.render_config import RenderConfig
+from deliffas.engine.rays import UVSource, device_camera_rays, paint_images, ray_query, stack_rays
 from deliffas.engine.realtime import fast_for_device, fast_render_camera, render_stream
 from deliffas.engine.timing import StageTimer
 from deliffas.fast.config import FastConfig
@@ -29,44 +29,6 @@ from deliffas.io.video import VIDEO_SUFFIXES, write_video
 __all__ = ["RenderConfig", "render_video", "orbit_cameras", "render_images", "motion_geometry_builder"]
 
 logger = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class RenderConfig:
-    """A free-viewpoint render."""
-
-    run: str
-    """Run directory of ``deliffas train`` or an ``.avatar`` file of ``deliffas export``."""
-    out: str
-    """Video file (.mp4: H.264, or .avi: Motion-JPEG); a folder of PNGs when it has no suffix."""
-    orbit: bool = True
-    """Camera orbits the avatar once over the video; False = capture camera ``camera``."""
-    motion: str | None = None
-    """Driving .motion (default: the capture's novel-pose motion, else its training motion)."""
-    frames: int | None = None
-    """Number of video frames (default: all of the motion, at most 300); more than the motion has is an
-    error unless ``loop``."""
-    loop: bool = False
-    """Play the motion again from its start when ``frames`` exceeds it."""
-    camera: int | None = None
-    """Calibration index of the capture camera to render from (default: the first test camera); not with ``orbit``."""
-    overwrite: bool = False
-    """Replace an existing ``out`` file (a folder of PNGs must be new or empty)."""
-    size: tuple[int, int] | None = None
-    """(W, H) of the video (default: the capture's image size)."""
-    device: str = "cpu"
-    fps: float = 25.0
-    chunk_size: int = 262144
-    fast: FastConfig | None = FastConfig(project_features=False)
-    """On CPU, render by the fast path (``deliffas.fast``: rasterised uvs, fused inputs, bf16 MLP where native);
-    None = the plain path of ``deliffas eval``. A video shades each frame's features once, where projecting them
-    (``FastConfig.project_features``) costs more than it saves: off by default here."""
-    uv: UVSource = "auto"
-    """uv maps of the plain path (every device but the CPU fast path): ``raycast`` (open3d), ``torch`` (the
-    torch rasteriser on ``device``), ``auto`` = ``torch`` on CUDA, else ``raycast``."""
-
-    def __post_init__(self) -> None:
-        uv_source("cpu", self.uv)  # a bad choice is named when the config is made (ValueError)
 
 
 def orbit_cameras(reference: Camera, centers: np.ndarray, radius: float, height: float,

@@ -12,12 +12,14 @@ import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
-from deliffas.engine.devices import resolve_device
-from deliffas.engine.rays import UVSource, uv_source
-from deliffas.models.deliffas import DeliffasModel, ModelConfig
-from deliffas.models.zoo import config_from_dict, config_to_dict, get_config, list_models, list_presets
+from deliffas.engine.config_fields import UVSource, device_field, uv_field
+from deliffas.options import (count_or_indices, non_negative_float, non_negative_int, opt, positive_float,
+                              positive_int)
+
+if TYPE_CHECKING:
+    from deliffas.models.deliffas import DeliffasModel, ModelConfig
 
 __all__ = ["TrainConfig", "TrainResult", "resolve_model_config"]
 
@@ -33,24 +35,29 @@ SCHEDULE_LR: dict[str, float] = {"converge": 3e-3, "paper": 2e-4}
 class TrainConfig:
     """Everything a training run needs; written to ``RUN/train_config.json``."""
 
-    shards: str
+    shards: str = opt(help="folder written by 'deliffas convert'", flag="", nargs="?",
+                      default_text="the run's, with --resume")
     """Directory of converted HDF5 shards (``deliffas convert``)."""
-    out: str
+    out: str = opt(help="run directory")
     """Run directory (checkpoints, log.jsonl, previews)."""
-    model: str = "two_surface_texture"
+    model: str = opt("two_surface_texture", help="zoo name; the paper's model: two_surface")
     """Zoo name (``deliffas zoo list``): ``two_surface_texture`` is DELIFFAS with texture atlases; the paper's
     model is ``two_surface``."""
-    preset: str = "small"
+    preset: str = opt("small", help="paper | small | realtime | tiny")
     """Size preset of the zoo entry (``paper``, ``small``, ``tiny``)."""
     model_overrides: dict = field(default_factory=dict)
     """ModelConfig fields replacing the preset's (nested dicts for ``unet``/``mlp``)."""
-    iters: int = 1500
+    iters: int = opt(1500, help="train to this iteration (with --resume: the run's, more extends it)",
+                     parse=positive_int)
     """Training iterations (one frame with ``cameras_per_frame`` images each)."""
-    schedule: Literal["converge", "paper"] = "converge"
+    schedule: Literal["converge", "paper"] = opt("converge", help="learning-rate schedule: converge = warm-up, "
+                                                 "then decay 10x over the run's own --iters; paper = the official "
+                                                 "Adam 2e-4 with its decay over 800 k steps (GPU-days runs)")
     """Learning-rate schedule. ``converge``: a linear warm-up over ``warmup_iters``, then an exponential
     decay to ``lr_final`` x lr at the run's last iteration (the run's own length). ``paper``: the
     official code's lr · 0.1^(step / lr_decay_steps), meant for GPU-days runs (1.29 M iterations)."""
-    lr: float | None = None
+    lr: float | None = opt(None, help="peak learning rate", parse=positive_float,
+                           default_text="the schedule's, converge 3e-3, paper 2e-4")
     """Peak Adam learning rate; None = the schedule's (``converge`` 3e-3, ``paper`` 2e-4)."""
     lr_decay_steps: int = 800_000
     """``paper`` schedule: lr = lr · 0.1^(step / lr_decay_steps), as the official code."""
@@ -62,49 +69,68 @@ class TrainConfig:
     """The texture atlases' learning rate as a multiple of the schedule's (``ModelConfig.texture_channels``):
     each texel sees the gradient of the few rays that sample it, so it may learn faster than the networks."""
     """``converge`` schedule: the learning rate at the last iteration, as a fraction of the peak."""
-    cameras_per_frame: int = 3
+    cameras_per_frame: int = opt(3, help="training cameras per iteration; the U-Nets run once for all of them",
+                                 parse=positive_int)
     """K training cameras per iteration; the U-Nets run once for all K."""
-    protocol: Literal["auto", "paper", "all"] = "auto"
+    protocol: Literal["auto", "paper", "all"] = opt("auto", help="frames used: paper = every 10th (DELIFFAS), "
+                                                    "all = every frame, auto = paper from 100 training frames on, "
+                                                    "else all; stated at start")
     """Frames used: ``paper`` = every 10th frame (DELIFFAS, for DynaCap-scale captures), ``all`` = every
     converted frame, ``auto`` = ``paper`` from 100 training frames on, else ``all`` (logged at start; the
     resolved protocol is recorded in ``train_config.json`` ``data.protocol``)."""
-    validation_cameras: int | tuple[int, ...] = 0
+    validation_cameras: int | tuple[int, ...] = opt(0, help="training cameras held out as the validation split: a "
+                                                    "count N or calibration indices (--auto-capacity holds out at "
+                                                    "least 1)", flag="--val-cameras", parse=count_or_indices,
+                                                    metavar="N|a,b,...")
     """Training cameras held out as the validation split (never trained on, never test cameras): a
     count (evenly spaced over the training cameras) or calibration indices. ``eval --split validation``
     scores them on the training frames; auto-capacity chooses on them."""
-    perceptual: PerceptualChoice = "none"
+    perceptual: PerceptualChoice = opt("none", help="stage-2 perceptual backbone; vgg16-random is the explicit "
+                                                    "offline option; none = L1 only")
     """Stage-2 perceptual backbone: ``vgg16-imagenet`` (weights must exist), ``vgg16-random``
     (the explicit offline option, seeded), or ``none`` (L1 only)."""
-    perceptual_mode: Literal["image", "patch"] = "image"
+    perceptual_mode: Literal["image", "patch"] = opt("image", help="perceptual loss on whole images (paper) or on "
+                                                                   "32x32 patches")
     """Perceptual loss on whole images (paper) or on 32x32 patches (appendix ablation)."""
     perceptual_start: float = 0.6
     """Fraction of ``iters`` after which stage 2 (L1 + perceptual) starts."""
     perceptual_weight: float | None = None
     """Fixed weight of the perceptual term; None = balance it with L1 at the start of stage 2."""
-    saturation_weight: float = 0.01
+    saturation_weight: float = opt(0.01, help="weight of the penalty on U-Net feature logits beyond +-4, which "
+                                              "keeps feature maps off the rails of their sigmoid; 0 = off",
+                                   parse=non_negative_float)
     """Weight of the penalty on U-Net feature logits beyond ±``saturation_margin`` (0 = off): a feature
     map driven to the rails of its sigmoid has no gradient left (``models.losses.saturation_penalty``)."""
     saturation_margin: float = 4.0
     """|logit| allowed without penalty (4: features within 0.018 of 0 or 1 are penalised)."""
-    vgg16_path: str | None = None
+    vgg16_path: str | None = opt(None, help="ImageNet VGG-16 weights (.pth/.safetensors)",
+                                 default_text="$DELIFFAS_VGG16_WEIGHTS or the torch hub cache")
     """ImageNet VGG-16 weight file for ``vgg16-imagenet`` (else env / torch hub cache)."""
-    seed: int = 0
-    device: str = "cpu"
-    num_workers: int = 1
+    seed: int = opt(0, help="random seed of the model, the data order and the random backbone")
+    device: str = device_field()
+    num_workers: int = opt(1, help="DataLoader worker processes, 0 = in this process", flag="--workers",
+                           parse=non_negative_int)
     """DataLoader workers (they read the shards and, with ``uv`` resolving to ``raycast``, ray-cast the uv maps)."""
-    uv: UVSource = "auto"
+    uv: UVSource = uv_field()
     """Where the uv maps come from: ``raycast`` (open3d, in the DataLoader workers), ``torch`` (the torch
     rasteriser on ``device``, in the main process), ``auto`` = ``torch`` on CUDA, else ``raycast``."""
-    ray_chunk: int | None = None
+    ray_chunk: int | None = opt(None, help="rays per backward pass (bounds training memory; single process)",
+                                parse=positive_int, default_text="all rays at once")
     """Rays per backward pass (single process): bounds the light-field activations of a step to
     this many rays; None = every ray of the step's K images in one graph (docs/reliability.md)."""
-    checkpoint_every: int = 250
-    preview_every: int = 250
+    checkpoint_every: int = opt(250, help="save a checkpoint every N iterations, and at the last",
+                                parse=positive_int)
+    preview_every: int = opt(250, help="write previews/iter_N.png every N iterations, 0 = never",
+                             parse=non_negative_int)
     log_every: int = 10
     progress: bool = True
 
     def __post_init__(self) -> None:
         """Refuse bad values when the run is described, before any work starts (ValueError naming the field)."""
+        from deliffas.engine.devices import resolve_device  # imported here: the CLI reads this module without torch
+        from deliffas.engine.rays import uv_source
+        from deliffas.models.zoo import list_models, list_presets
+
         if self.model not in list_models():
             raise ValueError(f"model: unknown {self.model!r}; the zoo has {', '.join(list_models())}")
         if self.preset not in list_presets(self.model):
@@ -171,6 +197,9 @@ def resolve_model_config(cfg: TrainConfig, atlas_res: int | None = None, data_wi
         data_window: the largest temporal window the shards store; a larger requested T is
             reduced to it. None = keep the requested T.
     """
+    from deliffas.models.deliffas import ModelConfig  # imported here: the CLI reads this module without torch
+    from deliffas.models.zoo import config_from_dict, config_to_dict, get_config
+
     base = config_to_dict(get_config(cfg.model, cfg.preset))
     logger.info("model config: zoo %r preset %r (atlas_res %s, temporal_window %s)", cfg.model, cfg.preset,
                 base["atlas_res"], base["temporal_window"])

@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
-import torch
-
-from deliffas.fast.shade import native_bf16
+if TYPE_CHECKING:
+    import torch
 
 __all__ = ["FastConfig", "Dtype"]
 
@@ -51,5 +50,9 @@ class FastConfig:
 
     def torch_dtype(self) -> torch.dtype:
         """The resolved MLP dtype."""
+        import torch  # imported here: the CLI reads the configs holding a FastConfig without torch (--help)
+
+        from deliffas.fast.shade import native_bf16
+
         name = self.dtype if self.dtype != "auto" else ("bfloat16" if native_bf16() else "float32")
         return torch.bfloat16 if name == "bfloat16" else torch.float32

@@ -1,0 +1,35 @@
+"""Fields the engine's command configs share (uv source, device), declared once with their command-line help.
+
+Light (stdlib and :mod:`deliffas.options` only): the CLI builds its parser from the configs that use them
+without importing torch.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from deliffas.options import device_name, opt
+
+__all__ = ["UVSource", "UV_SOURCES", "check_uv_source", "uv_field", "device_field"]
+
+UVSource = Literal["auto", "raycast", "torch"]
+"""Where the uv maps come from: ``raycast`` = the open3d ray caster (CPU), ``torch`` = the torch rasteriser on
+the model's device, ``auto`` = ``torch`` on CUDA, else ``raycast``."""
+UV_SOURCES = ("auto", "raycast", "torch")
+
+
+def check_uv_source(requested: str) -> None:
+    """ValueError naming the choices when ``requested`` is not one of ``UV_SOURCES``."""
+    if requested not in UV_SOURCES:
+        raise ValueError(f"uv: expected one of {', '.join(UV_SOURCES)}, got {requested!r}")
+
+
+def uv_field() -> Any:
+    """``uv: UVSource``: where the uv maps come from (``engine.rays.uv_source`` resolves ``auto``)."""
+    return opt("auto", help="uv maps: raycast (open3d, CPU), torch (the torch rasteriser on --device), "
+                            "auto = torch on CUDA, else raycast")
+
+
+def device_field() -> Any:
+    """``device: str``: the torch device a command runs on (``engine.devices`` checks this machine has it)."""
+    return opt("cpu", help="cpu | cuda | cuda:N", parse=device_name)

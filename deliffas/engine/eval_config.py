@@ -1,0 +1,56 @@
+"""What ``deliffas eval`` is asked to do (:class:`EvalConfig`); light, so the CLI reads it without torch."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+from deliffas.engine.config_fields import UVSource, check_uv_source, device_field, uv_field
+from deliffas.fast.config import FastConfig
+from deliffas.options import opt, positive_int
+
+__all__ = ["EvalConfig", "Split"]
+
+Split = Literal["novel_view", "novel_pose", "validation", "train"]
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    """What to evaluate."""
+
+    run: str = opt(help="run directory written by `deliffas train`", flag="")
+    split: Split = opt("novel_view", help="novel_view / novel_pose: test splits; validation: the run's held-out "
+                                          "training cameras (--val-cameras at training); train: the fitted cameras")
+    """``novel_view``: held-out (test) cameras on training-motion frames; ``novel_pose``: the test motion;
+    ``validation``: the run's validation cameras (training cameras it held out, ``TrainConfig.validation_cameras``)
+    on the training frames, for choosing among runs; ``train``: the cameras it was fitted to (a sanity check)."""
+    protocol: Literal["paper", "all"] | None = opt(None, help="frames: paper = every 10th, all = every frame",
+                                                   default_text="the run's")
+    """None = the run's protocol, as resolved when it trained."""
+    shards: str | None = opt(None, help="shard directory", default_text="the run's")
+    """Shard directory (default: the one the run was trained on)."""
+    max_frames: int | None = opt(None, help="at most this many frames, evenly spaced", parse=positive_int,
+                                 default_text="all")
+    device: str = device_field()
+    chunk_size: int = 262144
+    """Rays shaded at once (bounds peak memory for large images)."""
+    save_images: str | None = opt(None, help="folder for predicted images (white background)", default_text="none")
+    """Predicted images are written as ``<cam:03d>/<frame:06d>.png``."""
+    vgg16_path: str | None = opt(None, help="ImageNet VGG-16 weights for LPIPS (.pth/.safetensors)",
+                                 default_text="$DELIFFAS_VGG16_WEIGHTS / torch hub cache")
+    lpips_path: str | None = opt(None, help="LPIPS v0.1 VGG linear layers (lpips' weights/v0.1/vgg.pth)",
+                                 default_text="$DELIFFAS_LPIPS_WEIGHTS / the lpips package")
+    inception_path: str | None = opt(None, help="pytorch-fid's pt_inception-2015-12-05-6726825d.pth for FID",
+                                     default_text="$DELIFFAS_INCEPTION_WEIGHTS / torch hub cache")
+    grid: str | None = opt(None, help="write a comparison grid (GT | prediction | error heat map, >= 256 px "
+                                      "panels) of the first images", metavar="PNG", default_text="none")
+    grid_images: int = 3
+    """Rows of that grid (one image per frame, the first camera)."""
+    fast: FastConfig | None = None
+    """Render by the CPU fast path (``deliffas.fast``: rasterised uvs, bf16 MLP where native) instead of the
+    reference path (None), to measure what it changes."""
+    uv: UVSource = uv_field()
+    """uv maps of the reference path (the fast path rasterises)."""
+
+    def __post_init__(self) -> None:
+        check_uv_source(self.uv)  # a bad choice is named when the config is made (ValueError)

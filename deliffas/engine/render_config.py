@@ -1,0 +1,47 @@
+"""What ``deliffas render`` is asked to do (:class:`RenderConfig`); light, so the CLI reads it without torch."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from deliffas.engine.config_fields import UVSource, check_uv_source, device_field, uv_field
+from deliffas.fast.config import FastConfig
+from deliffas.options import image_size, non_negative_int, opt, positive_float, positive_int, video_or_folder
+
+__all__ = ["RenderConfig"]
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    """A free-viewpoint render."""
+
+    run: str = opt(help="run directory of 'deliffas train' or an .avatar file of 'deliffas export'", flag="")
+    out: str = opt(help="video file (.mp4: H.264; .avi: Motion-JPEG) or a new folder for PNG frames",
+                   parse=video_or_folder)
+    """A folder of PNGs when it has no suffix."""
+    orbit: bool = opt(False, help="camera orbits the avatar once over the video (default: a capture camera)")
+    """False = capture camera ``camera``."""
+    motion: str | None = opt(None, help=".motion (DDC template) or AMASS .npz (SMPL template)",
+                             default_text="the capture's test motion")
+    """Driving motion (default: the capture's novel-pose motion, else its training motion)."""
+    frames: int | None = opt(None, help="number of frames; more than the motion has needs --loop", parse=positive_int,
+                             default_text="all of the motion, max 300")
+    loop: bool = opt(False, help="play the motion again from its start to fill --frames")
+    camera: int | None = opt(None, help="capture camera (calibration index) to render from; not with --orbit",
+                             parse=non_negative_int, metavar="INDEX", default_text="the first test camera")
+    overwrite: bool = opt(False, help="replace an existing --out video")
+    """A folder of PNGs must be new or empty."""
+    size: tuple[int, int] | None = opt(None, help="WxH of the video", parse=image_size,
+                                       default_text="the capture's image size")
+    device: str = device_field()
+    fps: float = opt(25.0, help="frames per second of the video", parse=positive_float)
+    chunk_size: int = 262144
+    fast: FastConfig | None = FastConfig(project_features=False)
+    """On CPU, render by the fast path (``deliffas.fast``: rasterised uvs, fused inputs, bf16 MLP where native);
+    None = the plain path of ``deliffas eval``. A video shades each frame's features once, where projecting them
+    (``FastConfig.project_features``) costs more than it saves: off by default here."""
+    uv: UVSource = uv_field()
+    """uv maps of the plain path (every device but the CPU fast path)."""
+
+    def __post_init__(self) -> None:
+        check_uv_source(self.uv)  # a bad choice is named when the config is made (ValueError)
