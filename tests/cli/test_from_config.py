@@ -1,0 +1,154 @@
+"""The argparse options generated from config fields (``deliffas.cli.from_config``), and the handlers using them."""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import pytest
+
+from deliffas.cli.from_config import add_config_arguments, config_from_args, given_values, option_names
+from deliffas.options import image_size, opt, positive_int
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+@dataclass(frozen=True)
+class Toy:
+    """A config with one field of each kind the generator handles."""
+
+    src: str = opt(help="input folder", flag="")
+    out: str = opt(help="output folder")
+    iters: int = opt(100, help="iterations", parse=positive_int)
+    rate: float = opt(0.5, help="step size")
+    mode: Literal["fast", "exact"] = opt("fast", help="how to run")
+    size: tuple[int, int] | None = opt(None, help="WxH", parse=image_size, default_text="the input's")
+    workers: int = opt(1, help="processes", flag="--jobs")
+    loud: bool = opt(False, help="say more")
+    progress: bool = opt(True, help="no progress bar")
+    tags: tuple[str, ...] = opt((), help="a tag (repeatable)", repeat=True, default_text="none")
+    name: str | None = opt(None, help="a name", default_text="the folder's")
+    hidden: int = 7
+    """Not on the command line (no ``opt``)."""
+
+
+def _parser(sparse: bool = False) -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="toy")
+    add_config_arguments(p, Toy, sparse=sparse)
+    return p
+
+
+def _actions(p: argparse.ArgumentParser) -> dict[str, argparse.Action]:
+    return {a.dest: a for a in p._actions if a.dest != "help"}
+
+
+def test_one_option_per_field_with_its_spelling_type_and_choices():
+    acts = _actions(_parser())
+    assert set(acts) == {"src", "out", "iters", "rate", "mode", "size", "workers", "loud", "progress", "tags", "name"}
+    assert acts["src"].option_strings == [] and acts["out"].required and acts["out"].option_strings == ["--out"]
+    assert acts["workers"].option_strings == ["--jobs"] and acts["iters"].type is positive_int
+    assert acts["rate"].type is float and acts["mode"].choices == ["fast", "exact"]
+    assert acts["loud"].option_strings == ["--loud"] and acts["loud"].nargs == 0
+    assert acts["progress"].option_strings == ["--no-progress"] and acts["progress"].default is True
+    assert option_names(Toy)["workers"] == "--jobs" and option_names(Toy)["src"] == "SRC"
+    assert option_names(Toy)["progress"] == "--no-progress"
+
+
+def test_help_states_each_default():
+    acts = _actions(_parser())
+    assert acts["iters"].help == "iterations (default 100)"
+    assert acts["mode"].help == "how to run (default fast)"
+    assert acts["size"].help == "WxH (default: the input's)"
+    assert acts["loud"].help == "say more"  # an on/off flag: its absence is the default
+    assert "default" not in acts["out"].help  # required
+
+
+def test_namespace_round_trips_to_the_config():
+    args = _parser().parse_args(["in", "--out", "o", "--iters", "3", "--mode", "exact", "--size", "4x2", "--loud",
+                                 "--no-progress", "--tags", "a", "--tags", "b", "--jobs", "2"])
+    cfg = config_from_args(Toy, args, hidden=9)
+    assert cfg == Toy(src="in", out="o", iters=3, rate=0.5, mode="exact", size=(4, 2), workers=2, loud=True,
+                      progress=False, tags=("a", "b"), name=None, hidden=9)
+    assert config_from_args(Toy, _parser().parse_args(["in", "--out", "o"])) == Toy(src="in", out="o")
+
+
+def test_sparse_options_are_none_unless_given_and_still_state_the_default():
+    p = _parser(sparse=True)
+    assert given_values(Toy, p.parse_args(["in", "--out", "o", "--iters", "5"])) == {"src": "in", "out": "o",
+                                                                                    "iters": 5}
+    assert _actions(p)["iters"].default is None and _actions(p)["iters"].help == "iterations (default 100)"
+
+
+def test_bad_values_are_argparse_errors(capsys):
+    with pytest.raises(SystemExit) as exc:
+        _parser().parse_args(["in", "--out", "o", "--iters", "0"])
+    assert exc.value.code == 2 and "expected a number >= 1, got 0" in capsys.readouterr().err
+
+
+def test_a_default_of_none_must_say_what_it_means():
+    @dataclass(frozen=True)
+    class Mute:
+        x: int | None = opt(None, help="x")
+
+    with pytest.raises(TypeError, match="default_text"):
+        add_config_arguments(argparse.ArgumentParser(), Mute)
+
+
+def test_an_annotation_without_a_parser_is_refused():
+    @dataclass(frozen=True)
+    class Odd:
+        x: dict = opt(default_factory=dict, help="x", default_text="empty")
+
+    with pytest.raises(TypeError, match="parse"):
+        add_config_arguments(argparse.ArgumentParser(), Odd)
+
+
+GENERATED = {"cmd_train": "TrainConfig", "cmd_eval": "EvalConfig", "cmd_render": "RenderConfig"}
+"""Each config command's handler and the config its options are generated from."""
+
+
+def _handlers() -> dict[str, ast.FunctionDef]:
+    tree = ast.parse((REPO / "deliffas" / "cli" / "handlers.py").read_text())
+    return {n.name: n for n in ast.walk(tree) if isinstance(n, ast.FunctionDef)}
+
+
+def _calls(fn: ast.FunctionDef, handlers: dict[str, ast.FunctionDef]) -> set[str]:
+    """Names called in ``fn`` and in the handlers' helpers it calls."""
+    names = {n.func.id for n in ast.walk(fn) if isinstance(n, ast.Call) and isinstance(n.func, ast.Name)}
+    for helper in [h for h in names if h.startswith("_") and h in handlers]:
+        names |= _calls(handlers[helper], handlers)
+    return names
+
+
+def test_config_handlers_build_their_config_by_the_generator():
+    handlers = _handlers()
+    for name, config in GENERATED.items():
+        calls = _calls(handlers[name], handlers)
+        assert calls & {"config_from_args", "given_values"}, f"{name} does not build {config} by the generator"
+
+
+def test_no_handler_passes_namespace_attributes_as_config_fields():
+    """``SomeConfig(x=args.x, ...)``: the per-field mapping the generator replaces."""
+    mapped = []
+    for name, fn in _handlers().items():
+        for call in (n for n in ast.walk(fn) if isinstance(n, ast.Call)):
+            callee = call.func.id if isinstance(call.func, ast.Name) else ""
+            if callee in GENERATED.values():
+                fields = [k.arg for k in call.keywords if isinstance(k.value, ast.Attribute)
+                          and isinstance(k.value.value, ast.Name) and k.value.value.id == "args"]
+                if fields:
+                    mapped.append(f"{name}: {callee}({', '.join(fields)})")
+    assert not mapped, mapped
+
+
+def test_help_imports_no_torch():
+    code = ("import sys; from deliffas.cli import build_parser; build_parser(); "
+            "print(sorted(m for m in ('torch', 'h5py', 'open3d') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"}).stdout
+    assert out.strip() == "[]"
