@@ -40,28 +40,11 @@ def _add_capture_commands(sub) -> None:
                                    "character or an SMPL model, training + novel-pose motions, RGBA images, "
                                    "optional videos, ground-truth .meshes). See docs/data.md.")
     p.add_argument("out_dir", type=Path, help="subject folder to write")
-    p.add_argument("--character", type=Path, help=".character to use (default: the procedural character, "
-                                                  "built into OUT_DIR/character)")
-    p.add_argument("--body-model", metavar="MODEL|procedural",
-                   help="render an SMPL body instead of a DDC character: an SMPL model file (.npz/.pkl, official "
-                        "layout; not shipped, license) or 'procedural' (the license-free body in SMPL layout) "
-                        "(default: a DDC character)")
-    p.add_argument("--body-uv", type=Path, help="OBJ with the SMPL model's uv layout (default: an xatlas atlas)")
-    p.add_argument("--motion", type=Path, help="training motion: .motion (DDC) or AMASS-style .npz (SMPL) "
-                                               "(default: a procedural motion)")
-    p.add_argument("--test-motion", type=Path, help="novel-pose motion, as --motion (default: procedural, another seed)")
-    p.add_argument("--frames", type=positive_int, default=20, help="training frames (default 20)")
-    p.add_argument("--test-frames", type=positive_int, default=None, help="novel-pose frames (default frames // 2)")
-    p.add_argument("--cameras", type=positive_int, default=8, help="cameras of the dome (default 8, at least 2)")
-    p.add_argument("--size", type=image_size, default=(256, 256), help="image size WxH (default 256x256)")
-    p.add_argument("--test-cameras", type=count_or_indices, default=None,
-                   help="held-out cameras: a count N or a list a,b,... (default max(1, cameras // 8))")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--videos", action="store_true", help="also write FFV1 videos img/c_<cam>.avi + fg/c_<cam>.avi")
-    p.add_argument("--supersample", type=positive_int, default=1, help="s x s rays per pixel (default 1)")
-    p.add_argument("--jobs", type=positive_int, default=1, help="rendering processes (default 1)")
-    p.add_argument("--overwrite", action="store_true",
-                   help="replace an earlier synthetic capture in OUT_DIR (a non-empty folder is refused otherwise)")
+    from deliffas.data.synth_config import SynthConfig  # light; imported here: a Ctrl-C at start-up meets main()
+
+    add_config_arguments(p, SynthConfig)
+    p.add_argument("--size", type=image_size, default=None,  # one option, two fields: SynthConfig.width, height
+                   help=f"image size WxH (default {SynthConfig.width}x{SynthConfig.height})")
     p.set_defaults(handler="synth")
 
     p = sub.add_parser("convert", help="convert a capture into sharded HDF5",
@@ -71,43 +54,9 @@ def _add_capture_commands(sub) -> None:
     p.add_argument("subject", type=Path, help="subject folder (cameras.calibration, character/ or body/, "
                                               "training/, testing/)")
     p.add_argument("out", type=Path, help="output folder")
-    p.add_argument("--frames", default=None, help="A:B:STEP capture frames (default: all)")
-    p.add_argument("--cameras", type=int_list, default=None, help="calibration indices a,b,... (default: all)")
-    p.add_argument("--test-cameras", type=int_list, default=None,
-                   help="held-out cameras a,b,... (default: SUBJECT/split.json or test_cameras.txt)")
-    p.add_argument("--shard-frames", type=positive_int, default=10, help="frames per shard (default 10)")
-    p.add_argument("--jobs", type=positive_int, default=1, help="worker processes (default 1)")
-    p.add_argument("--dask", type=dask_target, metavar="ADDRESS|local:N",
-                   help="convert on Dask, one task per shard: a running scheduler (tcp://HOST:8786) or local:N "
-                        "(a LocalCluster of N worker processes on 127.0.0.1); OUT must be on a file system every "
-                        "worker shares and SUBJECT readable by them (docs/scale.md); replaces --jobs (default: no Dask)")
-    p.add_argument("--resume", action="store_true", help="keep complete shards of an interrupted run")
-    p.add_argument("--overwrite", action="store_true",
-                   help="replace an existing conversion in OUT (or convert into a non-empty folder that holds none)")
-    p.add_argument("--meshes", action="append", metavar="[SEQ=]FILE",
-                   help="tracked .meshes instead of the skinned template (SEQ default training; repeatable)")
-    p.add_argument("--template", type=Path, help="template variant folder (its .character + outer.obj), a "
-                                                 ".character, or an SMPL model .npz/.pkl (with --motions fitted "
-                                                 "to a DDC capture, or the capture's own SMPL poses) "
-                                                 "(default: the capture's own template)")
-    p.add_argument("--motions", action="append", metavar="[SEQ=]FILE",
-                   help="pose parameters instead of the sequence's own: .motion (DDC) or AMASS .npz (SMPL) "
-                        "(SEQ default training; repeatable)")
-    p.add_argument("--atlas-res", type=power_of_two, default=256,
-                   help="normal-map side S, a power of two (default 256; paper 1024)")
-    p.add_argument("--offset", type=float, default=30.0, help="outer-surface offset d in mm (default 30)")
-    p.add_argument("--window", type=non_negative_int, default=2, help="temporal window T stored per frame (default 2)")
-    p.add_argument("--codec", default="raw", help="raw (lossless, default) | png | jpeg:Q")
-    p.add_argument("--layout", choices=["auto", "images", "videos"], default="auto",
-                   help="where the frames are: images = image folders, videos = one video per camera, auto = images "
-                        "when present, else videos (default auto)")
-    p.add_argument("--masks", metavar="SUBDIR", help="DDC mask folder in each sequence folder "
-                                                     "(<cam>/image_c_<cam>_f_<frame>.png|jpg) replacing alpha/fg "
-                                                     "(default: the images' alpha or the fg videos)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.add_argument("--format", default="auto", help="capture format (default: detected; an unknown name lists the "
-                                                    "registered ones)")
-    p.add_argument("--no-check", action="store_true", help="convert even when the silhouette check fails")
+    from deliffas.data.convert_config import ConvertConfig  # light; imported here: a Ctrl-C at start-up meets main()
+
+    add_config_arguments(p, ConvertConfig)
     p.set_defaults(handler="convert")
 
 

@@ -56,18 +56,12 @@ def cmd_pose(args: argparse.Namespace) -> int:
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
-    w, h = args.size
-    cfg = SynthConfig(num_frames=args.frames, num_test_frames=args.test_frames, num_cameras=args.cameras,
-                      width=w, height=h, test_cameras=args.test_cameras, seed=args.seed,
-                      character=str(args.character) if args.character else None, body_model=args.body_model,
-                      body_uv=str(args.body_uv) if args.body_uv else None,
-                      motion=str(args.motion) if args.motion else None,
-                      test_motion=str(args.test_motion) if args.test_motion else None, videos=args.videos, jobs=args.jobs,
-                      supersample=args.supersample, overwrite=args.overwrite)
+    size = {"width": args.size[0], "height": args.size[1]} if args.size else {}
+    cfg = config_from_args(SynthConfig, args, **size)
     res = synthesize_capture(args.out_dir, cfg)
     n = sum(len(f) for f in res.frames.values())
     print(f"wrote {res.out_dir}: {len(res.cameras)} cameras (test {res.test_cameras}), "
-          f"{len(res.frames['training'])} training + {len(res.frames['testing'])} testing frames at {w}x{h} "
+          f"{len(res.frames['training'])} training + {len(res.frames['testing'])} testing frames at {cfg.width}x{cfg.height} "
           f"in {res.seconds['total']:.1f} s ({res.seconds['render'] / max(n, 1):.2f} s/frame rendering)")
     return 0
 
@@ -78,14 +72,7 @@ def cmd_convert(args: argparse.Namespace) -> int:
         logging.getLogger("deliffas.parallel").setLevel(logging.INFO)
         if not args.verbose:  # read by dask when it is imported (later, by the executor), here and in workers
             os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
-    cfg = ConvertConfig(frames=args.frames, cameras=args.cameras, shard_frames=args.shard_frames, jobs=args.jobs,
-                        dask=args.dask,
-                        resume=args.resume, overwrite=args.overwrite, meshes=tuple(args.meshes or ()),
-                        motions=tuple(args.motions or ()),
-                        template=str(args.template) if args.template else None, atlas_res=args.atlas_res,
-                        offset_mm=args.offset, codec=args.codec, window=args.window, layout=args.layout,
-                        test_cameras=args.test_cameras, masks=args.masks, progress=not args.no_progress,
-                        format=args.format, check=not args.no_check)
+    cfg = config_from_args(ConvertConfig, args)
     res = convert(args.subject, args.out, cfg)
     work = res.seconds - res.seconds_setup
     rate = res.frames_converted / work if work > 0 else 0.0

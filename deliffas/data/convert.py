@@ -22,7 +22,6 @@ import shutil
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 from tqdm import tqdm
@@ -40,7 +39,8 @@ from deliffas.data.shards import (
     read_manifest,
     write_manifest,
 )
-from deliffas.data.subjects import Subject, SubjectOptions, parse_subject
+from deliffas.data.convert_config import ConvertConfig
+from deliffas.data.subjects import Subject, parse_subject
 from deliffas.data.check import check_before_convert
 from deliffas.geometry.shell import mesh_edges
 from deliffas.parallel import TaskExecutor, open_executor
@@ -48,65 +48,6 @@ from deliffas.parallel import TaskExecutor, open_executor
 __all__ = ["ConvertConfig", "ConvertResult", "convert", "parse_frame_range"]
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class ConvertConfig:
-    """What ``convert`` writes."""
-    format: str = "auto"
-    """Capture format (``deliffas.data.subjects.subject_format_names()``); auto = detected."""
-    frames: str | None = None
-    """``A:B:STEP`` (Python slice of capture frame indices, any part may be empty); None = every frame."""
-    cameras: tuple[int, ...] | None = None
-    """Calibration indices to convert; None = every camera."""
-    sequences: tuple[str, ...] | None = None
-    """Sequence folders to convert; None = those of ``training``/``testing`` present."""
-    shard_frames: int = 10
-    """Selected frames per shard."""
-    jobs: int = 1
-    """Worker processes (spawned); 1 = in this process."""
-    dask: str | None = None
-    """Convert on Dask instead: a scheduler address (``tcp://HOST:8786``) or ``local:N`` (a LocalCluster of N
-    worker processes); OUT must be on a file system the workers share, the subject readable by them."""
-    resume: bool = False
-    """Keep complete shards of an earlier run with the same configuration."""
-    overwrite: bool = False
-    """Delete an existing conversion in ``out_dir`` first."""
-    motions: tuple[str, ...] = ()
-    """Pose parameters ``[SEQUENCE=]FILE`` instead of the sequence's own (e.g. SMPL fitted to a DDC capture)."""
-    meshes: tuple[str, ...] = ()
-    """Tracked surfaces ``[SEQUENCE=]FILE.meshes`` (default sequence: training) instead of the skinned template."""
-    template: str | None = None
-    """A template variant folder (its ``.character`` + optional ``outer.obj``) or ``.character`` file."""
-    atlas_res: int = 256
-    """S, the normal-map side (the paper uses 1024)."""
-    offset_mm: float = 30.0
-    """d of the outer surface (when no ``outer.obj`` gives per-vertex offsets)."""
-    codec: str = "raw"
-    """Image codec: ``raw`` (lossless gzip arrays), ``png`` or ``jpeg:Q``."""
-    window: int = 2
-    """T: predecessors stored per frame for temporal normal maps (f, f-1, ..., f-T)."""
-    layout: Literal["auto", "images", "videos"] = "auto"
-    """Frame layout of the subject (auto: images when present, else videos)."""
-    skinning: Literal["dqs", "lbs"] = "dqs"
-    """Skinning of the template."""
-    test_cameras: tuple[int, ...] | None = None
-    """Held-out cameras; None = the subject's ``split.json`` / ``test_cameras.txt`` (or none)."""
-    gutter: int = 2
-    """Texel-table gutter rings."""
-    masks: str | None = None
-    """Mask folder inside each sequence folder (e.g. ``foregroundSegmentation``) replacing alpha / fg videos."""
-    progress: bool = True
-    """Show a tqdm progress bar."""
-    check: bool = True
-    """Run the silhouette check (``deliffas.data.check``) on a few frames first and refuse a failing subject."""
-
-    def subject_options(self) -> SubjectOptions:
-        """How to read the capture when ``convert`` is given a folder."""
-        return SubjectOptions(template=self.template, skinning=self.skinning, sequences=self.sequences,
-                              layout=self.layout, masks=self.masks, meshes=tuple(self.meshes),
-                              motions=tuple(self.motions),
-                              test_cameras=self.test_cameras)
 
 
 @dataclass(frozen=True)

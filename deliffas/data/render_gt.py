@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from deliffas.checks import check_shape
+from deliffas.data.synth_config import ShadingConfig
 from deliffas.io.cameras import Camera, pixel_centers
 from deliffas.geometry import raycast
 from deliffas.geometry.mesh_ops import vertex_normals
@@ -33,25 +34,6 @@ from deliffas.geometry.sampling import sample_uv
 
 __all__ = ["ShadingConfig", "RenderedView", "render_views", "camera_rays", "vertex_ambient_occlusion",
            "fibonacci_hemisphere"]
-
-
-@dataclass(frozen=True)
-class ShadingConfig:
-    """Fixed light and material of the synthetic captures."""
-    light_dir: tuple[float, float, float] = (0.35, 0.85, 0.55)
-    """Direction from the subject towards the (directional) light, world frame (normalised here)."""
-    ambient: float = 0.35
-    """Ambient term, multiplied by the ambient occlusion."""
-    diffuse: float = 0.7
-    """Lambert term."""
-    specular: float = 0.3
-    """Blinn-Phong specular strength (white light)."""
-    shininess: float = 24.0
-    """Blinn-Phong exponent."""
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    """RGB in [0, 1] behind the subject."""
-    supersample: int = 1
-    """s: s x s rays per pixel (anti-aliased coverage alpha); 1 = one ray through the pixel centre."""
 
 
 @dataclass(frozen=True)

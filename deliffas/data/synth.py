@@ -20,9 +20,9 @@ import json
 import logging
 import os
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Literal, Sequence
+from typing import Sequence
 
 import numpy as np
 
@@ -37,6 +37,7 @@ from deliffas.geometry.templates import build_template
 from deliffas.data.garment import GarmentFrames, garment_deformation, region_weights
 from deliffas.data.render_gt import ShadingConfig, camera_rays, render_views, vertex_ambient_occlusion
 from deliffas.data.synth_body import make_synth_body
+from deliffas.data.synth_config import SynthConfig
 from deliffas.parallel import process_map
 
 __all__ = [
@@ -52,61 +53,6 @@ log = logging.getLogger(__name__)
 
 SEQUENCES = ("training", "testing")
 """Sequence folders of a subject: training motion and novel-pose testing motion."""
-
-
-@dataclass(frozen=True)
-class SynthConfig:
-    """What ``synthesize_capture`` renders."""
-    num_frames: int = 20
-    """Frames of the training sequence (0 .. N-1)."""
-    num_test_frames: int | None = None
-    """Frames of the novel-pose testing sequence (default: max(1, num_frames // 2))."""
-    num_cameras: int = 8
-    """Cameras of the dome."""
-    width: int = 256
-    """Image width in pixels."""
-    height: int = 256
-    """Image height in pixels."""
-    test_cameras: int | tuple[int, ...] | None = None
-    """Held-out cameras: a count N (spread evenly) or explicit indices; None = max(1, C // 8)."""
-    seed: int = 0
-    """Seeds the character, the motions, the camera dome and the AO sampling."""
-    character: str | None = None
-    """A ``.character`` to use instead of the procedural character (copied into the subject)."""
-    body_model: str | None = None
-    """An SMPL model file (``.npz``/``.pkl``, official layout) or ``"procedural"`` (the license-free body
-    in SMPL layout) to render instead of a DDC character; copied into ``body/``, motions as ``poses.npz``."""
-    body_uv: str | None = None
-    """An OBJ with the SMPL model's uv layout (same faces); None = an xatlas atlas."""
-    motion: str | None = None
-    """Training motion file instead of the procedural motion (its first ``num_frames`` frames):
-    ``.motion`` for a DDC character, AMASS-style ``.npz`` for an SMPL body."""
-    test_motion: str | None = None
-    """Testing motion file instead of a procedural one with another seed."""
-    videos: bool = False
-    """Also write per-camera FFV1 videos ``<seq>/img/c_<name>.avi`` + ``<seq>/fg/c_<name>.avi``."""
-    jobs: int = 1
-    """Rendering processes (frames are split between them)."""
-    fps: float = 25.0
-    """Frame rate: velocities of the garment model and of the videos."""
-    supersample: int = 1
-    """s x s rays per pixel (anti-aliased coverage alpha)."""
-    garment_min_mm: float = 20.0
-    """Smallest outward displacement inside the garment region."""
-    garment_max_mm: float = 60.0
-    """Largest outward displacement."""
-    skinning: Literal["dqs", "lbs"] = "dqs"
-    """Skinning of the template the garment is added to."""
-    camera_distance_mm: tuple[float, float] = (3000.0, 4000.0)
-    """Range of camera distances from the subject centre."""
-    camera_elevation_deg: tuple[float, float] = (-5.0, 35.0)
-    """Range of camera elevations."""
-    ao_rays: int = 16
-    """Hemisphere rays per vertex of the ambient-occlusion proxy."""
-    shading: ShadingConfig = field(default_factory=ShadingConfig)
-    """Light and material."""
-    overwrite: bool = False
-    """Replace an existing synthetic capture in ``out_dir`` (a non-empty folder is refused otherwise)."""
 
 
 @dataclass(frozen=True)

@@ -108,7 +108,8 @@ def test_an_annotation_without_a_parser_is_refused():
         add_config_arguments(argparse.ArgumentParser(), Odd)
 
 
-GENERATED = {"cmd_train": "TrainConfig", "cmd_eval": "EvalConfig", "cmd_render": "RenderConfig"}
+GENERATED = {"cmd_train": "TrainConfig", "cmd_eval": "EvalConfig", "cmd_render": "RenderConfig",
+             "cmd_convert": "ConvertConfig", "cmd_synth": "SynthConfig"}
 """Each config command's handler and the config its options are generated from."""
 
 

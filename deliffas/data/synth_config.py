@@ -1,0 +1,94 @@
+"""What ``synthesize_capture`` renders (:class:`SynthConfig`, :class:`ShadingConfig`); light, so the CLI reads
+it without torch."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+from deliffas.options import count_or_indices, opt, positive_int
+
+__all__ = ["SynthConfig", "ShadingConfig"]
+
+
+@dataclass(frozen=True)
+class ShadingConfig:
+    """Fixed light and material of the synthetic captures."""
+    light_dir: tuple[float, float, float] = (0.35, 0.85, 0.55)
+    """Direction from the subject towards the (directional) light, world frame (normalised here)."""
+    ambient: float = 0.35
+    """Ambient term, multiplied by the ambient occlusion."""
+    diffuse: float = 0.7
+    """Lambert term."""
+    specular: float = 0.3
+    """Blinn-Phong specular strength (white light)."""
+    shininess: float = 24.0
+    """Blinn-Phong exponent."""
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """RGB in [0, 1] behind the subject."""
+    supersample: int = 1
+    """s: s x s rays per pixel (anti-aliased coverage alpha); 1 = one ray through the pixel centre."""
+
+
+
+@dataclass(frozen=True)
+class SynthConfig:
+    """What ``synthesize_capture`` renders."""
+    num_frames: int = opt(20, help="training frames", flag="--frames", parse=positive_int)
+    """Frames of the training sequence (0 .. N-1)."""
+    num_test_frames: int | None = opt(None, help="novel-pose frames", flag="--test-frames", parse=positive_int,
+                                      default_text="frames // 2")
+    """Frames of the novel-pose testing sequence (default: max(1, num_frames // 2))."""
+    num_cameras: int = opt(8, help="cameras of the dome, at least 2", flag="--cameras", parse=positive_int)
+    """Cameras of the dome."""
+    width: int = 256
+    """Image width in pixels."""
+    height: int = 256
+    """Image height in pixels."""
+    test_cameras: int | tuple[int, ...] | None = opt(None, help="held-out cameras: a count N or a list a,b,...",
+                                                     parse=count_or_indices, default_text="max(1, cameras // 8)")
+    """Held-out cameras: a count N (spread evenly) or explicit indices; None = max(1, C // 8)."""
+    seed: int = opt(0, help="random seed")
+    """Seeds the character, the motions, the camera dome and the AO sampling."""
+    character: str | None = opt(None, help=".character to use",
+                                default_text="the procedural character, built into OUT_DIR/character")
+    """A ``.character`` to use instead of the procedural character (copied into the subject)."""
+    body_model: str | None = opt(None, help="render an SMPL body instead of a DDC character: an SMPL model file "
+                                            "(.npz/.pkl, official layout; not shipped, license) or 'procedural' (the "
+                                            "license-free body in SMPL layout)", metavar="MODEL|procedural",
+                                 default_text="a DDC character")
+    """An SMPL model file (``.npz``/``.pkl``, official layout) or ``"procedural"`` (the license-free body
+    in SMPL layout) to render instead of a DDC character; copied into ``body/``, motions as ``poses.npz``."""
+    body_uv: str | None = opt(None, help="OBJ with the SMPL model's uv layout", default_text="an xatlas atlas")
+    """An OBJ with the SMPL model's uv layout (same faces); None = an xatlas atlas."""
+    motion: str | None = opt(None, help="training motion: .motion (DDC) or AMASS-style .npz (SMPL)",
+                             default_text="a procedural motion")
+    """Training motion file instead of the procedural motion (its first ``num_frames`` frames):
+    ``.motion`` for a DDC character, AMASS-style ``.npz`` for an SMPL body."""
+    test_motion: str | None = opt(None, help="novel-pose motion, as --motion", default_text="procedural, another seed")
+    """Testing motion file instead of a procedural one with another seed."""
+    videos: bool = opt(False, help="also write FFV1 videos img/c_<cam>.avi + fg/c_<cam>.avi")
+    """Also write per-camera FFV1 videos ``<seq>/img/c_<name>.avi`` + ``<seq>/fg/c_<name>.avi``."""
+    jobs: int = opt(1, help="rendering processes", parse=positive_int)
+    """Rendering processes (frames are split between them)."""
+    fps: float = 25.0
+    """Frame rate: velocities of the garment model and of the videos."""
+    supersample: int = opt(1, help="s x s rays per pixel", parse=positive_int)
+    """s x s rays per pixel (anti-aliased coverage alpha)."""
+    garment_min_mm: float = 20.0
+    """Smallest outward displacement inside the garment region."""
+    garment_max_mm: float = 60.0
+    """Largest outward displacement."""
+    skinning: Literal["dqs", "lbs"] = "dqs"
+    """Skinning of the template the garment is added to."""
+    camera_distance_mm: tuple[float, float] = (3000.0, 4000.0)
+    """Range of camera distances from the subject centre."""
+    camera_elevation_deg: tuple[float, float] = (-5.0, 35.0)
+    """Range of camera elevations."""
+    ao_rays: int = 16
+    """Hemisphere rays per vertex of the ambient-occlusion proxy."""
+    shading: ShadingConfig = field(default_factory=ShadingConfig)
+    """Light and material."""
+    overwrite: bool = opt(False, help="replace an earlier synthetic capture in OUT_DIR (a non-empty folder is "
+                                      "refused otherwise)")
+    """Replace an existing synthetic capture in ``out_dir`` (a non-empty folder is refused otherwise)."""
