@@ -86,12 +86,11 @@ def _add_capture_tool_commands(sub) -> None:
     p.add_argument("subject", type=Path, help="capture folder (any supported format)")
     p.add_argument("--out", type=Path, required=True, help="report folder")
     p.add_argument("--format", default="auto", help="capture format (default: detected)")
-    p.add_argument("--frames", type=positive_int, default=4, help="frames sampled per sequence (default 4)")
-    p.add_argument("--template", type=Path, help="template: SMPL model .npz/.pkl (SMPL captures), or a DDC variant "
-                                                 "(default: the capture's own)")
-    p.add_argument("--motions", action="append", metavar="[SEQ=]FILE",
-                   help="pose parameters instead of the capture's (default: the capture's own; repeatable)")
-    p.add_argument("--min-iou", type=float, default=0.8, help="a camera fails below this IoU (default 0.8)")
+    from deliffas.data.check_config import CheckConfig  # light; imported here: a Ctrl-C at start-up meets main()
+    from deliffas.data.subject_options import SubjectOptions
+
+    add_config_arguments(p, CheckConfig)
+    add_config_arguments(p, SubjectOptions)
     p.set_defaults(handler="check")
 
     p = sub.add_parser("verify", help="check converted shards against their manifest",
@@ -244,23 +243,10 @@ def _add_viewer_commands(sub) -> None:
                                    "(green), the mask edge (red) and their IoU, as 'deliffas check' scores them. "
                                    "Open the printed URL; over SSH forward the port "
                                    "(ssh -L 8080:127.0.0.1:8080 HOST). No authentication.")
-    p.add_argument("run", type=Path, metavar="RUN|SUBJECT",
-                   help="run directory written by 'deliffas train', an .avatar file, or a capture folder (any supported format)")
-    p.add_argument("--format", default="auto", help="SUBJECT: capture format (default: detected)")
-    p.add_argument("--template", type=Path, default=None,
-                   help="SUBJECT: template, SMPL model .npz/.pkl (SMPL captures) or a DDC variant "
-                        "(default: the capture's own)")
-    p.add_argument("--compare", type=Path, default=None, help="a second run on the same shards, side by side (default: none)")
-    p.add_argument("--motion", type=Path, default=None,
-                   help="driving motion: DynaCap .motion or SMPL .npz (default: the capture's own frames)")
-    p.add_argument("--shards", type=Path, default=None, help="shard directory (default: the run's)")
-    p.add_argument("--host", default="127.0.0.1",
-                   help="interface to bind (default 127.0.0.1; 0.0.0.0 exposes the viewer and warns)")
-    p.add_argument("--port", type=port, default=8080, help="port (default 8080)")
-    p.add_argument("--resolution", type=positive_int, default=512,
-                   help="longest side of the still image in pixels (default 512; halved while moving; SUBJECT: of the "
-                        "overlay at a capture camera)")
-    p.add_argument("--device", type=device_name, default="cpu", help="cpu | cuda | cuda:N (default cpu)")
+    from deliffas.engine.view_config import SubjectViewConfig, ViewConfig  # light; a Ctrl-C at start-up meets main()
+
+    add_config_arguments(p, ViewConfig)
+    add_config_arguments(p, SubjectViewConfig, skip=("host", "port", "max_resolution"))  # the same options
     p.add_argument("--plain", action="store_true",
                    help="render as 'deliffas eval' does (ray-cast uvs, fp32 MLP) instead of the CPU fast path "
                         "(rasterised uvs, fused inputs, bf16 MLP where the CPU has native bf16)")
@@ -269,8 +255,9 @@ def _add_viewer_commands(sub) -> None:
     p = sub.add_parser("demo", help="the whole path on the embedded procedural character, with a report",
                        description="Build the procedural character, render a synthetic capture, convert it, train, "
                                    "evaluate and render a video, and write OUT/report.md with every number.")
-    p.add_argument("--out", type=Path, default=Path("demo_out"), help="output folder (default demo_out)")
-    p.add_argument("--quick", action="store_true", help="a smaller run (used by tests)")
+    from deliffas.engine.demo_config import DemoConfig  # light; imported here: a Ctrl-C at start-up meets main()
+
+    add_config_arguments(p, DemoConfig)
     p.set_defaults(handler="demo")
 
 

@@ -96,9 +96,8 @@ def cmd_fit_smpl(args: argparse.Namespace) -> int:
 
 
 def cmd_check(args: argparse.Namespace) -> int:
-    options = SubjectOptions(template=str(args.template) if args.template else None, motions=tuple(args.motions or ()))
-    subject = parse_subject(args.subject, args.format, options)
-    result = check_subject(subject, CheckConfig(frames=args.frames, min_iou=args.min_iou))
+    subject = parse_subject(args.subject, args.format, config_from_args(SubjectOptions, args))
+    result = check_subject(subject, config_from_args(CheckConfig, args))
     report = write_check_report(result, args.out)
     print(f"{'PASS' if result.ok else 'FAIL'}: {result.reason}\nwrote {report}")
     return 0 if result.ok else 1
@@ -265,7 +264,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     retain_freed_memory()
-    run_demo(DemoConfig(out=str(args.out), quick=args.quick))  # prints the results and the report's path
+    run_demo(config_from_args(DemoConfig, args))  # prints the results and the report's path
     return 0
 
 
@@ -275,17 +274,12 @@ def cmd_view(args: argparse.Namespace) -> int:
                                           ("--shards", args.shards)) if value is not None]
         if given:
             raise ValueError(f"{args.run} is a capture (no train_config.json): {', '.join(given)} apply to a run")
-        cfg = SubjectViewConfig(subject=str(args.run), format=args.format,
-                                template=str(args.template) if args.template else None, host=args.host,
-                                port=args.port, max_resolution=args.resolution)
+        cfg = config_from_args(SubjectViewConfig, args, subject=args.run)
         view_subject(cfg, ready=lambda: _print_view_address(cfg.host, cfg.port))
         return 0
     if args.format != "auto" or args.template is not None:
         raise ValueError(f"{args.run} is a run: --format and --template apply to a capture folder")
-    cfg = ViewConfig(run=str(args.run), compare=str(args.compare) if args.compare else None,
-                     motion=str(args.motion) if args.motion else None, shards=str(args.shards) if args.shards else None,
-                     host=args.host, port=args.port, device=args.device, max_resolution=args.resolution,
-                     fast=None if args.plain else fast_from_env(ViewConfig.fast))
+    cfg = config_from_args(ViewConfig, args, fast=None if args.plain else fast_from_env(ViewConfig.fast))
     view(cfg, ready=lambda: _print_view_address(cfg.host, cfg.port))
     return 0
 

@@ -23,6 +23,7 @@ from deliffas.io.motion import Motion
 from deliffas.geometry.raycast import build_scene, first_hits
 from deliffas.geometry.shell import offset_shell
 from deliffas.geometry.templates import build_template, template_kind
+from deliffas.data.check_config import CheckConfig
 from deliffas.data.subjects import Subject, SubjectSequence
 
 __all__ = ["CheckConfig", "Finding", "CheckResult", "SubjectCheckError", "check_subject", "check_before_convert",
@@ -39,25 +40,6 @@ OPENGL_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 class SubjectCheckError(ValueError):
     """A capture whose posed template misses its masks; the message is the report's one-line reason."""
-
-
-@dataclass(frozen=True)
-class CheckConfig:
-    """What ``check_subject`` samples and how it scores."""
-    frames: int = 4
-    """Frames sampled per sequence (evenly spread over the sequence's frames)."""
-    max_side: int = 128
-    """Silhouettes and masks are compared at this many pixels on the longer image side (or less)."""
-    offset_mm: float = 0.0
-    """Score the outer shell at this offset instead of the template (0 = the template; measured in docs/data.md)."""
-    tolerance_px: int = 1
-    """Pixels within this distance of the silhouette's edge are not scored (aliasing, mask edges)."""
-    min_iou: float = 0.8
-    """A camera fails below this mean IoU."""
-    outlier_gap: float = 0.2
-    """A camera whose IoU is this far below the median of the others is flagged (even above ``min_iou``)."""
-    frame_offsets: int = 2
-    """Pose/image frame offsets tried (+-1 .. +-N)."""
 
 
 @dataclass(frozen=True)

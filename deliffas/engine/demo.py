@@ -12,13 +12,13 @@ import json
 import logging
 import time
 import dataclasses
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from deliffas.data.convert import ConvertConfig, convert
 from deliffas.data.synth import SynthConfig, synthesize_capture
+from deliffas.engine.demo_config import DemoConfig
 from deliffas.engine.evaluate import EvalConfig, evaluate
 from deliffas.engine.render import RenderConfig, render_video
 from deliffas.engine.report import results_table, speed_accuracy_chart
@@ -28,20 +28,6 @@ from deliffas.engine.train import TrainConfig, train
 __all__ = ["DemoConfig", "run_demo"]
 
 logger = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class DemoConfig:
-    """Sizes of the demo run (defaults fit ~10 minutes on 2 CPU cores)."""
-
-    out: str = "demo_out"
-    quick: bool = False
-    """A much smaller run for tests (seconds, not minutes); numbers are then meaningless."""
-    models: tuple[str, ...] = ("two_surface_texture", "single_surface")
-    sizes: RunSizes = RunSizes(frames=30, test_frames=10, cameras=10, iters=800)
-    """Ignored when ``quick`` (then ``RunSizes.quick()``)."""
-    seed: int = 0
-    jobs: int = 1
 
 
 def _stage(name: str) -> None:

@@ -10,7 +10,7 @@ Pixels are not loaded here: :meth:`FrameSourceSpec.open` opens them in the proce
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, Mapping
 
@@ -21,7 +21,8 @@ from deliffas.io.cameras import Camera
 from deliffas.io.format_registry import capture_format, capture_formats
 from deliffas.io.motion import Motion
 from deliffas.io.formats.dynacap.frames import FrameSource, FramesSpec, ImageFolderSource, open_frame_source
-from deliffas.geometry.templates import Skinning, TemplateSpec
+from deliffas.geometry.templates import TemplateSpec
+from deliffas.data.subject_options import SubjectOptions
 
 __all__ = [
     "FrameSourceSpec",
@@ -112,32 +113,6 @@ class Subject:
     @property
     def camera_names(self) -> tuple[str, ...]:
         return tuple(c.name for c in self.cameras)
-
-
-@dataclass(frozen=True)
-class SubjectOptions:
-    """Choices a user makes about how a capture is read (each format uses those it has)."""
-
-    template: str | None = None
-    """A template variant folder (its ``.character`` + optional ``outer.obj``), a ``.character`` file, or
-    an SMPL model file (``.npz``/``.pkl``; ``<stem>_uv.obj`` next to it is its uv layout)."""
-    skinning: Skinning = "dqs"
-    """Skinning of a DDC template."""
-    sequences: tuple[str, ...] | None = None
-    """Sequences to read; None = the format's default ones that exist."""
-    layout: Literal["auto", "images", "videos"] = "auto"
-    """Frame layout (auto: images when present, else videos)."""
-    masks: str | None = None
-    """Mask folder inside each sequence folder replacing the images' alpha / fg videos."""
-    motions: tuple[str, ...] = ()
-    """Pose parameters ``[SEQUENCE=]FILE`` (default sequence: training) instead of the sequence's own,
-    e.g. SMPL parameters fitted to a DDC capture (``.npz``) with an SMPL ``template``."""
-    meshes: tuple[str, ...] = ()
-    """Tracked surfaces ``[SEQUENCE=]FILE.meshes`` (default sequence: training) instead of the posed template."""
-    test_cameras: tuple[int, ...] | None = None
-    """Held-out cameras; None = the capture's own split (or none)."""
-    extra: Mapping[str, object] = field(default_factory=dict)
-    """Format-specific options by name."""
 
 
 def subject_format_names() -> tuple[str, ...]:

@@ -26,7 +26,7 @@ import torch
 from deliffas.data.check import mask_iou, posed_surface, scaled_camera, scaled_view, silhouettes
 from deliffas.data.check_report import overlay
 from deliffas.data.subjects import Subject, SubjectOptions, parse_subject
-from deliffas.engine.view.config import SubjectViewConfig
+from deliffas.engine.view_config import SubjectViewConfig
 from deliffas.engine.view.renderer import compose_panels
 from deliffas.engine.view.server import (MM_PER_UNIT, CaptureHold, capture_camera_pose, departures_quiet, import_viser,
                                          log_departure)

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
+from deliffas.engine.config_fields import device_field
 from deliffas.fast.config import FastConfig
+from deliffas.options import opt, port, positive_int
 
 __all__ = ["ViewConfig", "SubjectViewConfig", "is_exposed"]
 
@@ -14,28 +17,42 @@ def is_exposed(host: str) -> bool:
     return host not in ("127.0.0.1", "localhost", "::1")
 
 
-def _check_port(port: int) -> None:
-    if not 0 <= port <= 65535:
-        raise ValueError(f"port must be in 0..65535, got {port}")
+def _check_port(value: int) -> None:
+    if not 0 <= value <= 65535:
+        raise ValueError(f"port must be in 0..65535, got {value}")
+
+
+def _host_field() -> Any:
+    return opt("127.0.0.1", help="interface to bind; 0.0.0.0 exposes the viewer and warns")
+
+
+def _port_field() -> Any:
+    return opt(8080, help="port", parse=port)
+
+
+def _resolution_field() -> Any:
+    return opt(512, help="longest side of the still image in pixels (halved while moving; SUBJECT: of the overlay at "
+                         "a capture camera)", flag="--resolution", parse=positive_int)
 
 
 @dataclass(frozen=True)
 class ViewConfig:
     """What the free-viewpoint viewer shows and where it listens."""
 
-    run: str
-    """Run directory written by ``deliffas train``."""
-    compare: str | None = None
+    run: str = opt(help="run directory written by 'deliffas train', an .avatar file, or a capture folder (any "
+                        "supported format)", flag="", metavar="RUN|SUBJECT")
+    """Run directory written by ``deliffas train`` or an ``.avatar`` file."""
+    compare: str | None = opt(None, help="a second run on the same shards, side by side", default_text="none")
     """A second run on the same shards, shown side by side or toggled (e.g. single- vs two-surface)."""
-    motion: str | None = None
-    """Driving motion (DynaCap ``.motion`` or SMPL ``.npz``); None = the capture's own frames."""
-    shards: str | None = None
+    motion: str | None = opt(None, help="driving motion: DynaCap .motion or SMPL .npz",
+                             default_text="the capture's own frames")
+    shards: str | None = opt(None, help="shard directory", default_text="the run's")
     """Shard directory (default: the one the run was trained on)."""
-    host: str = "127.0.0.1"
+    host: str = _host_field()
     """Interface to bind; anything but localhost exposes the viewer (no authentication)."""
-    port: int = 8080
-    device: str = "cpu"
-    max_resolution: int = 512
+    port: int = _port_field()
+    device: str = device_field()
+    max_resolution: int = _resolution_field()
     """Longest side, in pixels, of the image rendered while the camera is still."""
     moving_scale: float = 0.5
     """Resolution factor while the camera moves (full resolution once it stops)."""
@@ -76,16 +93,16 @@ class SubjectViewConfig:
 
     subject: str
     """Capture folder (any format ``parse_subject`` reads)."""
-    format: str = "auto"
-    """Capture format (``auto``: detected)."""
-    template: str | None = None
+    format: str = opt("auto", help="SUBJECT: capture format (auto = detected)")
+    template: str | None = opt(None, help="SUBJECT: template, SMPL model .npz/.pkl (SMPL captures) or a DDC variant",
+                               default_text="the capture's own")
     """Template the capture's poses drive: SMPL model ``.npz``/``.pkl`` or a DDC variant (as for ``check``)."""
     motions: tuple[str, ...] = ()
     """Pose parameters ``[SEQ=]FILE`` instead of the capture's own."""
-    host: str = "127.0.0.1"
+    host: str = _host_field()
     """Interface to bind; anything but localhost exposes the viewer (no authentication)."""
-    port: int = 8080
-    max_resolution: int = 512
+    port: int = _port_field()
+    max_resolution: int = _resolution_field()
     """Longest side, in pixels, of a capture camera's overlay (the silhouette and IoU are computed at this size)."""
     texture_resolution: int = 256
     """Longest side, in pixels, of the images on the camera frustums."""

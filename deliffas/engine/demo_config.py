@@ -1,0 +1,24 @@
+"""The sizes of ``deliffas demo`` (:class:`DemoConfig`); light, so the CLI reads it without torch."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from deliffas.engine.run_sizes import RunSizes
+from deliffas.options import opt
+
+__all__ = ["DemoConfig"]
+
+
+@dataclass(frozen=True)
+class DemoConfig:
+    """Sizes of the demo run (defaults fit ~10 minutes on 2 CPU cores)."""
+
+    out: str = opt("demo_out", help="output folder")
+    quick: bool = opt(False, help="a smaller run (used by tests)")
+    """A much smaller run for tests (seconds, not minutes); numbers are then meaningless."""
+    models: tuple[str, ...] = ("two_surface_texture", "single_surface")
+    sizes: RunSizes = RunSizes(frames=30, test_frames=10, cameras=10, iters=800)
+    """Ignored when ``quick`` (then ``RunSizes.quick()``)."""
+    seed: int = 0
+    jobs: int = 1
