@@ -16,8 +16,7 @@ from pathlib import Path
 from deliffas import __version__
 from deliffas.cli.from_config import add_config_arguments
 from deliffas.optional import interrupted_import
-from deliffas.options import (count_or_indices, dask_target, device_name, image_size, int_list, non_negative_float,
-                              non_negative_int, port, positive_float, positive_int, power_of_two, video_or_folder)
+from deliffas.options import image_size, non_negative_int
 
 __all__ = ["main", "build_parser"]
 
@@ -73,8 +72,9 @@ def _add_capture_tool_commands(sub) -> None:
     p.add_argument("--model", type=Path, required=True, help="SMPL model .npz/.pkl (official layout; not shipped)")
     p.add_argument("--uv", type=Path, default=None, help="OBJ with the model's uv layout (default MODEL_uv.obj if present)")
     p.add_argument("--out", type=Path, required=True, help="folder for the fitted motions")
-    p.add_argument("--first-iters", type=positive_int, default=300, help="Adam steps on the first frame (default 300)")
-    p.add_argument("--frame-iters", type=positive_int, default=40, help="Adam steps per later frame (default 40)")
+    from deliffas.geometry.smpl_surface_fit_config import SurfaceFitConfig  # light; a Ctrl-C at start-up meets main()
+
+    add_config_arguments(p, SurfaceFitConfig)
     p.add_argument("--overwrite", action="store_true", help="replace an earlier fit in --out")
     p.set_defaults(handler="fit_smpl")
 
@@ -177,7 +177,8 @@ def _add_training_commands(sub) -> None:
     p = sub.add_parser("train", help="train a model of the zoo on converted shards",
                        description="Train on SHARDS (from `deliffas convert`). L1 first, then L1 + perceptual "
                                    "when --perceptual is given. Distributed with `torchrun --nproc_per_node N -m deliffas train ...`.")
-    from deliffas.engine.train_config import TrainConfig  # light; imported here: a Ctrl-C at start-up meets main()
+    from deliffas.engine.auto_capacity_config import AutoCapacityConfig  # light; a Ctrl-C at start-up meets main()
+    from deliffas.engine.train_config import TrainConfig
 
     add_config_arguments(p, TrainConfig, sparse=True)
     p.add_argument("--config", type=Path, default=None,
@@ -188,7 +189,7 @@ def _add_training_commands(sub) -> None:
     p.add_argument("--auto-capacity", action="store_true",
                    help="search model capacities on the validation split and keep the cheapest within "
                         "--tolerance-db of the best foreground PSNR; the test split scores the chosen one only")
-    p.add_argument("--tolerance-db", type=float, default=0.5, help="auto-capacity tolerance in dB (default 0.5)")
+    add_config_arguments(p, AutoCapacityConfig)
     p.set_defaults(handler="train")
 
 

@@ -86,8 +86,7 @@ def cmd_fit_smpl(args: argparse.Namespace) -> int:
     if args.out.is_dir() and any(args.out.iterdir()) and not args.overwrite:
         raise FileExistsError(f"{args.out}: not empty; pass --overwrite to replace an earlier fit there")
     fit = fit_smpl_to_subject(parse_subject(args.subject), args.model, args.uv,
-                              config=SurfaceFitConfig(first_iters=args.first_iters, frame_iters=args.frame_iters,
-                                                      progress=True))
+                              config=config_from_args(SurfaceFitConfig, args, progress=True))
     out = write_fit(args.out, fit, overwrite=args.overwrite)
     for name, r in fit.residual_mm.items():
         print(f"{name}: {len(r)} frames, mean surface distance {r.mean():.1f} mm (max {r.max():.1f})")
@@ -209,7 +208,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     retain_freed_memory()
     cfg = _train_config(args)
     if args.auto_capacity:
-        result = auto_capacity(cfg, AutoCapacityConfig(tolerance_db=args.tolerance_db))
+        result = auto_capacity(cfg, config_from_args(AutoCapacityConfig, args))
         print(json.dumps(result, indent=2))
         return 0
     done = iterations_done(cfg.out) if args.resume else None

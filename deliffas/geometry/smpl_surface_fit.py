@@ -20,31 +20,12 @@ import torch
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
+from deliffas.geometry.smpl_surface_fit_config import SurfaceFitConfig
 from deliffas.geometry.templates.smpl import SMPLTemplate
 
 __all__ = ["SurfaceFitConfig", "SurfaceFitResult", "fit_smpl_to_surfaces"]
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class SurfaceFitConfig:
-    """How :func:`fit_smpl_to_surfaces` optimises."""
-
-    first_iters: int = 300
-    """Adam steps on the first frame (shape, global pose, then body pose)."""
-    stage_a: float = 0.4
-    """Fraction of ``first_iters`` that move translation, global orientation and betas only."""
-    frame_iters: int = 40
-    """Adam steps on each later frame, from the previous frame's parameters."""
-    pose_prior: float = 1e-2
-    """Weight of |body pose|^2 (rad^2) x 100, against the data term in mm."""
-    beta_prior: float = 1e-3
-    """Weight of |betas|^2 x 100."""
-    max_points: int = 3000
-    """Target points used per frame (an even subsample of larger surfaces)."""
-    progress: bool = False
-    """Show a tqdm progress bar over frames."""
 
 
 @dataclass(frozen=True)
