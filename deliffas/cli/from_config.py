@@ -104,6 +104,8 @@ def _add_field(parser: argparse.ArgumentParser, cls: type, f: dataclasses.Field,
             kwargs.update(nargs=o.nargs, default=None if sparse or default is dataclasses.MISSING else default)
         parser.add_argument(f.name, **kwargs)
         return
+    if "metavar" not in kwargs and "choices" not in kwargs:  # named as spelt (--workers WORKERS), not by the field
+        kwargs["metavar"] = flag.lstrip("-").replace("-", "_").upper()
     if default is dataclasses.MISSING:
         kwargs["required"] = True
     else:

@@ -51,7 +51,8 @@ def test_one_option_per_field_with_its_spelling_type_and_choices():
     acts = _actions(_parser())
     assert set(acts) == {"src", "out", "iters", "rate", "mode", "size", "workers", "loud", "progress", "tags", "name"}
     assert acts["src"].option_strings == [] and acts["out"].required and acts["out"].option_strings == ["--out"]
-    assert acts["workers"].option_strings == ["--jobs"] and acts["iters"].type is positive_int
+    assert acts["workers"].option_strings == ["--jobs"] and acts["workers"].metavar == "JOBS"
+    assert acts["iters"].type is positive_int
     assert acts["rate"].type is float and acts["mode"].choices == ["fast", "exact"]
     assert acts["loud"].option_strings == ["--loud"] and acts["loud"].nargs == 0
     assert acts["progress"].option_strings == ["--no-progress"] and acts["progress"].default is True
