@@ -61,7 +61,8 @@ def cmd_synth(args: argparse.Namespace) -> int:
     res = synthesize_capture(args.out_dir, cfg)
     n = sum(len(f) for f in res.frames.values())
     print(f"wrote {res.out_dir}: {len(res.cameras)} cameras (test {res.test_cameras}), "
-          f"{len(res.frames['training'])} training + {len(res.frames['testing'])} testing frames at {cfg.width}x{cfg.height} "
+          f"{len(res.frames['training'])} training + {len(res.frames['testing'])} testing frames at "
+          f"{cfg.width}x{cfg.height} "
           f"in {res.seconds['total']:.1f} s ({res.seconds['render'] / max(n, 1):.2f} s/frame rendering)")
     return 0
 
