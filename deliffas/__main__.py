@@ -2,7 +2,8 @@
 ``torchrun -m deliffas`` runs) calls it too.
 
 Tiny on purpose: it installs the Ctrl-C handling before anything heavy is imported (the command line module
-and, through it, torch), so an interrupt at any moment of start-up ends in one line and exit 130.
+and, through it, torch), so an interrupt at any moment of start-up ends in the same one line as a later one
+(for ``convert`` and ``train``: what is kept and the command that resumes) and exit 130.
 """
 
 import os
@@ -10,19 +11,20 @@ import signal
 import sys
 
 
-def _interrupted_at_start(signum, frame) -> None:
-    """Ctrl-C while the command line module loads: one line, no traceback (``main`` handles it after)."""
-    os.write(2, b"deliffas: interrupted\n")
-    os._exit(130)
-
-
 def run() -> None:
     """Run the command line (``sys.argv``) and exit with its code."""
-    signal.signal(signal.SIGINT, _interrupted_at_start)
+    interrupted = []
+    signal.signal(signal.SIGINT, lambda *_: interrupted.append(True))  # reported once the imports below are done
     from deliffas.cli import main  # after the handler: the import is part of start-up
 
-    signal.signal(signal.SIGINT, signal.default_int_handler)
-    code = main()
+    if interrupted:  # Ctrl-C while the command line loaded: the line of a later one (what is kept, how to resume)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        from deliffas.cli.interrupted import report_interrupted
+
+        code = report_interrupted(None, sys.argv[1:])
+    else:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        code = main()
     if code == 130:
         # interrupted and reported: leave now. The interpreter's exit would join worker pools and threads that the
         # Ctrl-C also reached, and one of them could end the process by the signal after the line was printed.

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
 import sys
 from pathlib import Path
 
@@ -308,14 +307,9 @@ def main(argv: list[str] | None = None) -> int:
     except (KeyboardInterrupt, ImportError) as err:
         if not interrupted_import(err):  # an ImportError not caused by a Ctrl-C during the import
             raise
-        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C while the state is reported: no traceback
-        if args is None:
-            print("deliffas: interrupted", file=sys.stderr)
-            return 130
-        from deliffas.cli.interrupted import interrupted_line
+        from deliffas.cli.interrupted import report_interrupted
 
-        print(f"deliffas {args.command}: interrupted{interrupted_line(args, argv)}", file=sys.stderr)
-        return 130
+        return report_interrupted(args, argv)
 
 
 _OS_HINTS = ((FileNotFoundError, "check the path"), (FileExistsError, "choose another path"),

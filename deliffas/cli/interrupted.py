@@ -8,11 +8,15 @@ half-initialised extension module again crashes the process; so the two records 
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import shlex
+import signal
+import sys
+from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
 
-__all__ = ["interrupted_line", "resume_command"]
+__all__ = ["interrupted_line", "resume_command", "report_interrupted"]
 
 
 def resume_command(argv: list[str]) -> str:
@@ -42,3 +46,23 @@ def interrupted_line(args: argparse.Namespace, argv: list[str]) -> str:
         kept = f"checkpoint at iteration {done} kept in {args.out}" if isinstance(done, int) else "no checkpoint yet"
         return f": {kept}; resume with: {shlex.join(['deliffas', 'train', '--resume', '--out', str(args.out)])}"
     return ""
+
+
+def report_interrupted(args: argparse.Namespace | None, argv: list[str]) -> int:
+    """Print the one line of a command that Ctrl-C interrupted and return its exit code, 130.
+
+    ``args`` None: interrupted before its arguments were parsed; they are parsed here (quietly). Arguments the
+    parser refuses give a line that names no command.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C while the state is reported: no traceback
+    if args is None:
+        from deliffas.cli import build_parser  # loaded already: the caller is the command line
+
+        try:
+            with redirect_stdout(io.StringIO()), redirect_stderr(io.StringIO()):
+                args = build_parser().parse_args(argv)
+        except SystemExit:  # refused, or --help
+            print("deliffas: interrupted", file=sys.stderr)
+            return 130
+    print(f"deliffas {args.command}: interrupted{interrupted_line(args, argv)}", file=sys.stderr)
+    return 130
