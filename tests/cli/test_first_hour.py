@@ -24,14 +24,31 @@ REPO = Path(__file__).resolve().parents[2]
 TRAIN = ["--preset", "tiny", "--workers", "0", "--checkpoint-every", "100", "--preview-every", "0"]
 
 
-def deliffas(*args, cwd: Path | None = None, check: int | None = 0) -> subprocess.CompletedProcess:
-    """Run ``python -m deliffas ARGS`` (one intra-op thread, as the suite); ``check``: the expected exit code."""
+def _start(args, cwd: Path | None) -> subprocess.Popen:
+    """Start ``python -m deliffas ARGS`` (one intra-op thread, as the suite)."""
     env = dict(os.environ, PYTHONPATH=str(REPO), OMP_NUM_THREADS="1")
-    res = subprocess.run([sys.executable, "-m", "deliffas", *map(str, args)], cwd=cwd, env=env, text=True,
-                         capture_output=True, timeout=600)
+    return subprocess.Popen([sys.executable, "-m", "deliffas", *map(str, args)], cwd=cwd, env=env, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+
+
+def _finish(proc: subprocess.Popen, check: int | None) -> subprocess.CompletedProcess:
+    out, err = proc.communicate(timeout=600)
+    res = subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
     if check is not None:
         assert res.returncode == check, f"exit {res.returncode}\n{res.stdout}\n{res.stderr}"
     return res
+
+
+def deliffas(*args, cwd: Path | None = None, check: int | None = 0) -> subprocess.CompletedProcess:
+    """Run ``python -m deliffas ARGS``; ``check``: the expected exit code."""
+    return _finish(_start(args, cwd), check)
+
+
+def deliffas_at_once(*calls: tuple[list, dict]) -> list[subprocess.CompletedProcess]:
+    """Independent calls ``(ARGS, dict(cwd=..., check=...))`` run concurrently (each one's start-up, importing
+    torch, is most of its time), checked as :func:`deliffas` checks them."""
+    started = [(_start(args, kw.get("cwd")), kw.get("check", 0)) for args, kw in calls]
+    return [_finish(proc, check) for proc, check in started]
 
 
 def one_error_line(res: subprocess.CompletedProcess) -> str:
@@ -53,7 +70,8 @@ def home(tmp_path_factory) -> Path:
     synthesize_capture(a / "subject", SynthConfig(num_frames=3, num_test_frames=1, num_cameras=3, width=32, height=32,
                                                   test_cameras=(2,), seed=0, character=str(character)))
     convert(a / "subject", a / "shards", ConvertConfig(atlas_res=32, progress=False))
-    deliffas("train", "shards", "--out", "run1", "--iters", "2", *TRAIN, cwd=a)
+    res = deliffas("train", "shards", "--out", "run1", "--iters", "2", *TRAIN, cwd=a)
+    (root / "train1.stderr").write_text(res.stderr)  # item 8 reads its log
     return root
 
 
@@ -65,8 +83,10 @@ def test_1_runs_find_their_shards_from_another_folder_and_after_a_move(home, tmp
     shutil.copytree(home / "a", moved, ignore=shutil.ignore_patterns("subject"))  # run and shards move together
     shutil.move(str(home / "a" / "shards"), str(home / "shards-away"))
     try:
-        assert json.loads(deliffas("eval", moved / "run1", "--json", "--max-frames", "1").stdout)["images"] >= 1
-        line = one_error_line(deliffas("eval", home / "a" / "run1", check=2))  # gone: say where it looked
+        found, gone = deliffas_at_once((["eval", moved / "run1", "--json", "--max-frames", "1"], {}),
+                                       (["eval", home / "a" / "run1"], dict(check=2)))
+        assert json.loads(found.stdout)["images"] >= 1
+        line = one_error_line(gone)  # gone: say where it looked
         assert str((home / "a" / "shards").absolute()) in line and "--shards" in line
     finally:
         shutil.move(str(home / "shards-away"), str(home / "a" / "shards"))
@@ -86,11 +106,13 @@ def test_4_resume_continues_the_run_as_it_was(home, tmp_path):
 
 
 def test_5_outputs_are_checked_before_the_work(home):
-    for args in (["eval", "a/run1", "--grid", "/sys/deliffas-test/g.png"],
-                 ["render", "a/run1", "--out", "/sys/deliffas-test/v.mp4"]):
-        line = one_error_line(deliffas(*args, cwd=home, check=2))
+    *unwritable, res = deliffas_at_once(
+        (["eval", "a/run1", "--grid", "/sys/deliffas-test/g.png"], dict(cwd=home, check=2)),
+        (["render", "a/run1", "--out", "/sys/deliffas-test/v.mp4"], dict(cwd=home, check=2)),
+        (["convert", home / "a" / "subject", home / "x", "--atlas-res", "50"], dict(check=2)))
+    for out in unwritable:
+        line = one_error_line(out)
         assert "/sys/deliffas-test/" in line and "cannot write" in line, line
-    res = deliffas("convert", home / "a" / "subject", home / "x", "--atlas-res", "50", check=2)
     assert "power of two" in res.stderr and not (home / "x").exists()
 
 
@@ -145,7 +167,7 @@ sys.meta_path.insert(0, _Interrupt())
 """
 
 
-@pytest.mark.parametrize("module", ["argparse", "deliffas.cli", "deliffas.cli.handlers", "torch"])
+@pytest.mark.parametrize("module", ["argparse", "deliffas.cli.handlers", "torch"])
 def test_6_ctrl_c_while_the_console_script_starts(tmp_path, module):
     """Ctrl-C while the ``deliffas`` console script imports MODULE (a sitecustomize sends it then): one line, 130.
 
@@ -161,7 +183,9 @@ def test_6_ctrl_c_while_the_console_script_starts(tmp_path, module):
     res = subprocess.run([sys.executable, "-c", console_script, "convert", "capture", "out"], cwd=tmp_path,
                          env=env, text=True, capture_output=True, timeout=300)
     lines = res.stderr.strip().splitlines()
-    assert res.returncode == 130 and len(lines) == 1 and "interrupted" in lines[0], res.stderr
+    assert res.returncode == 130 and len(lines) == 1, res.stderr
+    assert lines[0].startswith("deliffas convert: interrupted") and lines[0].endswith(
+        "resume with: deliffas convert capture out --resume"), lines[0]
 
 
 def test_7_help_states_defaults():
@@ -175,15 +199,18 @@ def test_7_help_states_defaults():
 
 
 def test_8_smaller_items(home):
-    one_error_line(deliffas("verify", home / "nonexistent", check=2))
-    rows = [re.match(r"\S+\s+\S+\s+\d+", r) for r in deliffas("zoo", "list").stdout.splitlines()]
+    verify, zoo, view, render = deliffas_at_once(
+        (["verify", home / "nonexistent"], dict(check=2)),
+        (["zoo", "list"], {}),
+        (["view", "a/run1", "--shards", "a/nonexistent"], dict(cwd=home, check=2)),
+        (["render", "a/run1", "--out", "v", "--orbit"], dict(cwd=home)))
+    one_error_line(verify)
+    rows = [re.match(r"\S+\s+\S+\s+\d+", r) for r in zoo.stdout.splitlines()]
     assert len({m.end() for m in rows if m}) == 1  # the S column lines up, on 'realtime' too
-    res = deliffas("view", "a/run1", "--shards", "a/nonexistent", cwd=home, check=2)
-    assert "http://" not in res.stdout
-    res = deliffas("train", "shards", "--out", "run2", "--iters", "1", *TRAIN, cwd=home / "a")
-    assert "WARNING" not in res.stderr and "frames protocol auto -> all" in res.stderr
-    res = deliffas("render", "a/run1", "--out", "v", "--orbit", cwd=home)
-    assert "--frames 100 --loop" in res.stderr
+    assert "http://" not in view.stdout
+    train_log = (home / "train1.stderr").read_text()  # the fixture's `train shards --out run1` (protocol auto)
+    assert "WARNING" not in train_log and "frames protocol auto -> all" in train_log
+    assert "--frames 100 --loop" in render.stderr
 
 
 @pytest.fixture(scope="module")
@@ -207,22 +234,25 @@ def easymocap_without_masks_or_sizes(tmp_path_factory) -> Path:
 def test_2_missing_masks_are_named_and_no_units_fix_is_proposed(easymocap_without_masks_or_sizes, tmp_path):
     cap = easymocap_without_masks_or_sizes
     model = cap.parent / "smpl" / "body" / "smpl_procedural.npz"
-    res = deliffas("check", cap, "--out", tmp_path / "report", "--template", model, check=1)
+    res, refused = deliffas_at_once((["check", cap, "--out", tmp_path / "report", "--template", model], dict(check=1)),
+                                    (["convert", cap, tmp_path / "out", "--template", model], dict(check=2)))
     assert "masks missing or all foreground" in res.stdout and "1000" not in res.stdout
     assert "--no-check" not in res.stdout  # an option of convert, not of check
-    line = one_error_line(deliffas("convert", cap, tmp_path / "out", "--template", model, check=2))
+    line = one_error_line(refused)
     assert "masks missing or all foreground" in line and "1000" not in line and "--no-check" in line
 
 
 @pytest.mark.slow
 def test_3_sizes_from_the_images(easymocap_without_masks_or_sizes, tmp_path):
-    deliffas("cameras", easymocap_without_masks_or_sizes, tmp_path / "c.calibration", "--to", "dynacap")
     from deliffas.io.camera_formats import read_cameras
 
-    assert {(c.width, c.height) for c in read_cameras(tmp_path / "c.calibration")} == {(48, 48)}
-    empty = tmp_path / "bare"
+    empty = tmp_path / "bare"  # the calibration without its images
     empty.mkdir()
     shutil.copy(easymocap_without_masks_or_sizes / "intri.yml", empty)
     shutil.copy(easymocap_without_masks_or_sizes / "extri.yml", empty)
-    line = one_error_line(deliffas("cameras", empty, tmp_path / "d.calibration", "--to", "dynacap", check=2))
+    _, refused = deliffas_at_once(
+        (["cameras", easymocap_without_masks_or_sizes, tmp_path / "c.calibration", "--to", "dynacap"], {}),
+        (["cameras", empty, tmp_path / "d.calibration", "--to", "dynacap"], dict(check=2)))
+    assert {(c.width, c.height) for c in read_cameras(tmp_path / "c.calibration")} == {(48, 48)}
+    line = one_error_line(refused)
     assert "--size WxH" in line and "size=" not in line
