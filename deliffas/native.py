@@ -8,6 +8,7 @@ U-Net's input conversion (``models/unet_cpu.py``). Each library is built once pe
 loading (the library stays mapped). Nothing is cached on disk.
 
 Callers hold a :class:`LazyLibrary`, which builds on first use and logs once when it falls back.
+:func:`build_declared` builds every library declared so far at once (the viewer, before its first frame).
 Set ``DELIFFAS_NATIVE=0`` to never compile; every caller then keeps a pure-torch fallback.
 """
 
@@ -26,7 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
 
-__all__ = ["CSRC", "NATIVE_ENV", "LazyLibrary", "NativeLibrary", "build_library"]
+__all__ = ["CSRC", "NATIVE_ENV", "LazyLibrary", "NativeLibrary", "build_library", "build_declared"]
 
 logger = logging.getLogger(__name__)
 
@@ -116,6 +117,7 @@ class LazyLibrary:
         self._lock = threading.Lock()
         self._built: NativeLibrary | None = None
         self._logged = False
+        _DECLARED.append(self)
 
     def load(self) -> NativeLibrary:
         """The outcome of the build, building on the first call."""
@@ -140,3 +142,17 @@ class LazyLibrary:
             level = logging.INFO if built.reason.startswith("disabled") else logging.WARNING
             logger.log(level, "%s: compiled kernel unavailable (%s); using %s", self.name, built.reason, self.fallback)
         return built.lib
+
+
+_DECLARED: list[LazyLibrary] = []
+"""Every LazyLibrary of the modules imported so far (they are module attributes: created at import)."""
+
+
+def build_declared() -> None:
+    """Build every declared library not built yet, all at once (one thread each, so the compilers run in parallel;
+    a first use builds one library after another). What fails to build is reported by its ``get``, as always."""
+    threads = [threading.Thread(target=lib.load, name=f"build-{lib.name}", daemon=True) for lib in list(_DECLARED)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()

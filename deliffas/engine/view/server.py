@@ -34,6 +34,7 @@ from deliffas.engine.view.renderer import (
 )
 from deliffas.engine.view.scene import ViewScene
 from deliffas.io.cameras import Camera
+from deliffas.native import build_declared
 from deliffas.optional import import_optional
 
 __all__ = ["serve", "viewer_camera", "capture_camera_pose", "import_viser", "departures_quiet", "log_departure",
@@ -249,6 +250,17 @@ class _Viewer:
             elif name in self.meshes:
                 self.meshes.pop(name).remove()
 
+    def warm_up(self) -> None:
+        """Build the C kernels (all at once) and render one small frame while the first browser loads the page, so
+        that its first frame needs no compiler (a cold first render builds the libraries one after another)."""
+        try:
+            build_declared()
+            cam_id = self.scene.test_cameras[0] if self.scene.test_cameras else self.scene.converted_cameras[0]
+            camera = fit_camera(self.scene.cameras[cam_id], 64, 64, upscale=False)
+            self.renderer_locked().render(ViewRequest(camera, 0, "rgb", capture_camera=cam_id))
+        except Exception as err:  # noqa: BLE001 - the first client's own render reports any error
+            logger.debug("deliffas view: warm-up failed: %s", err)
+
     # ------------------------------------------------------------- clients
     def connect(self, client) -> None:
         view = _ClientView(client)
@@ -376,6 +388,7 @@ def serve(cfg: ViewConfig, stop: threading.Event | None = None, ready: Callable[
     with departures_quiet():
         try:
             viewer = _Viewer(cfg, scene, server, vtf)
+            threading.Thread(target=viewer.warm_up, name="view-warm-up", daemon=True).start()
             server.on_client_connect(viewer.connect)
             server.on_client_disconnect(viewer.disconnect)
             logger.info("deliffas view: http://%s:%d (%d frames, %d runs)", cfg.host, cfg.port, scene.num_frames,
