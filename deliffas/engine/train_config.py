@@ -65,10 +65,10 @@ class TrainConfig:
     """``converge`` schedule: iterations of the linear warm-up from lr / warmup_iters to lr (at most a fifth
     of the run)."""
     lr_final: float = 0.1
+    """``converge`` schedule: the learning rate at the last iteration, as a fraction of the peak."""
     texture_lr_scale: float = 1.0
     """The texture atlases' learning rate as a multiple of the schedule's (``ModelConfig.texture_channels``):
     each texel sees the gradient of the few rays that sample it, so it may learn faster than the networks."""
-    """``converge`` schedule: the learning rate at the last iteration, as a fraction of the peak."""
     cameras_per_frame: int = opt(3, help="training cameras per iteration; the U-Nets run once for all of them",
                                  parse=positive_int)
     """K training cameras per iteration; the U-Nets run once for all K."""
