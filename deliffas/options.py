@@ -50,7 +50,7 @@ def opt(default: Any = MISSING, *, help: str, flag: str | None = None, parse: Ca
         default_text: how the help states a default the value does not say itself (``"the run's"``).
         repeat: the option may be repeated; the values become a tuple.
         nargs: ``"?"`` for an optional positional argument.
-        default_factory: as :func:`dataclasses.field`.
+        default_factory: as ``dataclasses.field``'s.
     """
     meta = {CLI_KEY: CliOption(help=help, flag=flag, parse=parse, metavar=metavar, default_text=default_text,
                                repeat=repeat, nargs=nargs)}

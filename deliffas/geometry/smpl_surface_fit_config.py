@@ -11,7 +11,7 @@ __all__ = ["SurfaceFitConfig"]
 
 @dataclass(frozen=True)
 class SurfaceFitConfig:
-    """How :func:`fit_smpl_to_surfaces` optimises."""
+    """How :func:`deliffas.geometry.smpl_surface_fit.fit_smpl_to_surfaces` optimises."""
 
     first_iters: int = opt(300, help="Adam steps on the first frame", parse=positive_int)
     """Adam steps on the first frame (shape, global pose, then body pose)."""
