@@ -44,40 +44,37 @@ def test_bad_schedule_values_are_refused_naming_the_field(field, value):
         _cfg(**{field: value})
 
 
-def test_a_run_saved_before_the_rate_multiples_resumes(tiny_shards, tmp_path):
-    """Optimizer groups loaded from an older run's state lack ``lr_scale``; the config's multiples apply."""
+def _resumes_after_editing_its_groups(shards, run, edit) -> bool:
+    """Train 2 iterations, pass the saved optimizer groups through ``edit``, resume to 3."""
     import json
 
     from deliffas.engine.checkpointing import STATE_FILE
     from deliffas.engine.train import train
 
-    kw = dict(shards=str(tiny_shards), out=str(tmp_path / "run"), model="two_surface", preset="tiny",
-              cameras_per_frame=2, protocol="all", num_workers=0, checkpoint_every=1, preview_every=0,
-              progress=False)
+    kw = dict(shards=str(shards), out=str(run), model="two_surface", preset="tiny", cameras_per_frame=2,
+              protocol="all", num_workers=0, checkpoint_every=1, preview_every=0, progress=False)
     train(TrainConfig(iters=2, **kw))
-    path = tmp_path / "run" / STATE_FILE
+    path = run / STATE_FILE
     state = json.loads(path.read_text())
-    for group in state["optimizer_param_groups"]:
-        del group["lr_scale"]
+    edit(state["optimizer_param_groups"])
     path.write_text(json.dumps(state))
-    assert train(TrainConfig(iters=3, **kw), resume=True).iterations == 3
+    return train(TrainConfig(iters=3, **kw), resume=True).iterations == 3
+
+
+def test_a_run_saved_before_the_rate_multiples_resumes(tiny_shards, tmp_path):
+    """Optimizer groups loaded from an older run's state lack ``lr_scale``; the config's multiples apply."""
+    def drop_scales(groups):
+        for group in groups:
+            del group["lr_scale"]
+
+    assert _resumes_after_editing_its_groups(tiny_shards, tmp_path / "run", drop_scales)
 
 
 def test_a_run_saved_with_the_per_tensor_adam_resumes(tiny_shards, tmp_path):
     """Runs saved before the fused Adam (``fused`` None in their groups) resume, and a new run uses it."""
-    import json
+    def unfuse(groups):
+        assert all(group["fused"] for group in groups)
+        for group in groups:
+            group["fused"] = None
 
-    from deliffas.engine.checkpointing import STATE_FILE
-    from deliffas.engine.train import train
-
-    kw = dict(shards=str(tiny_shards), out=str(tmp_path / "run"), model="two_surface", preset="tiny",
-              cameras_per_frame=2, protocol="all", num_workers=0, checkpoint_every=1, preview_every=0,
-              progress=False)
-    train(TrainConfig(iters=2, **kw))
-    path = tmp_path / "run" / STATE_FILE
-    state = json.loads(path.read_text())
-    assert all(group["fused"] for group in state["optimizer_param_groups"])
-    for group in state["optimizer_param_groups"]:
-        group["fused"] = None
-    path.write_text(json.dumps(state))
-    assert train(TrainConfig(iters=3, **kw), resume=True).iterations == 3
+    assert _resumes_after_editing_its_groups(tiny_shards, tmp_path / "run", unfuse)
