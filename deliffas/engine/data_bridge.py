@@ -24,7 +24,7 @@ from deliffas.engine.samples import FrameSample
 from deliffas.geometry.atlas import UVAtlas
 
 __all__ = ["training_stream", "evaluation_samples", "shard_info", "resolve_protocol", "validation_cameras",
-           "with_torch_rays", "AUTO_PAPER_MIN_FRAMES", "EVAL_SPLITS", "TEST_SPLITS", "split_cameras", "run_protocol"]
+           "with_torch_rays", "AUTO_PAPER_MIN_FRAMES", "EVAL_SPLITS", "TEST_SPLITS", "split_cameras", "run_protocol", "run_split_samples"]
 
 logger = logging.getLogger(__name__)
 
@@ -94,6 +94,16 @@ def run_protocol(record: dict, shards: ShardSet | str) -> str:
     if recorded in ("paper", "all"):
         return recorded
     return resolve_protocol(shards, record.get("train", {}).get("protocol", "paper"))[0]
+
+
+def run_split_samples(shards: ShardSet | str, record: dict, split: str, max_frames: int | None = None,
+                      with_rays: bool = False, temporal_window: int | None = None, run: object = "the run"
+                      ) -> tuple[Iterator[FrameSample], dict]:
+    """:func:`evaluation_samples` of evaluation ``split`` (``validation`` included) of the run whose
+    ``train_config.json`` is ``record``, in the frames protocol it trained with."""
+    data_split, cameras = split_cameras(split, record, run)
+    return evaluation_samples(shards, data_split, max_frames=max_frames, with_rays=with_rays,
+                              protocol=run_protocol(record, shards), temporal_window=temporal_window, cameras=cameras)
 
 
 def shard_info(shards_dir: ShardSet | str, temporal_window: int | None = None) -> dict:

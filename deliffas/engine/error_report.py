@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from deliffas.engine.data_bridge import evaluation_samples, run_protocol, split_cameras
+from deliffas.engine.data_bridge import run_split_samples
 from deliffas.engine.devices import resolve_device
 from deliffas.engine.identity import check_run_shards
 from deliffas.engine.runs import load_run
@@ -35,9 +35,8 @@ def measure_error_budget(run: str | Path, split: str = "validation", max_frames:
     dev = resolve_device(device)
     model, record = load_run(run, dev)
     shards = check_run_shards(run, record, None)  # found as `eval` finds them (the run may have moved)
-    data_split, cameras = split_cameras(split, record, run)
-    samples, info = evaluation_samples(shards, data_split, max_frames=max_frames, protocol=run_protocol(record, shards),
-                                       temporal_window=model.config.temporal_window, cameras=cameras)
+    samples, info = run_split_samples(shards, record, split, max_frames,
+                                      temporal_window=model.config.temporal_window, run=run)
     budget = ErrorBudget()
     images = 0
     for sample in samples:

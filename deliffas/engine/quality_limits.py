@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from deliffas.engine.data_bridge import evaluation_samples, run_protocol, split_cameras
+from deliffas.engine.data_bridge import run_split_samples
 from deliffas.engine.identity import check_run_shards
 from deliffas.engine.runs import read_run_record
 from deliffas.engine.samples import composite_target
@@ -43,9 +43,7 @@ def _score(pred: np.ndarray, target: torch.Tensor, mask: np.ndarray) -> float:
 
 
 def _split_samples(shards, record: dict, split: str, max_frames: int | None, with_rays: bool = False):
-    data_split, cameras = split_cameras(split, record)
-    return evaluation_samples(shards, data_split, max_frames=max_frames, protocol=run_protocol(record, shards),
-                              with_rays=with_rays, cameras=cameras)[0]
+    return run_split_samples(shards, record, split, max_frames, with_rays=with_rays)[0]
 
 
 def aliasing_ceiling(run: str | Path, supersampled_shards: str | Path, max_frames: int | None = 10) -> dict:
