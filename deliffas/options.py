@@ -16,7 +16,7 @@ from typing import Any, Callable
 
 __all__ = ["CLI_KEY", "CliOption", "opt", "cli_option", "positive_int", "non_negative_int", "power_of_two",
            "positive_float", "non_negative_float", "image_size", "int_list", "count_or_indices", "port",
-           "device_name", "dask_target", "video_or_folder"]
+           "device_name", "dask_target", "video_or_folder", "path_with_suffix"]
 
 CLI_KEY = "deliffas.cli"
 """The key of a field's ``metadata`` holding its :class:`CliOption`."""
@@ -33,11 +33,12 @@ class CliOption:
     default_text: str | None = None
     repeat: bool = False
     nargs: str | None = None
+    choices: Callable[[], tuple[str, ...]] | None = None
 
 
 def opt(default: Any = MISSING, *, help: str, flag: str | None = None, parse: Callable[[str], Any] | None = None,
         metavar: str | None = None, default_text: str | None = None, repeat: bool = False, nargs: str | None = None,
-        default_factory: Any = MISSING) -> Any:
+        choices: Callable[[], tuple[str, ...]] | None = None, default_factory: Any = MISSING) -> Any:
     """A dataclass field that the command line sets.
 
     Args:
@@ -50,10 +51,12 @@ def opt(default: Any = MISSING, *, help: str, flag: str | None = None, parse: Ca
         default_text: how the help states a default the value does not say itself (``"the run's"``).
         repeat: the option may be repeated; the values become a tuple.
         nargs: ``"?"`` for an optional positional argument.
+        choices: the allowed values, asked for when the parser is built (names a registry holds, e.g. the camera
+            formats; a ``Literal`` annotation states fixed ones).
         default_factory: as ``dataclasses.field``'s.
     """
     meta = {CLI_KEY: CliOption(help=help, flag=flag, parse=parse, metavar=metavar, default_text=default_text,
-                               repeat=repeat, nargs=nargs)}
+                               repeat=repeat, nargs=nargs, choices=choices)}
     if default_factory is not MISSING:
         return dataclasses.field(default_factory=default_factory, metadata=meta)
     return dataclasses.field(default=default, metadata=meta)
@@ -175,3 +178,13 @@ def video_or_folder(text: str) -> str:
     if Path(text).suffix and Path(text).suffix.lower() not in (".mp4", ".avi"):
         raise argparse.ArgumentTypeError(f"expected a .mp4 or .avi file or a folder without a suffix, got {text!r}")
     return text
+
+
+def path_with_suffix(*suffixes: str) -> Callable[[str], Path]:
+    """An argparse type: a path ending in one of ``suffixes`` (checked before any work starts)."""
+    def parse(text: str) -> Path:
+        p = Path(text)
+        if p.suffix.lower() not in suffixes:
+            raise argparse.ArgumentTypeError(f"expected a file ending in {' or '.join(suffixes)}, got {text!r}")
+        return p
+    return parse

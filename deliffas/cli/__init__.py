@@ -224,9 +224,9 @@ def _add_evaluation_commands(sub) -> None:
                                    "faces and capture cameras as one safetensors file with JSON metadata and "
                                    "sha256s (no pickle). 'deliffas render OUT.avatar --motion M' and 'deliffas view' "
                                    "load it anywhere, without the shards or the subject.")
-    p.add_argument("run", type=Path, help="run directory written by 'deliffas train'")
-    p.add_argument("out", type=_path_with_suffix(".avatar"), help="the avatar file to write (.avatar)")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing OUT")
+    from deliffas.engine.export_config import ExportConfig  # light; imported here: a Ctrl-C at start-up meets main()
+
+    add_config_arguments(p, ExportConfig)
     p.set_defaults(handler="export")
 
 

@@ -1,8 +1,9 @@
 """argparse options generated from config dataclasses, and the configs built back from the parsed namespace.
 
 Each field declared with :func:`deliffas.options.opt` becomes one option: its spelling (``flag``, else
-``--field-name``), its type (``parse``, else the annotation: int, float, str, ``Literal`` choices, ``X | None``,
-bool as ``--flag`` / ``--no-flag``), its help with the default appended, and its ``dest`` = the field name.
+``--field-name``), its type (``parse``, else the annotation: int, float, str, Path, ``Literal`` choices, ``X | None``,
+bool as ``--flag`` / ``--no-flag``; ``choices=`` names values a registry holds), its help with the default appended,
+and its ``dest`` = the field name.
 So an option is declared once, on its field, and a handler builds its config with :func:`config_from_args`.
 """
 
@@ -13,6 +14,7 @@ import dataclasses
 import sys
 import types
 import typing
+from pathlib import Path
 from typing import Any, Iterable, Literal, Union
 
 from deliffas.options import CliOption, cli_option
@@ -68,6 +70,8 @@ def _help(f: dataclasses.Field, o: CliOption, default: Any, is_flag: bool) -> st
 
 def _value_kwargs(cls: type, f: dataclasses.Field, o: CliOption) -> dict:
     """``type`` / ``choices`` of a field that takes a value."""
+    if o.choices is not None:
+        return {"choices": list(o.choices())} | ({"type": o.parse} if o.parse is not None else {})
     if o.parse is not None:
         return {"type": o.parse}
     tp = _strip_none(_annotation(cls, f))
@@ -75,7 +79,7 @@ def _value_kwargs(cls: type, f: dataclasses.Field, o: CliOption) -> dict:
         tp = typing.get_args(tp)[0]
     if typing.get_origin(tp) is Literal:
         return {"choices": list(typing.get_args(tp))}
-    if tp in (int, float, str):
+    if tp in (int, float, str, Path):
         return {"type": tp}
     raise TypeError(f"{cls.__name__}.{f.name}: no parser for {tp!r}; give opt(..., parse=...)")
 

@@ -30,7 +30,7 @@ from deliffas.data.synth import SynthConfig, synthesize_capture
 from deliffas.data.template_build import build_templates
 from deliffas.models.deliffas import DeliffasModel
 from deliffas.models.zoo import get_config, list_models, list_presets
-from deliffas.engine.avatar import export_avatar, list_avatars
+from deliffas.engine.avatar import ExportConfig, export_avatar, list_avatars
 from deliffas.engine.auto_capacity import AutoCapacityConfig, auto_capacity
 from deliffas.engine.data_bridge import resolve_protocol
 from deliffas.engine.demo import DemoConfig, run_demo
@@ -257,8 +257,9 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    out = export_avatar(args.run, args.out, overwrite=args.overwrite)
-    print(f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB): model, template files, atlas and cameras of {args.run}")
+    cfg = config_from_args(ExportConfig, args)
+    out = export_avatar(cfg)
+    print(f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB): model, template files, atlas and cameras of {cfg.run}")
     return 0
 
 

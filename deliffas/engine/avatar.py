@@ -24,6 +24,7 @@ import torch
 
 from deliffas.data.shard_meta import ShardMeta
 from deliffas.data.shards import ShardSet, open_shard_set
+from deliffas.engine.export_config import ExportConfig
 from deliffas.engine.runs import load_run
 from deliffas.engine.identity import capture_identity, recorded_shards
 from deliffas.geometry.templates import TemplateSpec
@@ -33,8 +34,8 @@ from deliffas.models.deliffas import DeliffasModel, ModelConfig
 from deliffas.models.unet import optimize_for_inference
 from deliffas.models.zoo import config_from_dict, config_to_dict, load_checkpoint
 
-__all__ = ["CAPTURE_FILE", "capture_record", "write_run_capture", "run_capture", "export_avatar", "load_avatar",
-           "list_avatars", "cache_root"]
+__all__ = ["CAPTURE_FILE", "capture_record", "write_run_capture", "run_capture", "ExportConfig", "export_avatar",
+           "load_avatar", "list_avatars", "cache_root"]
 
 CAPTURE_FILE = "capture.avatar"
 """The run's capture record (an avatar file without weights), written when training starts."""
@@ -145,13 +146,13 @@ def _train_record(run: Path) -> dict:
         raise ValueError(f"{p}: corrupted JSON ({exc})") from None
 
 
-def export_avatar(run: str | os.PathLike, out: str | os.PathLike, overwrite: bool = False) -> Path:
-    """Write RUN's model and capture as one ``.avatar`` file (refuses an existing ``out`` unless ``overwrite``)."""
-    out_path = Path(out)
+def export_avatar(config: ExportConfig) -> Path:
+    """Write the run's model and capture as one ``.avatar`` file (refuses an existing ``out`` unless ``overwrite``)."""
+    out_path = Path(config.out)
     if out_path.suffix != AVATAR_SUFFIX:
         raise ValueError(f"{out_path}: an avatar file must end in {AVATAR_SUFFIX}")
-    claim_output_file(out_path, overwrite)
-    run = Path(run)
+    claim_output_file(out_path, config.overwrite)
+    run = Path(config.run)
     ckpt = load_checkpoint(run / "checkpoint")
     meta, _ = run_capture(run)
     arrays, record = capture_record(meta)

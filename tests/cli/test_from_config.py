@@ -91,6 +91,21 @@ def test_bad_values_are_argparse_errors(capsys):
     assert exc.value.code == 2 and "expected a number >= 1, got 0" in capsys.readouterr().err
 
 
+def test_path_annotations_and_choices_asked_when_the_parser_is_built():
+    names = ["a"]
+
+    @dataclass(frozen=True)
+    class Files:
+        src: Path = opt(help="input", flag="")
+        kind: str = opt("a", help="a registered kind", choices=lambda: tuple(names))
+
+    names.append("b")  # registered after the config was declared: the parser still offers it
+    p = argparse.ArgumentParser()
+    add_config_arguments(p, Files)
+    assert config_from_args(Files, p.parse_args(["x/y", "--kind", "b"])) == Files(src=Path("x/y"), kind="b")
+    assert _actions(p)["kind"].choices == ["a", "b"] and _actions(p)["kind"].help == "a registered kind (default a)"
+
+
 def test_a_default_of_none_must_say_what_it_means():
     @dataclass(frozen=True)
     class Mute:
@@ -111,7 +126,7 @@ def test_an_annotation_without_a_parser_is_refused():
 
 GENERATED = {"cmd_train": "TrainConfig", "cmd_eval": "EvalConfig", "cmd_render": "RenderConfig",
              "cmd_convert": "ConvertConfig", "cmd_synth": "SynthConfig", "cmd_check": "CheckConfig",
-             "cmd_demo": "DemoConfig", "cmd_view": "ViewConfig"}
+             "cmd_demo": "DemoConfig", "cmd_view": "ViewConfig", "cmd_export": "ExportConfig"}
 """Each config command's handler and the config its options are generated from."""
 
 
