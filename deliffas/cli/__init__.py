@@ -95,8 +95,9 @@ def _add_capture_tool_commands(sub) -> None:
     p = sub.add_parser("verify", help="check converted shards against their manifest",
                        description="Check every shard of OUT against manifest.json (presence, size, sha256, "
                                    "readability, completeness); exit 1 naming each broken shard.")
-    p.add_argument("out", type=Path, help="folder written by 'deliffas convert'")
-    p.add_argument("--quick", action="store_true", help="checksums only, do not read every dataset")
+    from deliffas.data.verify_config import VerifyConfig  # light; imported here: a Ctrl-C at start-up meets main()
+
+    add_config_arguments(p, VerifyConfig)
     p.set_defaults(handler="verify")
 
     p = sub.add_parser("cameras", help="convert cameras between capture formats (--help lists them)",

@@ -25,7 +25,7 @@ from deliffas.data.convert import ConvertConfig, convert
 from deliffas.data.subjects import SubjectOptions, parse_subject
 from deliffas.data.posing import pose_frames, write_posed_mesh
 from deliffas.data.smpl_capture_fit import fit_smpl_to_subject, write_fit
-from deliffas.data.shards import verify_shards
+from deliffas.data.shards import VerifyConfig, verify_conversion
 from deliffas.data.synth import SynthConfig, synthesize_capture
 from deliffas.data.template_build import build_templates
 from deliffas.models.deliffas import DeliffasModel
@@ -104,15 +104,14 @@ def cmd_check(args: argparse.Namespace) -> int:
 
 
 def cmd_verify(args: argparse.Namespace) -> int:
-    if not (args.out / "manifest.json").is_file():
-        raise FileNotFoundError(f"{args.out}: no manifest.json there; give the folder written by 'deliffas convert'")
-    problems = verify_shards(args.out, deep=not args.quick)
+    cfg = config_from_args(VerifyConfig, args)
+    problems = verify_conversion(cfg)
     for p in problems:
         print(f"BROKEN {p}", file=sys.stderr)
     if problems:
-        print(f"deliffas verify: {len(problems)} problem(s) in {args.out}", file=sys.stderr)
+        print(f"deliffas verify: {len(problems)} problem(s) in {cfg.out}", file=sys.stderr)
         return 1
-    print(f"{args.out}: every shard matches the manifest")
+    print(f"{cfg.out}: every shard matches the manifest")
     return 0
 
 

@@ -30,9 +30,12 @@ from deliffas.checks import finite_as
 from deliffas.io.infra.files import durable_replace, sha256_file, temp_path
 from deliffas.data.shard_meta import SCHEMA_VERSION, ShardMeta, read_meta
 from deliffas.data.shard_schema import SHARD_FORMAT, inside, shard_problems
+from deliffas.data.verify_config import VerifyConfig
 
 __all__ = [
     "open_shard_set",
+    "VerifyConfig",
+    "verify_conversion",
     "ShardReadError",
     "SCHEMA_VERSION",
     "MANIFEST_NAME",
@@ -488,6 +491,18 @@ def open_shard_set(shards: ShardSet | str | os.PathLike) -> ShardSet:
 
 
 # --------------------------------------------------------------------------------------------- verify
+def verify_conversion(config: VerifyConfig) -> list[str]:
+    """:func:`verify_shards` of a folder a user names: one message per problem (empty = all good).
+
+    Raises:
+        FileNotFoundError: the folder holds no manifest (not a folder ``deliffas convert`` wrote).
+    """
+    out = Path(config.out)
+    if not (out / MANIFEST_NAME).is_file():
+        raise FileNotFoundError(f"{out}: no {MANIFEST_NAME} there; give the folder written by 'deliffas convert'")
+    return verify_shards(out, deep=not config.quick)
+
+
 def verify_shards(out_dir: str | os.PathLike, deep: bool = True) -> list[str]:
     """Check an output folder against its manifest; returns one message per problem (empty = all good).
 
