@@ -15,20 +15,11 @@ from pathlib import Path
 from deliffas import __version__
 from deliffas.cli.from_config import add_config_arguments
 from deliffas.optional import interrupted_import
-from deliffas.options import image_size, non_negative_int
+from deliffas.options import image_size
 
 __all__ = ["main", "build_parser"]
 
 log = logging.getLogger(__name__)
-
-def _path_with_suffix(*suffixes: str):
-    """An argparse type: a path ending in one of ``suffixes`` (checked before any work starts)."""
-    def parse(text: str) -> Path:
-        p = Path(text)
-        if p.suffix.lower() not in suffixes:
-            raise argparse.ArgumentTypeError(f"expected a file ending in {' or '.join(suffixes)}, got {text!r}")
-        return p
-    return parse
 
 
 def _add_capture_commands(sub) -> None:
@@ -273,17 +264,9 @@ def build_parser() -> argparse.ArgumentParser:
                                    "vertex order, in mm. TEMPLATE is a .character (DDC: MOTION a .motion, DOF "
                                    "skeleton + skinning) or an SMPL model file .npz/.pkl (MOTION an AMASS-style "
                                    ".npz with poses, trans, betas; SMPL metres become mm).")
-    p.add_argument("template", type=Path, help=".character file, or SMPL model .npz/.pkl (official layout)")
-    p.add_argument("motion", type=Path, help=".motion (DDC; its DOF count must match the skeleton) or AMASS .npz (SMPL)")
-    p.add_argument("--frame", type=non_negative_int, default=0,
-                   help="frame number as written in the motion file (AMASS: the row) (default 0)")
-    p.add_argument("--skinning", choices=["dqs", "lbs"], default="dqs",
-                   help="DDC: dual-quaternion (the original tools' choice) or linear blend skinning (default dqs)")
-    p.add_argument("--uv", type=Path, default=None,
-                   help="SMPL: OBJ with the model's uv layout (default MODEL_uv.obj next to it, else none needed)")
-    p.add_argument("--out", type=_path_with_suffix(".ply", ".obj"), required=True,
-                   help="output mesh, .ply or .obj (.obj keeps the uvs)")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
+    from deliffas.data.pose_config import PoseConfig  # light; imported here: a Ctrl-C at start-up meets main()
+
+    add_config_arguments(p, PoseConfig)
     p.set_defaults(handler="pose")
     for add in (_add_capture_commands, _add_capture_tool_commands, _add_geometry_commands, _add_training_commands,
                 _add_evaluation_commands, _add_viewer_commands):

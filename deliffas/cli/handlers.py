@@ -14,16 +14,14 @@ import sys
 from pathlib import Path
 
 from deliffas.io.camera_formats import read_cameras, write_cameras
-from deliffas.io.infra.files import claim_output_file
 from deliffas.io.formats.dynacap.character import read_character
 from deliffas.geometry.smpl_surface_fit import SurfaceFitConfig
-from deliffas.geometry.templates import spec_from_file
 from deliffas.geometry.procedural import make_procedural_character
 from deliffas.data.check import CheckConfig, check_subject
 from deliffas.data.check_report import write_check_report
 from deliffas.data.convert import ConvertConfig, convert
 from deliffas.data.subjects import SubjectOptions, parse_subject
-from deliffas.data.posing import pose_frames, write_posed_mesh
+from deliffas.data.posing import PoseConfig, pose_to_file
 from deliffas.data.smpl_capture_fit import fit_smpl_to_subject, write_fit
 from deliffas.data.shards import VerifyConfig, verify_conversion
 from deliffas.data.synth import SynthConfig, synthesize_capture
@@ -46,12 +44,10 @@ from deliffas.cli.from_config import config_from_args, given_values, option_name
 
 
 def cmd_pose(args: argparse.Namespace) -> int:
-    claim_output_file(args.out, args.overwrite)
-    spec = spec_from_file(args.template, args.skinning, uv_obj=args.uv)
-    verts, template = pose_frames(spec, args.motion, [args.frame], args.skinning)
-    write_posed_mesh(args.out, verts[0], template)
-    print(f"wrote {args.out}: {verts.shape[1]} vertices, {int(template.faces.shape[0])} faces "
-          f"(frame {args.frame}, {spec.kind}{', ' + spec.option('skinning') if spec.option('skinning') else ''})")
+    cfg = config_from_args(PoseConfig, args)
+    m = pose_to_file(cfg)
+    print(f"wrote {cfg.out}: {m.num_verts} vertices, {m.num_faces} faces "
+          f"(frame {cfg.frame}, {m.kind}{', ' + m.skinning if m.skinning else ''})")
     return 0
 
 

@@ -11,6 +11,7 @@ tensors); ``pose_frames`` reads files, poses in torch and returns numpy vertices
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -19,10 +20,12 @@ from jaxtyping import Float, Real
 
 from deliffas.io.motion import Motion
 from deliffas.io.mesh_files import write_mesh
+from deliffas.io.infra.files import claim_output_file
 from deliffas.geometry.templates import Skinning, Template, TemplateSpec, build_template, spec_from_file
+from deliffas.data.pose_config import PoseConfig
 from deliffas.data.pose_motions import read_pose_motion
 
-__all__ = ["pose_frames", "write_posed_mesh"]
+__all__ = ["pose_frames", "write_posed_mesh", "PoseConfig", "PosedMesh", "pose_to_file"]
 
 
 def pose_frames(template: TemplateSpec | str | os.PathLike, motion: Motion | str | os.PathLike,
@@ -69,3 +72,26 @@ def write_posed_mesh(path: str | os.PathLike, verts: Real[np.ndarray, "V 3"], te
     """Write one posed mesh as ``.obj`` (with the template's per-corner uvs) or ``.ply``, template order."""
     return write_mesh(path, verts, template.faces.cpu().numpy(), template.uvs.cpu().numpy(),
                       template.face_uvs.cpu().numpy())
+
+
+@dataclass(frozen=True)
+class PosedMesh:
+    """What :func:`pose_to_file` wrote."""
+
+    path: Path
+    num_verts: int
+    num_faces: int
+    kind: str
+    """The template kind (``TemplateSpec.kind``)."""
+    skinning: str | None
+    """A DDC template's skinning; None for kinds without the option."""
+
+
+def pose_to_file(config: PoseConfig) -> PosedMesh:
+    """Pose ``config.template`` by frame ``config.frame`` of ``config.motion`` and write the mesh to ``config.out``
+    (refused when it exists, unless ``config.overwrite``)."""
+    claim_output_file(config.out, config.overwrite)
+    spec = spec_from_file(config.template, config.skinning, uv_obj=config.uv)
+    verts, template = pose_frames(spec, config.motion, [config.frame], config.skinning)
+    path = write_posed_mesh(config.out, verts[0], template)
+    return PosedMesh(Path(path), int(verts.shape[1]), int(template.faces.shape[0]), spec.kind, spec.option("skinning"))
