@@ -97,13 +97,14 @@ def run_protocol(record: dict, shards: ShardSet | str) -> str:
 
 
 def run_split_samples(shards: ShardSet | str, record: dict, split: str, max_frames: int | None = None,
-                      with_rays: bool = False, temporal_window: int | None = None, run: object = "the run"
-                      ) -> tuple[Iterator[FrameSample], dict]:
+                      with_rays: bool = False, temporal_window: int | None = None, run: object = "the run",
+                      protocol: str | None = None) -> tuple[Iterator[FrameSample], dict]:
     """:func:`evaluation_samples` of evaluation ``split`` (``validation`` included) of the run whose
-    ``train_config.json`` is ``record``, in the frames protocol it trained with."""
+    ``train_config.json`` is ``record``, in ``protocol`` (None = the frames protocol it trained with)."""
     data_split, cameras = split_cameras(split, record, run)
     return evaluation_samples(shards, data_split, max_frames=max_frames, with_rays=with_rays,
-                              protocol=run_protocol(record, shards), temporal_window=temporal_window, cameras=cameras)
+                              protocol=protocol or run_protocol(record, shards), temporal_window=temporal_window,
+                              cameras=cameras)
 
 
 def shard_info(shards_dir: ShardSet | str, temporal_window: int | None = None) -> dict:

@@ -24,7 +24,7 @@ import torch
 
 from deliffas.engine.devices import resolve_device
 from deliffas.engine.eval_config import EvalConfig
-from deliffas.engine.data_bridge import evaluation_samples, run_protocol, split_cameras
+from deliffas.engine.data_bridge import run_protocol, run_split_samples
 from deliffas.engine.identity import check_run_shards
 from deliffas.io.infra.files import check_writable
 from deliffas.engine.figures import GridImage, comparison_grid
@@ -57,10 +57,8 @@ def evaluate(cfg: EvalConfig) -> dict:
     model, record = load_run(cfg.run, device)
     shards = check_run_shards(cfg.run, record, cfg.shards)  # opened once for the whole command and passed down
     protocol = cfg.protocol or run_protocol(record, shards)
-    split, cameras = split_cameras(cfg.split, record, cfg.run)
-    samples, info = evaluation_samples(shards, split, max_frames=cfg.max_frames, with_rays=False,
-                                       protocol=protocol, temporal_window=model.config.temporal_window,
-                                       cameras=cameras)
+    samples, info = run_split_samples(shards, record, cfg.split, max_frames=cfg.max_frames,
+                                      temporal_window=model.config.temporal_window, run=cfg.run, protocol=protocol)
     evaluator = Evaluator(vgg16_path=cfg.vgg16_path, lpips_path=cfg.lpips_path, inception_path=cfg.inception_path,
                           device=device)
     grid_rows: list[GridImage] = []
