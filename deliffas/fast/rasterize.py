@@ -30,14 +30,14 @@ import ctypes
 import dataclasses
 import logging
 import threading
-from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from jaxtyping import Bool, Float, Integer, Real
+from jaxtyping import Integer, Real
 
 from deliffas.checks import check_shape
 from deliffas.geometry.arrays import ArrayLike, to_numpy
+from deliffas.geometry.shaded_pixels import ShadedPixels
 from deliffas.geometry.atlas import UVAtlas
 from deliffas.geometry.raycast import PEEL_EPS_REL, projected_pixel_window
 from deliffas.io.cameras import Camera
@@ -73,30 +73,6 @@ _KERNEL = LazyLibrary("rasterize", "rasterize.c", ("-fno-fast-math", "-ffp-contr
 def raster_kernel_available() -> bool:
     """Whether the C rasteriser is built and loaded in this process (builds it on the first call)."""
     return _KERNEL.get() is not None
-
-
-@dataclass(frozen=True)
-class ShadedPixels:
-    """The pixels of one camera image the light field shades, in row-major order.
-
-    Attributes:
-        pixels: (N,) int64 flat pixel index row * W + col.
-        uv_inner: (N, 2) float32, the inner surface's first-hit uv, or the outer exit uv.
-        inner_from_outer: (N,) bool, True where ``uv_inner`` is the outer exit.
-        uv_outer: (N, 2) float32, the outer surface's first-hit uv.
-        viewdir: (N, 3) float32 unit ray directions, world frame; None when not asked for.
-    """
-
-    pixels: Integer[np.ndarray, "N"]
-    uv_inner: Float[np.ndarray, "N 2"]
-    inner_from_outer: Bool[np.ndarray, "N"]
-    uv_outer: Float[np.ndarray, "N 2"]
-    viewdir: Float[np.ndarray, "N 3"] | None
-
-    @property
-    def num_rays(self) -> int:
-        """N."""
-        return int(self.pixels.shape[0])
 
 
 def _project(camera: Camera, verts: np.ndarray) -> np.ndarray:

@@ -23,7 +23,6 @@ the caller ray-casts (as ``UVRasterizer``).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -32,9 +31,10 @@ from deliffas.checks import check_shape
 from deliffas.geometry.arrays import ArrayLike, to_torch
 from deliffas.geometry.atlas import UVAtlas
 from deliffas.geometry.raycast import PEEL_EPS_REL
+from deliffas.geometry.shaded_pixels import ShadedPixels
 from deliffas.io.cameras import Camera
 
-__all__ = ["TorchShadedPixels", "TorchUVRasterizer", "CHUNK"]
+__all__ = ["TorchUVRasterizer", "CHUNK"]
 
 CHUNK = 1 << 22
 """(triangle, pixel) pairs tested at once: bounds the temporaries (about 40 bytes a pair)."""
@@ -42,31 +42,6 @@ CHUNK = 1 << 22
 _NONE = torch.iinfo(torch.int64).max  # empty key: no fragment
 _LOW32 = 0xFFFFFFFF
 _MAX_BITS = 0x7FFFFFFF
-
-
-@dataclass(frozen=True)
-class TorchShadedPixels:
-    """The pixels of one camera image the light field shades, in row-major order, as tensors on the
-    rasteriser's device (the fields of ``fast.rasterize.ShadedPixels``).
-
-    Attributes:
-        pixels: (N,) int64 flat pixel index row * W + col.
-        uv_inner: (N, 2) float32, the inner surface's first-hit uv, or the outer exit uv.
-        inner_from_outer: (N,) bool, True where ``uv_inner`` is the outer exit.
-        uv_outer: (N, 2) float32, the outer surface's first-hit uv.
-        viewdir: (N, 3) float32 unit ray directions, world frame; None when not asked for.
-    """
-
-    pixels: torch.Tensor
-    uv_inner: torch.Tensor
-    inner_from_outer: torch.Tensor
-    uv_outer: torch.Tensor
-    viewdir: torch.Tensor | None
-
-    @property
-    def num_rays(self) -> int:
-        """N."""
-        return int(self.pixels.shape[0])
 
 
 class TorchUVRasterizer:
@@ -110,7 +85,7 @@ class TorchUVRasterizer:
         img = cam @ K.T
         return torch.stack([img[:, 0] / img[:, 2], img[:, 1] / img[:, 2], cam[:, 2]], dim=1)
 
-    def shaded_pixels(self, camera: Camera, viewdir: bool = True) -> TorchShadedPixels | None:
+    def shaded_pixels(self, camera: Camera, viewdir: bool = True) -> ShadedPixels | None:
         """The shaded pixels of ``camera`` (tensors on the rasteriser's device), or None when a vertex is not in
         front of it (ray-cast then). ``viewdir=False`` leaves out the view directions."""
         pin, pout = self._project(camera, self.inner), self._project(camera, self.outer)
@@ -140,7 +115,7 @@ class TorchUVRasterizer:
         if viewdir:
             d = _ray_dirs(m, x, y)
             dirs = (d / torch.linalg.vector_norm(d, dim=1, keepdim=True)).to(torch.float32)
-        return TorchShadedPixels(pixels=shaded, uv_inner=uv_in.to(torch.float32), inner_from_outer=fo,
+        return ShadedPixels(pixels=shaded, uv_inner=uv_in.to(torch.float32), inner_from_outer=fo,
                                  uv_outer=uv_out.to(torch.float32), viewdir=dirs)
 
     def _exit_keys(self, pix: torch.Tensor, key: torch.Tensor, outer_key: torch.Tensor, inner_key: torch.Tensor,
