@@ -56,11 +56,11 @@ def _character_path() -> tuple[Path, str]:
     if (SAMPLE_DIR / "ddc.character").is_file():
         return SAMPLE_DIR / "ddc.character", "DDC sample"
     try:
-        from deliffas.geometry.procedural import make_procedural_character
+        from deliffas.geometry.procedural import ProceduralConfig, make_procedural_character
     except ImportError as exc:
         raise Unavailable(f"DDC sample absent and no procedural character ({exc})") from exc
     out = Path(tempfile.mkdtemp(prefix="deliffas_bench_"))
-    return Path(make_procedural_character(out)), "procedural"
+    return Path(make_procedural_character(ProceduralConfig(out))), "procedural"
 
 
 @functools.lru_cache(maxsize=1)

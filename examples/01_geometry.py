@@ -18,7 +18,7 @@ import torch
 from deliffas.geometry.atlas import UVAtlas, uv_texel_table
 from deliffas.geometry.frame_geometry import FrameGeometryBuilder
 from deliffas.geometry.motion_gen import procedural_motion
-from deliffas.geometry.procedural import make_procedural_character
+from deliffas.geometry.procedural import ProceduralConfig, make_procedural_character
 from deliffas.geometry.templates import build_template, ddc_spec
 from deliffas.io.formats.dynacap.character import read_character, read_motion
 from deliffas.io.mesh_files import write_mesh
@@ -35,7 +35,8 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
 
-    path = args.character or make_procedural_character(args.out / "character", target_faces=3000, texture_size=256)
+    path = args.character or make_procedural_character(ProceduralConfig(args.out / "character", target_faces=3000,
+                                                                                texture_size=256))
     character = read_character(path)
     template = build_template(ddc_spec(path), dtype=torch.float64)  # the one way to build any template kind
     if args.motion:

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from deliffas.geometry.atlas import UVAtlas
-from deliffas.geometry.procedural import make_procedural_character
+from deliffas.geometry.procedural import ProceduralConfig, make_procedural_character
 from deliffas.geometry.raycast import UVRaycaster, uv_inner_or_exit
 from deliffas.geometry.shell import offset_shell
 from deliffas.geometry.templates import build_template, ddc_spec
@@ -36,7 +36,7 @@ def main(argv: list[str] | None = None) -> None:
     size = tuple(int(v) for v in args.size.lower().split("x")) if args.size else None
     cameras = read_cameras(args.cameras, args.format, size)  # deliffas convention: mm, world -> camera
 
-    path = make_procedural_character(args.out / "character", target_faces=3000, texture_size=256)
+    path = make_procedural_character(ProceduralConfig(args.out / "character", target_faces=3000, texture_size=256))
     template = build_template(ddc_spec(path), dtype=torch.float64)
     inner = template.rest_verts.numpy()
     target = cameras[0].center + 3000.0 * cameras[0].R[2]  # 3 m along the first camera's optical axis

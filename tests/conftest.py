@@ -90,10 +90,10 @@ def procedural_build() -> dict:
 @pytest.fixture(scope="session")
 def procedural_character_path(tmp_path_factory) -> Path:
     """One build of PROCEDURAL_BUILD per test session (the .character is written last, so it marks completion)."""
-    from deliffas.geometry.procedural import make_procedural_character
+    from deliffas.geometry.procedural import ProceduralConfig, make_procedural_character
 
     d = tmp_path_factory.getbasetemp() / "procedural_s0_f6000_t256"
     path = d / "procedural.character"
     if not path.is_file():
-        make_procedural_character(d, **PROCEDURAL_BUILD)
+        make_procedural_character(ProceduralConfig(d, **PROCEDURAL_BUILD))
     return path

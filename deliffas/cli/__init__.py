@@ -128,12 +128,9 @@ def _add_geometry_commands(sub) -> None:
                         description="Build the procedural human (watertight template, Skeletool skeleton with "
                                     "DDC DOF names, skin, UVs, texture, segmentation with a skirt, embedded "
                                     "graph) and write it as a DynaCap character into OUT_DIR.")
-    q.add_argument("out_dir", type=Path, help="folder to write (created)")
-    q.add_argument("--seed", type=int, default=0, help="proportions, colours and patterns (default 0)")
-    q.add_argument("--faces", type=int, default=8000, help="template face budget (default 8000)")
-    q.add_argument("--name", default="procedural", help="file stem (default procedural)")
-    q.add_argument("--texture-size", type=int, default=1024, help="texture atlas side in texels (default 1024)")
-    q.add_argument("--overwrite", action="store_true", help="replace an earlier procedural character in OUT_DIR")
+    from deliffas.geometry.procedural_config import ProceduralConfig  # light; a Ctrl-C at start-up meets main()
+
+    add_config_arguments(q, ProceduralConfig)
     q.set_defaults(handler="character_procedural")
 
     p = sub.add_parser("template", help="write template variants (original/smooth/coarse) with outer shells",

@@ -16,7 +16,7 @@ from pathlib import Path
 from deliffas.io.camera_formats import read_cameras, write_cameras
 from deliffas.io.formats.dynacap.character import read_character
 from deliffas.geometry.smpl_surface_fit import SurfaceFitConfig
-from deliffas.geometry.procedural import make_procedural_character
+from deliffas.geometry.procedural import ProceduralConfig, make_procedural_character
 from deliffas.data.check import CheckConfig, check_subject
 from deliffas.data.check_report import write_check_report
 from deliffas.data.convert import ConvertConfig, convert
@@ -133,8 +133,7 @@ def cmd_cameras(args: argparse.Namespace) -> int:
 
 
 def cmd_character_procedural(args: argparse.Namespace) -> int:
-    path = make_procedural_character(args.out_dir, seed=args.seed, target_faces=args.faces, name=args.name,
-                                     texture_size=args.texture_size, overwrite=args.overwrite)
+    path = make_procedural_character(config_from_args(ProceduralConfig, args))
     c = read_character(path)
     print(f"wrote {path}: {c.mesh.num_verts} vertices, {c.mesh.num_faces} faces, {c.skeleton.num_dofs} DOFs, "
           f"{c.graph.num_verts if c.graph is not None else 0} graph nodes, height {c.mesh.verts[:, 1].max():.0f} mm")

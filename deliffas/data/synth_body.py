@@ -20,7 +20,7 @@ from deliffas.io.formats.dynacap.character import read_character, write_characte
 from deliffas.io.motion import Motion
 from deliffas.io.body_models.smpl import load_smpl_model
 from deliffas.geometry.motion_gen import procedural_motion
-from deliffas.geometry.procedural import make_procedural_character
+from deliffas.geometry.procedural import ProceduralConfig, make_procedural_character
 from deliffas.geometry.smpl_body import make_procedural_smpl
 from deliffas.geometry.smpl_motion import procedural_smpl_motion
 from deliffas.geometry.smpl_params import smpl_to_motion
@@ -108,7 +108,7 @@ def _ddc_body(out: Path, character: str | None, seed: int, skinning: str) -> Syn
         source = read_character(character)
         path = write_character(out / "character", source, name=Path(character).stem)
     else:
-        path = Path(make_procedural_character(out / "character", seed))
+        path = Path(make_procedural_character(ProceduralConfig(out / "character", seed=seed)))
     c = read_character(path)
     if c.mesh.face_uvs is None:
         raise ValueError(f"{c.files.mesh}: the character has no per-corner uvs (vt); a synthetic capture needs them")

@@ -15,7 +15,6 @@ World: y-up, mm, feet on y = 0, the character faces -z, its left side is at -x (
 from __future__ import annotations
 
 import logging
-import os
 from pathlib import Path
 
 import numpy as np
@@ -29,12 +28,14 @@ from deliffas.geometry.skeleton import SkeletonFK
 from deliffas.geometry.implicit_body import Primitive, sdf_grid
 from deliffas.geometry.marching_tets import CUBE_CORNERS, marching_tetrahedra
 from deliffas.geometry.mesh_ops import vertex_normals
+from deliffas.geometry.procedural_config import ProceduralConfig
 
 __all__ = [
     "PROCEDURAL_DOF_NAMES",
     "LABELS",
     "procedural_skeleton",
     "procedural_character",
+    "ProceduralConfig",
     "make_procedural_character",
 ]
 
@@ -481,17 +482,17 @@ def procedural_character(seed: int = 0, target_faces: int = 8000, name: str = "p
     )
 
 
-def make_procedural_character(out_dir: str | os.PathLike, seed: int = 0, target_faces: int = 8000,
-                              name: str = "procedural", texture_size: int = 1024, overwrite: bool = False) -> Path:
+def make_procedural_character(config: ProceduralConfig) -> Path:
     """Build the procedural character and write it as a DynaCap character folder.
 
     Writes ``<name>.character/.skeleton/.obj/.obj.mtl/.png/.skin/.motion``, ``segmentation.txt``,
-    ``hand_segmentation.txt`` and ``<name>_graph.obj`` into ``out_dir`` (a non-empty ``out_dir`` is
-    refused unless ``overwrite`` and it holds an earlier ``<name>.character``).
+    ``hand_segmentation.txt`` and ``<name>_graph.obj`` into ``config.out_dir`` (a non-empty folder is
+    refused unless ``config.overwrite`` and it holds an earlier ``<name>.character``).
 
     Returns:
         Path of the ``.character`` file.
     """
-    out = claim_output(out_dir, overwrite, f"{name}.character", "a procedural character")
-    c = procedural_character(seed, target_faces, name, texture_size)
+    name = config.name
+    out = claim_output(config.out_dir, config.overwrite, f"{name}.character", "a procedural character")
+    c = procedural_character(config.seed, config.target_faces, name, config.texture_size)
     return write_character(out, c, name, texture_png=c.extra["texture_png"])

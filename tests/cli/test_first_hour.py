@@ -62,11 +62,12 @@ def home(tmp_path_factory) -> Path:
     """``a/shards`` (a tiny converted capture) and ``a/run1`` trained from inside ``a`` with relative paths."""
     from deliffas.data.convert import ConvertConfig, convert
     from deliffas.data.synth import SynthConfig, synthesize_capture
-    from deliffas.geometry.procedural import make_procedural_character
+    from deliffas.geometry.procedural import ProceduralConfig, make_procedural_character
 
     root = tmp_path_factory.mktemp("first_hour")
     a = root / "a"
-    character = make_procedural_character(root / "character", seed=0, target_faces=2000, texture_size=128)
+    character = make_procedural_character(ProceduralConfig(root / "character", seed=0, target_faces=2000,
+                                                          texture_size=128))
     synthesize_capture(a / "subject", SynthConfig(num_frames=3, num_test_frames=1, num_cameras=3, width=32, height=32,
                                                   test_cameras=(2,), seed=0, character=str(character)))
     convert(a / "subject", a / "shards", ConvertConfig(atlas_res=32, progress=False))

@@ -23,10 +23,10 @@ def tiny() -> dict:
 @pytest.fixture(scope="session")
 def tiny_character(tmp_path_factory) -> Path:
     """The procedural character (label 12 = skirt) at a small face and texture budget."""
-    from deliffas.geometry.procedural import make_procedural_character
+    from deliffas.geometry.procedural import ProceduralConfig, make_procedural_character
 
-    return make_procedural_character(tmp_path_factory.mktemp("character"), seed=0, target_faces=3000,
-                                     texture_size=256)
+    return make_procedural_character(ProceduralConfig(tmp_path_factory.mktemp("character"), seed=0,
+                                                      target_faces=3000, texture_size=256))
 
 
 @pytest.fixture(scope="session")

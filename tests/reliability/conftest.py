@@ -27,10 +27,10 @@ def pytest_terminal_summary(terminalreporter):
 @pytest.fixture(scope="session")
 def rel_character(tmp_path_factory) -> Path:
     """The procedural character at a small face and texture budget."""
-    from deliffas.geometry.procedural import make_procedural_character
+    from deliffas.geometry.procedural import ProceduralConfig, make_procedural_character
 
-    return make_procedural_character(tmp_path_factory.mktemp("rel_character"), seed=0, target_faces=1500,
-                                     texture_size=128)
+    return make_procedural_character(ProceduralConfig(tmp_path_factory.mktemp("rel_character"), seed=0,
+                                                      target_faces=1500, texture_size=128))
 
 
 @pytest.fixture(scope="session")

@@ -43,10 +43,10 @@ def portable(tmp_path_factory) -> dict[str, Path]:
     """Another character's capture whose template lives inside its subject, its shards and a run on them."""
     from deliffas.data.convert import ConvertConfig, convert
     from deliffas.data.synth import SynthConfig, synthesize_capture
-    from deliffas.geometry.procedural import make_procedural_character
+    from deliffas.geometry.procedural import ProceduralConfig, make_procedural_character
 
     root = tmp_path_factory.mktemp("portable")
-    character = make_procedural_character(root / "char", seed=3, target_faces=600, texture_size=64)
+    character = make_procedural_character(ProceduralConfig(root / "char", seed=3, target_faces=600, texture_size=64))
     synthesize_capture(root / "subject", SynthConfig(num_frames=2, num_test_frames=1, num_cameras=3, width=24,
                                                      height=24, test_cameras=(2,), seed=2, character=str(character)))
     shutil.rmtree(root / "char")  # the subject holds its own copy of the character
