@@ -153,7 +153,7 @@ def prepare_template_variants(out: Path, character: Path, smooth_iters: int | No
     Pass a folder as ``prepare_shards(..., template=str(folder))``. The report (vertex/face counts,
     shells, atlas statistics) is ``out/report.json``; ``packing_res`` is xatlas' packing resolution.
     """
-    from deliffas.data.template_build import build_templates
+    from deliffas.data.template_build import TemplateConfig, build_templates
 
     report_path = Path(out) / "report.json"
     want = {"original"} | ({"smooth"} if smooth_iters is not None else set()) | (
@@ -162,8 +162,8 @@ def prepare_template_variants(out: Path, character: Path, smooth_iters: int | No
              "offset_mm": float(offset_mm), "packing_res": int(packing_res)}
     stamp_path = Path(out) / "recipe_request.json"
     if not (report_path.is_file() and stamp_path.is_file() and json.loads(stamp_path.read_text()) == stamp):
-        build_templates(character, out, smooth_iters=smooth_iters, coarse_faces=coarse_faces, offset_mm=offset_mm,
-                        atlas_res=packing_res)
+        build_templates(TemplateConfig(character, out, smooth_iters=smooth_iters, coarse_faces=coarse_faces,
+                                       offset_mm=offset_mm, atlas_res=packing_res))
         stamp_path.write_text(json.dumps(stamp, indent=2) + "\n")
     report = json.loads(report_path.read_text())
     missing = want - set(report["variants"])

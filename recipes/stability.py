@@ -8,7 +8,7 @@ default 3 in full mode, evaluated on held-out cameras; every number is the mean 
 foreground PSNR/SSIM/FLIP inside the person's padded mask box, the official protocol's PSNR beside it):
 
 * ``offset``: outer-shell offset d in mm, the plain shell (``ConvertConfig(offset_mm=d)``, every vertex
-  moved by d) and the safe shell (``build_templates(offset_mm=d, safe=True)``, d limited per vertex
+  moved by d) and the safe shell (``TemplateConfig(offset_mm=d, safe=True)``, d limited per vertex
   where the shell would cross another body part; converted with ``--template``). At d = 0 both
   shells are the inner surface, so the safe row repeats the plain one.
 * ``smoothing``: Taubin iterations of the template's ``smooth`` variant (0 = the original).
@@ -153,7 +153,7 @@ def _row(sweep: str, series: str, value: float, label: str, variant: str, result
 
 # ------------------------------------------------------------------------------------------------ sweeps
 def sweep_offset(st: _Study, plan: StabilityPlan) -> list[dict]:
-    from deliffas.data.template_build import build_templates
+    from deliffas.data.template_build import TemplateConfig, build_templates
 
     rows = []
     for d in plan.offsets_mm:
@@ -174,7 +174,8 @@ def sweep_offset(st: _Study, plan: StabilityPlan) -> list[dict]:
         def make(d=d, key=key, report=report) -> Path:
             folder = st.out / "templates" / key
             if not (folder / "report.json").is_file():
-                build_templates(st.character, folder, offset_mm=d, safe=True, atlas_res=128 if st.args.quick else 512)
+                build_templates(TemplateConfig(st.character, folder, offset_mm=d, safe=True,
+                                               atlas_res=128 if st.args.quick else 512))
             report.update(json.loads((folder / "report.json").read_text())["variants"]["original"]["shell"])
             return prepare_shards(st.out, st.subject, st.sizes, name=f"shards_{key}", template=str(folder / "original"),
                                   jobs=st.jobs)

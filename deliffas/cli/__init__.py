@@ -137,15 +137,9 @@ def _add_geometry_commands(sub) -> None:
                        description="Write OUT/<variant>/ (a complete DynaCap character + outer.obj, the offset "
                                    "shell with the same vertex order and UVs) for original and, when asked, "
                                    "smooth and coarse, plus OUT/report.json.")
-    p.add_argument("character", type=Path, help=".character file")
-    p.add_argument("--out", type=Path, required=True, help="output folder")
-    p.add_argument("--smooth", type=int, metavar="ITERS", help="also a Taubin-smoothed variant (ITERS lambda/mu pairs) (default: none)")
-    p.add_argument("--coarse", type=int, metavar="FACES", help="also a decimated variant with about FACES faces (default: none)")
-    p.add_argument("--offset", type=float, default=30.0, metavar="MM", help="outer-shell offset d in mm (default 30)")
-    p.add_argument("--safe", action="store_true", help="limit d per vertex where the shell would cross another part")
-    p.add_argument("--atlas-res", type=int, default=512, metavar="R",
-                   help="xatlas packing resolution of new atlases and texel grid of the report (default 512)")
-    p.add_argument("--overwrite", action="store_true", help="replace an earlier 'deliffas template' output in --out")
+    from deliffas.data.template_config import TemplateConfig  # light; imported here: a Ctrl-C at start-up meets main()
+
+    add_config_arguments(p, TemplateConfig)
     p.set_defaults(handler="template")
 
 

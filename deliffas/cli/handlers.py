@@ -25,7 +25,7 @@ from deliffas.data.posing import PoseConfig, pose_to_file
 from deliffas.data.smpl_capture_fit import fit_smpl_to_subject, write_fit
 from deliffas.data.shards import VerifyConfig, verify_conversion
 from deliffas.data.synth import SynthConfig, synthesize_capture
-from deliffas.data.template_build import build_templates
+from deliffas.data.template_build import TemplateConfig, build_templates
 from deliffas.models.deliffas import DeliffasModel
 from deliffas.models.zoo import get_config, list_models, list_presets
 from deliffas.engine.avatar import ExportConfig, export_avatar, list_avatars
@@ -141,14 +141,14 @@ def cmd_character_procedural(args: argparse.Namespace) -> int:
 
 
 def cmd_template(args: argparse.Namespace) -> int:
-    report = build_templates(args.character, args.out, smooth_iters=args.smooth, coarse_faces=args.coarse,
-                             offset_mm=args.offset, safe=args.safe, atlas_res=args.atlas_res, overwrite=args.overwrite)
+    cfg = config_from_args(TemplateConfig, args)
+    report = build_templates(cfg)
     for name, v in report["variants"].items():
         sh = v["shell"]
         print(f"{name:>8}: {v['num_verts']} vertices, {v['num_faces']} faces, watertight {v['watertight']}, "
               f"shell self-intersecting faces {sh['num_self_intersecting_faces']}"
-              + (f", {sh['num_clamped']} offsets clamped" if args.safe else ""))
-    print(f"wrote {args.out}/{{{','.join(report['variants'])}}}/ and {args.out}/report.json")
+              + (f", {sh['num_clamped']} offsets clamped" if cfg.safe else ""))
+    print(f"wrote {cfg.out}/{{{','.join(report['variants'])}}}/ and {cfg.out}/report.json")
     return 0
 
 

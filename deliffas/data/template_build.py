@@ -14,7 +14,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import os
 import time
 from pathlib import Path
 
@@ -26,8 +25,9 @@ from deliffas.io.formats.dynacap.character import Character, ObjData, read_chara
 from deliffas.geometry.atlas import UVAtlas, uv_texel_table
 from deliffas.geometry.shell import ShellConfig, offset_shell, shell_offsets, shell_report
 from deliffas.geometry.variants import coarse_variant, smooth_variant, write_variant
+from deliffas.data.template_config import TemplateConfig
 
-__all__ = ["VARIANTS", "build_templates", "atlas_info"]
+__all__ = ["VARIANTS", "TemplateConfig", "build_templates", "atlas_info"]
 
 log = logging.getLogger(__name__)
 
@@ -63,48 +63,40 @@ def _ensure_uvs(character: Character, atlas_res: int) -> tuple[Character, str]:
     return dataclasses.replace(character, mesh=mesh, texture=None), "xatlas"
 
 
-def build_templates(character_path: str | os.PathLike, out_dir: str | os.PathLike, smooth_iters: int | None = None,
-                    coarse_faces: int | None = None, offset_mm: float = 30.0, safe: bool = False,
-                    atlas_res: int = 512, overwrite: bool = False) -> dict:
-    """Write the template variants of a character with their outer shells and a report.
-
-    Args:
-        character_path: the ``.character`` file.
-        out_dir: output folder (created); ``out_dir/<variant>/`` per variant, ``out_dir/report.json``.
-        smooth_iters: Taubin iterations of the ``smooth`` variant; None skips it.
-        coarse_faces: face budget of the ``coarse`` variant; None skips it.
-        offset_mm: nominal outer-shell offset d (DELIFFAS: 30 mm).
-        safe: limit d per vertex where the shell would cross another body part (``safe_offsets``).
-        atlas_res: xatlas packing resolution for new atlases and the texel grid of the atlas statistics.
-        overwrite: replace an earlier ``build_templates`` output in ``out_dir`` (else a non-empty folder is refused).
+def build_templates(config: TemplateConfig) -> dict:
+    """Write the template variants of ``config.character`` with their outer shells and a report into ``config.out``
+    (each field: :class:`TemplateConfig`).
 
     Returns:
         The report (also written as ``report.json``): ``{"character", "offset_mm", "safe", "variants":
         {name: {"character", "outer", "num_verts", "num_faces", "watertight", "num_graph_nodes",
         "uv_source", "atlas", "shell", "seconds"}}}``.
     """
+    smooth_iters, coarse_faces, offset_mm, atlas_res = (config.smooth_iters, config.coarse_faces, config.offset_mm,
+                                                        config.atlas_res)
     if smooth_iters is not None and smooth_iters < 0:
         raise ValueError(f"smooth_iters: expected >= 0, got {smooth_iters}")
     if coarse_faces is not None and coarse_faces < 4:
         raise ValueError(f"coarse_faces: expected >= 4, got {coarse_faces}")
     if offset_mm <= 0:
         raise ValueError(f"offset_mm: expected > 0, got {offset_mm}")
-    out = claim_output(out_dir, overwrite, "report.json", "template variants")
-    original, uv_source = _ensure_uvs(read_character(character_path), atlas_res)
+    out = claim_output(config.out, config.overwrite, "report.json", "template variants")
+    original, uv_source = _ensure_uvs(read_character(config.character), atlas_res)
     jobs = [("original", lambda: original)]
     if smooth_iters is not None:
         jobs.append(("smooth", lambda: smooth_variant(original, smooth_iters)))
     if coarse_faces is not None:
         jobs.append(("coarse", lambda: coarse_variant(original, coarse_faces, atlas_res=atlas_res)))
-    config = ShellConfig(offset_mm=float(offset_mm), safe=bool(safe))
-    report = {"character": str(Path(character_path)), "offset_mm": float(offset_mm), "safe": bool(safe), "variants": {}}
+    shell_config = ShellConfig(offset_mm=float(offset_mm), safe=bool(config.safe))
+    report = {"character": str(Path(config.character)), "offset_mm": float(offset_mm), "safe": bool(config.safe),
+              "variants": {}}
     for name, make in jobs:  # at most three variants
         t0 = time.perf_counter()
         character = make()
         folder = out / name
         path = write_variant(folder, character, name)
         mesh = character.mesh
-        offsets = shell_offsets(mesh.verts, mesh.faces, config)
+        offsets = shell_offsets(mesh.verts, mesh.faces, shell_config)
         outer = offset_shell(mesh.verts, mesh.faces, offsets)
         write_obj(folder / "outer.obj", ObjData(np.asarray(outer), mesh.faces, mesh.uvs, mesh.face_uvs))
         shell = shell_report(mesh.verts, mesh.faces, outer, offsets=offsets, offset_mm=offset_mm)

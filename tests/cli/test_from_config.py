@@ -127,7 +127,8 @@ def test_an_annotation_without_a_parser_is_refused():
 GENERATED = {"cmd_train": "TrainConfig", "cmd_eval": "EvalConfig", "cmd_render": "RenderConfig",
              "cmd_convert": "ConvertConfig", "cmd_synth": "SynthConfig", "cmd_check": "CheckConfig",
              "cmd_demo": "DemoConfig", "cmd_view": "ViewConfig", "cmd_export": "ExportConfig",
-             "cmd_verify": "VerifyConfig", "cmd_pose": "PoseConfig", "cmd_character_procedural": "ProceduralConfig"}
+             "cmd_verify": "VerifyConfig", "cmd_pose": "PoseConfig", "cmd_character_procedural": "ProceduralConfig",
+             "cmd_template": "TemplateConfig"}
 """Each config command's handler and the config its options are generated from."""
 
 

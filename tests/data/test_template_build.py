@@ -56,11 +56,11 @@ def test_variant_folders_and_outer_shells(built):
 
 
 def test_safe_offsets_reduce_self_intersections(built, tmp_path):
-    from deliffas.data.template_build import build_templates
+    from deliffas.data.template_build import TemplateConfig, build_templates
 
     char_path, out = built
     unsafe = json.loads((out / "report.json").read_text())["variants"]["original"]["shell"]
-    report = build_templates(char_path, tmp_path / "safe", offset_mm=30.0, safe=True, atlas_res=64)
+    report = build_templates(TemplateConfig(char_path, tmp_path / "safe", offset_mm=30.0, safe=True, atlas_res=64))
     assert set(report["variants"]) == {"original"}
     safe = report["variants"]["original"]["shell"]
     assert safe["num_self_intersecting_faces"] <= unsafe["num_self_intersecting_faces"]
@@ -72,8 +72,8 @@ def test_safe_offsets_reduce_self_intersections(built, tmp_path):
 
 
 def test_bad_arguments(built, tmp_path):
-    from deliffas.data.template_build import build_templates
+    from deliffas.data.template_build import TemplateConfig, build_templates
 
     with pytest.raises(ValueError, match="offset_mm"):
-        build_templates(built[0], tmp_path / "x", offset_mm=0.0)
+        build_templates(TemplateConfig(built[0], tmp_path / "x", offset_mm=0.0))
     assert main(["template", str(tmp_path / "missing.character"), "--out", str(tmp_path / "y")]) == 2
