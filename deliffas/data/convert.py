@@ -41,6 +41,7 @@ from deliffas.data.shards import (
 )
 from deliffas.data.convert_config import ConvertConfig
 from deliffas.data.subjects import Subject, parse_subject
+from deliffas.data.synth_config import check_synth_images
 from deliffas.data.check import check_before_convert
 from deliffas.geometry.shell import mesh_edges
 from deliffas.parallel import TaskExecutor, open_executor
@@ -220,6 +221,7 @@ def convert(subject: Subject | str | os.PathLike, out_dir: str | os.PathLike,
         subject = parse_subject(root, config.format, config.subject_options())
     if out == subject.root or subject.root in out.parents:
         raise ValueError(f"output {out} lies inside the source folder {subject.root}; the source is never written to")
+    check_synth_images(subject.root)
     if config.check:
         check_before_convert(subject)
     plan = _plan(subject, config)

@@ -11,8 +11,10 @@ is shaded by
 with l the fixed direction towards the light, h = normalize(l + v), v the direction to the camera:
 the specular term is view-dependent, ``ao`` (ambient occlusion of the posed geometry) and
 ``albedo_scale`` (e.g. wrinkle bands) are pose-dependent per-vertex inputs. Alpha is the covered
-fraction of the pixel's rays; RGB is the colour over ``background`` (premultiplied by coverage), so
-the RGB of an RGBA file is exactly what a camera would see in front of that background.
+fraction of the pixel's rays; RGB is straight (not premultiplied) colour: the mean colour of the rays
+that hit the surface where alpha > 0, ``background`` where no ray hits. As for a real capture's
+photograph and mask, ``image * alpha + background * (1 - alpha)`` is what a camera integrating over
+the pixel sees in front of ``background`` (``engine.samples.composite_target``, black background).
 
 open3d is reached through ``deliffas.geometry.raycast`` (its one door).
 """
@@ -41,7 +43,8 @@ class RenderedView:
     """One rendered camera view.
 
     Attributes:
-        rgb: (H, W, 3) uint8, colour over the background.
+        rgb: (H, W, 3) uint8, straight colour: the mean over the pixel's rays that hit the surface
+            where ``alpha > 0``, the background where none hits.
         alpha: (H, W) uint8, coverage (255 = every ray of the pixel hit the surface).
     """
     rgb: np.ndarray
@@ -176,9 +179,11 @@ def render_views(verts: np.ndarray, faces: np.ndarray, uvs: np.ndarray, face_uvs
         color = np.clip(color, f32(0.0), f32(1.0))
         acc = np.zeros((len(face), 3), f32)
         acc[hit] = color
-        acc = acc.reshape(cam.height, cam.width, s * s, 3).mean(axis=2)
-        cover = hit.reshape(cam.height, cam.width, s * s).mean(axis=2)
-        rgb = acc + (1.0 - cover)[..., None] * bg
+        acc = acc.reshape(cam.height, cam.width, s * s, 3).sum(axis=2)
+        hits = hit.reshape(cam.height, cam.width, s * s).sum(axis=2)
+        cover = hits / (s * s)
+        # straight colour: the hits' mean (not premultiplied by coverage); the background where none hits
+        rgb = np.where((hits > 0)[..., None], acc / np.maximum(hits, 1)[..., None], bg)
         out.append(RenderedView(np.round(np.clip(rgb, 0, 1) * 255).astype(np.uint8),
                                 np.round(cover * 255).astype(np.uint8)))
     return out

@@ -37,7 +37,7 @@ from deliffas.geometry.templates import build_template
 from deliffas.data.garment import GarmentFrames, garment_deformation, region_weights
 from deliffas.data.render_gt import ShadingConfig, camera_rays, render_views, vertex_ambient_occlusion
 from deliffas.data.synth_body import make_synth_body
-from deliffas.data.synth_config import SynthConfig
+from deliffas.data.synth_config import IMAGES_KEY, STRAIGHT_IMAGES, SynthConfig
 from deliffas.parallel import process_map
 
 __all__ = [
@@ -221,7 +221,8 @@ def synthesize_capture(out_dir: str | os.PathLike, config: SynthConfig = SynthCo
         _write_videos(out, [c.name for c in cameras], frames, config)
         seconds["videos"] = time.perf_counter() - t3
 
-    record = {"config": _jsonable(asdict(config)), "body": {"kind": body.kind, "path": str(body.path.relative_to(out))},
+    record = {"config": _jsonable(asdict(config)), IMAGES_KEY: STRAIGHT_IMAGES,
+              "body": {"kind": body.kind, "path": str(body.path.relative_to(out))},
               "garment": {seq: {"max_offset_mm": float(np.linalg.norm(g.offsets, axis=-1).max()),
                                 "spread_mm": [round(float(x), 3) for x in g.spread_mm],
                                 "speed_mm_s": [round(float(x), 3) for x in g.speed_mm_s]}

@@ -3,12 +3,20 @@ it without torch."""
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Literal
 
 from deliffas.options import count_or_indices, opt, positive_int
 
-__all__ = ["SynthConfig", "ShadingConfig"]
+__all__ = ["SynthConfig", "ShadingConfig", "IMAGES_KEY", "STRAIGHT_IMAGES", "check_synth_images"]
+
+IMAGES_KEY = "images"
+"""Key of ``synth.json`` that says what the RGB of the written images means."""
+STRAIGHT_IMAGES = "straight"
+"""Its value: straight colour (not premultiplied by the coverage alpha), as a photograph and its mask."""
+
 
 
 @dataclass(frozen=True)
@@ -92,3 +100,26 @@ class SynthConfig:
     overwrite: bool = opt(False, help="replace an earlier synthetic capture in OUT_DIR (a non-empty folder is "
                                       "refused otherwise)")
     """Replace an existing synthetic capture in ``out_dir`` (a non-empty folder is refused otherwise)."""
+
+
+def check_synth_images(root: str | Path) -> None:
+    """Refuse a synthetic capture whose supersampled images are premultiplied by their coverage.
+
+    ``synth`` wrote colour x coverage (premultiplied) before ``synth.json`` carried
+    ``"images": "straight"``; with ``--supersample 1`` both are the same bytes (binary alpha), so only
+    a supersampled capture without the key is refused. A folder without ``synth.json`` (a real capture)
+    passes.
+
+    Raises:
+        ValueError: naming ``synth.json``, the key and the command that re-renders the capture.
+    """
+    path = Path(root) / "synth.json"
+    if not path.is_file():
+        return
+    record = json.loads(path.read_text())
+    supersample = int(record.get("config", {}).get("supersample", 1))
+    if supersample > 1 and record.get(IMAGES_KEY) != STRAIGHT_IMAGES:
+        raise ValueError(f"{path}: key {IMAGES_KEY!r} is {record.get(IMAGES_KEY)!r}, expected {STRAIGHT_IMAGES!r} "
+                         f"(rendered with --supersample {supersample} by an older synth: its edge pixels are "
+                         f"premultiplied by their coverage); re-render it: deliffas synth {Path(root)} --supersample "
+                         f"{supersample} --overwrite, with the other options under 'config' in synth.json")

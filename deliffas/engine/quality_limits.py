@@ -2,11 +2,11 @@
 
 * :func:`aliasing_ceiling`: the same capture rendered twice, point-sampled (one ray per pixel, the
   recipe captures' default) and supersampled (what a camera integrating over its pixels sees):
-  the masked PSNR of the supersampled images (``synth`` writes colour x coverage over a black
-  background, i.e. each pixel's expected point sample) against the point-sampled ones is what a model
-  that predicts each pixel's true average colour scores against point-sampled ground truth. Without
-  sub-pixel geometry no model can predict which texel a point sample hits, so this bounds every
-  model's score on such a capture.
+  the masked PSNR of the supersampled targets (``composite_target`` of the straight colour and the
+  coverage mask: each pixel's expected point sample over the black background) against the
+  point-sampled ones is what a model that predicts each pixel's true average colour scores against
+  point-sampled ground truth. Without sub-pixel geometry no model can predict which texel a point
+  sample hits, so this bounds every model's score on such a capture.
 * :func:`texture_oracle`: :class:`~deliffas.models.texel_oracle.TexelMeans` fitted on the training
   cameras' rays of every training frame (inner uv, or the outer shell's exit uv where the ray misses
   the inner surface) and scored on the training, validation and test cameras: what a static texture on
@@ -65,10 +65,8 @@ def aliasing_ceiling(run: str | Path, supersampled_shards: str | Path, max_frame
                 raise ValueError(f"{supersampled_shards}: frame {b.frame} cameras {list(b.camera_ids)} size "
                                  f"{b.images.shape[1:3]} differ from the run's shards (frame {a.frame}, cameras "
                                  f"{list(a.camera_ids)}, size {a.images.shape[1:3]}): not the same capture")
-            gt = composite_target(a.images, a.masks)
-            # synth writes colour x coverage over black: the supersampled RGB is already each pixel's
-            # expected point sample (multiplying it by its fractional mask again would darken the edge)
-            scores += [_score(np.asarray(b.images[k], np.float32), gt[k], a.masks[k]) for k in range(a.num_cameras)]
+            gt, mean = composite_target(a.images, a.masks), composite_target(b.images, b.masks)
+            scores += [_score(mean[k].numpy(), gt[k], a.masks[k]) for k in range(a.num_cameras)]
         result[split] = {"masked_psnr": float(np.mean(scores)), "images": len(scores)}
     return result
 

@@ -61,6 +61,10 @@ class FrameSample:
 def composite_target(images: np.ndarray | torch.Tensor, masks: np.ndarray | torch.Tensor) -> torch.Tensor:
     """Training target: (K, H, W, 3) images in [0, 1] over a black background by the (K, H, W) masks.
 
+    ``images`` hold straight colour (not premultiplied by the mask), as a photograph and its
+    foreground coverage, and as ``synth`` writes them: a fractional mask (a supersampled edge) blends
+    the colour with the background.
+
     The model paints every ray that meets the outer shell; pixels of the shell that are not the
     person must come out as the background, so the target is defined everywhere.
     """

@@ -3,7 +3,7 @@
 Layouts (dynacap-formats.md 1.11, docs/data.md):
 
 - image folder (DELIFFAS): ``<root>/rgb_<W>_<H>/<frame:06d>/image_alp_c_<cam:03d>_f_<frame:06d>.png``,
-  8-bit RGBA; RGB is the image, A the foreground coverage.
+  8-bit RGBA; RGB is the image (straight colour, not premultiplied by A), A the foreground coverage.
 - videos (raw DynaCap release): ``<seq>/img/c_<name>.avi`` (RGB) and ``<seq>/fg/c_<name>.avi``
   (foreground masks as grey frames), video frame k = capture frame ``first_frame + k``.
 - mask folders (DDC scripts): ``<root>/<cam>/image_c_<cam>_f_<frame>.(jpg|png)`` (no zero padding).
