@@ -148,12 +148,9 @@ def _add_training_commands(sub) -> None:
     p = sub.add_parser("zoo", help="list the model zoo (named configurations and presets) and avatar files",
                        description="List every model of the zoo with its presets (atlas side S, MLP, feature "
                                    "channels, parameters) and, given FOLDER, the .avatar files under it.")
-    p.add_argument("action", choices=["list"], help="what to do")
-    p.add_argument("folder", type=Path, nargs="?", default=None,
-                   help="also list the .avatar files found under this folder (name, model, preset, size) "
-                        "(default: none)")
-    p.add_argument("--json", action="store_true", help="print JSON")
-    p.add_argument("--count-paper", action="store_true", help="also build the paper-size models to count parameters")
+    from deliffas.engine.zoo_config import ZooConfig  # light; imported here: a Ctrl-C at start-up meets main()
+
+    add_config_arguments(p, ZooConfig)
     p.set_defaults(handler="zoo")
 
     p = sub.add_parser("train", help="train a model of the zoo on converted shards",

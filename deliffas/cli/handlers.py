@@ -26,9 +26,7 @@ from deliffas.data.smpl_capture_fit import fit_smpl_to_subject, write_fit
 from deliffas.data.shards import VerifyConfig, verify_conversion
 from deliffas.data.synth import SynthConfig, synthesize_capture
 from deliffas.data.template_build import TemplateConfig, build_templates
-from deliffas.models.deliffas import DeliffasModel
-from deliffas.models.zoo import get_config, list_models, list_presets
-from deliffas.engine.avatar import ExportConfig, export_avatar, list_avatars
+from deliffas.engine.avatar import ExportConfig, export_avatar
 from deliffas.engine.auto_capacity import AutoCapacityConfig, auto_capacity
 from deliffas.engine.data_bridge import resolve_protocol
 from deliffas.engine.demo import DemoConfig, run_demo
@@ -37,6 +35,7 @@ from deliffas.engine.memory import retain_freed_memory
 from deliffas.engine.render import RenderConfig, render_video
 from deliffas.engine.resume import iterations_done, resumed_config
 from deliffas.engine.train import RUN_MARKER, TrainConfig, Trainer
+from deliffas.engine.zoo_listing import ZooConfig, zoo_listing
 from deliffas.engine.view import SubjectViewConfig, ViewConfig, is_capture, view, view_subject
 from deliffas.fast.config import FastConfig
 from deliffas.cli.fast_env import fast_from_env
@@ -153,24 +152,18 @@ def cmd_template(args: argparse.Namespace) -> int:
 
 
 def cmd_zoo(args: argparse.Namespace) -> int:
-    rows = []
-    for name in list_models():
-        for preset in list_presets(name):
-            cfg = get_config(name, preset)
-            params = DeliffasModel(cfg).num_parameters() if preset != "paper" or args.count_paper else None
-            rows.append({"model": name, "preset": preset, "atlas_res": cfg.atlas_res,
-                         "mlp": f"{cfg.mlp.depth}x{cfg.mlp.width}", "features": cfg.feature_channels,
-                         "parameters": params})
-    avatars = list_avatars(args.folder) if args.folder is not None else []
-    if args.json:
-        print(json.dumps({"models": rows, "avatars": avatars} if args.folder is not None else rows, indent=2))
+    cfg = config_from_args(ZooConfig, args)
+    listing = zoo_listing(cfg)
+    rows, avatars = listing["models"], listing["avatars"]
+    if cfg.json:
+        print(json.dumps(listing if avatars is not None else rows, indent=2))
         return 0
     print(f"{'model':<26} {'preset':<8} {'S':>5} {'mlp':>7} {'feat':>5} {'params':>12}")
     for r in rows:
         p = f"{r['parameters']:,}" if r["parameters"] is not None else "(--count-paper)"
         print(f"{r['model']:<26} {r['preset']:<8} {r['atlas_res']:>5} {r['mlp']:>7} {r['features']:>5} {p:>12}")
-    if args.folder is not None:
-        print(f"\navatar files under {args.folder}: {len(avatars)}")
+    if avatars is not None:
+        print(f"\navatar files under {cfg.folder}: {len(avatars)}")
         for a in avatars:
             print(f"{a['path']}: " + (f"error: {a['error']}" if a.get("error") else
                                       f"{a['model']} ({a['preset']}), S {a['atlas_res']}, {a['mb']:.1f} MB"))
