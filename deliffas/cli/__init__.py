@@ -98,25 +98,9 @@ def _add_capture_tool_commands(sub) -> None:
                                    "Lens distortion the target cannot hold is an error unless --drop-distortion. "
                                    "Shorthands kept from earlier releases: CALIBRATION --to-colmap DIR and "
                                    "CALIBRATION --from-colmap DIR (writes CALIBRATION).")
-    p.add_argument("src", type=Path, help="camera file or folder to read (for --from-colmap: the .calibration to write)")
-    p.add_argument("out", type=Path, nargs="?", help="file to write, or an existing folder (it gets the format's "
-                                                      "usual file name; formats whose cameras are a folder write "
-                                                      "into it) (no default: required unless --to-colmap/--from-colmap)")
-    from deliffas.io.camera_formats import camera_format_names  # numpy only, no torch; here: a Ctrl-C meets main()
+    from deliffas.io.camera_config import CamerasConfig  # light; imported here: a Ctrl-C at start-up meets main()
 
-    formats = camera_format_names()
-    p.add_argument("--to", dest="to_format", choices=formats, help="format to write (no default: required with OUT)")
-    p.add_argument("--from", dest="from_format", choices=("auto",) + formats, default="auto",
-                   help="format of SRC (default: detected from its name)")
-    p.add_argument("--size", type=image_size, default=None,
-                   help="image size WxH of every camera, for camera files that do not store it (default: read from "
-                        "the first image of each camera)")
-    p.add_argument("--drop-distortion", action="store_true",
-                   help="write cameras whose distortion the target cannot hold without it (logged per camera)")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing OUT")
-    p.add_argument("--to-colmap", type=Path, metavar="DIR", help="shorthand: SRC --to colmap DIR (default: not used)")
-    p.add_argument("--from-colmap", type=Path, metavar="DIR", help="shorthand: DIR --to dynacap SRC (default: not used)")
-    p.add_argument("--text", action="store_true", help="COLMAP: write the .txt model instead of .bin")
+    add_config_arguments(p, CamerasConfig)
     p.set_defaults(handler="cameras")
 
 

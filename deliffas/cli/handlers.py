@@ -13,7 +13,7 @@ import os
 import sys
 from pathlib import Path
 
-from deliffas.io.camera_formats import read_cameras, write_cameras
+from deliffas.io.camera_formats import CamerasConfig, convert_cameras
 from deliffas.io.formats.dynacap.character import read_character
 from deliffas.geometry.smpl_surface_fit import SurfaceFitConfig
 from deliffas.geometry.procedural import ProceduralConfig, make_procedural_character
@@ -111,23 +111,8 @@ def cmd_verify(args: argparse.Namespace) -> int:
 
 
 def cmd_cameras(args: argparse.Namespace) -> int:
-    src, out, to = args.src, args.out, args.to_format
-    if args.to_colmap is not None or args.from_colmap is not None:
-        if args.to_colmap is not None and args.from_colmap is not None:
-            raise ValueError("give --to-colmap or --from-colmap, not both")
-        if out is not None or to is not None:
-            raise ValueError("--to-colmap/--from-colmap take no OUT and no --to")
-        if args.to_colmap is not None:
-            out, to = args.to_colmap, "colmap"
-        else:
-            src, out, to = args.from_colmap, args.src, "dynacap"
-    elif out is None or to is None:
-        raise ValueError("give OUT and --to FORMAT (or --to-colmap DIR / --from-colmap DIR)")
-    if out.exists() and not args.overwrite and not (out.is_dir() and not any(out.iterdir())):
-        raise FileExistsError(f"{out} exists; pass --overwrite to replace it")
-    cameras = read_cameras(src, "colmap" if args.from_colmap is not None else args.from_format, args.size)
-    written = write_cameras(cameras, out, to, drop_distortion=args.drop_distortion, text=args.text)
-    print(f"wrote {len(cameras)} cameras as {to} to {written}")
+    done = convert_cameras(config_from_args(CamerasConfig, args))
+    print(f"wrote {done.count} cameras as {done.fmt} to {done.path}")
     return 0
 
 

@@ -5,7 +5,7 @@ returns cameras in the deliffas convention (mm, world -> camera, OpenCV axes, pi
 OpenCV distortion in ``Camera.extra["distortion"]``); ``write_cameras(cameras, out, fmt)`` writes them.
 Each format converts at its own boundary (its module under ``deliffas.io.formats``, through
 ``deliffas.io.camera_conventions``) and registers a ``CaptureFormat``; this module only looks the format
-up in the registry. It is what ``deliffas cameras SRC OUT --to FMT [--from FMT]`` calls.
+up in the registry. :func:`convert_cameras` is what ``deliffas cameras SRC OUT --to FMT [--from FMT]`` calls.
 :func:`camera_format_table` lists the formats: where each keeps its cameras, the lens terms it
 holds, whether it records the image size.
 
@@ -16,14 +16,17 @@ unless ``drop_distortion=True``, which logs a warning per camera.
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
+from deliffas.io.camera_config import CamerasConfig
 from deliffas.io.cameras import Camera, check_camera_names
 from deliffas.io.format_registry import CameraWriteOptions, capture_format, capture_formats
 from deliffas.io.infra.reader_checks import require_unique_names
 
-__all__ = ["camera_format_names", "camera_format_table", "detect_camera_format", "read_cameras", "write_cameras"]
+__all__ = ["camera_format_names", "camera_format_table", "detect_camera_format", "read_cameras", "write_cameras",
+           "CamerasConfig", "CameraConversion", "convert_cameras"]
 
 PathLike = str | os.PathLike
 
@@ -102,3 +105,43 @@ def write_cameras(cameras: Sequence[Camera], out: PathLike, fmt: str, drop_disto
     if out_p.is_dir() and f.camera_path not in (None, "."):
         out_p = out_p / f.camera_path
     return f.write_cameras(cameras, out_p, CameraWriteOptions(drop_distortion=drop_distortion, text=text))
+
+
+@dataclass(frozen=True)
+class CameraConversion:
+    """What :func:`convert_cameras` wrote."""
+
+    count: int
+    fmt: str
+    path: Path
+
+
+def _conversion_ends(config: CamerasConfig) -> tuple[Path, str, Path, str]:
+    """(source, its format, output, its format) with the COLMAP shorthands resolved."""
+    if config.to_colmap is None and config.from_colmap is None:
+        if config.out is None or config.to_format is None:
+            raise ValueError("give OUT and --to FORMAT (or --to-colmap DIR / --from-colmap DIR)")
+        return Path(config.src), config.from_format, Path(config.out), config.to_format
+    if config.to_colmap is not None and config.from_colmap is not None:
+        raise ValueError("give --to-colmap or --from-colmap, not both")
+    if config.out is not None or config.to_format is not None:
+        raise ValueError("--to-colmap/--from-colmap take no OUT and no --to")
+    if config.to_colmap is not None:
+        return Path(config.src), config.from_format, Path(config.to_colmap), "colmap"
+    return Path(config.from_colmap), "colmap", Path(config.src), "dynacap"
+
+
+def convert_cameras(config: CamerasConfig) -> CameraConversion:
+    """Read the cameras of ``config.src`` and write them in ``config.to_format`` (each field: :class:`CamerasConfig`).
+
+    Raises:
+        FileExistsError: OUT exists (other than an empty folder) and not ``config.overwrite``.
+        ValueError: OUT / ``--to`` missing, or given with a COLMAP shorthand; as :func:`read_cameras` and
+            :func:`write_cameras`.
+    """
+    src, src_format, out, to = _conversion_ends(config)
+    if out.exists() and not config.overwrite and not (out.is_dir() and not any(out.iterdir())):
+        raise FileExistsError(f"{out} exists; pass --overwrite to replace it")
+    cameras = read_cameras(src, src_format, config.size)
+    written = write_cameras(cameras, out, to, drop_distortion=config.drop_distortion, text=config.text)
+    return CameraConversion(len(cameras), to, written)
