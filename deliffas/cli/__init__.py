@@ -58,14 +58,11 @@ def _add_capture_tool_commands(sub) -> None:
                                    "with the capture's frame numbers) and OUT/fit.json (residuals in mm); then "
                                    "`deliffas convert SUBJECT SHARDS --template MODEL --motions training=OUT/"
                                    "training.npz --motions testing=OUT/testing.npz` converts it with SMPL.")
-    p.add_argument("subject", type=Path, help="capture folder")
-    p.add_argument("--model", type=Path, required=True, help="SMPL model .npz/.pkl (official layout; not shipped)")
-    p.add_argument("--uv", type=Path, default=None, help="OBJ with the model's uv layout (default MODEL_uv.obj if present)")
-    p.add_argument("--out", type=Path, required=True, help="folder for the fitted motions")
-    from deliffas.geometry.smpl_surface_fit_config import SurfaceFitConfig  # light; a Ctrl-C at start-up meets main()
+    from deliffas.data.fit_smpl_config import FitSmplConfig  # light; imported here: a Ctrl-C at start-up meets main()
+    from deliffas.geometry.smpl_surface_fit_config import SurfaceFitConfig
 
+    add_config_arguments(p, FitSmplConfig)
     add_config_arguments(p, SurfaceFitConfig)
-    p.add_argument("--overwrite", action="store_true", help="replace an earlier fit in --out")
     p.set_defaults(handler="fit_smpl")
 
     p = sub.add_parser("check", help="score the posed template's silhouette against the masks, per camera",

@@ -22,7 +22,7 @@ from deliffas.data.check_report import write_check_report
 from deliffas.data.convert import ConvertConfig, convert
 from deliffas.data.subjects import SubjectOptions, parse_subject
 from deliffas.data.posing import PoseConfig, pose_to_file
-from deliffas.data.smpl_capture_fit import fit_smpl_to_subject, write_fit
+from deliffas.data.smpl_capture_fit import FitSmplConfig, fit_smpl_capture
 from deliffas.data.shards import VerifyConfig, verify_conversion
 from deliffas.data.synth import SynthConfig, synthesize_capture
 from deliffas.data.template_build import TemplateConfig, build_templates
@@ -79,11 +79,8 @@ def cmd_convert(args: argparse.Namespace) -> int:
 
 
 def cmd_fit_smpl(args: argparse.Namespace) -> int:
-    if args.out.is_dir() and any(args.out.iterdir()) and not args.overwrite:
-        raise FileExistsError(f"{args.out}: not empty; pass --overwrite to replace an earlier fit there")
-    fit = fit_smpl_to_subject(parse_subject(args.subject), args.model, args.uv,
-                              config=config_from_args(SurfaceFitConfig, args, progress=True))
-    out = write_fit(args.out, fit, overwrite=args.overwrite)
+    fit, out = fit_smpl_capture(config_from_args(FitSmplConfig, args,
+                                                 fit=config_from_args(SurfaceFitConfig, args, progress=True)))
     for name, r in fit.residual_mm.items():
         print(f"{name}: {len(r)} frames, mean surface distance {r.mean():.1f} mm (max {r.max():.1f})")
     print(f"wrote {out}")

@@ -24,9 +24,10 @@ from deliffas.io.infra.text_lines import write_text_atomic
 from deliffas.geometry.smpl_params import params_to_motion
 from deliffas.geometry.smpl_surface_fit import SurfaceFitConfig, fit_smpl_to_surfaces
 from deliffas.geometry.templates import build_template, spec_from_file
-from deliffas.data.subjects import Subject
+from deliffas.data.fit_smpl_config import FitSmplConfig
+from deliffas.data.subjects import Subject, parse_subject
 
-__all__ = ["SMPLCaptureFit", "fit_smpl_to_subject", "write_fit"]
+__all__ = ["SMPLCaptureFit", "fit_smpl_to_subject", "write_fit", "FitSmplConfig", "fit_smpl_capture"]
 
 
 @dataclass(frozen=True)
@@ -87,3 +88,17 @@ def write_fit(out_dir: str | os.PathLike, fit: SMPLCaptureFit, overwrite: bool =
         for name, r in fit.residual_mm.items()}}
     write_text_atomic(out / "fit.json", json.dumps(report, indent=2) + "\n")  # last: marks a finished fit
     return out
+
+
+def fit_smpl_capture(config: FitSmplConfig) -> tuple[SMPLCaptureFit, Path]:
+    """:func:`fit_smpl_to_subject` of ``config.subject`` (every sequence), written by :func:`write_fit` into
+    ``config.out``; a non-empty ``out`` is refused before any fitting unless ``config.overwrite``.
+
+    Returns:
+        The fit and the folder written.
+    """
+    out = Path(config.out)
+    if out.is_dir() and any(out.iterdir()) and not config.overwrite:
+        raise FileExistsError(f"{out}: not empty; pass --overwrite to replace an earlier fit there")
+    fit = fit_smpl_to_subject(parse_subject(config.subject), config.model, config.uv, config=config.fit)
+    return fit, write_fit(out, fit, overwrite=config.overwrite)

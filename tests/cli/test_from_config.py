@@ -129,7 +129,7 @@ GENERATED = {"cmd_train": "TrainConfig", "cmd_eval": "EvalConfig", "cmd_render":
              "cmd_demo": "DemoConfig", "cmd_view": "ViewConfig", "cmd_export": "ExportConfig",
              "cmd_verify": "VerifyConfig", "cmd_pose": "PoseConfig", "cmd_character_procedural": "ProceduralConfig",
              "cmd_template": "TemplateConfig", "cmd_zoo": "ZooConfig",
-             "cmd_cameras": "CamerasConfig"}
+             "cmd_cameras": "CamerasConfig", "cmd_fit_smpl": "FitSmplConfig"}
 """Each config command's handler and the config its options are generated from."""
 
 
