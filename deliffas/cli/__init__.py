@@ -70,12 +70,11 @@ def _add_capture_tool_commands(sub) -> None:
                                    "with every camera's mask (IoU) and name likely causes of failures (pose "
                                    "direction, transposed R, OpenGL axes, m vs mm, frame offset, camera order). "
                                    "Writes OUT/report.md, overlays and summary.json; exit 1 when a camera fails.")
-    p.add_argument("subject", type=Path, help="capture folder (any supported format)")
-    p.add_argument("--out", type=Path, required=True, help="report folder")
-    p.add_argument("--format", default="auto", help="capture format (default: detected)")
-    from deliffas.data.check_config import CheckConfig  # light; imported here: a Ctrl-C at start-up meets main()
+    from deliffas.data.check_capture_config import CheckCaptureConfig  # light; a Ctrl-C at start-up meets main()
+    from deliffas.data.check_config import CheckConfig
     from deliffas.data.subject_options import SubjectOptions
 
+    add_config_arguments(p, CheckCaptureConfig)
     add_config_arguments(p, CheckConfig)
     add_config_arguments(p, SubjectOptions)
     p.set_defaults(handler="check")

@@ -17,10 +17,10 @@ from deliffas.io.camera_formats import CamerasConfig, convert_cameras
 from deliffas.io.formats.dynacap.character import read_character
 from deliffas.geometry.smpl_surface_fit import SurfaceFitConfig
 from deliffas.geometry.procedural import ProceduralConfig, make_procedural_character
-from deliffas.data.check import CheckConfig, check_subject
-from deliffas.data.check_report import write_check_report
+from deliffas.data.check import CheckConfig
+from deliffas.data.check_report import CheckCaptureConfig, check_capture
 from deliffas.data.convert import ConvertConfig, convert
-from deliffas.data.subjects import SubjectOptions, parse_subject
+from deliffas.data.subjects import SubjectOptions
 from deliffas.data.posing import PoseConfig, pose_to_file
 from deliffas.data.smpl_capture_fit import FitSmplConfig, fit_smpl_capture
 from deliffas.data.shards import VerifyConfig, verify_conversion
@@ -88,9 +88,8 @@ def cmd_fit_smpl(args: argparse.Namespace) -> int:
 
 
 def cmd_check(args: argparse.Namespace) -> int:
-    subject = parse_subject(args.subject, args.format, config_from_args(SubjectOptions, args))
-    result = check_subject(subject, config_from_args(CheckConfig, args))
-    report = write_check_report(result, args.out)
+    result, report = check_capture(config_from_args(CheckCaptureConfig, args, check=config_from_args(CheckConfig, args),
+                                                    subject_options=config_from_args(SubjectOptions, args)))
     print(f"{'PASS' if result.ok else 'FAIL'}: {result.reason}\nwrote {report}")
     return 0 if result.ok else 1
 

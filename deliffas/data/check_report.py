@@ -15,9 +15,11 @@ import numpy as np
 from deliffas.io.infra.reader_checks import write_json_atomic
 from deliffas.io.formats.capture_frames import write_image_file
 from deliffas.io.infra.text_lines import write_text_atomic
-from deliffas.data.check import CheckResult
+from deliffas.data.check import CheckResult, check_subject
+from deliffas.data.check_capture_config import CheckCaptureConfig
+from deliffas.data.subjects import parse_subject
 
-__all__ = ["overlay", "write_check_report", "check_summary"]
+__all__ = ["overlay", "write_check_report", "check_summary", "CheckCaptureConfig", "check_capture"]
 
 
 def overlay(image: np.ndarray, silhouette: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -84,3 +86,15 @@ def write_check_report(result: CheckResult, out_dir: str | os.PathLike) -> Path:
     write_json_atomic(out / "summary.json", check_summary(result))
     write_text_atomic(out / "report.md", "\n".join(lines) + "\n")
     return out / "report.md"
+
+
+def check_capture(config: CheckCaptureConfig) -> tuple[CheckResult, Path]:
+    """Parse ``config.subject``, :func:`deliffas.data.check.check_subject` it and write the report into
+    ``config.out`` (:func:`write_check_report`).
+
+    Returns:
+        The result and the path of ``report.md``.
+    """
+    subject = parse_subject(config.subject, config.format, config.subject_options)
+    result = check_subject(subject, config.check)
+    return result, write_check_report(result, config.out)
