@@ -22,6 +22,13 @@ __all__ = ["main", "build_parser"]
 log = logging.getLogger(__name__)
 
 
+def _add_plain_option(p: argparse.ArgumentParser) -> None:
+    """``--plain`` of render and view: ``fast=None`` instead of the fast path (``cli.fast_env``), not a field."""
+    p.add_argument("--plain", action="store_true",
+                   help="render as 'deliffas eval' does (ray-cast uvs, fp32 MLP) instead of the CPU fast path "
+                        "(rasterised uvs, fused inputs, bf16 MLP where the CPU has native bf16)")
+
+
 def _add_capture_commands(sub) -> None:
     """synth and convert."""
     p = sub.add_parser("synth", help="render a synthetic DynaCap capture with a loose garment",
@@ -174,9 +181,7 @@ def _add_evaluation_commands(sub) -> None:
                                    "once over the video: the capture's test motion may have few frames, so pass "
                                    "--frames N --loop for a longer one.")
     add_config_arguments(p, RenderConfig)
-    p.add_argument("--plain", action="store_true",
-                   help="render as 'deliffas eval' does (ray-cast uvs, fp32 MLP) instead of the CPU fast path "
-                        "(rasterised uvs, fused inputs, bf16 MLP where the CPU has native bf16)")
+    _add_plain_option(p)
     p.set_defaults(handler="render")
 
     p = sub.add_parser("export", help="write a run as one .avatar file (model, template, atlas, cameras)",
@@ -207,9 +212,7 @@ def _add_viewer_commands(sub) -> None:
 
     add_config_arguments(p, ViewConfig)
     add_config_arguments(p, SubjectViewConfig, skip=("host", "port", "max_resolution"))  # the same options
-    p.add_argument("--plain", action="store_true",
-                   help="render as 'deliffas eval' does (ray-cast uvs, fp32 MLP) instead of the CPU fast path "
-                        "(rasterised uvs, fused inputs, bf16 MLP where the CPU has native bf16)")
+    _add_plain_option(p)
     p.set_defaults(handler="view")
 
     p = sub.add_parser("demo", help="the whole path on the embedded procedural character, with a report",
