@@ -42,6 +42,21 @@ def test_colmap_shorthands(tmp_path):
     assert_same_cameras(read_calibration(tmp_path / "back.calibration"), cams)
 
 
+def test_the_api_takes_the_commands_config(tmp_path):
+    """``convert_cameras(CamerasConfig(...))`` is ``deliffas cameras`` (shorthands resolved the same way)."""
+    from deliffas.io.camera_formats import CamerasConfig, convert_cameras
+
+    write_calibration(tmp_path / "src.calibration", rig())
+    done = convert_cameras(CamerasConfig(tmp_path / "src.calibration", to_colmap=tmp_path / "m", text=True))
+    assert (done.count, done.fmt) == (5, "colmap") and (tmp_path / "m" / "cameras.txt").is_file()
+    back = convert_cameras(CamerasConfig(tmp_path / "back.calibration", from_colmap=tmp_path / "m"))
+    assert back.fmt == "dynacap" and back.path == tmp_path / "back.calibration"
+    assert_same_cameras(read_calibration(back.path), rig())
+    with pytest.raises(ValueError, match="not both"):
+        convert_cameras(CamerasConfig(tmp_path / "src.calibration", to_colmap=tmp_path / "m",
+                                      from_colmap=tmp_path / "m"))
+
+
 def _digest(folder):
     return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.rglob("*")) if p.is_file()}
 
