@@ -5,7 +5,7 @@ Scene: the benchmark capture (``_capture.py``), frame 0, camera 0 rescaled to 94
 (seed 0), atlas side = the shards' (256), U-Nets on their inference forward. One torch thread
 (``BENCH_THREADS``) on both sides of every ratio.
 
-* frame, pose held: ``engine.realtime.fast_render_camera`` with the frame's U-Net features cached
+* frame, pose held: ``fast.frame.fast_render_camera`` with the frame's U-Net features cached
   (the viewer while the pose holds), in the dtype ``FastConfig()`` resolves to (bf16 where the CPU
   has native bf16).
 * irreducible work, measured in the same run: one plain z-buffer pass of the outer surface
@@ -98,7 +98,7 @@ def _frame_fns(model, sample, info, camera, fast):
 
 
 def _ratio_rows(sample, info) -> list[Result]:
-    from deliffas.engine.realtime import _rasterizer, fast_camera_rays
+    from deliffas.fast.frame import _rasterizer, fast_camera_rays
     from deliffas.fast.config import FastConfig
     from deliffas.engine.timing import StageTimer
 
@@ -137,7 +137,7 @@ def _ratio_rows(sample, info) -> list[Result]:
 def _stream_rows(sample, info) -> list[Result]:
     """Frames per second of a stream of 940x1285 frames: one after the other on 1 and on 2 intra-op threads,
     and two frames in flight (``render_stream``, one thread each), interleaved; pose held and per frame."""
-    from deliffas.engine.realtime import render_stream
+    from deliffas.fast.frame import render_stream
     from deliffas.fast.config import FastConfig
 
     model = _model(info, "realtime")

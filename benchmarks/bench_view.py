@@ -47,7 +47,7 @@ def run() -> list[Result]:
     from deliffas.engine.runs import load_run
     from deliffas.engine.shading import render_camera, render_frame
     from deliffas.cli.fast_env import fast_from_env
-    from deliffas.engine.realtime import fast_for_device
+    from deliffas.fast.frame import fast_for_device
     from deliffas.engine.view_config import ViewConfig
     from deliffas.engine.timing import StageTimer
     from deliffas.engine.view.renderer import RenderWorker, ViewRenderer, ViewRequest

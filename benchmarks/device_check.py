@@ -203,7 +203,7 @@ def _agreement(model, sample, info, device: torch.device) -> dict:
     """PSNR of one frame rendered on ``device`` (torch rasteriser) against the CPU with the same weights and the
     C/numpy rasteriser's rays; on a CPU device this compares the two rasterisers."""
     from deliffas.engine.rays import paint_images, ray_query, stack_rays
-    from deliffas.engine.realtime import fast_camera_rays
+    from deliffas.fast.frame import fast_camera_rays
     from deliffas.engine.timing import StageTimer
     from deliffas.geometry.raycast import UVRaycaster
 

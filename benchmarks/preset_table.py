@@ -29,7 +29,7 @@ def _fps(run: str, max_frames: int | None) -> dict[str, str]:
     from deliffas.engine.data_bridge import evaluation_samples
     from deliffas.engine.runs import load_run
     from deliffas.engine.shading import render_camera
-    from deliffas.engine.realtime import render_stream
+    from deliffas.fast.frame import render_stream
     from deliffas.fast.config import FastConfig
     from deliffas.engine.timing import StageTimer
     from deliffas.geometry.raycast import UVRaycaster

@@ -32,7 +32,7 @@ from deliffas.engine.rays import uv_source
 from deliffas.engine.runs import load_run
 from deliffas.engine.samples import composite_target
 from deliffas.engine.shading import render_frame
-from deliffas.engine.realtime import fast_for_device
+from deliffas.fast.frame import fast_for_device
 from deliffas.engine.timing import StageTimer
 from deliffas.geometry.raycast import UVRaycaster
 from deliffas.models.metrics import METRICS, Evaluator

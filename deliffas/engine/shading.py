@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from deliffas.engine.rays import UVSource, device_camera_rays, paint_images, ray_query, stack_rays
-from deliffas.engine.realtime import fast_for_device, fast_render_camera
+from deliffas.fast.frame import fast_for_device, fast_render_camera
 from deliffas.engine.samples import FrameSample
 from deliffas.engine.timing import StageTimer
 from deliffas.fast.config import FastConfig
@@ -34,7 +34,7 @@ def render_camera(model: DeliffasModel, features: FrameFeatures, raycaster, came
                   timer: StageTimer, chunk_size: int = 262144, fast: FastConfig | None = None,
                   uv: UVSource = "auto") -> torch.Tensor:
     """One camera's (H, W, 3) image on black from the frame's encoded ``features`` (stages uv, sample, mlp);
-    with ``fast`` on CPU, by the fast path (``engine.realtime``) (rasterised uvs, fused inputs, bf16 MLP where native);
+    with ``fast`` on CPU, by the fast path (``fast.frame``) (rasterised uvs, fused inputs, bf16 MLP where native);
     else the uvs from ``uv`` (``engine.rays.uv_source``)."""
     fast = fast_for_device(fast, device)
     if fast is not None:

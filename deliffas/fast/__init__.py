@@ -8,10 +8,14 @@ Reading order for a newcomer:
 * :mod:`deliffas.fast.shade`: :class:`~deliffas.fast.shade.FastShader`, ``DeliffasModel.shade`` for inference
   (``csrc/ray_inputs.c``: sampled features and encodings as GEMM operands; ``csrc/fused_shade.c``: the whole
   MLP in one pass), the torch path as fallback;
-* ``deliffas.engine.realtime`` joins them to the engine's rays and timers (``fast_render_camera``,
-  ``render_stream``).
+* :mod:`deliffas.fast.frame`: a camera's image from them (``fast_render_camera``: uv, sample and mlp stages on
+  any timer with ``stage(name)``), the ray caster where a vertex is behind the camera, and ``render_stream``
+  (several frames in flight). The rays and their way to the model are the engine's too
+  (``geometry.camera_rays``, ``models.ray_query``); the engine picks the path (``fast_for_device``).
 
-The U-Net's inference kernels (``models/unet_cpu.py``, ``unet_prepack.py``, ``unet_conv.py``) stay in ``models``
-(training runs the same U-Net modules), and the normal-map gather in ``geometry`` (conversion uses it); all C
-sources sit in ``deliffas/csrc/`` and are compiled by :mod:`deliffas.native`.
+The U-Net's CPU kernels (``models/unet_cpu.py``, ``unet_prepack.py``, ``unet_conv.py``) stay in ``models``: they
+are the U-Net's own layers (``unet_conv.Conv2d`` and ``ConvTranspose2d`` are what ``models.unet`` is built of,
+for training and inference alike), and ``models`` may not import ``fast``. The normal-map gather stays in
+``geometry`` (conversion uses it). All C sources sit in ``deliffas/csrc/`` and are compiled by
+:mod:`deliffas.native`.
 """

@@ -16,7 +16,7 @@ Dtype = Literal["auto", "float32", "bfloat16"]
 
 @dataclass(frozen=True)
 class FastConfig:
-    """How the CPU fast path renders (``deliffas.engine.realtime``); None where a config takes one = the plain path.
+    """How the CPU fast path renders (``deliffas.fast.frame``); None where a config takes one = the plain path.
 
     The CLI maps the ``DELIFFAS_FAST_*`` environment variables onto it (``deliffas.cli.fast_env``)."""
 

@@ -368,7 +368,7 @@ class UVRaycaster:
             raise ValueError(f"peel: expected 'recast' or 'list', got {peel!r}")
         inner_verts, faces, outer_verts = to_numpy(inner_verts), to_numpy(faces), to_numpy(outer_verts)
         self.peel = peel
-        # the frame's surfaces as given (read by engine/realtime's rasteriser of the same frame)
+        # the frame's surfaces as given (read by fast.frame's rasteriser of the same frame)
         self.inner_verts, self.outer_verts, self.faces, self.atlas = inner_verts, outer_verts, faces, atlas
         self.corner_uvs = atlas.uvs.astype(np.float32)[atlas.face_uvs]  # (F, 3, 2) float32
         # open3d scenes built at the first cast: the rasterising fast path never casts

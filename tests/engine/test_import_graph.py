@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 TRAINING = "deliffas.engine.train"
-EVALUATION = ("deliffas.engine.evaluate", "deliffas.engine.shading", "deliffas.engine.realtime", "deliffas.fast",
+EVALUATION = ("deliffas.engine.evaluate", "deliffas.engine.shading", "deliffas.fast",
               "deliffas.models.metrics")
 
 

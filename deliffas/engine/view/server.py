@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from deliffas.engine.realtime import fast_for_device
+from deliffas.fast.frame import fast_for_device
 from deliffas.engine.view_config import ViewConfig
 from deliffas.engine.view.renderer import (
     VIEW_MODES,

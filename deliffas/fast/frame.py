@@ -1,6 +1,6 @@
-"""The engine's side of the CPU fast path (``deliffas.fast``): a camera's image from the engine's rays and timers.
+"""A camera's image by the CPU fast path, and frames rendered several at once (:func:`render_stream`).
 
-A camera's image is rendered here as :func:`deliffas.engine.shading.render_camera` renders it,
+A camera's image is rendered here as the engine's plain path (``engine.shading.render_camera``) renders it,
 stage by stage (``uv``, ``sample``, ``mlp``), with three replacements:
 
 * ``uv``: :class:`~deliffas.fast.rasterize.UVRasterizer` instead of the open3d ray caster (same
@@ -29,25 +29,34 @@ import collections
 import logging
 import weakref
 from concurrent.futures import ThreadPoolExecutor
-from typing import Callable, Iterable, Iterator, TypeVar
+from typing import Callable, ContextManager, Iterable, Iterator, Protocol, TypeVar, runtime_checkable
 
 import torch
 
-from deliffas.engine.rays import CameraRays, RayBatch, camera_rays, paint_images, ray_query
-from deliffas.engine.timing import StageTimer
 from deliffas.fast.config import FastConfig
 from deliffas.fast.rasterize import UVRasterizer
 from deliffas.fast.shade import FastShader, supports
+from deliffas.geometry.camera_rays import CameraRays, camera_rays
 from deliffas.geometry.raycast import UVRaycaster
 from deliffas.io.cameras import Camera
 from deliffas.models.deliffas import DeliffasModel, FrameFeatures
+from deliffas.models.ray_query import RayBatch, paint_images, ray_query
 
-__all__ = ["fast_for_device", "fast_camera_rays", "fast_render_camera", "render_stream"]
+__all__ = ["StageTiming", "fast_for_device", "fast_camera_rays", "fast_render_camera", "render_stream"]
 
 logger = logging.getLogger(__name__)
 
 T = TypeVar("T")
 R = TypeVar("R")
+
+
+@runtime_checkable
+class StageTiming(Protocol):
+    """What the fast path times its stages with (the engine's ``engine.timing.StageTimer`` is one)."""
+
+    def stage(self, name: str) -> ContextManager[None]:
+        """A context that adds its wall-clock time to stage ``name``."""
+        ...
 
 
 def fast_for_device(fast: FastConfig | None, device: torch.device | str) -> FastConfig | None:
@@ -99,7 +108,7 @@ def _camera_batch(rays: CameraRays) -> RayBatch:
 
 @torch.no_grad()
 def fast_render_camera(model: DeliffasModel, features: FrameFeatures, raycaster: UVRaycaster, camera: Camera,
-                       timer: StageTimer, fast: FastConfig = FastConfig(), background: float = 0.0) -> torch.Tensor:
+                       timer: StageTiming, fast: FastConfig = FastConfig(), background: float = 0.0) -> torch.Tensor:
     """One camera's (H, W, 3) float32 image on ``background``, as ``render_camera`` on CPU (stages uv, sample, mlp).
 
     Variants :class:`FastShader` does not support keep the model's own ``gather_inputs`` and MLP."""

@@ -1,4 +1,4 @@
-"""engine.realtime: the fast path renders what render_camera's plain path renders, and its switches work."""
+"""fast.frame against the engine: the fast path renders what render_camera's plain path renders, its switches work."""
 
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from deliffas.engine import realtime
+from deliffas.fast import frame as fast_frame
 from deliffas.engine.shading import render_camera
 from deliffas.cli.fast_env import fast_from_env
-from deliffas.engine.realtime import fast_camera_rays, fast_for_device
+from deliffas.fast.frame import fast_camera_rays, fast_for_device
 from deliffas.engine.rays import camera_rays
 from deliffas.engine.timing import StageTimer
 from deliffas.fast.config import FastConfig
@@ -134,16 +134,16 @@ def test_render_stream_equals_sequential(frame):
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # the stream's workers run on one intra-op thread each: compare like with like
     try:
-        sequential = list(realtime.render_stream(one, cams, in_flight=1))
+        sequential = list(fast_frame.render_stream(one, cams, in_flight=1))
     finally:
         torch.set_num_threads(threads)
-    pipelined = list(realtime.render_stream(one, cams, in_flight=2))
+    pipelined = list(fast_frame.render_stream(one, cams, in_flight=2))
     assert torch.get_num_threads() == threads  # restored
     assert len(pipelined) == len(cams)
     for a, b in zip(sequential, pipelined):
         assert torch.equal(a, b)
     with pytest.raises(ValueError, match="in_flight"):
-        next(realtime.render_stream(one, cams, in_flight=0))
+        next(fast_frame.render_stream(one, cams, in_flight=0))
 
 
 def test_frames_in_flight_switch(unchecked):
