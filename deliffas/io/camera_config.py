@@ -43,4 +43,5 @@ class CamerasConfig:
     to_colmap: Path | None = opt(None, help="shorthand: SRC --to colmap DIR", metavar="DIR", default_text="not used")
     from_colmap: Path | None = opt(None, help="shorthand: DIR --to dynacap SRC", metavar="DIR",
                                    default_text="not used")
-    text: bool = opt(False, help="COLMAP: write the .txt model instead of .bin")
+    text: bool = opt(False, help="write the --to format's text variant where it has one (COLMAP: the .txt model "
+                                 "instead of .bin); refused for the others")

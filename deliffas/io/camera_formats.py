@@ -26,7 +26,7 @@ from deliffas.io.format_registry import CameraWriteOptions, capture_format, capt
 from deliffas.io.infra.reader_checks import require_unique_names
 
 __all__ = ["camera_format_names", "camera_format_table", "detect_camera_format", "read_cameras", "write_cameras",
-           "CamerasConfig", "CameraConversion", "convert_cameras"]
+           "CamerasConfig", "CameraConversion", "convert_cameras", "shorthand_fields"]
 
 PathLike = str | os.PathLike
 
@@ -89,14 +89,18 @@ def write_cameras(cameras: Sequence[Camera], out: PathLike, fmt: str, drop_disto
 
     ``out`` is the file to write, or an existing folder, which gets the format's usual name
     (``CaptureFormat.camera_path``: ``annots.npy``, ``transforms.json``, ...; formats whose cameras are a
-    folder, COLMAP and EasyMocap, write into ``out``). ``text``: COLMAP's .txt model instead of .bin.
+    folder, COLMAP and EasyMocap, write into ``out``). ``text``: the format's text variant
+    (``CaptureFormat.text_variant``, e.g. COLMAP's .txt model instead of .bin).
 
     Raises:
         LossyConversionError: distortion the format cannot hold (unless ``drop_distortion``).
-        ValueError: an unknown format, a camera the format cannot represent (e.g. skew), or a camera name given
-            twice.
+        ValueError: an unknown format, ``text`` for a format without a text variant, a camera the format cannot
+            represent (e.g. skew), or a camera name given twice.
     """
     f = capture_format(fmt, "write_cameras", what="camera")
+    if text and f.text_variant is None:
+        having = ", ".join(g.name for g in capture_formats("text_variant", "write_cameras")) or "none"
+        raise ValueError(f"text: {fmt} has no text variant (formats with one: {having})")
     cameras = list(cameras)
     if not cameras:
         raise ValueError("write_cameras: no cameras to write")
@@ -116,19 +120,30 @@ class CameraConversion:
     path: Path
 
 
+def shorthand_fields() -> dict[str, tuple[str, str]]:
+    """The ``CamerasConfig`` field of each format shorthand (``CaptureFormat.shorthand_with``), as
+    ``{field: (direction, format)}``: ``to_NAME`` -> ("to", NAME), ``from_NAME`` -> ("from", NAME)."""
+    return {f"{d}_{f.name}": (d, f.name) for f in capture_formats("shorthand_with") for d in ("to", "from")}
+
+
 def _conversion_ends(config: CamerasConfig) -> tuple[Path, str, Path, str]:
-    """(source, its format, output, its format) with the COLMAP shorthands resolved."""
-    if config.to_colmap is None and config.from_colmap is None:
+    """(source, its format, output, its format) with the format shorthands (``--to-NAME DIR``) resolved."""
+    fields = shorthand_fields()
+    flag = lambda key: "--" + key.replace("_", "-")  # noqa: E731
+    given = [(key, getattr(config, key)) for key in fields if getattr(config, key, None) is not None]
+    if not given:
         if config.out is None or config.to_format is None:
-            raise ValueError("give OUT and --to FORMAT (or --to-colmap DIR / --from-colmap DIR)")
+            raise ValueError(f"give OUT and --to FORMAT (or {' / '.join(flag(k) + ' DIR' for k in fields)})")
         return Path(config.src), config.from_format, Path(config.out), config.to_format
-    if config.to_colmap is not None and config.from_colmap is not None:
-        raise ValueError("give --to-colmap or --from-colmap, not both")
+    if len(given) > 1:
+        raise ValueError(f"give {' or '.join(flag(k) for k, _ in given)}, not both")
     if config.out is not None or config.to_format is not None:
-        raise ValueError("--to-colmap/--from-colmap take no OUT and no --to")
-    if config.to_colmap is not None:
-        return Path(config.src), config.from_format, Path(config.to_colmap), "colmap"
-    return Path(config.from_colmap), "colmap", Path(config.src), "dynacap"
+        raise ValueError(f"{flag(given[0][0])} takes no OUT and no --to")
+    (key, folder), = given
+    direction, name = fields[key]
+    if direction == "to":
+        return Path(config.src), config.from_format, Path(folder), name
+    return Path(folder), name, Path(config.src), str(capture_format(name).shorthand_with)
 
 
 def convert_cameras(config: CamerasConfig) -> CameraConversion:
@@ -136,7 +151,7 @@ def convert_cameras(config: CamerasConfig) -> CameraConversion:
 
     Raises:
         FileExistsError: OUT exists (other than an empty folder) and not ``config.overwrite``.
-        ValueError: OUT / ``--to`` missing, or given with a COLMAP shorthand; as :func:`read_cameras` and
+        ValueError: OUT / ``--to`` missing, or given with a format shorthand (``shorthand_fields``); as :func:`read_cameras` and
             :func:`write_cameras`.
     """
     src, src_format, out, to = _conversion_ends(config)

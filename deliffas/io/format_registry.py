@@ -38,7 +38,7 @@ class CameraWriteOptions:
 
     Attributes:
         drop_distortion: zero the lens terms the format cannot hold (logged per camera) instead of refusing.
-        text: a text variant where the format has one (COLMAP's ``.txt`` model instead of ``.bin``).
+        text: the format's text variant (``CaptureFormat.text_variant``; refused where it has none).
     """
 
     drop_distortion: bool = False
@@ -57,6 +57,12 @@ class CaptureFormat:
         distortion: the OpenCV lens coefficients its camera file holds (names of
             ``camera_conventions.DISTORTION_NAMES``; ``()`` for none).
         stores_size: whether its camera file records the image size (else readers need ``size=``).
+        text_variant: what ``CameraWriteOptions.text`` writes instead of the usual file (e.g. COLMAP's ``.txt``
+            model); None: the format has no text variant, and ``text`` is refused.
+        shorthand_with: ``deliffas cameras`` spells ``SRC --to NAME DIR`` as ``SRC --to-NAME DIR`` and
+            ``DIR --to FORMAT SRC`` as ``SRC --from-NAME DIR``, FORMAT being this field (the format such a
+            SRC is in); None: no such shorthand. The command's config declares one field per shorthand
+            (``to_NAME``, ``from_NAME``).
         detect_cameras: ``(path) -> bool``: ``path`` (a camera file, or a folder holding one) is this format's.
         read_cameras: ``(path, size) -> list[Camera]`` in the deliffas convention; ``size`` (W, H) or None.
         write_cameras: ``(cameras, out, CameraWriteOptions) -> Path``: the file or folder written.
@@ -70,6 +76,8 @@ class CaptureFormat:
     camera_path: str | None = None
     distortion: tuple[str, ...] | None = None
     stores_size: bool | None = None
+    text_variant: str | None = None
+    shorthand_with: str | None = None
     detect_cameras: Callable[[Path], bool] | None = None
     read_cameras: Callable[[Path, tuple[int, int] | None], list[Camera]] | None = None
     write_cameras: Callable[[Sequence[Camera], Path, CameraWriteOptions], Path] | None = None

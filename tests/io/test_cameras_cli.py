@@ -93,3 +93,22 @@ def test_bad_inputs_are_one_error_line(tmp_path, capsys):
     with pytest.raises(SystemExit) as info:
         main(["cameras", str(tmp_path / "src.calibration"), str(tmp_path / "o"), "--to", "blender"])
     assert info.value.code == 2
+
+
+def test_shorthands_come_from_the_registry():
+    """Each ``--to-NAME`` / ``--from-NAME`` field of the config is a registered format's shorthand, and back."""
+    import dataclasses
+
+    from deliffas.io.camera_formats import CamerasConfig, shorthand_fields
+
+    fields = {f.name for f in dataclasses.fields(CamerasConfig) if f.name.startswith(("to_", "from_"))}
+    assert fields - {"to_format", "from_format"} == set(shorthand_fields())
+    for key, (direction, name) in shorthand_fields().items():
+        assert key == f"{direction}_{name}" and capture_format(name).shorthand_with in camera_format_names()
+
+
+def test_text_is_refused_for_a_format_without_a_text_variant(tmp_path, capsys):
+    write_calibration(tmp_path / "src.calibration", rig())
+    _fails(capsys, ["cameras", str(tmp_path / "src.calibration"), str(tmp_path / "a.npy"), "--to", "zju", "--text"],
+           "zju has no text variant (formats with one: colmap)")
+    assert not (tmp_path / "a.npy").exists()

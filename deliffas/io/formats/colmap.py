@@ -131,6 +131,7 @@ def _write_cameras(cameras: Sequence[Camera], out: Path, options: CameraWriteOpt
 
 FORMAT = CaptureFormat(
     "colmap", "COLMAP sparse model", camera_path=".", distortion=(), stores_size=True,
+    text_variant="the .txt model instead of .bin", shorthand_with="dynacap",
     detect_cameras=file_detector("cameras.bin", "cameras.txt"),
     read_cameras=lambda path, size: cameras_from_colmap(path if path.is_dir() else path.parent),
     write_cameras=_write_cameras)
