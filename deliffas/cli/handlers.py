@@ -107,7 +107,7 @@ def cmd_verify(args: argparse.Namespace) -> int:
 
 
 def cmd_cameras(args: argparse.Namespace) -> int:
-    done = convert_cameras(config_from_args(CamerasConfig, args))
+    done = convert_cameras(config_from_args(CamerasConfig, args), names=option_names(CamerasConfig))
     print(f"wrote {done.count} cameras as {done.fmt} to {done.path}")
     return 0
 

@@ -68,7 +68,21 @@ PixelCentre = Literal["integer", "half"]
 
 
 class LossyConversionError(ValueError):
-    """A camera holds something (lens distortion) that the target format cannot store."""
+    """A camera holds something (lens distortion) that the target format cannot store.
+
+    ``drop_option``: how to ask for it to be dropped, named in the message (the Python argument
+    ``drop_distortion=True``); :meth:`naming` gives the same error naming another spelling (a CLI's flag).
+    """
+
+    def __init__(self, reason: str, drop_option: str | None = None):
+        told = f"{reason}; undistort the images first, or pass {drop_option}" if drop_option else reason
+        super().__init__(told)
+        self.reason = reason
+        self.drop_option = drop_option
+
+    def naming(self, drop_option: str) -> "LossyConversionError":
+        """This error telling to pass ``drop_option`` (e.g. ``--drop-distortion``); itself where nothing is droppable."""
+        return LossyConversionError(self.reason, drop_option) if self.drop_option else self
 
 
 def invert_rigid(M: np.ndarray) -> np.ndarray:
@@ -170,7 +184,7 @@ def require_distortion_fits(camera: Camera, fmt: str, holds: tuple[str, ...], dr
     message = (f"camera {camera.name}: {fmt} cannot store lens distortion {', '.join(lost)} "
                f"(it holds {', '.join(holds) if holds else 'none'})")
     if not drop:
-        raise LossyConversionError(message + "; undistort the images first, or pass drop_distortion=True")
+        raise LossyConversionError(message, "drop_distortion=True")
     log.warning("%s; dropped as asked (drop_distortion=True)", message)
     kept = np.array([v if n in holds else 0.0 for n, v in zip(DISTORTION_NAMES, d)])
     extra = dict(camera.extra)

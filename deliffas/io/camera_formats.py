@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Sequence
 
 from deliffas.io.camera_config import CamerasConfig
+from deliffas.io.camera_conventions import LossyConversionError
 from deliffas.io.cameras import Camera, check_camera_names
 from deliffas.io.format_registry import CameraWriteOptions, capture_format, capture_formats
 from deliffas.io.infra.reader_checks import require_unique_names
@@ -146,11 +147,15 @@ def _conversion_ends(config: CamerasConfig) -> tuple[Path, str, Path, str]:
     return Path(folder), name, Path(config.src), str(capture_format(name).shorthand_with)
 
 
-def convert_cameras(config: CamerasConfig) -> CameraConversion:
+def convert_cameras(config: CamerasConfig, names: dict[str, str] | None = None) -> CameraConversion:
     """Read the cameras of ``config.src`` and write them in ``config.to_format`` (each field: :class:`CamerasConfig`).
+
+    ``names``: how to name a config field in a message (a CLI passes its flags, ``drop_distortion`` ->
+    ``--drop-distortion``); without it the Python argument is named (``drop_distortion=True``).
 
     Raises:
         FileExistsError: OUT exists (other than an empty folder) and not ``config.overwrite``.
+        LossyConversionError: as :func:`write_cameras`, naming ``names["drop_distortion"]``.
         ValueError: OUT / ``--to`` missing, or given with a format shorthand (``shorthand_fields``); as :func:`read_cameras` and
             :func:`write_cameras`.
     """
@@ -158,5 +163,10 @@ def convert_cameras(config: CamerasConfig) -> CameraConversion:
     if out.exists() and not config.overwrite and not (out.is_dir() and not any(out.iterdir())):
         raise FileExistsError(f"{out} exists; pass --overwrite to replace it")
     cameras = read_cameras(src, src_format, config.size)
-    written = write_cameras(cameras, out, to, drop_distortion=config.drop_distortion, text=config.text)
+    try:
+        written = write_cameras(cameras, out, to, drop_distortion=config.drop_distortion, text=config.text)
+    except LossyConversionError as err:
+        if names is None or "drop_distortion" not in names:
+            raise
+        raise err.naming(names["drop_distortion"]) from err
     return CameraConversion(len(cameras), to, written)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+from dataclasses import replace as dataclasses_replace
 
 import numpy as np
 import pytest
@@ -112,3 +113,15 @@ def test_text_is_refused_for_a_format_without_a_text_variant(tmp_path, capsys):
     _fails(capsys, ["cameras", str(tmp_path / "src.calibration"), str(tmp_path / "a.npy"), "--to", "zju", "--text"],
            "zju has no text variant (formats with one: colmap)")
     assert not (tmp_path / "a.npy").exists()
+
+
+def test_lossy_distortion_names_the_flag_on_the_cli_and_the_argument_in_python(tmp_path, capsys):
+    from deliffas.io.camera_conventions import LossyConversionError
+    from deliffas.io.camera_formats import CamerasConfig, convert_cameras
+
+    write_calibration(tmp_path / "src.calibration", [dataclasses_replace(c, radial=0.01) for c in rig()])
+    argv = ["cameras", str(tmp_path / "src.calibration"), str(tmp_path / "m"), "--to", "colmap"]
+    _fails(capsys, argv, "undistort the images first, or pass --drop-distortion")
+    with pytest.raises(LossyConversionError, match=r"or pass drop_distortion=True$"):
+        convert_cameras(CamerasConfig(tmp_path / "src.calibration", tmp_path / "m", to_format="colmap"))
+    assert main([*argv, "--drop-distortion"]) == 0
