@@ -47,9 +47,9 @@ def camera_format_table() -> str:
     return "\n".join(rows)
 
 
-def detect_camera_format(path: PathLike) -> str:
+def detect_camera_format(path: PathLike, hint: str = "fmt=") -> str:
     """The camera format of ``path`` (a file, or a folder holding one): the first registered format whose
-    ``detect_cameras`` accepts it.
+    ``detect_cameras`` accepts it. ``hint``: how the message tells to name the format (a CLI: ``--from FORMAT``).
 
     Raises:
         ValueError: nothing recognisable, naming the formats tried.
@@ -61,8 +61,8 @@ def detect_camera_format(path: PathLike) -> str:
             return f.name
     names = ", ".join(f.name for f in formats)
     if p.is_dir():
-        raise ValueError(f"{p}: no camera file found (looked for {names}); pass fmt=")
-    raise ValueError(f"{p}: cannot tell the camera format from the name; pass fmt= (one of {names})")
+        raise ValueError(f"{p}: no camera file found (looked for {names}); pass {hint}")
+    raise ValueError(f"{p}: cannot tell the camera format from the name; pass {hint} (one of {names})")
 
 
 def read_cameras(path: PathLike, fmt: str = "auto", size: tuple[int, int] | None = None) -> list[Camera]:
@@ -162,6 +162,8 @@ def convert_cameras(config: CamerasConfig, names: dict[str, str] | None = None) 
     src, src_format, out, to = _conversion_ends(config)
     if out.exists() and not config.overwrite and not (out.is_dir() and not any(out.iterdir())):
         raise FileExistsError(f"{out} exists; pass --overwrite to replace it")
+    if src_format == "auto" and names is not None and "from_format" in names:
+        src_format = detect_camera_format(src, hint=f"{names['from_format']} FORMAT")
     cameras = read_cameras(src, src_format, config.size)
     try:
         written = write_cameras(cameras, out, to, drop_distortion=config.drop_distortion, text=config.text)

@@ -125,3 +125,13 @@ def test_lossy_distortion_names_the_flag_on_the_cli_and_the_argument_in_python(t
     with pytest.raises(LossyConversionError, match=r"or pass drop_distortion=True$"):
         convert_cameras(CamerasConfig(tmp_path / "src.calibration", tmp_path / "m", to_format="colmap"))
     assert main([*argv, "--drop-distortion"]) == 0
+
+
+def test_undetectable_source_names_from_on_the_cli_and_fmt_in_python(tmp_path, capsys):
+    from deliffas.io.camera_formats import CamerasConfig, convert_cameras
+
+    src = tmp_path / "rig.unknown"
+    src.write_text("not a camera file\n")
+    _fails(capsys, ["cameras", str(src), str(tmp_path / "m"), "--to", "colmap"], "pass --from FORMAT (one of ")
+    with pytest.raises(ValueError, match=r"pass fmt= \(one of "):
+        convert_cameras(CamerasConfig(src, tmp_path / "m", to_format="colmap"))
