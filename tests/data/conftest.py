@@ -93,3 +93,21 @@ def exported(tmp_path_factory, smpl_subject):
                                         jpeg_quality=100)
         return cache[fmt]
     return get
+
+
+@pytest.fixture
+def triangle_scene() -> dict:
+    """One flat triangle (uv-mapped to a uniform 0.8 grey texture) facing one 32 x 32 camera at z = +3000, its edges
+    crossing pixels: ``render_views`` keyword arguments without the shading."""
+    import numpy as np
+
+    from deliffas.io.cameras import Camera
+
+    faces = np.array([[0, 1, 2]])
+    E = np.eye(4)
+    E[:3, :3] = np.diag([1.0, -1.0, -1.0])  # camera at z = +3000 looking down -z, y down
+    E[2, 3] = 3000.0
+    return {"verts": np.array([[-400.0, -400, 0], [400, -400, 0], [-400, 400, 0]]), "faces": faces,
+            "uvs": np.array([[0.0, 0], [1, 0], [0, 1]]), "face_uvs": faces,
+            "texture": np.full((2, 2, 3), 0.8, np.float32),
+            "cameras": [Camera("c", np.array([[60.0, 0, 16], [0, 60, 16], [0, 0, 1]]), E, 32, 32)]}

@@ -129,18 +129,10 @@ def test_garment_fallback_region_on_ddc_sample(sample_character):
     assert y[core].min() > 0.25 * y.max() and y[core].max() < 0.62 * y.max()
 
 
-def test_supersampled_alpha_is_coverage():
+def test_supersampled_alpha_is_coverage(triangle_scene):
     """2x2 rays per pixel: a triangle edge through pixels gives partial alpha; 1 ray gives only 0 / 255."""
-    verts = np.array([[-400.0, -400, 0], [400, -400, 0], [-400, 400, 0]])
-    faces = np.array([[0, 1, 2]])
-    uvs = np.array([[0.0, 0], [1, 0], [0, 1]])
-    E = np.eye(4)
-    E[:3, :3] = np.diag([1.0, -1.0, -1.0])  # camera at z = +3000 looking down -z, y down
-    E[2, 3] = 3000.0
-    cam = Camera("c", np.array([[60.0, 0, 16], [0, 60, 16], [0, 0, 1]]), E, 32, 32)
-    tex = np.full((2, 2, 3), 0.8, np.float32)
-    one = render_views(verts, faces, uvs, faces, tex, [cam], shading=ShadingConfig(supersample=1))[0]
-    four = render_views(verts, faces, uvs, faces, tex, [cam], shading=ShadingConfig(supersample=2))[0]
+    one = render_views(**triangle_scene, shading=ShadingConfig(supersample=1))[0]
+    four = render_views(**triangle_scene, shading=ShadingConfig(supersample=2))[0]
     assert set(np.unique(one.alpha)) <= {0, 255}
     partial = (four.alpha > 0) & (four.alpha < 255)
     assert partial.sum() >= 10 and set(np.unique(four.alpha[partial])) <= {64, 128, 191}

@@ -13,29 +13,20 @@ from deliffas.data.render_gt import ShadingConfig, render_views
 from deliffas.data.synth import SynthConfig, synthesize_capture
 from deliffas.data.synth_config import check_synth_images
 from deliffas.engine.samples import composite_target
-from deliffas.io.cameras import Camera
 from deliffas.io.formats.dynacap.frames import ImageFolderSource
 
 BACKGROUND = (0.2, 0.4, 0.6)
 
 
-def _triangle_views(supersample: int):
-    """A flat, evenly lit grey triangle (no specular: one colour everywhere) over a coloured background."""
-    verts = np.array([[-400.0, -400, 0], [400, -400, 0], [-400, 400, 0]])
-    faces = np.array([[0, 1, 2]])
-    uvs = np.array([[0.0, 0], [1, 0], [0, 1]])
-    E = np.eye(4)
-    E[:3, :3] = np.diag([1.0, -1.0, -1.0])  # camera at z = +3000 looking down -z, y down
-    E[2, 3] = 3000.0
-    cam = Camera("c", np.array([[60.0, 0, 16], [0, 60, 16], [0, 0, 1]]), E, 32, 32)
-    tex = np.full((2, 2, 3), 0.8, np.float32)
+def _triangle_view(scene: dict, supersample: int):
+    """The triangle scene, flat and evenly lit (no specular: one colour everywhere), over a coloured background."""
     shading = ShadingConfig(specular=0.0, background=BACKGROUND, supersample=supersample)
-    return render_views(verts, faces, uvs, faces, tex, [cam], shading=shading)[0]
+    return render_views(**scene, shading=shading)[0]
 
 
-def test_supersampled_edges_keep_the_straight_colour():
+def test_supersampled_edges_keep_the_straight_colour(triangle_scene):
     """At partial coverage the RGB is the surface's colour, not colour x coverage (+ background)."""
-    view = _triangle_views(3)
+    view = _triangle_view(triangle_scene, 3)
     inside, outside = view.alpha == 255, view.alpha == 0
     partial = ~inside & ~outside
     assert partial.sum() >= 10
@@ -45,9 +36,9 @@ def test_supersampled_edges_keep_the_straight_colour():
     assert (view.rgb[outside] == np.round(np.array(BACKGROUND) * 255)).all()
 
 
-def test_point_sampled_views_are_colour_and_background():
+def test_point_sampled_views_are_colour_and_background(triangle_scene):
     """One ray per pixel: binary alpha, the surface's colour where it is hit, the background elsewhere."""
-    one, three = _triangle_views(1), _triangle_views(3)
+    one, three = _triangle_view(triangle_scene, 1), _triangle_view(triangle_scene, 3)
     assert set(np.unique(one.alpha)) <= {0, 255}
     assert (one.rgb[one.alpha == 0] == np.round(np.array(BACKGROUND) * 255)).all()
     assert np.abs(one.rgb[one.alpha == 255].astype(int) - three.rgb[three.alpha == 255][0]).max() <= 1

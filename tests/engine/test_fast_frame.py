@@ -49,13 +49,18 @@ def test_fast_rays_equal_camera_rays(frame):
             np.testing.assert_allclose(getattr(a, name), getattr(b, name), atol=tol, rtol=0, err_msg=name)
 
 
-def test_fast_fp32_equals_plain(frame):
-    model, features, raycaster, cameras = frame
+def _assert_fast_fp32_equals_plain(model, features, raycaster, cameras) -> None:
+    """Every camera: the fast path in float32 renders the plain path's image (and the person covers > 50 px)."""
     for cam in cameras:
         plain = _render(model, features, raycaster, cam, None)
         fast = _render(model, features, raycaster, cam, FastConfig(dtype="float32"))
         assert (plain.sum(-1) > 0).sum() > 50
         torch.testing.assert_close(fast, plain, atol=1e-4, rtol=0)
+
+
+def test_fast_fp32_equals_plain(frame):
+    model, features, raycaster, cameras = frame
+    _assert_fast_fp32_equals_plain(model, features, raycaster, cameras)
 
 
 def test_exact_encoding_equals_plain_and_the_table_is_within_its_error(frame):
@@ -191,11 +196,7 @@ def test_fast_path_renders_a_textured_model_as_the_plain_path(frame, tiny_shards
     x = torch.rand(1, C, S, S) * 2 - 1
     with torch.no_grad():
         features = model.encode(x, x)
-    for cam in cameras:
-        plain = _render(model, features, raycaster, cam, None)
-        fast = _render(model, features, raycaster, cam, FastConfig(dtype="float32"))
-        assert (plain.sum(-1) > 0).sum() > 50
-        torch.testing.assert_close(fast, plain, atol=1e-4, rtol=0)
+    _assert_fast_fp32_equals_plain(model, features, raycaster, cameras)
 
 
 def test_fast_path_renders_a_finer_texture_as_the_plain_path(frame):
