@@ -78,7 +78,8 @@ def _chunked_backward(model: DeliffasModel, sample: FrameSample, device: torch.d
     batch, query = _rays(model, sample, device)
     features = model.encode(*sample.normal_maps(device))  # (1, C, S, S) maps with the U-Net graph
     leaves = FrameFeatures(inner=features.inner.detach().requires_grad_(),
-                           outer=None if features.outer is None else features.outer.detach().requires_grad_())
+                           outer=None if features.outer is None else features.outer.detach().requires_grad_(),
+                           normals=features.normals)
     target, target_rays = _targets(sample, batch, device)  # (K, H, W, 3), (N, 3)
     n = batch.num_rays
     ray_grad = terms = None

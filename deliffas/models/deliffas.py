@@ -21,7 +21,11 @@ variant                        MLP input (encoded)                          feat
 ``single_surface_viewdir``     PE(uv_inner) + PE(viewdir)                   inner U-Net @ uv_inner (C)
 ``single_surface_two_unet``    PE(uv_inner)                                 two U-Nets on the inner maps @ uv_inner (2C)
 ``two_surface`` (DELIFFAS)     PE(uv_outer) + PE(uv_inner)                  outer U-Net @ uv_outer, inner U-Net @ uv_inner (2C)
+``two_surface_reflect``        PE(uv_outer) + PE(uv_inner) + PE(reflected)  as ``two_surface``
 =============================  ===========================================  ==================================
+
+``reflected`` is the view direction reflected about the inner normal at ``uv_inner`` (the current frame's
+normal map, carried in :attr:`FrameFeatures.normals`).
 
 Depth peeling (formats doc 3.4): for rays that miss the inner surface the caller passes the outer
 surface's exit-hit uv as ``uv_inner`` and sets ``inner_from_outer``; the "inner" feature of those
@@ -142,6 +146,7 @@ class FrameFeatures:
             ``single_surface_two_unet``).
         outer: (B, C, S, S) float in [0, 1], outer U-Net's map; None unless the variant has an
             outer U-Net (``two_surface``).
+        normals: see below.
 
     With ``ModelConfig.texture_channels`` = C_t > 0 each map carries C_t more channels: its learnable
     texture atlas, appended after the U-Net channels (same for every frame).
@@ -152,6 +157,9 @@ class FrameFeatures:
 
     inner: torch.Tensor
     outer: torch.Tensor | None = None
+    normals: torch.Tensor | None = None
+    """(B, 3, S, S) the current frame's inner normals (the first three channels of the normal maps), channels_last;
+    set by :meth:`DeliffasModel.encode` for variants with ``reflect_viewdir`` only."""
 
     @property
     def batch_size(self) -> int:
@@ -231,7 +239,10 @@ class DeliffasModel(nn.Module):
             check_shape("normal_outer", normal_outer, shape, sizes)
             outer = self._with_texture([self.unet_outer(normal_outer)], self.texture_outer)
             outer = outer.contiguous(memory_format=torch.channels_last)
-        return FrameFeatures(inner=inner.contiguous(memory_format=torch.channels_last), outer=outer)
+        normals = None
+        if self.spec.reflect_viewdir:
+            normals = normal_inner[:, :3].contiguous(memory_format=torch.channels_last)
+        return FrameFeatures(inner=inner.contiguous(memory_format=torch.channels_last), outer=outer, normals=normals)
 
     @staticmethod
     def _with_texture(maps: list[torch.Tensor], texture: torch.Tensor | None) -> torch.Tensor:
@@ -285,9 +296,21 @@ class DeliffasModel(nn.Module):
         uvs = {"inner": query.uv_inner, "outer": query.uv_outer}
         encoded = [self.pe_uv(uvs[surface]) for surface in spec.encoded_uvs]
         if self.pe_viewdir is not None:
-            encoded.append(self.pe_viewdir(query.viewdir.to(query.uv_inner.dtype)))
+            viewdir = query.viewdir.to(query.uv_inner.dtype)
+            if spec.reflect_viewdir:
+                viewdir = self._reflected(features, query, viewdir)
+            encoded.append(self.pe_viewdir(viewdir))
         cat = lambda parts: parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1)  # noqa: E731
         return cat(encoded), cat(feats)
+
+    @staticmethod
+    def _reflected(features: FrameFeatures, query: RayQuery, viewdir: torch.Tensor) -> torch.Tensor:
+        """The view directions (N, 3) reflected about the unit inner normals at ``uv_inner``: d - 2 (d . n) n."""
+        if features.normals is None:
+            raise ValueError("shade: features.normals is None; encode() the frame with this model first")
+        n = sample_uv(features.normals, query.batch_index, query.uv_inner).to(viewdir.dtype)  # (N, 3)
+        n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+        return viewdir - 2 * (viewdir * n).sum(-1, keepdim=True) * n
 
     def shade(self, features: FrameFeatures, query: RayQuery) -> torch.Tensor:
         """Colour of N rays: (N, 3) RGB in (0, 1). Arguments as :meth:`gather_inputs`."""

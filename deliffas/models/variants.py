@@ -18,6 +18,20 @@ name                           outer  inner      viewdir  encoded uvs      peeli
 ``single_surface_two_unet``    no     2          no       inner            no
 ``two_surface`` (DELIFFAS)     yes    1          no       outer, inner     yes
 =============================  =====  =========  =======  ===============  =======
+
+deliffas's own (:data:`EXTENSION_VARIANTS`):
+
+=============================  =====  =========  =========  ===============  =======
+name                           outer  inner      viewdir    encoded uvs      peeling
+                               U-Net  U-Nets
+=============================  =====  =========  =========  ===============  =======
+``two_surface_reflect``        yes    1          reflected  outer, inner     yes
+=============================  =====  =========  =========  ===============  =======
+
+``two_surface_reflect`` is DELIFFAS whose MLP also gets the view direction reflected about the posed inner
+surface's normal (Ref-NeRF's reflected direction, r = d - 2 (d . n) n): with the light fixed in the world,
+a specular highlight is a function of r, which the normal maps alone cannot give (docs/results.md, "What
+limits the held-out score").
 """
 
 from __future__ import annotations
@@ -28,7 +42,7 @@ from typing import Literal
 from deliffas.plugins import load_plugins
 
 __all__ = ["VariantSpec", "register_variant", "unregister_variant", "get_variant", "variant_names", "PAPER_VARIANTS",
-           "VARIANTS_ENTRY_POINT"]
+           "EXTENSION_VARIANTS", "VARIANTS_ENTRY_POINT"]
 
 VARIANTS_ENTRY_POINT = "deliffas.variants"
 """The entry-point group whose modules register model variants when imported (installed plug-ins)."""
@@ -41,7 +55,7 @@ class VariantSpec:
     """What one model variant is made of; the MLP's inputs follow from it.
 
     The MLP's encoded input is ``PE(uv)`` for each of ``encoded_uvs`` in that order, then
-    ``PE(viewdir)`` when ``viewdir``; its feature input is the outer map sampled at ``uv_outer``
+    ``PE(viewdir)`` when ``viewdir`` (of the reflected direction when ``reflect_viewdir``); its feature input is the outer map sampled at ``uv_outer``
     (when ``outer_unet``) followed by the inner map(s) sampled at ``uv_inner``.
     """
 
@@ -53,6 +67,10 @@ class VariantSpec:
     """U-Nets on the inner surface's normal maps (their C-channel maps are concatenated: C_inner = n C)."""
     viewdir: bool = False
     """Whether the MLP gets the encoded unit view direction of each ray."""
+    reflect_viewdir: bool = False
+    """The encoded direction is the view direction d reflected about the posed inner surface's unit normal n:
+    r = d - 2 (d . n) n, with n sampled bilinearly at ``uv_inner`` from the current frame's inner normal map
+    (its first three channels; :attr:`FrameFeatures.normals`). Needs ``viewdir``."""
     encoded_uvs: tuple[Surface, ...] = ("inner",)
     """Which hit uvs are positionally encoded into the MLP's input, in this order."""
     inner_from_outer: bool = False
@@ -71,6 +89,8 @@ class VariantSpec:
         bad = [s for s in self.encoded_uvs if s not in ("outer", "inner")]
         if bad or len(set(self.encoded_uvs)) != len(self.encoded_uvs):
             raise ValueError(f"{where}: encoded_uvs must be distinct 'outer'/'inner', got {self.encoded_uvs}")
+        if self.reflect_viewdir and not self.viewdir:
+            raise ValueError(f"{where}: reflect_viewdir needs viewdir")
         if self.inner_from_outer and not (self.outer_unet and self.inner_unets == 1):
             raise ValueError(f"{where}: inner_from_outer needs outer_unet and inner_unets == 1")
 
@@ -95,6 +115,12 @@ PAPER_VARIANTS: tuple[VariantSpec, ...] = (
     VariantSpec("two_surface", outer_unet=True, encoded_uvs=("outer", "inner"), inner_from_outer=True),
 )
 """The paper's DELIFFAS (``two_surface``) and its three ablations, registered at import."""
+
+EXTENSION_VARIANTS: tuple[VariantSpec, ...] = (
+    VariantSpec("two_surface_reflect", outer_unet=True, encoded_uvs=("outer", "inner"), inner_from_outer=True,
+                viewdir=True, reflect_viewdir=True),
+)
+"""Variants beyond the paper's, registered at import: ``two_surface_reflect`` (module docstring)."""
 
 _REGISTRY: dict[str, VariantSpec] = {}
 
@@ -142,5 +168,5 @@ def variant_names() -> tuple[str, ...]:
     return tuple(_REGISTRY)
 
 
-for _spec in PAPER_VARIANTS:
+for _spec in (*PAPER_VARIANTS, *EXTENSION_VARIANTS):
     register_variant(_spec)

@@ -18,8 +18,10 @@ on the recipe capture its foreground PSNR is 0.36 dB below ``small``'s (five see
 ``python -m recipes.presets``).
 
 for each of the four variants (``single_surface``, ``single_surface_viewdir``,
-``single_surface_two_unet``, ``two_surface``), registered under the variant names, and for
-``two_surface_texture`` (``TEXTURED``: ``two_surface`` with texture atlases, the training default).
+``single_surface_two_unet``, ``two_surface``) and ``two_surface_reflect``, registered under the variant names,
+for ``two_surface_texture`` (``TEXTURED``: ``two_surface`` with texture atlases) and for
+``two_surface_reflect_texture`` (``REFLECTED``: ``two_surface_reflect`` with texture atlases, the training
+default).
 
 Checkpoint directory layout (no pickle anywhere):
 
@@ -165,8 +167,10 @@ def _preset(variant: str, preset: str) -> ModelConfig:
     raise ValueError(f"unknown preset {preset!r}")
 
 
-for _variant in VARIANTS:
-    register(_variant, {p: _preset(_variant, p) for p in ("paper", "small", "realtime", "tiny")})
+PRESETS: tuple[str, ...] = ("paper", "small", "realtime", "tiny")
+"""The presets every registered model has."""
+for _variant in (*VARIANTS, "two_surface_reflect"):
+    register(_variant, {p: _preset(_variant, p) for p in PRESETS})
 
 TEXTURED = "two_surface_texture"
 """DELIFFAS with texture atlases (the default of ``deliffas train``): ``two_surface`` plus
@@ -174,9 +178,13 @@ TEXTURED = "two_surface_texture"
 fits finer detail but doubles a training step), which hold
 the appearance that normal maps cannot predict (docs/results.md, "Time to quality")."""
 TEXTURE_CHANNELS, TEXTURE_SCALE = 8, 1
-register(TEXTURED, {p: dataclasses.replace(_preset("two_surface", p), texture_channels=TEXTURE_CHANNELS,
-                                           texture_scale=TEXTURE_SCALE)
-                    for p in ("paper", "small", "realtime", "tiny")})
+REFLECTED = "two_surface_reflect_texture"
+"""``two_surface_reflect`` with the texture atlases of ``TEXTURED`` (the default of ``deliffas train``): the view
+direction reflected about the posed surface normal gives the MLP the specular highlights a fixed light puts on a
+moving body (docs/results.md, "What limits the held-out score")."""
+for _name, _variant in ((TEXTURED, "two_surface"), (REFLECTED, "two_surface_reflect")):
+    register(_name, {p: dataclasses.replace(_preset(_variant, p), texture_channels=TEXTURE_CHANNELS,
+                                            texture_scale=TEXTURE_SCALE) for p in PRESETS})
 
 
 # ---------------------------------------------------------------------------------------- config <-> dict

@@ -26,11 +26,11 @@ from deliffas.models.zoo import (
     register,
     save_checkpoint,
 )
-from deliffas.models.zoo import TEXTURE_CHANNELS, TEXTURE_SCALE, TEXTURED
+from deliffas.models.zoo import REFLECTED, TEXTURE_CHANNELS, TEXTURE_SCALE, TEXTURED
 
 
 def test_registry_lists_variants_and_presets():
-    assert list_models() == sorted([*VARIANTS, TEXTURED])
+    assert list_models() == sorted([*VARIANTS, "two_surface_reflect", TEXTURED, REFLECTED])
     textured = get_config(TEXTURED)
     assert textured == dataclasses.replace(get_config("two_surface"), texture_channels=TEXTURE_CHANNELS,
                                            texture_scale=TEXTURE_SCALE)
