@@ -21,11 +21,13 @@ import json
 from pathlib import Path
 
 from deliffas.engine.run_sizes import RunSizes
+from deliffas.engine.train_config import TrainConfig
 from recipes.common import prepare_capture, prepare_shards, recipe_parser, seed_list, train_and_eval
 
 BASE = RunSizes(frames=40, test_frames=10, cameras=12, size=256, atlas_res=256, iters=0, cameras_per_frame=3,
                 preset="small", eval_frames=10)
-MODELS = {"single_surface": {"model": "single_surface"}, "two_surface": {"model": "two_surface"}, "default": {}}
+MODELS = {"single_surface": {"model": "single_surface"}, "two_surface": {"model": "two_surface"},
+          "default": {"model": TrainConfig.model}}
 """Model name -> TrainConfig fields (``default``: ``deliffas train``'s defaults)."""
 
 
@@ -43,7 +45,7 @@ def _point(out: Path, shards: Path, sizes: RunSizes, model: str, fields: dict, s
     """Mean scores over seeds of one model at one point (novel views)."""
     per_seed = []
     for seed in seeds:
-        ev = train_and_eval(model, shards, out / model / f"seed{seed}", sizes, fields.get("model", "two_surface"),
+        ev = train_and_eval(model, shards, out / model / f"seed{seed}", sizes, fields["model"],
                             seed, device, **{k: v for k, v in fields.items() if k != "model"})
         fg = ev["foreground"]
         per_seed.append({"masked_psnr": fg["masked_psnr"], "fg_psnr": fg["psnr"], "fg_flip": fg["flip"],
@@ -139,8 +141,6 @@ def main(argv=None) -> dict:
     if args.iters:
         sizes = dataclasses.replace(sizes, iters=args.iters)
     elif not args.quick:
-        from deliffas.engine.train_config import TrainConfig
-
         sizes = dataclasses.replace(sizes, iters=TrainConfig.iters)
     names = args.models.split(",") if args.models else list(MODELS)
     if any(n not in MODELS for n in names):

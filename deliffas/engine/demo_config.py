@@ -17,7 +17,7 @@ class DemoConfig:
     out: str = opt("demo_out", help="output folder")
     quick: bool = opt(False, help="a smaller run (used by tests)")
     """A much smaller run for tests (seconds, not minutes); numbers are then meaningless."""
-    models: tuple[str, ...] = ("two_surface_texture", "single_surface")
+    models: tuple[str, ...] = ("two_surface_reflect_texture", "single_surface")
     sizes: RunSizes = RunSizes(frames=30, test_frames=10, cameras=10, iters=800)
     """Ignored when ``quick`` (then ``RunSizes.quick()``)."""
     seed: int = 0

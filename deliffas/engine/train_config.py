@@ -40,9 +40,9 @@ class TrainConfig:
     """Directory of converted HDF5 shards (``deliffas convert``)."""
     out: str = opt(help="run directory")
     """Run directory (checkpoints, log.jsonl, previews)."""
-    model: str = opt("two_surface_texture", help="zoo name; the paper's model: two_surface")
-    """Zoo name (``deliffas zoo list``): ``two_surface_texture`` is DELIFFAS with texture atlases; the paper's
-    model is ``two_surface``."""
+    model: str = opt("two_surface_reflect_texture", help="zoo name; the paper's model: two_surface")
+    """Zoo name (``deliffas zoo list``): ``two_surface_reflect_texture`` is DELIFFAS with texture atlases whose MLP
+    also gets the view direction reflected about the surface normal; the paper's model is ``two_surface``."""
     preset: str = opt("small", help="paper | small | realtime | tiny")
     """Size preset of the zoo entry (``paper``, ``small``, ``tiny``)."""
     model_overrides: dict = field(default_factory=dict)

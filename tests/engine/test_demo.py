@@ -15,7 +15,7 @@ def test_quick_demo_writes_a_complete_report(tmp_path):
     payload = json.loads((out / "results.json").read_text())
     assert payload["config"]["sizes"] == RunSizes.quick().__dict__
     names = [r["name"] for r in payload["results"]]
-    assert names == ["two_surface_texture", "single_surface"]
+    assert names == ["two_surface_reflect_texture", "single_surface"]
     for row in payload["results"]:
         assert math.isfinite(row["psnr"]) and row["psnr"] > 20, row  # 8 iterations already beat a blank image
         assert set(row["stage_ms"]) == {"uv", "cnn", "sample", "mlp"}

@@ -162,7 +162,7 @@ def test_export_then_render_after_shards_and_subject_are_deleted(portable, tmp_p
     capsys.readouterr()
     _refused(capsys, ["eval", portable["run"]], "pass --shards")
     assert main(["zoo", "list", str(tmp_path / "share")]) == 0
-    assert "alice.avatar: two_surface_texture (tiny)" in capsys.readouterr().out  # the default model
+    assert "alice.avatar: two_surface_reflect_texture (tiny)" in capsys.readouterr().out  # the default model
 
 
 def test_render_refuses_nan_weights_and_non_finite_colours(rel_run, tmp_path, capsys, monkeypatch):
