@@ -9,9 +9,10 @@ Each configuration is trained over seeds on the 256 x 256 recipe capture (40 tra
 masked PSNR, FLIP) and on the held-out test cameras. Training seconds exclude the evaluations. Writes
 ``results.json``, ``results.md`` and ``time_to_quality.png`` (masked PSNR against seconds).
 
-Configurations: ``default`` is ``deliffas train`` without options (``TrainConfig`` defaults);
-``paper schedule`` is the paper's model and schedule (``two_surface``, Adam 2e-4 with the official decay),
-the default before this recipe existed.
+Configurations: ``default`` is ``deliffas train`` without options (``TrainConfig`` defaults:
+``two_surface_reflect_texture``); ``two_surface_texture`` the same without the reflected view direction (the
+previous default); ``paper schedule`` is the paper's model and schedule (``two_surface``, Adam 2e-4 with the
+official decay), the default before this recipe existed.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ CHECKPOINTS = (0.125, 0.25, 0.5, 0.75, 1.0)
 """Fractions of the run at which the model is evaluated."""
 CONFIGS: dict[str, dict] = {
     "default": {},
+    "two_surface_texture": {"model": "two_surface_texture"},
     "paper schedule": {"model": "two_surface", "schedule": "paper"},
 }
 """Name -> TrainConfig fields that differ from ``deliffas train``'s defaults."""
