@@ -1,223 +1,12 @@
 /* The whole shading of a ray in one pass (deliffas/fast/shade.py, FastShader.shade_fused), a tile of rays at a
    time with the rays in the vector lanes (GCC/clang vector extensions: 16 rays in AVX-512 registers, 8 in AVX2's
-   under -march=native): encodings and samples (ray_inputs.c, into a transposed tile), every hidden layer (bias,
+   under -march=native): encodings and samples (fused_tiles.c, into a transposed tile), every hidden layer (bias,
    products, ReLU) in fp32 from tile to tile in L1, the output layer, its sigmoid and the write into the canvas.
    Nothing per ray reaches memory but its colour. FMA contraction is on here (a separate build), so values differ
    from torch's fp32 in the last bits. */
-#include "ray_inputs.c"
+#include "fused_tiles.c"
 
 #include <stdlib.h>
-
-/* Rays per tile = float lanes of the widest vector registers: 16 with AVX-512, else 8. A 16-lane tile on AVX2 is
-   emulated with register pairs, and the dense layers' accumulators then spill: the fp32 pass ran 5 x slower. */
-#ifdef __AVX512F__
-#define TILE 16
-#else
-#define TILE 8
-#endif
-typedef float vtile __attribute__((vector_size(4 * TILE)));  /* one tile row: TILE floats */
-typedef float v8 __attribute__((vector_size(32)));
-typedef int32_t vtilei __attribute__((vector_size(4 * TILE)));
-
-/* The positional encoding of uvs [0, m) of a tile into xt (features, TILE), as encode_f32 per ray (a partial
-   tile repeats its last uv): sin and cos by the same reduction and series, written so the compiler vectorises
-   over the tile (rounding to the nearest multiple of pi by the 1.5 2^52 shift instead of nearbyint). */
-static void encode_tile(const float *uv, int64_t m, int L, int include_input, float *xt) {
-    const float pi = (float)3.14159265358979323846;
-    const double dpi = 3.14159265358979323846, shift = 6755399441055744.0;
-    double s[2][TILE], c[2][TILE];
-    float u[2][TILE];
-    for (int64_t i = 0; i < TILE; i++)
-        for (int d = 0; d < 2; d++) u[d][i] = uv[2 * (i < m ? i : m - 1) + d];
-    for (int d = 0; d < 2; d++) {
-        if (include_input)
-            for (int64_t i = 0; i < TILE; i++) xt[d * TILE + i] = u[d][i];
-        for (int64_t i = 0; i < TILE; i++) {
-            float x = u[d][i];
-            double a = (double)(x * pi);
-            double k = (a * (1.0 / dpi) + shift) - shift, r = a - k * dpi, r2 = r * r;
-            double sn = r * (1.0 + r2 * (-1.0 / 6 + r2 * (1.0 / 120 + r2 * (-1.0 / 5040 + r2 * (1.0 / 362880
-                          + r2 * (-1.0 / 39916800 + r2 * (1.0 / 6227020800.0 + r2 * (-1.0 / 1307674368000.0))))))));
-            double cs = 1.0 + r2 * (-0.5 + r2 * (1.0 / 24 + r2 * (-1.0 / 720 + r2 * (1.0 / 40320 + r2 * (-1.0 / 3628800
-                          + r2 * (1.0 / 479001600.0 + r2 * (-1.0 / 87178291200.0 + r2 * (1.0 / 20922789888000.0))))))));
-            double sign = 1.0 - 2.0 * (double)((int64_t)k & 1);
-            s[d][i] = sign * sn;
-            c[d][i] = sign * cs;
-        }
-    }
-    float *o = xt + (include_input ? 2 : 0) * TILE;
-    for (int k = 0; k < L; k++, o += 4 * TILE) {
-        for (int64_t i = 0; i < TILE; i++) {
-            o[i] = (float)s[0][i]; o[TILE + i] = (float)s[1][i];
-            o[2 * TILE + i] = (float)c[0][i]; o[3 * TILE + i] = (float)c[1][i];
-        }
-        for (int d = 0; d < 2; d++)
-            for (int64_t i = 0; i < TILE; i++) {
-                double t = 2.0 * s[d][i] * c[d][i];
-                c[d][i] = c[d][i] * c[d][i] - s[d][i] * s[d][i];
-                s[d][i] = t;
-            }
-    }
-}
-
-/* A tile's uvs (the last ray repeated past m) and sin/cos of pi * uv in float32: Cody-Waite reduction by pi, then
-   odd/even polynomials on [-pi/2, pi/2]; the base frequency of both fp32 encoders (the others follow by doubling). */
-static inline void base_sin_cos(const float *uv, int64_t m, float u[2][TILE], float s[2][TILE], float c[2][TILE]) {
-    const float pi = (float)3.14159265358979323846, pi_hi = 3.140625f, pi_lo = 9.67653589793e-4f,
-                shift = 12582912.0f;  /* 1.5 2^23: adding and subtracting it rounds to an integer */
-    for (int64_t i = 0; i < TILE; i++)
-        for (int d = 0; d < 2; d++) u[d][i] = uv[2 * (i < m ? i : m - 1) + d];
-    for (int d = 0; d < 2; d++)
-        for (int64_t i = 0; i < TILE; i++) {
-            float a = u[d][i] * pi;
-            float k = (a * (1.0f / pi) + shift) - shift;
-            float r = (a - k * pi_hi) - k * pi_lo, r2 = r * r;
-            float sn = r * (1.0f + r2 * (-1.0f / 6 + r2 * (1.0f / 120 + r2 * (-1.0f / 5040 + r2 * (1.0f / 362880
-                         + r2 * (-1.0f / 39916800))))));
-            float cs = 1.0f + r2 * (-0.5f + r2 * (1.0f / 24 + r2 * (-1.0f / 720 + r2 * (1.0f / 40320
-                         + r2 * (-1.0f / 3628800 + r2 * (1.0f / 479001600))))));
-            float sign = 1.0f - 2.0f * (float)((int32_t)k & 1);
-            s[d][i] = sign * sn;
-            c[d][i] = sign * cs;
-        }
-}
-
-/* encode_tile in float32 for the bf16 hidden layers, whose inputs are rounded to bf16 (8 bits) anyway: sin and cos
-   of a = float(x pi) by a two-part pi reduction and Taylor series to degree 11 / 12 (error < 1e-7), the higher
-   frequencies by the double-angle recurrence in float32 (its error doubles per step: about 3e-5 at the 10th
-   frequency, against bf16's 2e-3), 16 lanes a vector instead of 8 in float64. */
-static void encode_tile_f32(const float *uv, int64_t m, int L, int include_input, float *xt) {
-    float s[2][TILE], c[2][TILE], u[2][TILE];
-    base_sin_cos(uv, m, u, s, c);
-    for (int d = 0; d < 2; d++)
-        if (include_input)
-            for (int64_t i = 0; i < TILE; i++) xt[d * TILE + i] = u[d][i];
-    float *o = xt + (include_input ? 2 : 0) * TILE;
-    for (int k = 0; k < L; k++, o += 4 * TILE) {
-        for (int64_t i = 0; i < TILE; i++) {
-            o[i] = s[0][i]; o[TILE + i] = s[1][i];
-            o[2 * TILE + i] = c[0][i]; o[3 * TILE + i] = c[1][i];
-        }
-        for (int d = 0; d < 2; d++)
-            for (int64_t i = 0; i < TILE; i++) {
-                float t = 2.0f * s[d][i] * c[d][i];
-                c[d][i] = c[d][i] * c[d][i] - s[d][i] * s[d][i];
-                s[d][i] = t;
-            }
-    }
-}
-
-/* The bilinear taps of a tile's uvs [0, m) (sample_f32's arithmetic; the last uv repeated past m) on an (S, S) map of
-   C channels per texel: weights w[tap][ray] and offsets o[tap][ray] (floats from the map's start) of the texels
-   (y0, x0), (y0, x1), (y1, x0), (y1, x1); computed over the tile (vectorised). Clamped coordinates are >= 0, so the
-   integer part is a truncation. */
-static void tile_taps(const float *uv, int64_t m, int64_t S, int64_t C, float w[4][TILE], int64_t o[4][TILE]) {
-    const float hi = (float)(S - 1);
-    float u[2][TILE];
-    for (int64_t i = 0; i < TILE; i++)
-        for (int d = 0; d < 2; d++) u[d][i] = uv[2 * (i < m ? i : m - 1) + d];
-    for (int64_t i = 0; i < TILE; i++) {
-        float gx = 2.0f * u[0][i] - 1.0f, gy = 1.0f - 2.0f * u[1][i];
-        float ix = ((gx + 1.0f) * (float)S - 1.0f) / 2.0f, iy = ((gy + 1.0f) * (float)S - 1.0f) / 2.0f;
-        /* NaN -> 0, as sample_f32's NaN check; comparisons rather than fminf/fmaxf, which stay libm calls here */
-        ix = ix > 0.0f ? ix : 0.0f; ix = ix < hi ? ix : hi;
-        iy = iy > 0.0f ? iy : 0.0f; iy = iy < hi ? iy : hi;
-        int32_t x0 = (int32_t)ix, y0 = (int32_t)iy;
-        float fx = ix - (float)x0, fy = iy - (float)y0;
-        int32_t x1 = x0 + (x0 + 1 < S), y1 = y0 + (y0 + 1 < S);
-        w[0][i] = (1.0f - fx) * (1.0f - fy); w[1][i] = fx * (1.0f - fy); w[2][i] = (1.0f - fx) * fy; w[3][i] = fx * fy;
-        o[0][i] = ((int64_t)y0 * S + x0) * C; o[1][i] = ((int64_t)y0 * S + x1) * C;
-        o[2][i] = ((int64_t)y1 * S + x0) * C; o[3][i] = ((int64_t)y1 * S + x1) * C;
-    }
-}
-
-/* y (N, TILE) = rows (TILE, N) transposed; N a multiple of 8 */
-#if TILE == 8 && defined(__AVX__)
-#include <immintrin.h>
-static void rows_to_tile(const float *rows, int64_t N, vtile *y) {
-    for (int64_t k = 0; k < N; k += 8) {  /* an 8 x 8 block in registers: 24 shuffles instead of 64 inserts */
-        const float *s = rows + k;
-        __m256 r0 = _mm256_loadu_ps(s), r1 = _mm256_loadu_ps(s + N), r2 = _mm256_loadu_ps(s + 2 * N),
-               r3 = _mm256_loadu_ps(s + 3 * N), r4 = _mm256_loadu_ps(s + 4 * N), r5 = _mm256_loadu_ps(s + 5 * N),
-               r6 = _mm256_loadu_ps(s + 6 * N), r7 = _mm256_loadu_ps(s + 7 * N);
-        __m256 t0 = _mm256_unpacklo_ps(r0, r1), t1 = _mm256_unpackhi_ps(r0, r1), t2 = _mm256_unpacklo_ps(r2, r3),
-               t3 = _mm256_unpackhi_ps(r2, r3), t4 = _mm256_unpacklo_ps(r4, r5), t5 = _mm256_unpackhi_ps(r4, r5),
-               t6 = _mm256_unpacklo_ps(r6, r7), t7 = _mm256_unpackhi_ps(r6, r7);
-        __m256 u0 = _mm256_shuffle_ps(t0, t2, 0x44), u1 = _mm256_shuffle_ps(t0, t2, 0xEE),
-               u2 = _mm256_shuffle_ps(t1, t3, 0x44), u3 = _mm256_shuffle_ps(t1, t3, 0xEE),
-               u4 = _mm256_shuffle_ps(t4, t6, 0x44), u5 = _mm256_shuffle_ps(t4, t6, 0xEE),
-               u6 = _mm256_shuffle_ps(t5, t7, 0x44), u7 = _mm256_shuffle_ps(t5, t7, 0xEE);
-        y[k] = (vtile)_mm256_permute2f128_ps(u0, u4, 0x20); y[k + 1] = (vtile)_mm256_permute2f128_ps(u1, u5, 0x20);
-        y[k + 2] = (vtile)_mm256_permute2f128_ps(u2, u6, 0x20); y[k + 3] = (vtile)_mm256_permute2f128_ps(u3, u7, 0x20);
-        y[k + 4] = (vtile)_mm256_permute2f128_ps(u0, u4, 0x31); y[k + 5] = (vtile)_mm256_permute2f128_ps(u1, u5, 0x31);
-        y[k + 6] = (vtile)_mm256_permute2f128_ps(u2, u6, 0x31); y[k + 7] = (vtile)_mm256_permute2f128_ps(u3, u7, 0x31);
-    }
-}
-#else
-static void rows_to_tile(const float *rows, int64_t N, vtile *y) {
-    for (int64_t k = 0; k < N; k++) {
-        vtile v;
-        for (int64_t i = 0; i < TILE; i++) v[i] = rows[i * N + k];
-        y[k] = v;
-    }
-}
-#endif
-
-/* Bilinear samples (sample_f32's arithmetic) of uvs [0, m) of a tile into ft (C, TILE): ray i reads map_alt where
-   alt[i] is set, else map; C channels of four taps per ray. */
-static void sample_tile(const float *map, const float *map_alt, const uint8_t *alt, const float *uv, int64_t m,
-                        int64_t S, int64_t C, float *ft) {
-    float w[4][TILE];
-    int64_t o[4][TILE];
-    tile_taps(uv, m, S, C, w, o);
-    const float *base[TILE];
-    for (int64_t i = 0; i < TILE; i++) base[i] = (alt && alt[i < m ? i : m - 1]) ? map_alt : map;
-    int64_t c = 0;
-    for (; c + 8 <= C; c += 8) {  /* 8 channels of a ray in one vector, then the (TILE, 8) block transposed into ft */
-        float blk[TILE * 8];
-        for (int64_t i = 0; i < TILE; i++) {
-            const float *mp = base[i] + c;
-            v8 t00, t01, t10, t11;
-            memcpy(&t00, mp + o[0][i], 32); memcpy(&t01, mp + o[1][i], 32);
-            memcpy(&t10, mp + o[2][i], 32); memcpy(&t11, mp + o[3][i], 32);
-            v8 v = w[0][i] * t00 + w[1][i] * t01 + w[2][i] * t10 + w[3][i] * t11;
-            memcpy(blk + 8 * i, &v, 32);
-        }
-        rows_to_tile(blk, 8, (vtile *)ft + c);
-    }
-    for (; c < C; c++)
-        for (int64_t i = 0; i < TILE; i++) {
-            const float *mp = base[i] + c;
-            ft[c * TILE + i] = w[0][i] * mp[o[0][i]] + w[1][i] * mp[o[1][i]] + w[2][i] * mp[o[2][i]] + w[3][i] * mp[o[3][i]];
-        }
-}
-
-/* Projected features (FastShader.project_features): rows (TILE, N) += per ray the bilinear samples of (S, S, N) maps
-   that hold the feature layer's feature columns times a feature map: pa at uv_a (when pa), then pb at uv_b, or pc
-   where alt[i] is set. Sampling commutes with the product, so this is the layer's Wf f without f. N a multiple of 8. */
-static void add_projected(const float *pa, const float *uv_a, const float *pb, const float *pc, const uint8_t *alt,
-                          const float *uv_b, int64_t m, int64_t S, int64_t N, float *rows) {
-    float wa[4][TILE], wb[4][TILE];
-    int64_t oa[4][TILE], ob[4][TILE];
-    if (pa) tile_taps(uv_a, m, S, N, wa, oa);
-    tile_taps(uv_b, m, S, N, wb, ob);
-    for (int64_t i = 0; i < TILE; i++) {
-        const float *mb = (alt && alt[i < m ? i : m - 1]) ? pc : pb;
-        for (int64_t n0 = 0; n0 < N; n0 += 8) {
-            v8 acc, t0, t1, t2, t3;
-            memcpy(&acc, rows + i * N + n0, 32);
-            if (pa) {
-                memcpy(&t0, pa + oa[0][i] + n0, 32); memcpy(&t1, pa + oa[1][i] + n0, 32);
-                memcpy(&t2, pa + oa[2][i] + n0, 32); memcpy(&t3, pa + oa[3][i] + n0, 32);
-                acc += wa[0][i] * t0 + wa[1][i] * t1 + wa[2][i] * t2 + wa[3][i] * t3;
-            }
-            memcpy(&t0, mb + ob[0][i] + n0, 32); memcpy(&t1, mb + ob[1][i] + n0, 32);
-            memcpy(&t2, mb + ob[2][i] + n0, 32); memcpy(&t3, mb + ob[3][i] + n0, 32);
-            acc += wb[0][i] * t0 + wb[1][i] * t1 + wb[2][i] * t2 + wb[3][i] * t3;
-            memcpy(rows + i * N + n0, &acc, 32);
-        }
-    }
-}
 
 /* rows (TILE, N) = the bias b (N) for every ray */
 static void bias_rows(const float *b, int64_t N, float *rows) {
@@ -279,46 +68,6 @@ static void write_colours(const vtile *x, int64_t K, const float *wo, const floa
         float *o = out + 3 * (pixels ? pixels[r0 + i] : r0 + i);
         o[0] = rgb[0][i]; o[1] = rgb[1][i]; o[2] = rgb[2][i];
     }
-}
-
-/* The first layer's encoded part from per-coordinate tables (FastShader.pe_table): rows (TILE, N) = b + the sum over the
-   tile's 2 nuv coordinates of a cubic Hermite interpolation of that coordinate's table. Table c holds T + 1 nodes
-   x_j = j / T of 2 N floats: g_c(x_j) (N), then g_c'(x_j) / T (N), g_c = the layer's weights times the coordinate's
-   encoding, so the sin/cos and 2 L products per coordinate become 4 rows of the table. Returns 0, computing nothing,
-   when a uv of the tile is outside [0, 1] (the caller encodes that tile). T a power of 2 keeps x T exact. */
-static int table_layer(const float *const *uvs, int nuv, int64_t m, const float *table, int64_t T, int64_t N,
-                       const float *b, float *rows) {
-    int inside = 1;  /* (branch-free, so it vectorises; NaN is outside) */
-    for (int u = 0; u < nuv; u++)
-        for (int64_t i = 0; i < 2 * m; i++) inside &= (uvs[u][i] >= 0.0f) & (uvs[u][i] <= 1.0f);
-    if (!inside) return 0;
-    for (int64_t i = 0; i < TILE; i++) {
-        int64_t r = i < m ? i : m - 1;
-        const float *node[4];  /* per coordinate: its first node */
-        float h[4][4];         /* per coordinate: Hermite weights of g_j, g'_j, g_j+1, g'_j+1 */
-        int nc = 2 * nuv;
-        for (int c = 0; c < nc; c++) {
-            float t = uvs[c / 2][2 * r + c % 2] * (float)T;
-            int64_t j = (int64_t)t;
-            if (j > T - 1) j = T - 1;
-            float s = t - (float)j, s2 = s * s, s3 = s2 * s;
-            h[c][0] = 2.0f * s3 - 3.0f * s2 + 1.0f; h[c][1] = s3 - 2.0f * s2 + s;
-            h[c][2] = 3.0f * s2 - 2.0f * s3; h[c][3] = s3 - s2;
-            node[c] = table + ((int64_t)c * (T + 1) + j) * 2 * N;
-        }
-        for (int64_t n0 = 0; n0 < N; n0 += 8) {  /* 8 outputs in one vector, summed over the 4 nc table rows */
-            v8 acc;
-            memcpy(&acc, b + n0, 32);
-            for (int c = 0; c < nc; c++) {
-                v8 g0, d0, g1, d1;
-                memcpy(&g0, node[c] + n0, 32); memcpy(&d0, node[c] + N + n0, 32);
-                memcpy(&g1, node[c] + 2 * N + n0, 32); memcpy(&d1, node[c] + 3 * N + n0, 32);
-                acc += h[c][0] * g0 + h[c][1] * d0 + h[c][2] * g1 + h[c][3] * d1;
-            }
-            memcpy(rows + i * N + n0, &acc, 32);
-        }
-    }
-    return 1;
 }
 
 /* Native bf16 dot products (AVX512-BF16, compiled in only where -march=native has them): the hidden layers with
@@ -400,7 +149,7 @@ int deliffas_fused_bf16(void) {
 #endif
 }
 
-/* Shade rays [0, n): inputs as deliffas_ray_inputs (fp32); layers: nh hidden layers, per layer 5 int64 in dims
+/* Shade rays [0, n): inputs as deliffas_ray_inputs (fp32; the direction's rows last of the E encoded); layers: nh hidden layers, per layer 5 int64 in dims
    (K, N, feature rows F (0 or the feature width), offset of W (K, N), of Wf (F, N)), the bias at W + K N + F N;
    then the output layer (3, K) and its bias (3,) at dims[5 nh]. E, Fd: the encoded and feature widths (E = the
    first layer's K); wmax: the widest hidden layer. Colour of ray r to out[3 pixels[r] ..] (out[3 r ..] if no
@@ -412,7 +161,7 @@ int deliffas_fused_bf16(void) {
    scratch tiles cannot be allocated, -2 for more than 512 channels per map, -3 for bf16 without the kernel. */
 int deliffas_fused_shade(int64_t n, const float *uv_in, const uint8_t *from_outer, const float *uv_out,
                          int outer_encoded, int L, int include_input, const float *map_in, const float *map_out,
-                         int64_t S, int64_t C, int64_t nh, const int64_t *dims, const float *params, int64_t E,
+                         int64_t S, int64_t C, const dir_args *dir, int64_t nh, const int64_t *dims, const float *params, int64_t E,
                          int64_t Fd, int64_t wmax, const int64_t *pixels, float *out, int bf16, const float *pe_table,
                          int64_t table_nodes, const float *proj_out, const float *proj_in, const float *proj_peel) {
     if (C > 512) return -2;
@@ -433,7 +182,7 @@ int deliffas_fused_shade(int64_t n, const float *uv_in, const uint8_t *from_oute
     int nuv = outer_encoded ? 2 : 1;
     const int64_t *od = dims + 5 * nh;
     const float *wo = params + od[0], *bo = wo + 3 * od[1];
-    int64_t per_uv = (include_input ? 2 : 0) + 4 * (int64_t)L;
+    int64_t per_uv = (include_input ? 2 : 0) + 4 * (int64_t)L, De = E - dir_width(dir);  /* De: the uvs' rows */
     for (int64_t g0 = 0; g0 < n; g0 += GROUP * TILE) {
         int nt = 0;  /* tiles in this group */
         int64_t r0s[GROUP], ms[GROUP];
@@ -455,6 +204,7 @@ int deliffas_fused_shade(int64_t n, const float *uv_in, const uint8_t *from_oute
                 if (outer_encoded) { encode(uv_out + 2 * r0, m, L, include_input, xt); xt += per_uv * TILE; }
                 encode(uv_in + 2 * r0, m, L, include_input, xt);
             }
+            if (dir) encode_dir_tile(dir, r0, uv_in + 2 * r0, m, (float *)(xe[t] + De));  /* also where tabled */
             peel[t] = (map_out && from_outer) ? from_outer + r0 : 0;
             if (!proj_in) {
                 float *ft = (float *)xf[t];
@@ -468,6 +218,7 @@ int deliffas_fused_shade(int64_t n, const float *uv_in, const uint8_t *from_oute
                 __m512bh *pp = pe;
                 if (outer_encoded) { encode_pairs(uv_out + 2 * r0, m, L, include_input, pp); pp += per_uv / 2; }
                 encode_pairs(uv_in + 2 * r0, m, L, include_input, pp);
+                pair_tile(xe[t] + De, E - De, pe + De / 2);  /* the direction's rows (De is even) */
                 pair_tile(xf[t], Fd, pf);
                 const __m512bh *xp = pe;
                 const uint32_t *words = (const uint32_t *)params;
@@ -504,7 +255,8 @@ int deliffas_fused_shade(int64_t n, const float *uv_in, const uint8_t *from_oute
             int pair = nt == 2 && alike;  /* both tiles in one call; else each alone, passed twice */
             for (int t = 0; t < nt; t += 1 + pair) {
                 int u = pair ? 1 : t, from_table = l == 0 && tabled[t];
-                dense2(x[t], x[u], from_table ? 0 : d[0], w, projected || from_table ? 0 : b, F ? xf[t] : 0,
+                int64_t k0 = from_table ? De : 0;  /* tabled: the direction's rows remain */
+                dense2(x[t] + k0, x[u] + k0, d[0] - k0, w + k0 * d[1], projected || from_table ? 0 : b, F ? xf[t] : 0,
                        F ? xf[u] : 0, F, wf, d[1], h[t][l & 1], h[u][l & 1]);
             }
             for (int t = 0; t < nt; t++) x[t] = h[t][l & 1];

@@ -1,9 +1,25 @@
 /* Per-ray inputs of the MLP (deliffas/fast/shade.py, FastShader.inputs): positional encodings of the ray's
-   uvs and bilinearly sampled features written straight into the MLP's row-major GEMM operands; and the output
-   layer's colours written to their pixels. Built without FMA contraction and without fast-math. */
+   uvs (and view direction) and bilinearly sampled features written straight into the MLP's row-major GEMM
+   operands; and the output layer's colours written to their pixels. Built without FMA contraction and without
+   fast-math. */
 #include <math.h>
 #include <stdint.h>
 #include <string.h>
+
+/* The view direction of variants that encode one (FastShader._ray_args): viewdir (n, 3) unit directions; normals
+   NULL, or the inner normal map (S, S, 3) channels_last when the encoded direction is the reflection about it
+   (DeliffasModel._reflected); L, include_input: the direction's encoding. */
+typedef struct {
+    const float *viewdir;
+    const float *normals;
+    int64_t S;
+    int32_t L, include_input;
+} dir_args;
+
+/* Rows of one encoded direction: 3 (include_input + 2 L). */
+static inline int64_t dir_width(const dir_args *dir) {
+    return dir ? 3 * ((dir->include_input ? 1 : 0) + 2 * (int64_t)dir->L) : 0;
+}
 
 static inline uint16_t to_bf16(float f) {
     uint32_t u;
@@ -30,27 +46,29 @@ static inline void sin_cos(double a, double *s, double *c) {
 #define PUT_BF16(out, i, v) ((out)[i] = to_bf16(v))
 
 /* One variant per output type T with store PUT:
-   encode: positional encoding of one uv into out[i0 ..]: u v, then per k: sin(a_k u) sin(a_k v) cos(a_k u)
-   cos(a_k v), a_k x = 2^k float(x * float(pi)) (what torch rounds x * float(2^k pi) to), by the double-angle
-   recurrence in float64.
+   encode: positional encoding of one point x of D <= 3 coordinates (a uv, a direction) into out[i0 ..]: x, then
+   per k: sin(a_k x_d) for each d, cos(a_k x_d) for each d, a_k x = 2^k float(x * float(pi)) (what torch rounds
+   x * float(2^k pi) to), by the double-angle recurrence in float64.
    sample: bilinear lookup of a channels_last (S, S, C) map at uv (grid_sample, align_corners False, border).
-   rows: rows [start, stop) of enc (n, E): PE(uv_outer) if outer_encoded, then PE(uv_inner); and of
+   rows: rows [start, stop) of enc (n, E): PE(uv_outer) if outer_encoded, then PE(uv_inner), then with dir the
+   encoded direction (ray_direction); and of
    feats (n, F): the outer map at uv_outer if map_out is given, then the inner feature (the outer map at
    uv_inner where from_outer). */
 #define VARIANT(NAME, T, PUT)                                                                                  \
-static void encode_##NAME(const float *uv, int L, int include_input, T *out) {                                 \
+static void encode_##NAME(const float *x, int D, int L, int include_input, T *out) {                           \
     int64_t i = 0;                                                                                             \
-    if (include_input) { PUT(out, i, uv[0]); i++; PUT(out, i, uv[1]); i++; }                                  \
+    if (include_input) for (int d = 0; d < D; d++, i++) PUT(out, i, x[d]);                                     \
     if (L == 0) return;                                                                                        \
     const float pi = (float)3.14159265358979323846;                                                            \
-    double s0, c0, s1, c1;                                                                                     \
-    sin_cos((double)(uv[0] * pi), &s0, &c0);                                                                   \
-    sin_cos((double)(uv[1] * pi), &s1, &c1);                                                                    \
+    double s[3], c[3];                                                                                         \
+    for (int d = 0; d < D; d++) sin_cos((double)(x[d] * pi), &s[d], &c[d]);                                    \
     for (int k = 0; k < L; k++) {                                                                              \
-        PUT(out, i, (float)s0); PUT(out, i + 1, (float)s1); PUT(out, i + 2, (float)c0); PUT(out, i + 3, (float)c1); \
-        i += 4;                                                                                                \
-        double t0 = 2.0 * s0 * c0, t1 = 2.0 * s1 * c1;                                                        \
-        c0 = c0 * c0 - s0 * s0; c1 = c1 * c1 - s1 * s1; s0 = t0; s1 = t1;                                    \
+        for (int d = 0; d < D; d++) { PUT(out, i + d, (float)s[d]); PUT(out, i + D + d, (float)c[d]); }        \
+        i += 2 * D;                                                                                            \
+        for (int d = 0; d < D; d++) {                                                                          \
+            double t = 2.0 * s[d] * c[d];                                                                      \
+            c[d] = c[d] * c[d] - s[d] * s[d]; s[d] = t;                                                        \
+        }                                                                                                      \
     }                                                                                                          \
 }                                                                                                              \
 static void sample_##NAME(const float *map, int64_t S, int64_t C, const float *uv, T *out) {                  \
@@ -71,16 +89,38 @@ static void sample_##NAME(const float *map, int64_t S, int64_t C, const float *u
 }                                                                                                              \
 static void rows_##NAME(int64_t start, int64_t stop, const float *uv_in, const uint8_t *from_outer,           \
                         const float *uv_out, int outer_encoded, int L, int include_input, const float *map_in,\
-                        const float *map_out, int64_t S, int64_t C, T *enc, int64_t E, T *feats, int64_t F) { \
+                        const float *map_out, int64_t S, int64_t C, const dir_args *dir, T *enc, int64_t E,   \
+                        T *feats, int64_t F) {                                                                 \
     int64_t per_uv = (include_input ? 2 : 0) + 4 * (int64_t)L;                                                 \
     for (int64_t r = start; r < stop; r++) {                                                                   \
         T *e = enc + r * E, *f = feats + r * F;                                                                \
-        if (outer_encoded) { encode_##NAME(uv_out + 2 * r, L, include_input, e); e += per_uv; }                \
-        encode_##NAME(uv_in + 2 * r, L, include_input, e);                                                    \
+        if (outer_encoded) { encode_##NAME(uv_out + 2 * r, 2, L, include_input, e); e += per_uv; }             \
+        encode_##NAME(uv_in + 2 * r, 2, L, include_input, e);                                                 \
+        if (dir) {                                                                                             \
+            float d[3];                                                                                        \
+            ray_direction(dir, r, uv_in + 2 * r, d);                                                           \
+            encode_##NAME(d, 3, dir->L, dir->include_input, e + per_uv);                                       \
+        }                                                                                                      \
         if (map_out) { sample_##NAME(map_out, S, C, uv_out + 2 * r, f); f += C; }                              \
         const float *m = (from_outer && from_outer[r] && map_out) ? map_out : map_in;                          \
         sample_##NAME(m, S, C, uv_in + 2 * r, f);                                                              \
     }                                                                                                          \
+}
+
+static void sample_f32(const float *map, int64_t S, int64_t C, const float *uv, float *out);
+
+/* The direction ray r encodes, into out (3): its view direction d, or with dir->normals its reflection about the
+   unit normal at uv, in DeliffasModel._reflected's order: n = sample / max(|sample|, 1e-6), d - (2 (d . n)) n. */
+static void ray_direction(const dir_args *dir, int64_t r, const float *uv, float out[3]) {
+    const float *d = dir->viewdir + 3 * r;
+    if (!dir->normals) { out[0] = d[0]; out[1] = d[1]; out[2] = d[2]; return; }
+    float n[3];
+    sample_f32(dir->normals, dir->S, 3, uv, n);
+    float len = sqrtf(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+    len = len > 1e-6f ? len : 1e-6f;
+    n[0] /= len; n[1] /= len; n[2] /= len;
+    float t = 2.0f * (d[0] * n[0] + d[1] * n[1] + d[2] * n[2]);
+    out[0] = d[0] - t * n[0]; out[1] = d[1] - t * n[1]; out[2] = d[2] - t * n[2];
 }
 
 VARIANT(f32, float, PUT_F32)
@@ -147,14 +187,16 @@ void deliffas_rgb_out(int64_t n, const void *h, int64_t ld, int bf16, int64_t K,
     }
 }
 
+/* Rows [start, stop) of enc (n, E): PE(uv_outer) if outer_encoded, PE(uv_inner), then with dir PE(its direction);
+   and of feats (n, F) (rows_f32). */
 void deliffas_ray_inputs(int64_t start, int64_t stop, const float *uv_in, const uint8_t *from_outer,
                          const float *uv_out, int outer_encoded, int L, int include_input, const float *map_in,
-                         const float *map_out, int64_t S, int64_t C, int bf16, void *enc, int64_t E, void *feats,
-                         int64_t F) {
+                         const float *map_out, int64_t S, int64_t C, const dir_args *dir, int bf16, void *enc,
+                         int64_t E, void *feats, int64_t F) {
     if (bf16)
         rows_bf16(start, stop, uv_in, from_outer, uv_out, outer_encoded, L, include_input, map_in, map_out, S, C,
-                  (uint16_t *)enc, E, (uint16_t *)feats, F);
+                  dir, (uint16_t *)enc, E, (uint16_t *)feats, F);
     else
         rows_f32(start, stop, uv_in, from_outer, uv_out, outer_encoded, L, include_input, map_in, map_out, S, C,
-                 (float *)enc, E, (float *)feats, F);
+                 dir, (float *)enc, E, (float *)feats, F);
 }

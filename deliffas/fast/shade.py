@@ -2,8 +2,8 @@
 
 :class:`FastShader` computes what ``DeliffasModel.shade`` computes, outside autograd on CPU:
 
-* one C pass per ray (``deliffas/csrc/ray_inputs.c``) writes the positional encodings of the ray's uvs and
-  the bilinearly sampled features (``sample_uv``'s convention: texel centres, border clamp) from
+* one C pass per ray (``deliffas/csrc/ray_inputs.c``) writes the positional encodings of the ray's uvs (and
+  direction) and the bilinearly sampled features (``sample_uv``'s convention: texel centres, border clamp) from
   the channels_last feature maps straight into two row-major GEMM operands, in the MLP's dtype.
   The encodings take one sin/cos per coordinate and the double-angle recurrence in float64 for
   the higher frequencies (the same float32 arguments ``positional_encoding`` rounds to, within
@@ -30,9 +30,12 @@ bilinear sampling commutes with the layer's product, so each ray reads N project
 features and multiplying them by an (F, N) block; within 1e-6 of the sampled features); the engine's fast path turns
 it on (``FastConfig.project_features``).
 
-Supported variants: no view direction and one inner U-Net (``two_surface``, ``single_surface``);
-:func:`supports` says so, and callers use ``DeliffasModel.shade`` otherwise. Without the C kernel
-(``DELIFFAS_NATIVE=0``, no compiler) the inputs come from ``DeliffasModel.gather_inputs``.
+Supported variants: one inner U-Net, with or without a view direction (``two_surface``, ``two_surface_reflect``,
+``single_surface``, ``single_surface_viewdir`` and their texture-atlas models); :func:`supports` says so, and callers
+use ``DeliffasModel.shade`` otherwise. The direction's encoding is computed per ray in both C passes (the view
+direction, or its reflection about the unit normal sampled from ``FrameFeatures.normals`` at ``uv_inner``, peeled
+rays too) and multiplied by its columns of the first layer; the encoding table covers the uvs' part only. Without
+the C kernel (``DELIFFAS_NATIVE=0``, no compiler) the inputs come from ``DeliffasModel.gather_inputs``.
 """
 
 from __future__ import annotations
@@ -66,8 +69,8 @@ ROW_CHUNK = 16384
 
 def _declare_fused(lib: ctypes.CDLL) -> None:
     p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
-    lib.deliffas_fused_shade.argtypes = [i64, p, p, p, i32, i32, i32, p, p, i64, i64, i64, p, p, i64, i64, i64, p, p, i32,
-                                         p, i64, p, p, p]
+    lib.deliffas_fused_shade.argtypes = [i64, p, p, p, i32, i32, i32, p, p, i64, i64, p, i64, p, p, i64, i64, i64, p, p,
+                                         i32, p, i64, p, p, p]
     lib.deliffas_fused_shade.restype = i32
     lib.deliffas_fused_bf16.argtypes = []
     lib.deliffas_fused_bf16.restype = i32
@@ -79,7 +82,7 @@ _FUSED = LazyLibrary("fused_shade", "fused_shade.c", ("-ffp-contract=fast", "-fn
 
 def _declare(lib: ctypes.CDLL) -> None:
     p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
-    lib.deliffas_ray_inputs.argtypes = [i64, i64, p, p, p, i32, i32, i32, p, p, i64, i64, i32, p, i64, p, i64]
+    lib.deliffas_ray_inputs.argtypes = [i64, i64, p, p, p, i32, i32, i32, p, p, i64, i64, p, i32, p, i64, p, i64]
     lib.deliffas_ray_inputs.restype = None
     lib.deliffas_rgb_out.argtypes = [i64, p, i64, i32, i64, p, p, p, p]
     lib.deliffas_rgb_out.restype = None
@@ -87,6 +90,14 @@ def _declare(lib: ctypes.CDLL) -> None:
 
 _KERNEL = LazyLibrary("ray_inputs", "ray_inputs.c", ("-fno-fast-math", "-ffp-contract=off", "-fno-math-errno"), setup=_declare,
                       fallback="DeliffasModel.gather_inputs")
+
+
+class _DirArgs(ctypes.Structure):
+    """``dir_args`` of ``csrc/ray_inputs.c``: the rays' view directions (N, 3) fp32, the inner normal map (S, S, 3) fp32
+    (None: the direction is encoded as it is) and the direction's encoding."""
+
+    _fields_ = [("viewdir", ctypes.c_void_p), ("normals", ctypes.c_void_p), ("S", ctypes.c_int64), ("L", ctypes.c_int32),
+                ("include_input", ctypes.c_int32)]
 
 
 @functools.lru_cache(maxsize=1)
@@ -114,9 +125,12 @@ def _bf16_pairs(w: torch.Tensor) -> torch.Tensor:
 
 
 def supports(model: DeliffasModel) -> bool:
-    """Whether :class:`FastShader` can shade ``model``'s variant (no view direction, one inner U-Net)."""
+    """Whether :class:`FastShader` can shade ``model``'s variant: one inner U-Net, the encoded uvs ``(outer, inner)`` or
+    ``(inner,)``, and a view direction (reflected or not) or none (``two_surface``, ``two_surface_reflect``,
+    ``single_surface``, ``single_surface_viewdir``)."""
     spec = model.spec
-    return (not spec.viewdir and spec.inner_unets == 1 and tuple(spec.encoded_uvs) in (("outer", "inner"), ("inner",))
+    viewdir_ok = not spec.viewdir or (model.pe_viewdir is not None and model.pe_viewdir.in_dim == 3)
+    return (viewdir_ok and spec.inner_unets == 1 and tuple(spec.encoded_uvs) in (("outer", "inner"), ("inner",))
             and (spec.outer_unet or not spec.inner_from_outer) and model.pe_uv.in_dim == 2)
 
 
@@ -201,11 +215,37 @@ class FastShader:
         if peel is not None and not spec.inner_from_outer and bool(peel.any()):
             raise ValueError(f"shade: inner_from_outer has True entries but variant {model.config.variant!r} has no outer feature map")
         peel_u8 = peel.to(torch.uint8).contiguous() if peel is not None and spec.inner_from_outer else None
+        direction = self._direction(features, query)
+        if direction is False:
+            return None
         S, C = map_in.shape[1], map_in.shape[3]
         args = (uv_in.data_ptr(), peel_u8.data_ptr() if peel_u8 is not None else None, uv_out.data_ptr(),
                 int(spec.encoded_uvs[0] == "outer"), model.pe_uv.num_freqs, int(model.pe_uv.include_input),
-                map_in.data_ptr(), map_out.data_ptr() if map_out is not None else None, S, C)
-        return args, [uv_in, uv_out, peel_u8, map_in, map_out]
+                map_in.data_ptr(), map_out.data_ptr() if map_out is not None else None, S, C,
+                ctypes.addressof(direction[0]) if direction is not None else None)
+        return args, [uv_in, uv_out, peel_u8, map_in, map_out, direction]
+
+    def _direction(self, features: FrameFeatures, query: RayQuery) -> tuple | None | bool:
+        """The C passes' ``dir_args`` and the tensors it points into, None for variants without a view direction, False
+        where the C passes cannot read them (non-fp32 normal maps)."""
+        model, spec = self.model, self.model.spec
+        if not spec.viewdir:
+            return None
+        pe = model.pe_viewdir
+        assert pe is not None  # (a variant with a view direction has its encoding)
+        if query.viewdir is None:
+            raise ValueError(f"shade: viewdir is required for variant {model.config.variant!r}")
+        viewdir = query.viewdir.float().contiguous()
+        normals = None
+        if spec.reflect_viewdir:
+            if features.normals is None:
+                raise ValueError("shade: features.normals is None; encode() the frame with this model first")
+            if features.normals.dtype != torch.float32:
+                return False
+            normals = features.normals.permute(0, 2, 3, 1).contiguous()  # (1, S, S, 3)
+        args = _DirArgs(viewdir.data_ptr(), normals.data_ptr() if normals is not None else None,
+                        int(normals.shape[1]) if normals is not None else 0, pe.num_freqs, int(pe.include_input))
+        return args, viewdir, normals
 
     def inputs(self, features: FrameFeatures, query: RayQuery) -> tuple[torch.Tensor, torch.Tensor]:
         """The MLP's operands: encoded (N, E) and feats (N, F) in the shader's dtype (C kernel, else torch)."""
@@ -268,7 +308,8 @@ class FastShader:
 
         Returns (2 nuv, TABLE_NODES + 1, 2, N) float32, N the layer's width padded to 8 (g, then g' / TABLE_NODES),
         rebuilt when the weights change; None when the table does not apply (no hidden layer, or an encoded
-        width other than 2 or 4 coordinates' encodings)."""
+        width other than 2 or 4 coordinates' encodings and the view direction's). The view direction's columns are
+        not tabled: the pass encodes the direction and multiplies them."""
         key = self._key()
         if key == self._table_key:
             return self._table
@@ -276,8 +317,9 @@ class FastShader:
         pe = model.pe_uv
         per_uv = pe.out_dim  # one uv's encoding: (u, v) if included, then sin and cos of both per frequency
         nuv = len(model.spec.encoded_uvs)
+        per_dir = model.pe_viewdir.out_dim if model.pe_viewdir is not None else 0  # (multiplied by the pass)
         table = None
-        if mlp.hidden and nuv in (1, 2) and mlp.in_dim == nuv * per_uv:
+        if mlp.hidden and nuv in (1, 2) and mlp.in_dim == nuv * per_uv + per_dir:
             lin = mlp.hidden[0]
             f = mlp.feature_dim if mlp.config.feature_layer + 1 == 0 else 0
             w = lin.weight.detach().to(torch.float64)[:, f:]  # (N, E): the encoded columns

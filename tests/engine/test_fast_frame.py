@@ -20,12 +20,18 @@ from deliffas.models import DeliffasModel, get_config
 
 
 @pytest.fixture(scope="module")
-def frame(tiny_shards):
+def first_sample(tiny_shards):
+    """The tiny capture's first evaluation sample and its shard info."""
     from deliffas.engine.data_bridge import evaluation_samples
 
     samples, info = evaluation_samples(str(tiny_shards), "all", max_frames=1, with_rays=False, protocol="all",
                                        temporal_window=2)
-    sample = next(samples)
+    return next(samples), info
+
+
+@pytest.fixture(scope="module")
+def frame(first_sample):
+    sample, info = first_sample
     torch.manual_seed(0)
     cfg = dataclasses.replace(get_config("two_surface", "tiny"), atlas_res=info["atlas_res"])
     model = DeliffasModel(cfg).eval()
@@ -98,11 +104,12 @@ def test_ray_cast_fallback_and_unsupported_variant(frame, tiny_shards):
     plain = _render(model, features, raycaster, cameras[0], None)
     fast = _render(model, features, raycaster, cameras[0], FastConfig(rasterize=False, dtype="float32"))
     torch.testing.assert_close(fast, plain, atol=1e-5, rtol=0)
-    viewdir = DeliffasModel(dataclasses.replace(model.config, variant="single_surface_viewdir")).eval()
+    two_unet = DeliffasModel(dataclasses.replace(model.config, variant="single_surface_two_unet")).eval()
+    assert not fast_frame.supports(two_unet)  # the model's own gather_inputs and MLP
     with torch.no_grad():
-        feats = viewdir.encode(features.inner.new_zeros(1, 9, *features.inner.shape[2:]))
-    torch.testing.assert_close(_render(viewdir, feats, raycaster, cameras[0], FastConfig(dtype="float32")),
-                               _render(viewdir, feats, raycaster, cameras[0], None), atol=1e-4, rtol=0)
+        feats = two_unet.encode(features.inner.new_zeros(1, 9, *features.inner.shape[2:]))
+    torch.testing.assert_close(_render(two_unet, feats, raycaster, cameras[0], FastConfig(dtype="float32")),
+                               _render(two_unet, feats, raycaster, cameras[0], None), atol=1e-4, rtol=0)
 
 
 def test_switches(monkeypatch, unchecked):
@@ -213,3 +220,26 @@ def test_fast_path_renders_a_finer_texture_as_the_plain_path(frame):
         plain = _render(model, features, raycaster, cam, None)
         fast = _render(model, features, raycaster, cam, FastConfig(dtype="float32"))
         torch.testing.assert_close(fast, plain, atol=1e-4, rtol=0)
+
+
+@pytest.mark.parametrize("variant", ["two_surface_reflect", "two_surface_reflect_texture", "single_surface_viewdir"])
+def test_fast_path_renders_a_view_direction_model_as_the_plain_path(frame, first_sample, variant):
+    """Variants with a view direction (the reflected one, the training default's, the plain one) through the fast
+    path: the rasteriser's view directions and, for the reflection, the frame's inner normal map. Every camera in fp32
+    (fused, table and projected features); the exact and the per-stage paths; bf16 within its precision."""
+    _, _, raycaster, cameras = frame
+    torch.manual_seed(2)
+    model = DeliffasModel(dataclasses.replace(get_config(variant, "tiny"), atlas_res=frame[0].config.atlas_res)).eval()
+    with torch.no_grad():
+        for p in [*model.mlp.parameters(), *model.texture_parameters()]:
+            p.add_(0.3 * torch.randn_like(p))
+        features = model.encode(*first_sample[0].normal_maps(torch.device("cpu")))
+    assert fast_frame.supports(model)  # FastShader renders it, not the model's own gather_inputs
+    _assert_fast_fp32_equals_plain(model, features, raycaster, cameras)
+    plain = _render(model, features, raycaster, cameras[0], None)
+    for fast in (FastConfig(dtype="float32", pe_table=False, project_features=False),
+                 FastConfig(dtype="float32", fused=False)):
+        torch.testing.assert_close(_render(model, features, raycaster, cameras[0], fast), plain, atol=1e-4, rtol=0)
+    bf16 = _render(model, features, raycaster, cameras[0], FastConfig(dtype="bfloat16"))
+    mse = float(((bf16 - plain) ** 2).mean())
+    assert float((bf16 - plain).abs().max()) < 0.02 and -10 * np.log10(max(mse, 1e-20)) > 50

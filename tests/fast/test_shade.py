@@ -73,7 +73,7 @@ def test_fallback_without_the_kernel(monkeypatch):
 
 
 def test_unsupported_variants_are_refused():
-    model = DeliffasModel(get_config("single_surface_viewdir", "tiny"))
+    model = DeliffasModel(get_config("single_surface_two_unet", "tiny"))
     assert not supports(model)
     with pytest.raises(ValueError, match="not supported"):
         FastShader(model)
