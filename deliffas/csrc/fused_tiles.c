@@ -32,7 +32,8 @@ static inline void encode_points(float x[][TILE], int D, int L, int include_inpu
                           + r2 * (-1.0 / 39916800 + r2 * (1.0 / 6227020800.0 + r2 * (-1.0 / 1307674368000.0))))))));
             double cs = 1.0 + r2 * (-0.5 + r2 * (1.0 / 24 + r2 * (-1.0 / 720 + r2 * (1.0 / 40320 + r2 * (-1.0 / 3628800
                           + r2 * (1.0 / 479001600.0 + r2 * (-1.0 / 87178291200.0 + r2 * (1.0 / 20922789888000.0))))))));
-            double sign = 1.0 - 2.0 * (double)((int64_t)k & 1);
+            /* k's parity in doubles: AVX2 has no double <-> int64 conversion, which left the loop scalar */
+            double sign = 1.0 - 2.0 * (k - 2.0 * floor(0.5 * k));
             s[d][i] = sign * sn;
             c[d][i] = sign * cs;
         }
