@@ -1,17 +1,19 @@
 """Real-time rendering on CPU: the fast path's frame against its irreducible work, and frames per second by preset.
 
 Scene: the benchmark capture (``_capture.py``), frame 0, camera 0 rescaled to 940 x 1285 (and 256^2,
-512^2). Models: ``two_surface`` at the ``realtime``, ``small`` and ``paper`` presets, untrained
-(seed 0), atlas side = the shards' (256), U-Nets on their inference forward. One torch thread
-(``BENCH_THREADS``) on both sides of every ratio.
+512^2). Models: ``two_surface`` at the ``realtime``, ``small`` and ``paper`` presets, and ``REFLECTED``
+(``two_surface_reflect_texture``, the view direction reflected about the normal) at ``realtime``, untrained
+(seed 0; its texture atlases random), atlas side = the shards' (256), U-Nets on their inference forward. One
+torch thread (``BENCH_THREADS``) on both sides of every ratio.
 
 * frame, pose held: ``fast.frame.fast_render_camera`` with the frame's U-Net features cached
   (the viewer while the pose holds), in the dtype ``FastConfig()`` resolves to (bf16 where the CPU
-  has native bf16).
+  has native bf16); for ``two_surface`` and for ``REFLECTED``, each against its own irreducible work.
 * irreducible work, measured in the same run: one plain z-buffer pass of the outer surface
   (``UVRasterizer.depth_pass``, incl. projecting its vertices), one ``torch.mm`` per MLP layer shape
   into preallocated outputs in the same dtype (no bias, activation or concatenation), and one
-  ``index_select`` of every sampled feature value (nearest texel) from the two maps.
+  ``index_select`` of every sampled feature value (nearest texel) from the two maps (and the normal map
+  where the model reflects the view direction).
   The frame's fp32 pass takes the first layer's encoded part from per-coordinate tables
   (``FastConfig.pe_table``, on by default), so it does fewer multiply-adds than the GEMM chain counts
   and the ratio can read below 1.
@@ -19,6 +21,8 @@ Scene: the benchmark capture (``_capture.py``), frame 0, camera 0 rescaled to 94
   (``FastConfig(pe_table=False)``), same run; no target.
 * frames in flight: a stream of 8 frames one after the other (1 and 2 intra-op threads) against
   ``render_stream`` with two frames in flight on one thread each; no target.
+* reflected direction: ``REFLECTED``'s frame against ``two_surface_texture``'s (the same model without the
+  direction), pose held and U-Nets per frame, interleaved; no target.
 * fps: 1000 / frame ms, with the U-Nets run per frame (``deliffas render``: the pose changes every
   frame) and with them cached (pose held); no target, machines vary.
 """
@@ -38,14 +42,19 @@ RATIO_TARGET = 1.3
 SIZES = {"256^2": (256, 256), "512^2": (512, 512), "940x1285": (1285, 940)}
 
 
-def _model(info, preset: str):
+def _model(info, preset: str, name: str = "two_surface"):
+    """The zoo's model ``name`` at ``preset``, untrained (seed 0; texture atlases, if any, random)."""
     from deliffas.engine.train import TrainConfig, resolve_model_config
     from deliffas.models.deliffas import DeliffasModel
     from deliffas.models.unet import optimize_for_inference
 
-    cfg = resolve_model_config(TrainConfig(shards="", out="", model="two_surface", preset=preset), info["atlas_res"], 2)
+    cfg = resolve_model_config(TrainConfig(shards="", out="", model=name, preset=preset), info["atlas_res"], 2)
     torch.manual_seed(0)
-    return optimize_for_inference(DeliffasModel(cfg).eval())
+    model = DeliffasModel(cfg).eval()
+    with torch.no_grad():
+        for texture in model.texture_parameters():
+            texture.uniform_(0, 1)
+    return optimize_for_inference(model)
 
 
 def _gemm_chain(model, n: int, dtype: torch.dtype):
@@ -63,8 +72,9 @@ def _gemm_chain(model, n: int, dtype: torch.dtype):
 
 
 def _gather(features, n: int):
-    """One ``index_select`` of n texels' channels from each of the two maps (nearest texel)."""
-    maps = [m.permute(0, 2, 3, 1).reshape(-1, m.shape[1]) for m in (features.outer, features.inner)]
+    """One ``index_select`` of n texels' channels from each of the two maps and the normal map, if any (nearest texel)."""
+    sampled = [m for m in (features.outer, features.inner, features.normals) if m is not None]
+    maps = [m.permute(0, 2, 3, 1).reshape(-1, m.shape[1]) for m in sampled]
     idx = torch.randint(0, maps[0].shape[0], (n,), generator=torch.Generator().manual_seed(0))
 
     def run():
@@ -97,14 +107,17 @@ def _frame_fns(model, sample, info, camera, fast):
     return held, full, features, rc
 
 
-def _ratio_rows(sample, info) -> list[Result]:
+def _ratio_rows(sample, info, name: str = "two_surface") -> list[Result]:
+    """The frame of model ``name`` (realtime preset) against its irreducible work (PASS/FAIL), its fps and the
+    encoding table's gain; rows named as ever for ``two_surface``, after the model otherwise."""
     from deliffas.fast.frame import _rasterizer, fast_camera_rays
     from deliffas.fast.config import FastConfig
     from deliffas.engine.timing import StageTimer
 
     fast = FastConfig()
     dtype = fast.torch_dtype()
-    model = _model(info, "realtime")
+    model = _model(info, "realtime", name)
+    label = "940x1285 realtime preset" + ("" if name == "two_surface" else f" ({name})")
     cam = sample.cameras[0].rescaled(*SIZES["940x1285"])
     held, _full, features, rc = _frame_fns(model, sample, info, cam, fast)
     n = fast_camera_rays(rc, cam).num_rays
@@ -117,21 +130,42 @@ def _ratio_rows(sample, info) -> list[Result]:
     held(timer)
     irreducible = t["raster"] + t["gemm"] + t["gather"]
     ratio = t["frame"] / irreducible
-    name = str(dtype).replace("torch.", "")
+    dname = str(dtype).replace("torch.", "")
     return [
-        Result("realtime", f"940x1285 realtime preset, pose held ({n} rays, {name}): frame / irreducible",
+        Result("realtime", f"{label}, pose held ({n} rays, {dname}): frame / irreducible",
                t["frame"] * 1000, "ms", baseline="raster pass + GEMM chain + gather", ratio=ratio,
                target=f"<= {RATIO_TARGET}", passed=ratio <= RATIO_TARGET,
                note=f"raster {t['raster'] * 1000:.1f} ms, GEMMs {t['gemm'] * 1000:.1f} ms, gather "
                     f"{t['gather'] * 1000:.1f} ms; stages of one frame: "
                     + ", ".join(f"{k} {v:.1f}" for k, v in timer.total_ms.items())),
-        Result("realtime", "940x1285 realtime preset, pose held: fps", 1 / t["frame"], "fps",
+        Result("realtime", f"{label}, pose held: fps", 1 / t["frame"], "fps",
                note=f"{BENCH_THREADS} torch thread; no target (machines vary)"),
-        Result("realtime", "940x1285 realtime preset, pose held: frame with the encoding table", t["frame"] * 1000,
+        Result("realtime", f"{label}, pose held: frame with the encoding table", t["frame"] * 1000,
                "ms", baseline="exact encoding (pe_table=False)", ratio=t["frame"] / t["exact"],
-               note=f"exact {t['exact'] * 1000:.1f} ms; the table applies to the fp32 pass only ({name} here); "
+               note=f"exact {t['exact'] * 1000:.1f} ms; the table applies to the fp32 pass only ({dname} here); "
                     "no target"),
     ]
+
+
+def _reflect_rows(sample, info) -> list[Result]:
+    """``REFLECTED``'s realtime frame against ``two_surface_texture``'s (no view direction), interleaved: pose held
+    and U-Nets per frame."""
+    from deliffas.fast.config import FastConfig
+    from deliffas.models.zoo import REFLECTED, TEXTURED
+
+    cam = sample.cameras[0].rescaled(*SIZES["940x1285"])
+    fns = {}
+    for name in (TEXTURED, REFLECTED):
+        held, full, _, _ = _frame_fns(_model(info, "realtime", name), sample, info, cam, FastConfig())
+        fns[f"{name} held"], fns[f"{name} full"] = held, full
+    t = best_times(fns, repeat=3, max_rounds=6)
+    rows = []
+    for kind, label in (("held", "pose held"), ("full", "U-Nets per frame")):
+        ref, got = t[f"{TEXTURED} {kind}"], t[f"{REFLECTED} {kind}"]
+        rows.append(Result("realtime", f"940x1285 realtime preset, {label}: {REFLECTED} fps", 1 / got, "fps",
+                           baseline=f"{TEXTURED}, same frame", ratio=ref / got,
+                           note=f"{TEXTURED} {1 / ref:.1f} fps; {BENCH_THREADS} torch thread; no target"))
+    return rows
 
 
 def _stream_rows(sample, info) -> list[Result]:
@@ -198,11 +232,13 @@ def _fps_rows(sample, info) -> list[Result]:
 def run() -> list[Result]:
     subject, shards, _ = bench_capture()
     from benchmarks.bench_engine import _sample
+    from deliffas.models.zoo import REFLECTED
 
     sample, info = _sample(shards)
     sample = dataclasses.replace(sample, cameras=sample.cameras[:1], images=sample.images[:1], masks=sample.masks[:1])
     t0 = time.perf_counter()
     with torch_threads():
-        rows = _ratio_rows(sample, info) + _stream_rows(sample, info) + _fps_rows(sample, info)
+        rows = (_ratio_rows(sample, info) + _ratio_rows(sample, info, REFLECTED) + _reflect_rows(sample, info)
+                + _stream_rows(sample, info) + _fps_rows(sample, info))
     rows[-1].note += f" (group took {time.perf_counter() - t0:.0f} s)"
     return rows
