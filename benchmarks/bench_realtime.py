@@ -158,7 +158,7 @@ def _reflect_rows(sample, info) -> list[Result]:
     for name in (TEXTURED, REFLECTED):
         held, full, _, _ = _frame_fns(_model(info, "realtime", name), sample, info, cam, FastConfig())
         fns[f"{name} held"], fns[f"{name} full"] = held, full
-    t = best_times(fns, repeat=3, max_rounds=6)
+    t = best_times(fns, repeat=5, min_time=3.0)
     rows = []
     for kind, label in (("held", "pose held"), ("full", "U-Nets per frame")):
         ref, got = t[f"{TEXTURED} {kind}"], t[f"{REFLECTED} {kind}"]
