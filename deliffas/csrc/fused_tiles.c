@@ -32,8 +32,9 @@ static inline void encode_points(float x[][TILE], int D, int L, int include_inpu
                           + r2 * (-1.0 / 39916800 + r2 * (1.0 / 6227020800.0 + r2 * (-1.0 / 1307674368000.0))))))));
             double cs = 1.0 + r2 * (-0.5 + r2 * (1.0 / 24 + r2 * (-1.0 / 720 + r2 * (1.0 / 40320 + r2 * (-1.0 / 3628800
                           + r2 * (1.0 / 479001600.0 + r2 * (-1.0 / 87178291200.0 + r2 * (1.0 / 20922789888000.0))))))));
-            /* k's parity in doubles: AVX2 has no double <-> int64 conversion, which left the loop scalar */
-            double sign = 1.0 - 2.0 * (k - 2.0 * floor(0.5 * k));
+            /* k's parity: for a direction in doubles, which vectorises the loop on AVX2 (it has no double <-> int64
+               conversion): 1.9 against 4.7-5.0 ms for 197 k rays; a uv's scalar loop was the faster (7.2 against 8.4 ms) */
+            double sign = D == 3 ? 1.0 - 2.0 * (k - 2.0 * floor(0.5 * k)) : 1.0 - 2.0 * (double)((int64_t)k & 1);
             s[d][i] = sign * sn;
             c[d][i] = sign * cs;
         }
