@@ -83,7 +83,8 @@ class ModelConfig:
     pe_freqs: int = 10
     """Frequencies of the uv positional encoding (2 + 4 L values per uv; L = 10 -> 42)."""
     viewdir_pe_freqs: int = 4
-    """Frequencies of the view-direction encoding (variants with ``viewdir``: ``single_surface_viewdir``, ``two_surface_reflect``)."""
+    """Frequencies of the view-direction encoding (variants with ``viewdir``: ``single_surface_viewdir``,
+    ``two_surface_reflect``)."""
     feature_channels: int = 32
     """C: channels of each U-Net's feature map."""
     texture_channels: int = 0
