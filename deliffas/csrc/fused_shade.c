@@ -149,6 +149,146 @@ int deliffas_fused_bf16(void) {
 #endif
 }
 
+/* deliffas_fused_shade's arguments (see there) and what follows from them, shared by its steps. */
+typedef struct {
+    int64_t n;
+    const float *uv_in;
+    const uint8_t *from_outer;
+    const float *uv_out;
+    int outer_encoded, L, include_input;
+    const float *map_in, *map_out;
+    int64_t S, C;
+    const dir_args *dir;
+    int64_t nh;
+    const int64_t *dims;
+    const float *params;
+    int64_t E, Fd, wmax;
+    const int64_t *pixels;
+    float *out;
+    int bf16;
+    const float *pe_table;
+    int64_t table_nodes;
+    const float *proj_out, *proj_in, *proj_peel;
+    const float *uvs[2];  /* the uvs the tables read: the encoded outer ones (or the inner), the inner */
+    int nuv;
+    const float *wo, *bo;  /* the output layer and its bias */
+    int64_t per_uv, De;    /* encoded rows per uv; the uvs' rows (the direction's follow) */
+} fused_args;
+
+/* A tile's scratch, TILE rays a row: E encoded and Fd feature rows, two hidden layers of wmax rows, rows (TILE, N)
+   for a layer that starts from rows, and the bf16 pairs. */
+typedef struct {
+    vtile *xe, *xf, *h[2], *rows, *pairs;
+} tile_scratch;
+
+/* The tiles of a group: their first rays and ray counts, whether the first layer's encoded part came from the tables,
+   and their from_outer flags (NULL without an outer map). */
+typedef struct {
+    int nt;
+    int64_t r0[GROUP], m[GROUP];
+    int tabled[GROUP];
+    const uint8_t *peel[GROUP];
+} tile_group;
+
+/* The inputs of rays [r0, r0 + m) into tile t of the group: the first layer's encoded part from the tables (into
+   rows) or the encoding (unless the bf16 layers encode straight into pairs), the direction, the sampled features
+   (unless projected). */
+static inline void tile_inputs(const fused_args *a, const tile_scratch *s, tile_group *g, int t, int64_t r0,
+                               int64_t m) {
+    int pairs_direct = FUSED_BF16 && a->bf16 && a->nh > 0;  /* encodings straight into bf16 pairs */
+    const int64_t *dims = a->dims;
+    g->r0[t] = r0; g->m[t] = m; g->tabled[t] = 0;
+    if (a->pe_table && a->nh > 0) {
+        const float *tile_uvs[2] = {a->uvs[0] + 2 * r0, a->uvs[1] + 2 * r0};
+        g->tabled[t] = table_layer(tile_uvs, a->nuv, m, a->pe_table, a->table_nodes, dims[1],
+                                   a->params + dims[3] + dims[0] * dims[1] + dims[2] * dims[1], (float *)s->rows);
+    }
+    if (!pairs_direct && !g->tabled[t]) {
+        float *xt = (float *)s->xe;
+        void (*encode)(const float *, int64_t, int, int, float *) = a->bf16 ? encode_tile_f32 : encode_tile;
+        if (a->outer_encoded) { encode(a->uv_out + 2 * r0, m, a->L, a->include_input, xt); xt += a->per_uv * TILE; }
+        encode(a->uv_in + 2 * r0, m, a->L, a->include_input, xt);
+    }
+    if (a->dir) encode_dir_tile(a->dir, r0, a->uv_in + 2 * r0, m, (float *)(s->xe + a->De));  /* also where tabled */
+    g->peel[t] = (a->map_out && a->from_outer) ? a->from_outer + r0 : 0;
+    if (!a->proj_in) {
+        float *ft = (float *)s->xf;
+        if (a->map_out) { sample_tile(a->map_out, a->map_out, 0, a->uv_out + 2 * r0, m, a->S, a->C, ft); ft += a->C * TILE; }
+        sample_tile(a->map_in, a->map_out, g->peel[t], a->uv_in + 2 * r0, m, a->S, a->C, ft);
+    }
+}
+
+#if FUSED_BF16
+/* The bf16 hidden layers and the colours of rays [r0, r0 + m), a tile: the encodings straight into pairs, the
+   direction's and the features' rows paired, each layer's output as pairs (the last one's as fp32 rows). */
+static inline void shade_tile_bf16(const fused_args *a, const tile_scratch *s, int64_t r0, int64_t m) {
+    int64_t E = a->E, Fd = a->Fd, De = a->De;
+    __m512bh *pe = (__m512bh *)s->pairs, *pf = pe + (E + 1) / 2;
+    __m512bh *ph[2] = {pf + (Fd + 1) / 2, pf + (Fd + 1) / 2 + a->wmax / 2};
+    __m512bh *pp = pe;
+    if (a->outer_encoded) { encode_pairs(a->uv_out + 2 * r0, m, a->L, a->include_input, pp); pp += a->per_uv / 2; }
+    encode_pairs(a->uv_in + 2 * r0, m, a->L, a->include_input, pp);
+    pair_tile(s->xe + De, E - De, pe + De / 2);  /* the direction's rows (De is even) */
+    pair_tile(s->xf, Fd, pf);
+    const __m512bh *xp = pe;
+    const uint32_t *words = (const uint32_t *)a->params;
+    for (int64_t l = 0; l < a->nh; l++) {
+        const int64_t *d = a->dims + 5 * l;
+        const uint32_t *w = words + d[3], *wf = words + d[4];
+        const float *b = a->params + d[3] + d[0] * d[1] + d[2] * d[1];
+        dense_bf16(xp, d[0], w, b, d[2] ? pf : 0, d[2], wf, d[1], ph[l & 1], l == a->nh - 1 ? s->h[0] : 0);
+        xp = ph[l & 1];
+    }
+    write_colours(s->h[0], a->dims[5 * a->nh + 1], a->wo, a->bo, m, a->pixels, r0, a->out);
+}
+#endif
+
+/* Layer l of the group's tiles that start from rows (the tables' encoded part, projected features: b + those into
+   rows, transposed into the layer's output tile, which dense2 then adds to); returns 1 when every tile starts
+   alike (both from the tables, or neither), so dense2 can take two at once. */
+static inline int start_from_rows(const fused_args *a, const tile_scratch *s, const tile_group *g, int64_t l,
+                                  const float *b, int projected) {
+    const int64_t *d = a->dims + 5 * l;
+    int alike = 1;
+    for (int t = 0; t < g->nt; t++) {
+        int from_table = l == 0 && g->tabled[t];
+        alike &= from_table == (l == 0 && g->tabled[0]);
+        if (projected || from_table) {  /* the layer starts from rows: b + the encoded part and/or the projected features */
+            if (!from_table) bias_rows(b, d[1], (float *)s[t].rows);
+            if (projected)
+                add_projected(a->map_out ? a->proj_out : 0, a->uv_out + 2 * g->r0[t], a->proj_in, a->proj_peel,
+                              g->peel[t], a->uv_in + 2 * g->r0[t], g->m[t], a->S, d[1], (float *)s[t].rows);
+            rows_to_tile((const float *)s[t].rows, d[1], s[t].h[l & 1]);
+        }
+    }
+    return alike;
+}
+
+/* The fp32 hidden layers of a group's tiles (two tiles in one dense2 call where they start alike) and their
+   colours. */
+static inline void shade_group_fp32(const fused_args *a, const tile_scratch *s, const tile_group *g) {
+    int nt = g->nt;
+    const vtile *x[GROUP];
+    for (int t = 0; t < nt; t++) x[t] = s[t].xe;
+    for (int64_t l = 0; l < a->nh; l++) {
+        const int64_t *d = a->dims + 5 * l;
+        const float *w = a->params + d[3], *wf = a->params + d[4], *b = w + d[0] * d[1] + d[2] * d[1];
+        int projected = d[2] && a->proj_in;
+        int alike = start_from_rows(a, s, g, l, b, projected);
+        int64_t F = projected ? 0 : d[2];
+        int pair = nt == 2 && alike;  /* both tiles in one call; else each alone, passed twice */
+        for (int t = 0; t < nt; t += 1 + pair) {
+            int u = pair ? 1 : t, from_table = l == 0 && g->tabled[t];
+            int64_t k0 = from_table ? a->De : 0;  /* tabled: the direction's rows remain */
+            dense2(x[t] + k0, x[u] + k0, d[0] - k0, w + k0 * d[1], projected || from_table ? 0 : b, F ? s[t].xf : 0,
+                   F ? s[u].xf : 0, F, wf, d[1], s[t].h[l & 1], s[u].h[l & 1]);
+        }
+        for (int t = 0; t < nt; t++) x[t] = s[t].h[l & 1];
+    }
+    for (int t = 0; t < nt; t++)
+        write_colours(x[t], a->dims[5 * a->nh + 1], a->wo, a->bo, g->m[t], a->pixels, g->r0[t], a->out);
+}
+
 /* Shade rays [0, n): inputs as deliffas_ray_inputs (fp32; the direction's rows last of the E encoded); layers: nh hidden layers, per layer 5 int64 in dims
    (K, N, feature rows F (0 or the feature width), offset of W (K, N), of Wf (F, N)), the bias at W + K N + F N;
    then the output layer (3, K) and its bias (3,) at dims[5 nh]. E, Fd: the encoded and feature widths (E = the
@@ -172,96 +312,26 @@ int deliffas_fused_shade(int64_t n, const float *uv_in, const uint8_t *from_oute
     if (bf16) pe_table = proj_in = 0;  /* the table and the projected maps serve the fp32 pass */
     char *mem = aligned_alloc(64, (size_t)(GROUP * per_tile) * sizeof(vtile));
     if (!mem) return -1;
-    vtile *xe[GROUP], *xf[GROUP], *h[GROUP][2], *rows[GROUP], *pairs[GROUP];
+    tile_scratch s[GROUP];
     for (int t = 0; t < GROUP; t++) {
-        xe[t] = (vtile *)mem + t * per_tile; xf[t] = xe[t] + E; h[t][0] = xf[t] + Fd; h[t][1] = h[t][0] + wmax;
-        rows[t] = h[t][1] + wmax; pairs[t] = rows[t] + wmax;
+        s[t].xe = (vtile *)mem + t * per_tile; s[t].xf = s[t].xe + E; s[t].h[0] = s[t].xf + Fd;
+        s[t].h[1] = s[t].h[0] + wmax; s[t].rows = s[t].h[1] + wmax; s[t].pairs = s[t].rows + wmax;
     }
-    (void)pairs;  /* (read by the bf16 layers only) */
-    const float *uvs[2] = {outer_encoded ? uv_out : uv_in, uv_in};
-    int nuv = outer_encoded ? 2 : 1;
-    const int64_t *od = dims + 5 * nh;
-    const float *wo = params + od[0], *bo = wo + 3 * od[1];
-    int64_t per_uv = (include_input ? 2 : 0) + 4 * (int64_t)L, De = E - dir_width(dir);  /* De: the uvs' rows */
+    const float *wo = params + dims[5 * nh];
+    fused_args a = {n, uv_in, from_outer, uv_out, outer_encoded, L, include_input, map_in, map_out, S, C, dir, nh, dims,
+                    params, E, Fd, wmax, pixels, out, bf16, pe_table, table_nodes, proj_out, proj_in, proj_peel,
+                    {outer_encoded ? uv_out : uv_in, uv_in}, outer_encoded ? 2 : 1, wo, wo + 3 * dims[5 * nh + 1],
+                    (include_input ? 2 : 0) + 4 * (int64_t)L, E - dir_width(dir)};
     for (int64_t g0 = 0; g0 < n; g0 += GROUP * TILE) {
-        int nt = 0;  /* tiles in this group */
-        int64_t r0s[GROUP], ms[GROUP];
-        int tabled[GROUP];  /* the first layer's encoded part from the tables */
-        const uint8_t *peel[GROUP];
-        for (; nt < GROUP && g0 + nt * TILE < n; nt++) {
-            int t = nt;
-            int64_t r0 = r0s[t] = g0 + t * TILE, m = ms[t] = n - r0 < TILE ? n - r0 : TILE;
-            int pairs_direct = FUSED_BF16 && bf16 && nh > 0;  /* encodings straight into bf16 pairs */
-            tabled[t] = 0;
-            if (pe_table && nh > 0) {
-                const float *tile_uvs[2] = {uvs[0] + 2 * r0, uvs[1] + 2 * r0};
-                tabled[t] = table_layer(tile_uvs, nuv, m, pe_table, table_nodes, dims[1],
-                                        params + dims[3] + dims[0] * dims[1] + dims[2] * dims[1], (float *)rows[t]);
-            }
-            if (!pairs_direct && !tabled[t]) {
-                float *xt = (float *)xe[t];
-                void (*encode)(const float *, int64_t, int, int, float *) = bf16 ? encode_tile_f32 : encode_tile;
-                if (outer_encoded) { encode(uv_out + 2 * r0, m, L, include_input, xt); xt += per_uv * TILE; }
-                encode(uv_in + 2 * r0, m, L, include_input, xt);
-            }
-            if (dir) encode_dir_tile(dir, r0, uv_in + 2 * r0, m, (float *)(xe[t] + De));  /* also where tabled */
-            peel[t] = (map_out && from_outer) ? from_outer + r0 : 0;
-            if (!proj_in) {
-                float *ft = (float *)xf[t];
-                if (map_out) { sample_tile(map_out, map_out, 0, uv_out + 2 * r0, m, S, C, ft); ft += C * TILE; }
-                sample_tile(map_in, map_out, peel[t], uv_in + 2 * r0, m, S, C, ft);
-            }
-            if (bf16 && nh > 0) {  /* the bf16 hidden layers and the colours, a tile at a time */
+        tile_group g;
+        for (g.nt = 0; g.nt < GROUP && g0 + g.nt * TILE < n; g.nt++) {
+            int64_t r0 = g0 + g.nt * TILE, m = n - r0 < TILE ? n - r0 : TILE;
+            tile_inputs(&a, &s[g.nt], &g, g.nt, r0, m);
 #if FUSED_BF16
-                __m512bh *pe = (__m512bh *)pairs[t], *pf = pe + (E + 1) / 2;
-                __m512bh *ph[2] = {pf + (Fd + 1) / 2, pf + (Fd + 1) / 2 + wmax / 2};
-                __m512bh *pp = pe;
-                if (outer_encoded) { encode_pairs(uv_out + 2 * r0, m, L, include_input, pp); pp += per_uv / 2; }
-                encode_pairs(uv_in + 2 * r0, m, L, include_input, pp);
-                pair_tile(xe[t] + De, E - De, pe + De / 2);  /* the direction's rows (De is even) */
-                pair_tile(xf[t], Fd, pf);
-                const __m512bh *xp = pe;
-                const uint32_t *words = (const uint32_t *)params;
-                for (int64_t l = 0; l < nh; l++) {
-                    const int64_t *d = dims + 5 * l;
-                    const uint32_t *w = words + d[3], *wf = words + d[4];
-                    const float *b = params + d[3] + d[0] * d[1] + d[2] * d[1];
-                    dense_bf16(xp, d[0], w, b, d[2] ? pf : 0, d[2], wf, d[1], ph[l & 1], l == nh - 1 ? h[t][0] : 0);
-                    xp = ph[l & 1];
-                }
-                write_colours(h[t][0], od[1], wo, bo, m, pixels, r0, out);
+            if (bf16 && nh > 0) shade_tile_bf16(&a, &s[g.nt], r0, m);  /* the bf16 layers and colours, a tile at a time */
 #endif
-            }
         }
-        if (bf16 && nh > 0) continue;
-        const vtile *x[GROUP];
-        for (int t = 0; t < nt; t++) x[t] = xe[t];
-        for (int64_t l = 0; l < nh; l++) {
-            const int64_t *d = dims + 5 * l;
-            const float *w = params + d[3], *wf = params + d[4], *b = w + d[0] * d[1] + d[2] * d[1];
-            int projected = d[2] && proj_in, alike = 1;
-            for (int t = 0; t < nt; t++) {
-                int from_table = l == 0 && tabled[t];
-                alike &= from_table == (l == 0 && tabled[0]);
-                if (projected || from_table) {  /* the layer starts from rows: b + the encoded part and/or the projected features */
-                    if (!from_table) bias_rows(b, d[1], (float *)rows[t]);
-                    if (projected)
-                        add_projected(map_out ? proj_out : 0, uv_out + 2 * r0s[t], proj_in, proj_peel, peel[t],
-                                      uv_in + 2 * r0s[t], ms[t], S, d[1], (float *)rows[t]);
-                    rows_to_tile((const float *)rows[t], d[1], h[t][l & 1]);
-                }
-            }
-            int64_t F = projected ? 0 : d[2];
-            int pair = nt == 2 && alike;  /* both tiles in one call; else each alone, passed twice */
-            for (int t = 0; t < nt; t += 1 + pair) {
-                int u = pair ? 1 : t, from_table = l == 0 && tabled[t];
-                int64_t k0 = from_table ? De : 0;  /* tabled: the direction's rows remain */
-                dense2(x[t] + k0, x[u] + k0, d[0] - k0, w + k0 * d[1], projected || from_table ? 0 : b, F ? xf[t] : 0,
-                       F ? xf[u] : 0, F, wf, d[1], h[t][l & 1], h[u][l & 1]);
-            }
-            for (int t = 0; t < nt; t++) x[t] = h[t][l & 1];
-        }
-        for (int t = 0; t < nt; t++) write_colours(x[t], od[1], wo, bo, ms[t], pixels, r0s[t], out);
+        if (!(bf16 && nh > 0)) shade_group_fp32(&a, s, &g);
     }
     free(mem);
     return 0;
