@@ -61,10 +61,12 @@ def render(shards: str, width: int, height: int, zoom: float, chunks: list[str])
     ni = torch.from_numpy(frame.normal_inner)[None]
     with torch.no_grad():
         out["encode"], features = measure(lambda: model.encode(ni, ni))
-        out["features_bytes"] = sum(t.numel() * t.element_size() for t in (features.inner, features.outer))
+        out["features_bytes"] = sum(t.numel() * t.element_size()
+                                    for t in (features.inner, features.outer, features.normals) if t is not None)
         rays = frame.rays[0]
         query = RayQuery(torch.zeros(rays.num_rays, dtype=torch.long), torch.from_numpy(rays.uv_inner),
-                         torch.from_numpy(rays.uv_outer), inner_from_outer=torch.from_numpy(rays.inner_from_outer))
+                         torch.from_numpy(rays.uv_outer), viewdir=torch.from_numpy(rays.viewdir),
+                         inner_from_outer=torch.from_numpy(rays.inner_from_outer))
         out["shade"] = {}
         for chunk in chunks:  # the shading stage alone: chunk-bounded activations + (N, 3) output
             c = rays.num_rays if chunk == "all" else int(chunk)
