@@ -139,10 +139,11 @@ def cmd_zoo(args: argparse.Namespace) -> int:
     if cfg.json:
         print(json.dumps(listing if avatars is not None else rows, indent=2))
         return 0
-    print(f"{'model':<26} {'preset':<8} {'S':>5} {'mlp':>7} {'feat':>5} {'params':>12}")
+    width = max([len("model"), *(len(r["model"]) for r in rows)])  # the model column fits the longest name
+    print(f"{'model':<{width}} {'preset':<8} {'S':>5} {'mlp':>7} {'feat':>5} {'params':>12}")
     for r in rows:
         p = f"{r['parameters']:,}" if r["parameters"] is not None else "(--count-paper)"
-        print(f"{r['model']:<26} {r['preset']:<8} {r['atlas_res']:>5} {r['mlp']:>7} {r['features']:>5} {p:>12}")
+        print(f"{r['model']:<{width}} {r['preset']:<8} {r['atlas_res']:>5} {r['mlp']:>7} {r['features']:>5} {p:>12}")
     if avatars is not None:
         print(f"\navatar files under {cfg.folder}: {len(avatars)}")
         for a in avatars:
