@@ -55,8 +55,9 @@ class VariantSpec:
     """What one model variant is made of; the MLP's inputs follow from it.
 
     The MLP's encoded input is ``PE(uv)`` for each of ``encoded_uvs`` in that order, then
-    ``PE(viewdir)`` when ``viewdir`` (of the reflected direction when ``reflect_viewdir``); its feature input is the outer map sampled at ``uv_outer``
-    (when ``outer_unet``) followed by the inner map(s) sampled at ``uv_inner``.
+    ``PE(viewdir)`` when ``viewdir`` (of the reflected direction when ``reflect_viewdir``); its feature
+    input is the outer map sampled at ``uv_outer`` (when ``outer_unet``) followed by the inner map(s)
+    sampled at ``uv_inner``.
     """
 
     name: str

@@ -53,6 +53,7 @@ import torch
 from deliffas.models.deliffas import VARIANTS, DeliffasModel, ModelConfig
 from deliffas.models.light_field import LightFieldMLPConfig
 from deliffas.models.unet import UNetConfig
+from deliffas.models.variants import EXTENSION_VARIANTS
 
 __all__ = [
     "CheckpointError",
@@ -169,7 +170,7 @@ def _preset(variant: str, preset: str) -> ModelConfig:
 
 PRESETS: tuple[str, ...] = ("paper", "small", "realtime", "tiny")
 """The presets every registered model has."""
-for _variant in (*VARIANTS, "two_surface_reflect"):
+for _variant in (*VARIANTS, *(spec.name for spec in EXTENSION_VARIANTS)):
     register(_variant, {p: _preset(_variant, p) for p in PRESETS})
 
 TEXTURED = "two_surface_texture"
