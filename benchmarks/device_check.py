@@ -5,7 +5,8 @@ and none of open3d, pymeshlab, xatlas, pycolmap, trimesh, viser or av: the uv ma
 rasteriser (``uv="torch"``), the capture is a small shard set made beforehand by ``--prepare`` (which needs
 the whole stack) and carried there with the repository.
 
-Printed (and written as JSON with ``--json``), per case (model ``two_surface``, a preset at an image size):
+Printed (and written as JSON with ``--json``), per case (``--model``, by default the trainer's default model, at a
+zoo preset and an image size):
 
 * ``train``: it/s of ``train_step`` on in-memory samples of the shards' frames at the case's size and atlas
   side (images resized, cameras rescaled, normal maps rebuilt at the preset's side), uvs rasterised every
@@ -43,14 +44,13 @@ import torch
 
 __all__ = ["Case", "FULL", "QUICK", "prepare", "run_checks", "main"]
 
-MODEL = "two_surface"
 PSNR_MIN = 50.0
 """Device-vs-CPU agreement of one rendered frame (dB) the check requires."""
 
 
 @dataclass(frozen=True)
 class Case:
-    """One measured configuration: a zoo preset of ``MODEL`` at an image size."""
+    """One measured configuration: a zoo preset at an image size."""
 
     preset: str
     width: int
@@ -97,7 +97,14 @@ def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
     return 10 * math.log10(1.0 / mse) if mse > 0 else float("inf")
 
 
-def _case_data(shards: str, case: Case, device: torch.device) -> tuple:
+def default_model() -> str:
+    """The model ``deliffas train`` trains when none is named (``TrainConfig.model``)."""
+    from deliffas.engine.train_config import TrainConfig
+
+    return next(f.default for f in dataclasses.fields(TrainConfig) if f.name == "model")
+
+
+def _case_data(shards: str, case: Case, device: torch.device, model_name: str) -> tuple:
     """The case's model (fresh weights on ``device``), its in-memory samples (every training frame, all
     training cameras, at the case's size) and the shards' info."""
     import cv2
@@ -109,7 +116,7 @@ def _case_data(shards: str, case: Case, device: torch.device) -> tuple:
     from deliffas.data.shards import ShardSet
     from deliffas.models.deliffas import DeliffasModel
 
-    cfg = resolve_model_config(TrainConfig(shards=shards, out="unused", model=MODEL, preset=case.preset,
+    cfg = resolve_model_config(TrainConfig(shards=shards, out="unused", model=model_name, preset=case.preset,
                                            device=str(device)))
     info = shard_info(shards)
     meta = ShardSet(shards).meta
@@ -221,12 +228,12 @@ def _agreement(model, sample, info, device: torch.device) -> dict:
             "reference": "cpu, C/numpy rasteriser"}
 
 
-def _trainer_and_eval(shards: str, out: Path, device: torch.device, iters: int, preset: str) -> dict:
+def _trainer_and_eval(shards: str, out: Path, device: torch.device, iters: int, preset: str, model_name: str) -> dict:
     """``train`` on the shards with the torch uv source, then ``evaluate`` of the run."""
     from deliffas.engine.evaluate import EvalConfig, evaluate
     from deliffas.engine.train import TrainConfig, train
 
-    cfg = TrainConfig(shards=shards, out=str(out), model=MODEL, preset=preset, iters=iters, protocol="all",
+    cfg = TrainConfig(shards=shards, out=str(out), model=model_name, preset=preset, iters=iters, protocol="all",
                       device=str(device), uv="torch", num_workers=2, checkpoint_every=iters, preview_every=0,
                       progress=False)
     res = train(cfg)
@@ -236,17 +243,21 @@ def _trainer_and_eval(shards: str, out: Path, device: torch.device, iters: int, 
             "eval": {k: ev[k] for k in ("stage_ms", "fps", "fps_shared_cnn", "psnr", "images", "resolution", "uv")}}
 
 
-def run_checks(shards: str, device: torch.device, cases, trainer_iters: int, trainer_preset: str) -> dict:
-    """Every check on ``device``; the JSON-ready record (see the module docstring)."""
-    out: dict = {"device": str(device), "torch": torch.__version__, "python": sys.version.split()[0],
+def run_checks(shards: str, device: torch.device, cases, trainer_iters: int, trainer_preset: str,
+               model_name: str | None = None) -> dict:
+    """Every check on ``device`` for the zoo model ``model_name`` (default: :func:`default_model`); the JSON-ready
+    record (see the module docstring)."""
+    model_name = model_name or default_model()
+    out: dict = {"device": str(device), "model": model_name, "torch": torch.__version__,
+                 "python": sys.version.split()[0],
                  "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else None, "cases": []}
     with tempfile.TemporaryDirectory() as tmp:
         _say(f"trainer + eval ({trainer_preset}, {trainer_iters} iterations, shards as stored)")
-        out.update(_trainer_and_eval(shards, Path(tmp) / "run", device, trainer_iters, trainer_preset))
+        out.update(_trainer_and_eval(shards, Path(tmp) / "run", device, trainer_iters, trainer_preset, model_name))
         _say(json.dumps({k: out[k] for k in ("trainer", "eval")}, default=float))
     for case in cases:
-        _say(f"{MODEL} {case.preset} at {case.width}x{case.height}")
-        model, samples, info = _case_data(shards, case, device)
+        _say(f"{model_name} {case.preset} at {case.width}x{case.height}")
+        model, samples, info = _case_data(shards, case, device, model_name)
         row = {"preset": case.preset, "size": [case.width, case.height], "atlas_res": model.config.atlas_res,
                "parameters": model.num_parameters(), "rays_per_image": None}
         row["train"] = _train(model, samples, info, device, case.iters)
@@ -276,6 +287,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--prepare", metavar="DATA", help="synthesise and convert the small capture into DATA, then exit")
     p.add_argument("--data", default="device_check_data", help="folder made by --prepare (its shards/)")
     p.add_argument("--device", default="cuda", help="cuda | cuda:N | cpu (default cuda)")
+    p.add_argument("--model", default=None, help="zoo model to check (default: deliffas train's default, "
+                   f"{default_model()})")
     p.add_argument("--quick", action="store_true", help="tiny sizes and a few iterations (the default on cpu)")
     p.add_argument("--json", help="also write the record to this JSON file")
     args = p.parse_args(argv)
@@ -288,6 +301,12 @@ def main(argv: list[str] | None = None) -> int:
               f"{args.data}` on a full install and carry it", file=sys.stderr)
         return 2
     from deliffas.engine.devices import resolve_device
+    from deliffas.models.zoo import list_models
+
+    if args.model is not None and args.model not in list_models():
+        print(f"device_check: --model: unknown {args.model!r}; the zoo has {', '.join(list_models())}",
+              file=sys.stderr)
+        return 2
 
     try:
         device = resolve_device(args.device)
@@ -296,7 +315,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     quick = args.quick or device.type == "cpu"
     record = run_checks(str(shards), device, QUICK if quick else FULL, trainer_iters=4 if quick else 200,
-                        trainer_preset="tiny" if quick else "small")
+                        trainer_preset="tiny" if quick else "small", model_name=args.model)
     text = json.dumps(record, indent=2, default=float)
     if args.json:
         Path(args.json).write_text(text + "\n")
