@@ -20,7 +20,7 @@ WIDTH, HEIGHT = 1285, 940
 def main(shards: str, chunk: int) -> dict:
     from deliffas.engine.data_bridge import evaluation_samples
     from deliffas.engine.shading import render_frame
-    from deliffas.engine.memory import peak_rss_growth, render_peak_bound
+    from deliffas.engine.memory import frame_features_bytes, peak_rss_growth, render_peak_bound
     from deliffas.engine.rays import camera_rays
     from deliffas.engine.timing import StageTimer
     from deliffas.engine.train import TrainConfig, resolve_model_config
@@ -41,9 +41,9 @@ def main(shards: str, chunk: int) -> dict:
     small = dataclasses.replace(frame, cameras=[cam.rescaled(48, 64)])
     render_frame(model, small, raycaster, cpu, StageTimer(cpu), chunk_size=1024)  # warm-up: lazy inits
     rays = camera_rays(raycaster, cam).num_rays
-    c = model.config
-    features_bytes = 2 * c.feature_channels * c.atlas_res**2 * 4
-    out = {"pixels": WIDTH * HEIGHT, "rays": rays, "chunk": chunk, "atlas_res": c.atlas_res,
+    with torch.no_grad():
+        features_bytes = frame_features_bytes(model.encode(*frame.normal_maps(cpu)))
+    out = {"pixels": WIDTH * HEIGHT, "rays": rays, "chunk": chunk, "atlas_res": model.config.atlas_res,
            "features_bytes": features_bytes, "bound": render_peak_bound(features_bytes, WIDTH * HEIGHT, chunk, rays)}
     for name, size in (("chunked", chunk), ("unchunked", rays)):
         out[name], images = peak_rss_growth(lambda: render_frame(model, frame, raycaster, cpu, StageTimer(cpu),

@@ -31,6 +31,7 @@ __all__ = [
     "TRAIN_BYTES_PER_RAY",
     "TRAIN_BYTES_PER_PIXEL",
     "PEAK_PROBE_ENV",
+    "frame_features_bytes",
     "render_peak_bound",
     "train_peak_bound",
     "peak_rss_growth",
@@ -62,11 +63,19 @@ PEAK_PROBE_ENV = {"MALLOC_MMAP_THRESHOLD_": "65536", "OMP_NUM_THREADS": "1"}
 T = TypeVar("T")
 
 
+def frame_features_bytes(features) -> int:
+    """F of :func:`render_peak_bound`: the bytes of a frame's ``FrameFeatures`` (the inner and outer feature maps,
+    texture channels included, and the inner normals that a reflected-view-direction variant keeps)."""
+    maps = (features.inner, features.outer, features.normals)
+    return sum(t.numel() * t.element_size() for t in maps if t is not None)
+
+
 def render_peak_bound(features_bytes: int, pixels: int, chunk: int, rays: int) -> int:
     """Bytes ``render_frame`` may grow by (no autograd), one camera.
 
     Args:
-        features_bytes: F, the frame's feature maps (2 maps x C x S^2 x 4 B for two surfaces).
+        features_bytes: F, the frame's feature maps (2 maps x C x S^2 x 4 B for two surfaces, + 3 x S^2 x 4 B of
+            normals for a reflected-view-direction variant): :func:`frame_features_bytes`.
         pixels: P, pixels of the image.
         chunk: c, rays per chunk of the light field.
         rays: N, shaded rays of the image.

@@ -25,6 +25,7 @@ import sys
 import numpy as np
 import torch
 
+from deliffas.engine.memory import frame_features_bytes
 from deliffas.engine.memory import peak_rss_growth as measure
 from deliffas.models.ray_query import RayQuery
 from deliffas.models.unet import optimize_for_inference
@@ -61,8 +62,7 @@ def render(shards: str, width: int, height: int, zoom: float, chunks: list[str])
     ni = torch.from_numpy(frame.normal_inner)[None]
     with torch.no_grad():
         out["encode"], features = measure(lambda: model.encode(ni, ni))
-        out["features_bytes"] = sum(t.numel() * t.element_size()
-                                    for t in (features.inner, features.outer, features.normals) if t is not None)
+        out["features_bytes"] = frame_features_bytes(features)
         rays = frame.rays[0]
         query = RayQuery(torch.zeros(rays.num_rays, dtype=torch.long), torch.from_numpy(rays.uv_inner),
                          torch.from_numpy(rays.uv_outer), viewdir=torch.from_numpy(rays.viewdir),
