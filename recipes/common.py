@@ -21,7 +21,7 @@ from deliffas.engine.run_sizes import RunSizes
 logger = logging.getLogger(__name__)
 
 __all__ = ["RecipeSizes", "recipe_parser", "sizes_from_args", "prepare_capture", "prepare_shards",
-           "train_and_eval", "train_and_eval_seeds", "seed_list", "ablation_sizes", "write_outputs", "find_character", "shards_source", "prepare_template_variants",
+           "train_and_eval", "train_and_eval_seeds", "seed_list", "ablation_sizes", "sized_by_args", "FULL_SUPERSAMPLE", "write_outputs", "find_character", "shards_source", "prepare_template_variants",
            "bar_chart"]
 
 
@@ -40,6 +40,10 @@ two-surface, ~0.3 s per evaluated image); ``--iters`` overrides."""
 
 RecipeSizes = RunSizes
 """The recipes' name for ``deliffas.engine.run_sizes.RunSizes`` (full defaults, ``quick()`` for tests)."""
+FULL_SUPERSAMPLE = 3
+"""Rays per pixel side of the full recipes' synthetic captures (3 x 3 per pixel): a camera integrates over its
+pixels, and one ray per pixel aliases the garment's texture finer than a pixel into ground truth that no
+continuous model can reproduce (docs/results.md, "What limits the held-out score"). Quick mode renders 1."""
 
 
 def recipe_parser(description: str, seeds: bool = False) -> argparse.ArgumentParser:
@@ -54,6 +58,8 @@ def recipe_parser(description: str, seeds: bool = False) -> argparse.ArgumentPar
     p.add_argument("--cameras", type=int, default=None,
                    help="cameras of the synthetic capture (a quarter held out as test cameras)")
     p.add_argument("--size", type=int, default=None, help="image side of the synthetic capture, pixels")
+    p.add_argument("--supersample", type=int, default=None,
+                   help=f"s x s rays per pixel of the synthetic capture (default {FULL_SUPERSAMPLE}; 1 with --quick)")
     p.add_argument("--device", default="cpu", help="cpu | cuda (default cpu)")
     p.add_argument("--seed", type=int, default=0,
                    help="first training seed (seeds are SEED, SEED+1, ...); the capture's seed stays 0")
@@ -64,14 +70,20 @@ def recipe_parser(description: str, seeds: bool = False) -> argparse.ArgumentPar
 
 
 def sizes_from_args(args: argparse.Namespace) -> RecipeSizes:
-    """The run sizes: quick or full defaults, then ``--iters``, ``--frames``, ``--cameras``, ``--size``."""
-    sizes = RecipeSizes.quick() if args.quick else RecipeSizes()
-    for flag, field in (("iters", "iters"), ("frames", "frames"), ("cameras", "cameras"), ("size", "size")):
+    """The run sizes: quick or full defaults, then ``--iters``, ``--frames``, ``--cameras``, ``--size``,
+    ``--supersample``."""
+    return sized_by_args(RecipeSizes.quick() if args.quick else RecipeSizes(supersample=FULL_SUPERSAMPLE), args)
+
+
+def sized_by_args(sizes: RecipeSizes, args: argparse.Namespace) -> RecipeSizes:
+    """``sizes`` with the fields that ``args`` sets (``--iters``, ``--frames``, ``--cameras``, ``--size``,
+    ``--supersample``; each >= 1)."""
+    for flag in ("iters", "frames", "cameras", "size", "supersample"):
         value = getattr(args, flag, None)
         if value is not None:
             if value < 1:
                 raise SystemExit(f"--{flag} must be >= 1, got {value}")
-            sizes = dataclasses.replace(sizes, **{field: value})
+            sizes = dataclasses.replace(sizes, **{flag: value})
     return sizes
 
 
@@ -94,7 +106,8 @@ def seed_list(args: argparse.Namespace) -> list[int]:
 
 def prepare_capture(out: Path, sizes: RecipeSizes, seed: int = 0, subject: Path | None = None, jobs: int = 2,
                     **synth) -> Path:
-    """The subject folder: ``subject`` if given, else a synthetic capture in ``out/subject`` (made once).
+    """The subject folder: ``subject`` if given, else a synthetic capture in ``out/subject`` (made once, with
+    ``sizes.supersample`` rays per pixel side; one made earlier with other sizes is refused).
 
     ``jobs``: synthesis worker processes (1 = in this process; spawning costs seconds per worker).
     """
@@ -103,11 +116,25 @@ def prepare_capture(out: Path, sizes: RecipeSizes, seed: int = 0, subject: Path 
     from deliffas.data.synth import SynthConfig, synthesize_capture
 
     path = out / "subject"
-    if not (path / "synth.json").is_file():
-        synthesize_capture(path, SynthConfig(num_frames=sizes.frames, num_test_frames=sizes.test_frames,
-                                             num_cameras=sizes.cameras, width=sizes.size, height=sizes.size,
-                                             test_cameras=max(1, sizes.cameras // 4), seed=seed, jobs=jobs, **synth))
+    config = SynthConfig(num_frames=sizes.frames, num_test_frames=sizes.test_frames, num_cameras=sizes.cameras,
+                         width=sizes.size, height=sizes.size, test_cameras=max(1, sizes.cameras // 4), seed=seed,
+                         jobs=jobs, **{"supersample": sizes.supersample, **synth})
+    if (path / "synth.json").is_file():
+        _check_same_capture(path, config)
+    else:
+        synthesize_capture(path, config)
     return path
+
+
+def _check_same_capture(path: Path, config) -> None:
+    """Refuse ``path`` (a finished synthetic capture) when it was rendered with other sizes than ``config``."""
+    made = json.loads((path / "synth.json").read_text()).get("config", {})
+    differ = [f"{k} {made.get(k, 1 if k == 'supersample' else None)} (asked {getattr(config, k)})"
+              for k in ("num_frames", "num_cameras", "width", "height", "supersample")
+              if made.get(k, 1 if k == "supersample" else None) != getattr(config, k)]
+    if differ:
+        raise SystemExit(f"{path}: this capture was made with other sizes: {', '.join(differ)}; use another --out, "
+                         "or the options it was made with")
 
 
 def prepare_shards(out: Path, subject: Path, sizes: RecipeSizes, name: str = "shards", template: str | None = None,

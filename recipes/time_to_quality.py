@@ -4,7 +4,8 @@ Usage: ``python -m recipes.time_to_quality --out OUT [--quick] [--seeds N] [--it
 [--subject DIR | --shards DIR]``.
 
 Each configuration is trained over seeds on the 256 x 256 recipe capture (40 training + 10 test frames,
-12 cameras: a quarter held out as test cameras and one training camera as the validation split); at
+12 cameras: a quarter held out as test cameras and one training camera as the validation split; rendered with
+3 x 3 rays per pixel, ``--supersample`` to change); at
 ``CHECKPOINTS`` fractions of the run the model is evaluated on the validation camera (foreground and
 masked PSNR, FLIP) and on the held-out test cameras. Training seconds exclude the evaluations. Writes
 ``results.json``, ``results.md`` and ``time_to_quality.png`` (masked PSNR against seconds).
@@ -23,11 +24,11 @@ import time
 from pathlib import Path
 
 from deliffas.engine.run_sizes import RunSizes
-from recipes.common import prepare_capture, prepare_shards, recipe_parser, seed_list
+from recipes.common import FULL_SUPERSAMPLE, prepare_capture, prepare_shards, recipe_parser, seed_list, sized_by_args
 
 CAPTURE = RunSizes(frames=40, test_frames=10, cameras=12, size=256, atlas_res=256, iters=0, cameras_per_frame=3,
-                   preset="small", eval_frames=10)
-"""The recipe capture at 256 px (``iters`` 0: the configurations' own)."""
+                   preset="small", eval_frames=10, supersample=FULL_SUPERSAMPLE)
+"""The recipe capture at 256 px, 3 x 3 rays per pixel (``iters`` 0: the configurations' own)."""
 CHECKPOINTS = (0.125, 0.25, 0.5, 0.75, 1.0)
 """Fractions of the run at which the model is evaluated."""
 CONFIGS: dict[str, dict] = {
@@ -109,7 +110,7 @@ def main(argv=None) -> dict:
     names = [n.strip() for n in args.configs.split(",")] if args.configs else list(CONFIGS)
     if any(n not in CONFIGS for n in names):
         p.error(f"--configs: expected names from {','.join(CONFIGS)}, got {args.configs!r}")
-    sizes = RunSizes.quick() if args.quick else CAPTURE
+    sizes = sized_by_args(RunSizes.quick() if args.quick else CAPTURE, args)
     iters = args.iters or (sizes.iters if args.quick else TrainConfig.iters)
     seeds = seed_list(args)
     jobs = 1 if args.quick else 2

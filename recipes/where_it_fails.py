@@ -5,7 +5,8 @@ Usage: ``python -m recipes.where_it_fails --out OUT [--quick] [--seeds N] [--cam
 
 Camera sweep: one synthetic capture with enough cameras (the largest count + a quarter held out as
 test cameras), converted once per count with that many training cameras (the test cameras fixed).
-Size sweep: one capture per image side (atlas side = image side, the recipe capture's other sizes).
+Size sweep: one capture per image side (atlas side = image side, the recipe capture's other sizes). Captures
+are rendered with 3 x 3 rays per pixel (``--supersample`` to change; 1 with ``--quick``).
 Every point is trained with the default run's settings (``TrainConfig`` defaults, ``--iters`` to
 change) over seeds and scored on the held-out test cameras in masked PSNR (the person's pixels) and
 foreground PSNR/FLIP. For each model the table states the smallest camera count and image side at
@@ -22,10 +23,11 @@ from pathlib import Path
 
 from deliffas.engine.run_sizes import RunSizes
 from deliffas.engine.train_config import TrainConfig
-from recipes.common import prepare_capture, prepare_shards, recipe_parser, seed_list, train_and_eval
+from recipes.common import (FULL_SUPERSAMPLE, prepare_capture, prepare_shards, recipe_parser, seed_list, sized_by_args,
+                            train_and_eval)
 
 BASE = RunSizes(frames=40, test_frames=10, cameras=12, size=256, atlas_res=256, iters=0, cameras_per_frame=3,
-                preset="small", eval_frames=10)
+                preset="small", eval_frames=10, supersample=FULL_SUPERSAMPLE)
 MODELS = {"single_surface": {"model": "single_surface"}, "two_surface": {"model": "two_surface"},
           "default": {"model": TrainConfig.model}}
 """Model name -> TrainConfig fields (``default``: ``deliffas train``'s defaults)."""
@@ -137,10 +139,8 @@ def main(argv=None) -> dict:
     p.add_argument("--models", default=None, help=f"comma-separated, of {','.join(MODELS)} (default all)")
     p.add_argument("--threshold-db", type=float, default=24.0, help="the stated quality, masked PSNR (default 24)")
     args = p.parse_args(argv)
-    sizes = dataclasses.replace(RunSizes.quick(), cameras_per_frame=2) if args.quick else BASE
-    if args.iters:
-        sizes = dataclasses.replace(sizes, iters=args.iters)
-    elif not args.quick:
+    sizes = sized_by_args(dataclasses.replace(RunSizes.quick(), cameras_per_frame=2) if args.quick else BASE, args)
+    if not args.iters and not args.quick:
         sizes = dataclasses.replace(sizes, iters=TrainConfig.iters)
     names = args.models.split(",") if args.models else list(MODELS)
     if any(n not in MODELS for n in names):

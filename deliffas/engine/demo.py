@@ -49,7 +49,8 @@ def run_demo(cfg: DemoConfig = DemoConfig()) -> Path:
     if not (subject / "synth.json").is_file():
         synthesize_capture(subject, SynthConfig(num_frames=sz.frames, num_test_frames=sz.test_frames,
                                                 num_cameras=sz.cameras, width=sz.size, height=sz.size,
-                                                test_cameras=max(1, sz.cameras // 5), seed=cfg.seed, jobs=cfg.jobs))
+                                                test_cameras=max(1, sz.cameras // 5), seed=cfg.seed, jobs=cfg.jobs,
+                                                supersample=sz.supersample))
     timings["synth_s"] = time.time() - t
     _stage("2/5 conversion into HDF5 shards")
     t = time.time()
@@ -132,7 +133,8 @@ def _write_report(out: Path, cfg: DemoConfig, rows: list[dict], timings: dict, c
     sz = cfg.sizes
     lines = ["# deliffas demo", "",
              f"Synthetic capture of the procedural character: {sz.frames} training frames, {sz.test_frames} "
-             f"novel-pose frames, {sz.cameras} cameras at {sz.size}x{sz.size}; ground truth with a loose skirt "
+             f"novel-pose frames, {sz.cameras} cameras at {sz.size}x{sz.size} ({sz.supersample}x{sz.supersample} rays "
+             "per pixel); ground truth with a loose skirt "
              "displaced 2–6 cm by pose and velocity, specular and pose-dependent occlusion shading.",
              f"Each model trained {sz.iters} iterations ({sz.cameras_per_frame} cameras per frame, L1), evaluated "
              "on the held-out cameras. The headline is **foreground PSNR** (inside the person's padded mask box, "

@@ -24,6 +24,8 @@ class RunSizes:
         cameras_per_frame: cameras per training sample.
         preset: zoo preset of the models ("paper", "small", "tiny").
         eval_frames: frames evaluated per split (None: all).
+        supersample: s, the synthetic capture's s x s rays per pixel (1: one ray through the pixel centre, which
+            aliases texture finer than a pixel; a camera integrates over its pixels as s > 1 does).
     """
 
     frames: int = 40
@@ -35,6 +37,7 @@ class RunSizes:
     cameras_per_frame: int = 3
     preset: str = "small"
     eval_frames: int | None = None
+    supersample: int = 1
 
     @staticmethod
     def quick() -> "RunSizes":
