@@ -65,11 +65,15 @@ def _sample(size: int):
 
 
 def _model(size: int):
+    """The default run's model at atlas side ``size`` and its optimizer, as ``deliffas train`` makes them."""
+    from deliffas.engine.train import make_optimizer
     from deliffas.engine.train_config import TrainConfig, resolve_model_config
     from deliffas.models.deliffas import DeliffasModel
 
     torch.manual_seed(0)
-    return DeliffasModel(resolve_model_config(TrainConfig(shards="", out=""), size, 2))
+    cfg = TrainConfig(shards="", out="")
+    model = DeliffasModel(resolve_model_config(cfg, size, 2))
+    return model, make_optimizer(model, cfg)
 
 
 def _irreducible_s(model, sample, conv_rate: float, gemm_rate: float) -> tuple[float, float, float]:
@@ -104,8 +108,7 @@ def _run() -> list[Result]:
     rows = []
     for size in (128, 256):
         sample = _sample(size)
-        model = _model(size)
-        opt = torch.optim.Adam(model.parameters(), lr=1e-4)
+        model, opt = _model(size)
         step = lambda: train_step(model, sample, opt, torch.device("cpu"))  # noqa: E731
         rays = sum(r.num_rays for r in sample.rays)
         conv_rate, gemm_rate = _rates(rays)

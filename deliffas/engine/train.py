@@ -41,7 +41,7 @@ from deliffas.io.infra.files import claim_output
 from deliffas.models.zoo import config_to_dict
 
 __all__ = ["TrainConfig", "TrainResult", "Trainer", "train", "train_step", "resolve_model_config",
-           "render_sample_images", "claim_run", "RUN_MARKER"]
+           "render_sample_images", "claim_run", "make_optimizer", "RUN_MARKER"]
 
 logger = logging.getLogger(__name__)
 
@@ -78,7 +78,7 @@ def _check_resumed_capture(run: Path, shards: str, found: dict) -> None:
     check_identity(recorded, f"the run {run}", found, f"the shards {shards}", CAPTURE_KEYS)
 
 
-def _optimizer(model: DeliffasModel, cfg: TrainConfig) -> torch.optim.Adam:
+def make_optimizer(model: DeliffasModel, cfg: TrainConfig) -> torch.optim.Adam:
     """Adam over the model: the texture atlases in a group of their own at ``cfg.texture_lr_scale`` x the rate."""
     textures = {id(p) for p in model.texture_parameters()}
     groups = [{"params": [p for p in model.parameters() if id(p) not in textures], "lr_scale": 1.0}]
@@ -157,7 +157,7 @@ class Trainer:
         self.stream, self.data_info = training_stream(cfg, self.model_config.temporal_window, rank=self.rank,
                                                       world=self.world, start_iteration=self.start, shards=self.shards)
         self.model = DeliffasModel(self.model_config).to(device)
-        self.optimizer = _optimizer(self.model, cfg)
+        self.optimizer = make_optimizer(self.model, cfg)
         # the groups' rate multiples come from this run's config, not from a loaded state (a run saved
         # before the multiples existed has none)
         self.lr_scales = [group["lr_scale"] for group in self.optimizer.param_groups]

@@ -59,12 +59,12 @@ def test_a_finer_texture_upsamples_the_unet_maps_to_its_side():
 
 
 def test_texture_atlases_get_their_own_learning_rate(tmp_path):
-    from deliffas.engine.train import _optimizer
+    from deliffas.engine.train import make_optimizer
     from deliffas.engine.train_config import TrainConfig
 
     model = _model("two_surface", 2)
-    opt = _optimizer(model, TrainConfig(shards="s", out="o", texture_lr_scale=10.0))
+    opt = make_optimizer(model, TrainConfig(shards="s", out="o", texture_lr_scale=10.0))
     assert [g["lr_scale"] for g in opt.param_groups] == [1.0, 10.0]
     assert opt.param_groups[1]["params"] == model.texture_parameters()
     assert sum(p.numel() for g in opt.param_groups for p in g["params"]) == model.num_parameters()
-    assert len(_optimizer(_model("two_surface", 0), TrainConfig(shards="s", out="o")).param_groups) == 1
+    assert len(make_optimizer(_model("two_surface", 0), TrainConfig(shards="s", out="o")).param_groups) == 1
