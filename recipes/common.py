@@ -21,7 +21,8 @@ from deliffas.engine.run_sizes import RunSizes
 logger = logging.getLogger(__name__)
 
 __all__ = ["RecipeSizes", "recipe_parser", "sizes_from_args", "prepare_capture", "prepare_shards",
-           "train_and_eval", "train_and_eval_seeds", "seed_list", "ablation_sizes", "sized_by_args", "FULL_SUPERSAMPLE", "write_outputs", "find_character", "shards_source", "prepare_template_variants",
+           "train_and_eval", "train_and_eval_seeds", "seed_list", "ablation_sizes", "sized_by_args",
+           "FULL_SUPERSAMPLE", "write_outputs", "find_character", "shards_source", "prepare_template_variants",
            "bar_chart"]
 
 
@@ -129,9 +130,11 @@ def prepare_capture(out: Path, sizes: RecipeSizes, seed: int = 0, subject: Path 
 def _check_same_capture(path: Path, config) -> None:
     """Refuse ``path`` (a finished synthetic capture) when it was rendered with other sizes than ``config``."""
     made = json.loads((path / "synth.json").read_text()).get("config", {})
-    differ = [f"{k} {made.get(k, 1 if k == 'supersample' else None)} (asked {getattr(config, k)})"
-              for k in ("num_frames", "num_cameras", "width", "height", "supersample")
-              if made.get(k, 1 if k == "supersample" else None) != getattr(config, k)]
+    differ = []
+    for key in ("num_frames", "num_cameras", "width", "height", "supersample"):
+        was = made.get(key, 1 if key == "supersample" else None)  # an older synth wrote no supersample: it was 1
+        if was != getattr(config, key):
+            differ.append(f"{key} {was} (asked {getattr(config, key)})")
     if differ:
         raise SystemExit(f"{path}: this capture was made with other sizes: {', '.join(differ)}; use another --out, "
                          "or the options it was made with")
