@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-__all__ = ["Case", "FULL", "QUICK", "prepare", "run_checks", "main"]
+__all__ = ["Case", "FULL", "QUICK", "prepare", "default_model", "run_checks", "main"]
 
 PSNR_MIN = 50.0
 """Device-vs-CPU agreement of one rendered frame (dB) the check requires."""
@@ -101,7 +101,7 @@ def default_model() -> str:
     """The model ``deliffas train`` trains when none is named (``TrainConfig.model``)."""
     from deliffas.engine.train_config import TrainConfig
 
-    return next(f.default for f in dataclasses.fields(TrainConfig) if f.name == "model")
+    return TrainConfig.model
 
 
 def _case_data(shards: str, case: Case, device: torch.device, model_name: str) -> tuple:
