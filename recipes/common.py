@@ -44,7 +44,7 @@ RecipeSizes = RunSizes
 FULL_SUPERSAMPLE = 3
 """Rays per pixel side of the full recipes' synthetic captures (3 x 3 per pixel): a camera integrates over its
 pixels, and one ray per pixel aliases the garment's texture finer than a pixel into ground truth that no
-continuous model can reproduce (docs/results.md, "What limits the held-out score"). Quick mode renders 1."""
+continuous model can reproduce (docs/results.md, "Upper bounds from the capture"). Quick mode renders 1."""
 
 
 def recipe_parser(description: str, seeds: bool = False) -> argparse.ArgumentParser:
@@ -129,15 +129,19 @@ def prepare_capture(out: Path, sizes: RecipeSizes, seed: int = 0, subject: Path 
 
 def _check_same_capture(path: Path, config) -> None:
     """Refuse ``path`` (a finished synthetic capture) when it was rendered with other sizes than ``config``."""
-    made = json.loads((path / "synth.json").read_text()).get("config", {})
-    differ = []
-    for key in ("num_frames", "num_cameras", "width", "height", "supersample"):
-        was = made.get(key, 1 if key == "supersample" else None)  # an older synth wrote no supersample: it was 1
-        if was != getattr(config, key):
-            differ.append(f"{key} {was} (asked {getattr(config, key)})")
-    if differ:
-        raise SystemExit(f"{path}: this capture was made with other sizes: {', '.join(differ)}; use another --out, "
-                         "or the options it was made with")
+    made = {"supersample": 1, **json.loads((path / "synth.json").read_text()).get("config", {})}  # older: no key
+    wanted = {k: getattr(config, k) for k in ("num_frames", "num_cameras", "width", "height", "supersample")}
+    diff = _differences(made, wanted)
+    if diff:
+        raise SystemExit(f"error: {path} holds a capture made with other sizes ({diff}); choose another --out or "
+                         "remove that folder")
+
+
+def _differences(recorded: dict, wanted: dict) -> str:
+    """``key: recorded there, wanted now`` for every key of ``wanted`` whose recorded value differs, sorted by key
+    and joined with "; " (empty when none differs)."""
+    return "; ".join(f"{k}: {recorded.get(k)!r} there, {v!r} now" for k, v in sorted(wanted.items())
+                     if recorded.get(k) != v)
 
 
 def prepare_shards(out: Path, subject: Path, sizes: RecipeSizes, name: str = "shards", template: str | None = None,
@@ -214,9 +218,8 @@ def check_same_configuration(run_dir: Path, cfg) -> None:
         return
     recorded = json.loads(path.read_text()).get("train", {})
     wanted = json.loads(json.dumps(dataclasses.asdict(cfg), default=str))
-    changed = {k: (recorded.get(k), v) for k, v in wanted.items() if k not in RESUMABLE_FIELDS and recorded.get(k) != v}
-    if changed:
-        diff = "; ".join(f"{k}: {old!r} there, {new!r} now" for k, (old, new) in sorted(changed.items()))
+    diff = _differences(recorded, {k: v for k, v in wanted.items() if k not in RESUMABLE_FIELDS})
+    if diff:
         raise SystemExit(f"error: {path.parent} holds a run trained with other settings ({diff}); choose another --out "
                          "or remove that folder")
 

@@ -47,7 +47,8 @@ def test_a_capture_made_with_other_sizes_is_refused(tmp_path):
     made = {"num_frames": 2, "num_cameras": 2, "width": 16, "height": 16}  # an older synth.json: no supersample
     (subject / "synth.json").write_text(json.dumps({"config": made}))
     assert prepare_capture(tmp_path, sizes, jobs=1) == subject  # made earlier with these sizes: reused
-    with pytest.raises(SystemExit, match=r"other sizes: supersample 1 \(asked 3\)"):
+    with pytest.raises(SystemExit, match=r"^error: .* made with other sizes \(supersample: 1 there, 3 now\)"):
         prepare_capture(tmp_path, dataclasses.replace(sizes, supersample=3), jobs=1)
-    with pytest.raises(SystemExit, match=r"num_frames 2 \(asked 4\), width 16 \(asked 32\)"):
+    with pytest.raises(SystemExit, match=r"\(height: 16 there, 32 now; num_frames: 2 there, 4 now; "
+                                         r"width: 16 there, 32 now\)"):
         prepare_capture(tmp_path, dataclasses.replace(sizes, frames=4, size=32), jobs=1)
