@@ -301,11 +301,12 @@ def main(argv: list[str] | None = None) -> int:
               f"{args.data}` on a full install and carry it", file=sys.stderr)
         return 2
     from deliffas.engine.devices import resolve_device
-    from deliffas.models.zoo import list_models
+    from deliffas.engine.train_config import TrainConfig
 
-    if args.model is not None and args.model not in list_models():
-        print(f"device_check: --model: unknown {args.model!r}; the zoo has {', '.join(list_models())}",
-              file=sys.stderr)
+    try:  # the trainer's own check of the model name, before any work
+        TrainConfig(shards=str(shards), out="unused", model=args.model or default_model())
+    except ValueError as exc:
+        print(f"device_check: --model: {exc}", file=sys.stderr)
         return 2
 
     try:
