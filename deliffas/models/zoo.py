@@ -182,7 +182,7 @@ TEXTURE_CHANNELS, TEXTURE_SCALE = 8, 1
 REFLECTED = "two_surface_reflect_texture"
 """``two_surface_reflect`` with the texture atlases of ``TEXTURED`` (the default of ``deliffas train``): the view
 direction reflected about the posed surface normal gives the MLP the specular highlights a fixed light puts on a
-moving body (docs/results.md, "What limits the held-out score")."""
+moving body (docs/results.md, "The view direction reflected about the normal")."""
 for _name, _variant in ((TEXTURED, "two_surface"), (REFLECTED, "two_surface_reflect")):
     register(_name, {p: dataclasses.replace(_preset(_variant, p), texture_channels=TEXTURE_CHANNELS,
                                             texture_scale=TEXTURE_SCALE) for p in PRESETS})
