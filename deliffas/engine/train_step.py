@@ -18,7 +18,14 @@ from deliffas.models.deliffas import DeliffasModel, FrameFeatures
 from deliffas.models.losses import SaturationTerm, step_loss
 from deliffas.models.ray_query import RayQuery
 
-__all__ = ["train_step", "render_sample_images", "balance_weight"]
+__all__ = ["train_step", "render_sample_images", "balance_weight", "MLP_BLOCK"]
+
+MLP_BLOCK = 4096
+"""Rays per light-field block of a training step with a per-ray loss (L1 only): the features of
+every ray are sampled in one graph, then the MLP runs forward and backward on each block of this
+many rays while its activations are still in the CPU's cache, and the blocks' feature gradients go
+through the sampling and the U-Nets in one backward. The gradient is the one-graph gradient up to
+float summation order; peak memory is lower (one block's MLP activations)."""
 
 
 def _rays(model: DeliffasModel, sample: FrameSample, device: torch.device) -> tuple[RayBatch, RayQuery]:
@@ -115,10 +122,43 @@ def _chunked_backward(model: DeliffasModel, sample: FrameSample, device: torch.d
     return out, sq_sum / (3 * n)
 
 
+def _blocked_backward(model: DeliffasModel, sample: FrameSample, device: torch.device, block: int,
+                      saturation: SaturationTerm | None) -> tuple[dict[str, float], float]:
+    """Gradients of one step's L1 loss with the light-field MLP run block by block (:data:`MLP_BLOCK`).
+
+    Returns the loss terms and the mean squared error over the shaded values.
+    """
+    batch, query = _rays(model, sample, device)
+    features = model.encode(*sample.normal_maps(device))
+    encoded, feats = model.gather_inputs(features, query)  # (N, E) without, (N, C) with a graph
+    target_rays = _targets(sample, batch, device)[1]
+    n = batch.num_rays
+    feature_grads, l1_sum, sq_sum = [], 0.0, 0.0
+    for start in range(0, n, block):
+        sl = slice(start, start + block)
+        leaf = feats[sl].detach().requires_grad_()
+        pred = model.mlp(encoded[sl], leaf)
+        chunk = step_loss(pred, target_rays[sl], num_values=3 * n)
+        chunk.loss.backward()
+        l1_sum += float(chunk.l1.detach())
+        sq_sum += float((pred.detach() - target_rays[sl]).square().sum())
+        feature_grads.append(leaf.grad)
+    roots, grads = [feats], [torch.cat(feature_grads)]
+    out = {"loss": l1_sum, "l1": l1_sum}
+    if saturation is not None:  # through the U-Nets' graph, with the light field's gradient
+        penalty = saturation.penalty(model)
+        roots.append(saturation.weight * penalty)
+        grads.append(None)
+        out["saturation"] = float(penalty.detach())
+    torch.autograd.backward(roots, grads)
+    return out, sq_sum / (3 * n)
+
+
 def train_step(model: DeliffasModel, sample: FrameSample, optimizer: torch.optim.Optimizer, device: torch.device,
                perceptual: torch.nn.Module | None = None, perceptual_weight: float = 0.0,
                net: torch.nn.Module | None = None, generator: torch.Generator | None = None,
-               ray_chunk: int | None = None, saturation: SaturationTerm | None = None) -> dict[str, float]:
+               ray_chunk: int | None = None, saturation: SaturationTerm | None = None,
+               mlp_block: int | None = MLP_BLOCK) -> dict[str, float]:
     """One optimisation step on one frame; returns the loss terms and the step's PSNR (on shaded rays).
 
     ``saturation`` adds its weighted penalty on the U-Nets' feature logits to the loss (logged as
@@ -129,6 +169,10 @@ def train_step(model: DeliffasModel, sample: FrameSample, optimizer: torch.optim
     summation order. Peak memory is then U-Nets + ``ray_chunk`` rays instead of every ray of the K
     images (docs/reliability.md).
 
+    Without ``ray_chunk``, a perceptual term or a DDP ``net``, the light field runs in blocks of
+    ``mlp_block`` rays (:data:`MLP_BLOCK`; None: one graph over every ray), the same gradient up
+    to float summation order.
+
     A sample whose cameras shade no ray at all (every camera looks away from the subject, or the
     outer shell lies outside every image) has no pixel that depends on a parameter, and the mean L1
     over zero rays would be NaN: the step is skipped (no optimizer step; ``skipped`` = 1, losses 0,
@@ -138,6 +182,8 @@ def train_step(model: DeliffasModel, sample: FrameSample, optimizer: torch.optim
     ddp = isinstance(net, torch.nn.parallel.DistributedDataParallel)
     if ray_chunk is not None and (ray_chunk < 1 or ddp):
         raise ValueError(f"ray_chunk must be >= 1 and needs a single process (got {ray_chunk}, DDP {ddp})")
+    if mlp_block is not None and mlp_block < 1:
+        raise ValueError(f"mlp_block must be >= 1 or None, got {mlp_block}")
     num_rays = sum(r.num_rays for r in sample.rays)
     if num_rays == 0 and not ddp:
         optimizer.zero_grad(set_to_none=True)
@@ -147,6 +193,10 @@ def train_step(model: DeliffasModel, sample: FrameSample, optimizer: torch.optim
     if ray_chunk is not None and num_rays > ray_chunk:
         out, mse = _chunked_backward(model, sample, device, perceptual, perceptual_weight, generator, ray_chunk,
                                      saturation)
+        optimizer.step()
+        return {**out, "skipped": 0.0, "psnr_rays": _psnr(mse)}
+    if mlp_block is not None and num_rays and not ddp and not (perceptual is not None and perceptual_weight > 0):
+        out, mse = _blocked_backward(model, sample, device, mlp_block, saturation)
         optimizer.step()
         return {**out, "skipped": 0.0, "psnr_rays": _psnr(mse)}
     K = sample.num_cameras

@@ -248,13 +248,18 @@ class DeliffasModel(nn.Module):
     @staticmethod
     def _with_texture(maps: list[torch.Tensor], texture: torch.Tensor | None) -> torch.Tensor:
         """The U-Nets' maps (each (B, C, S, S)) and the texture atlas (1, C_t, S_t, S_t), if any, along
-        channels; the maps upsampled to S_t first where S_t > S."""
+        channels, in channels_last memory format; the maps upsampled to S_t first where S_t > S.
+
+        Concatenating the maps' channels-last views writes that format in one pass (and its backward
+        reads it in one), instead of a concatenation and a conversion."""
         if texture is not None:
             side = texture.shape[-1]
             if maps[0].shape[-1] != side:
                 maps = [F.interpolate(m, size=(side, side), mode="bilinear", align_corners=False) for m in maps]
             maps = [*maps, texture.to(maps[0].dtype).expand(maps[0].shape[0], -1, -1, -1)]
-        return maps[0] if len(maps) == 1 else torch.cat(maps, dim=1)
+        if len(maps) == 1:
+            return maps[0].contiguous(memory_format=torch.channels_last)
+        return torch.cat([m.permute(0, 2, 3, 1) for m in maps], dim=3).permute(0, 3, 1, 2)
 
     def texture_parameters(self) -> list[nn.Parameter]:
         """The texture atlases (empty without ``texture_channels``): the optimiser may give them their own rate."""
@@ -309,7 +314,8 @@ class DeliffasModel(nn.Module):
         """The view directions (N, 3) reflected about the unit inner normals at ``uv_inner``: d - 2 (d . n) n."""
         if features.normals is None:
             raise ValueError("shade: features.normals is None; encode() the frame with this model first")
-        n = sample_uv(features.normals, query.batch_index, query.uv_inner).to(viewdir.dtype)  # (N, 3)
+        # (N, 3), contiguous: the sampled view is transposed, and a row norm over it strides across memory
+        n = sample_uv(features.normals, query.batch_index, query.uv_inner).to(viewdir.dtype).contiguous()
         n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-6)
         return viewdir - 2 * (viewdir * n).sum(-1, keepdim=True) * n
 

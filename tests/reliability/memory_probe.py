@@ -124,7 +124,7 @@ def train(shards: str, S: int, width: int, height: int, zoom: float, chunks: lis
     out["train_step"] = {}
     for chunk in chunks:
         c = None if chunk == "all" else int(chunk)
-        out["train_step"][chunk], res = measure(lambda: train_step(model, frame, opt, cpu, ray_chunk=c))
+        out["train_step"][chunk], res = measure(lambda: train_step(model, frame, opt, cpu, ray_chunk=c, mlp_block=None))
         assert np.isfinite(res["loss"])
         opt.zero_grad(set_to_none=True)
     return out

@@ -82,7 +82,7 @@ def test_train_step_peak_stays_under_the_bound_with_a_ray_chunk(probe):
 
 
 def test_chunked_training_step_equals_unchunked(rel_reference):
-    """ray_chunk changes memory, not the gradient (SGD, so the update is the gradient itself)."""
+    """ray_chunk and mlp_block change memory and speed, not the gradient (SGD: the update is the gradient)."""
     import copy
 
     import torch
@@ -103,20 +103,24 @@ def test_chunked_training_step_equals_unchunked(rel_reference):
         # margin 1e-3: the saturation penalty is non-zero on untrained U-Nets
         for weight, saturation in ((0.0, None), (0.5, None), (0.0, SaturationTerm(1.0, 1e-3))):
             updates, outs = [], []
-            for chunk in (None, 97):
+            for chunk, block in ((None, None), (97, None), (None, 97)):
                 model = copy.deepcopy(model0)
                 opt = torch.optim.SGD(model.parameters(), lr=1.0)
                 outs.append(train_step(model, sample, opt, torch.device("cpu"), perceptual if weight else None, weight,
                                        generator=torch.Generator().manual_seed(0), ray_chunk=chunk,
-                                       saturation=saturation))
+                                       saturation=saturation, mlp_block=block))
                 updates.append({k: v - model0.state_dict()[k] for k, v in model.state_dict().items()
                                 if v.is_floating_point()})
-            assert outs[0]["loss"] == pytest.approx(outs[1]["loss"], rel=1e-5)
-            if saturation is not None:
-                assert outs[0]["saturation"] > 0 and outs[0]["saturation"] == pytest.approx(outs[1]["saturation"])
-            for k in updates[0]:
-                scale = float(updates[0][k].abs().max()) + 1e-12
-                # 1e-9: float32 summation noise on the smallest updates (2e-6 with the saturation term)
-                assert float((updates[0][k] - updates[1][k]).abs().max()) <= 1e-4 * scale + 1e-9, (variant, weight, k)
+            for other, update in zip(outs[1:], updates[1:]):
+                assert outs[0]["loss"] == pytest.approx(other["loss"], rel=1e-5)
+                assert outs[0]["psnr_rays"] == pytest.approx(other["psnr_rays"], rel=1e-5)
+                if saturation is not None:
+                    assert outs[0]["saturation"] > 0 and outs[0]["saturation"] == pytest.approx(other["saturation"])
+                for k in updates[0]:
+                    scale = float(updates[0][k].abs().max()) + 1e-12
+                    # 1e-9: float32 summation noise on the smallest updates (2e-6 with the saturation term)
+                    assert float((updates[0][k] - update[k]).abs().max()) <= 1e-4 * scale + 1e-9, (variant, weight, k)
     with pytest.raises(ValueError, match="ray_chunk"):
         train_step(model0, sample, torch.optim.SGD(model0.parameters(), lr=1.0), torch.device("cpu"), ray_chunk=0)
+    with pytest.raises(ValueError, match="mlp_block"):
+        train_step(model0, sample, torch.optim.SGD(model0.parameters(), lr=1.0), torch.device("cpu"), mlp_block=0)
