@@ -6,6 +6,12 @@ Convention (docs/conventions.md): texel (row i, col j) of an S x S atlas image h
 padding_mode="border")`` with grid ``x = 2u - 1``, ``y = 2(1 - v) - 1``, which is exactly consistent
 with those texel centres. Queries outside the outermost texel centres take the border value.
 
+Training samples through a gather of the 4 corner texels and a scatter-add backward
+(``_GatherBilinear``); on CPU float32 both run as one C loop each (``csrc/gather_bilinear.c``, built
+on first use through :mod:`deliffas.native`), else as torch ``index_select`` / ``index_add_``
+(``DELIFFAS_NATIVE=0``, no compiler, other devices and dtypes). Both give the same values up to the
+order of float additions.
+
 Note the original DELIFFAS code sampled at (row, col) = ((1 - v) S, u S) with integer coordinates
 at texel centres (a half-texel shift against its rasterised texels, formats doc pitfall 12); we
 use the centred convention above everywhere instead.
@@ -13,6 +19,7 @@ use the centred convention above everywhere instead.
 
 from __future__ import annotations
 
+import ctypes
 import logging
 
 import torch
@@ -22,6 +29,7 @@ from torch import Tensor
 
 from deliffas.checks import check_shape
 from deliffas.geometry.arrays import require_tensor
+from deliffas.native import LazyLibrary
 
 __all__ = ["sample_uv", "uv_to_grid"]
 
@@ -59,27 +67,65 @@ def bilinear_corners(uv: Float[Tensor, "M 2"], height: int, width: int
     return index, weight
 
 
+def _declare(lib: ctypes.CDLL) -> None:
+    ptr, i64 = ctypes.c_void_p, ctypes.c_int64
+    for fn in (lib.deliffas_gather_bilinear_f32, lib.deliffas_scatter_bilinear_f32):
+        fn.argtypes = [ptr, i64, i64, ptr, ptr, i64, ptr]
+        fn.restype = i64
+
+
+_KERNEL = LazyLibrary("gather_bilinear", "gather_bilinear.c", setup=_declare,
+                      fallback="torch index_select / index_add_ for the bilinear gather, slower")
+
+
+def _native(values: torch.Tensor, index: torch.Tensor, weight: torch.Tensor) -> ctypes.CDLL | None:
+    """The C kernel when it applies (CPU, float32 values and weights, int64 indices) and is built, else None."""
+    if values.device.type != "cpu" or values.dtype != torch.float32 or weight.dtype != torch.float32:
+        return None
+    if index.dtype != torch.int64 or index.device.type != "cpu" or weight.device.type != "cpu":
+        return None
+    return _KERNEL.get()
+
+
 class _GatherBilinear(torch.autograd.Function):
     """Bilinear lookup of a channels-last (1, C, H, W) map at fixed corners: a gather forward and a
-    scatter-add (``index_add_``) backward, 2-3x faster on CPU than ``grid_sample``'s backward. The
-    uv get no gradient (use ``grid_sample`` when they need one)."""
+    scatter-add backward (the C kernel, else ``index_add_``), several times faster on CPU than
+    ``grid_sample``'s backward. The uv get no gradient (use ``grid_sample`` when they need one)."""
 
     @staticmethod
     def forward(ctx, feature_map: torch.Tensor, index: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
-        flat = feature_map.permute(0, 2, 3, 1).reshape(-1, feature_map.shape[1])  # (H W, C), a view
+        _, channels, height, width = feature_map.shape
+        flat = feature_map.permute(0, 2, 3, 1).reshape(-1, channels)  # (H W, C), a view
+        ctx.save_for_backward(index, weight)
+        ctx.map_shape = feature_map.shape
+        lib = _native(flat, index, weight)
+        if lib is not None:
+            flat, index, weight = flat.contiguous(), index.contiguous(), weight.contiguous()
+            out = flat.new_empty(index.shape[1], channels)
+            # ctypes releases the GIL for the call; every tensor is referenced until it returns
+            if not lib.deliffas_gather_bilinear_f32(flat.data_ptr(), height * width, channels, index.data_ptr(),
+                                                    weight.data_ptr(), index.shape[1], out.data_ptr()):
+                return out  # else an index is out of range: the torch path raises torch's error
         out = flat.index_select(0, index[0]) * weight[0, :, None]
         for k in range(1, 4):
             out.addcmul_(flat.index_select(0, index[k]), weight[k, :, None])
-        ctx.save_for_backward(index, weight)
-        ctx.map_shape = feature_map.shape
         return out
 
     @staticmethod
     def backward(ctx, grad_out: torch.Tensor):
         index, weight = ctx.saved_tensors
         _, channels, height, width = ctx.map_shape
-        grad = grad_out.new_zeros(height * width, channels)
-        grad.index_add_(0, index.reshape(-1), (weight[:, :, None] * grad_out[None]).reshape(-1, channels))
+        grad = None
+        lib = _native(grad_out, index, weight)
+        if lib is not None:
+            grad_out, index, weight = grad_out.contiguous(), index.contiguous(), weight.contiguous()
+            grad = grad_out.new_empty(height * width, channels)  # zeroed by the kernel
+            if lib.deliffas_scatter_bilinear_f32(grad_out.data_ptr(), height * width, channels, index.data_ptr(),
+                                                 weight.data_ptr(), index.shape[1], grad.data_ptr()):
+                grad = None
+        if grad is None:
+            grad = grad_out.new_zeros(height * width, channels)
+            grad.index_add_(0, index.reshape(-1), (weight[:, :, None] * grad_out[None]).reshape(-1, channels))
         return grad.view(1, height, width, channels).permute(0, 3, 1, 2), None, None
 
 
