@@ -68,3 +68,16 @@ def test_texture_atlases_get_their_own_learning_rate(tmp_path):
     assert opt.param_groups[1]["params"] == model.texture_parameters()
     assert sum(p.numel() for g in opt.param_groups for p in g["params"]) == model.num_parameters()
     assert len(make_optimizer(_model("two_surface", 0), TrainConfig(shards="s", out="o")).param_groups) == 1
+
+
+def test_textured_maps_are_concatenated_in_channels_last():
+    """The U-Net maps and the texture come out of the concatenation in channels_last (no second copy in
+    encode), from either layout of the maps; the same values, and the texture gets its gradient."""
+    maps = torch.rand(1, 4, 8, 8)
+    texture = torch.rand(1, 2, 8, 8, requires_grad=True)
+    ref = torch.cat([maps, texture.detach()], dim=1)
+    for layout in (torch.channels_last, torch.contiguous_format):
+        got = DeliffasModel._with_texture([maps.contiguous(memory_format=layout)], texture)
+        assert got.is_contiguous(memory_format=torch.channels_last) and torch.equal(got, ref)
+    (grad,) = torch.autograd.grad(got[:, 4:].sum(), texture)
+    assert torch.equal(grad, torch.ones_like(texture))
