@@ -141,3 +141,86 @@ def test_uv_that_need_a_gradient_still_get_one():
     uv = torch.rand(20, 2).requires_grad_()
     (g,) = torch.autograd.grad(sample_uv(maps, torch.zeros(20, dtype=torch.long), uv).sum(), uv)
     assert g.abs().sum() > 0
+
+
+def _no_kernel(monkeypatch):
+    """The gather's C kernel unavailable, as without a compiler."""
+    import deliffas.geometry.sampling as sampling
+    from deliffas.native import LazyLibrary, NativeLibrary
+
+    lib = LazyLibrary("gather_bilinear", sampling._KERNEL.source, fallback="torch")
+    monkeypatch.setattr(lib, "_built", NativeLibrary(None, "test: no compiler"))
+    monkeypatch.setattr(sampling, "_KERNEL", lib)
+
+
+def _gather_case(shape, seed=0):
+    """Channels-last maps that need a gradient, uv over [-0.1, 1.1]^2 with the corners, the outermost
+    texel centres and the borders, a batch index and an output gradient."""
+    gen = torch.Generator().manual_seed(seed)
+    B, C, H, W = shape
+    maps = torch.randn(shape, generator=gen).contiguous(memory_format=torch.channels_last)
+    n = 500
+    uv = torch.rand(n, 2, generator=gen) * 1.2 - 0.1
+    edges = [[0.0, 0.0], [1.0, 1.0], [0.0, 1.0], [1.0, 0.0], [0.5 / W, 1 - 0.5 / H], [1 - 0.5 / W, 0.5 / H],
+             [-3.0, 0.5], [0.5, 7.0], [1.0, 0.3], [0.3, 1.0]]
+    uv[: len(edges)] = torch.tensor(edges)
+    batch = torch.randint(0, B, (n,), generator=gen)
+    return maps, batch, uv, torch.randn(n, C, generator=gen)
+
+
+def _sample_and_grad(maps, batch, uv, grad_out):
+    maps = maps.detach().clone(memory_format=torch.channels_last).requires_grad_()
+    out = sample_uv(maps, batch, uv)
+    (grad,) = torch.autograd.grad(out, maps, grad_out)
+    return out, grad
+
+
+@pytest.mark.parametrize("shape", [(1, 24, 16, 16), (2, 3, 8, 12), (3, 5, 6, 10), (1, 32, 4, 4)])
+def test_the_compiled_gather_agrees_with_the_torch_gather(shape, monkeypatch):
+    """The C kernel (CPU float32) and torch's index_select / index_add_ give the same values and map
+    gradients, up to float summation order; the compiled backward is deterministic."""
+    import deliffas.geometry.sampling as sampling
+
+    built = sampling._KERNEL.load()
+    if built.lib is None and built.reason.startswith(("disabled", "no C compiler")):
+        pytest.skip(built.reason)
+    assert built.lib is not None, built.reason  # this project's machines have a compiler
+    case = _gather_case(shape)
+    got, got_grad = _sample_and_grad(*case)
+    again, again_grad = _sample_and_grad(*case)
+    assert torch.equal(got, again) and torch.equal(got_grad, again_grad)
+    _no_kernel(monkeypatch)
+    ref, ref_grad = _sample_and_grad(*case)
+    torch.testing.assert_close(got, ref, rtol=0, atol=1e-5)
+    torch.testing.assert_close(got_grad, ref_grad, rtol=0, atol=1e-5)
+
+
+def test_the_gather_without_the_kernel(monkeypatch):
+    """DELIFFAS_NATIVE=0: the torch gather, logged at INFO, the values of grid_sample."""
+    import deliffas.geometry.sampling as sampling
+    from deliffas.native import NATIVE_ENV, LazyLibrary
+
+    monkeypatch.setenv(NATIVE_ENV, "0")
+    monkeypatch.setattr(sampling, "_KERNEL", LazyLibrary("gather_bilinear", sampling._KERNEL.source, fallback="torch"))
+    maps, batch, uv, grad_out = _gather_case((2, 4, 8, 8))
+    out, grad = _sample_and_grad(maps, batch, uv, grad_out)
+    assert "disabled" in sampling._KERNEL.load().reason
+    ref = sample_uv(maps.contiguous(), batch, uv)  # default layout: grid_sample
+    torch.testing.assert_close(out, ref, rtol=0, atol=1e-5)
+    assert grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_gather_indices_out_of_range_raise(compiled, monkeypatch):
+    """Corners outside the map (NaN uv) raise torch's index error on either path, never read out of bounds."""
+    from deliffas.geometry.sampling import _GatherBilinear
+
+    if not compiled:
+        _no_kernel(monkeypatch)
+    maps = torch.randn(1, 3, 4, 4).contiguous(memory_format=torch.channels_last).requires_grad_()
+    index = torch.zeros(4, 5, dtype=torch.long)
+    index[2, 3] = 16
+    with pytest.raises((IndexError, RuntimeError), match="index|out of"):
+        _GatherBilinear.apply(maps, index, torch.full((4, 5), 0.25))
+    with pytest.raises((IndexError, RuntimeError), match="index|out of"):
+        sample_uv(maps, torch.zeros(2, dtype=torch.long), torch.tensor([[0.5, 0.5], [float("nan"), 0.5]]))
