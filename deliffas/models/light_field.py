@@ -3,7 +3,8 @@
 Layout (paper appendix "Light Field MLP"; released code ``Utils/model_main/nerf_model.py``):
 ``depth`` hidden Linear+ReLU layers of ``width`` channels on the encoded coordinates; right after
 hidden layer ``feature_layer`` (0-based) the sampled U-Net features are concatenated *in front*
-of the activations; a final Linear to 3 channels and a sigmoid give RGB in (0, 1).
+of the activations; a final Linear to 3 channels and a sigmoid give RGB in (0, 1). The next layer
+computes that concatenation's product as two GEMMs on its weight's column blocks, without writing it.
 
 The paper says "8 layers with 256 channels" with the features entering after the "4th layer";
 the released code builds ``netdepth`` hidden layers, concatenates after index 4 and ends with
@@ -112,12 +113,11 @@ class LightFieldMLP(nn.Module):
         return out
 
     def _forward(self, encoded: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
-        h = encoded
+        h, front = encoded, None
         for i, layer in enumerate(self.hidden):
-            h = self.activation(layer(h))  # (N, width)
-            if i == self.config.feature_layer:
-                h = torch.cat([features, h], dim=-1)  # (N, feature_dim + width)
-        return self.output(h).sigmoid_()  # in place on the fresh Linear output (autograd-safe)
+            h = self.activation(_linear_after_cat(layer, front, h))  # (N, width)
+            front = features if i == self.config.feature_layer else None
+        return _linear_after_cat(self.output, front, h).sigmoid_()  # in place on the fresh output (autograd-safe)
 
     def flops_per_ray(self) -> int:
         """Floating-point operations of one evaluation: 2 per multiply-add, plus bias and ReLU adds."""
@@ -126,3 +126,12 @@ class LightFieldMLP(nn.Module):
             total += 2 * layer.in_features * layer.out_features + layer.out_features
         total += self.config.depth * self.config.width  # ReLUs
         return int(total)
+
+
+def _linear_after_cat(layer: nn.Linear, front: torch.Tensor | None, h: torch.Tensor) -> torch.Tensor:
+    """``layer(torch.cat([front, h], -1))`` without writing the concatenation: one GEMM per column block
+    of the weight, accumulated in the output (the same sum up to float rounding order)."""
+    if front is None or front.shape[1] == 0:
+        return layer(h)
+    k = front.shape[1]
+    return torch.addmm(layer.bias, h, layer.weight[:, k:].t()).addmm_(front, layer.weight[:, :k].t())

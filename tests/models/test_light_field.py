@@ -46,3 +46,32 @@ def test_flops_and_checks():
         mlp(torch.randn(3, 4), torch.randn(3, 3))
     with pytest.raises(ValueError, match="encoded"):
         mlp(torch.randn(3, 5), torch.randn(3, 2))
+
+
+@pytest.mark.parametrize("feature_layer", [0, 2, 3])
+def test_features_enter_without_a_concatenation_as_with_one(feature_layer):
+    """The layer after ``feature_layer`` multiplies its weight's column blocks with the features and the
+    activations separately: the same output and gradients as Linear(cat([features, h]))."""
+    torch.manual_seed(0)
+    mlp = LightFieldMLP(LightFieldMLPConfig(depth=4, width=16, feature_layer=feature_layer), 6, 5)
+    for p in mlp.parameters():  # non-zero biases, so the bias is counted once
+        torch.nn.init.normal_(p, std=0.3)
+    enc, feats = torch.randn(50, 6, requires_grad=True), torch.randn(50, 5, requires_grad=True)
+
+    def with_cat(encoded, features):
+        h = encoded
+        for i, layer in enumerate(mlp.hidden):
+            h = torch.relu(layer(h))
+            if i == feature_layer:
+                h = torch.cat([features, h], dim=-1)
+        return torch.sigmoid(mlp.output(h))
+
+    grads = []
+    for f in (mlp, with_cat):
+        mlp.zero_grad()
+        enc.grad = feats.grad = None
+        out = f(enc, feats)
+        out.square().sum().backward()
+        grads.append([out.detach(), enc.grad, feats.grad, *[p.grad.clone() for p in mlp.parameters()]])
+    for a, b in zip(*grads):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
