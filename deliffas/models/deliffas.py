@@ -44,7 +44,7 @@ from torch import nn
 
 from deliffas.checks import check_shape
 from deliffas.geometry.sampling import sample_uv
-from deliffas.models.encoding import PositionalEncoding
+from deliffas.models.encoding import PositionalEncoding, encode_parts
 from deliffas.models.light_field import LightFieldMLP, LightFieldMLPConfig
 from deliffas.models.ray_query import RayQuery
 from deliffas.models.unet import UNet, UNetConfig
@@ -300,14 +300,13 @@ class DeliffasModel(nn.Module):
         else:
             feats.append(sample_uv(features.inner, query.batch_index, query.uv_inner))  # (N, n C)
         uvs = {"inner": query.uv_inner, "outer": query.uv_outer}
-        encoded = [self.pe_uv(uvs[surface]) for surface in spec.encoded_uvs]
+        encoded = [(uvs[surface], self.pe_uv) for surface in spec.encoded_uvs]
         if self.pe_viewdir is not None:
             viewdir = query.viewdir.to(query.uv_inner.dtype)
             if spec.reflect_viewdir:
                 viewdir = self._reflected(features, query, viewdir)
-            encoded.append(self.pe_viewdir(viewdir))
-        cat = lambda parts: parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1)  # noqa: E731
-        return cat(encoded), cat(feats)
+            encoded.append((viewdir, self.pe_viewdir))
+        return encode_parts(encoded), feats[0] if len(feats) == 1 else torch.cat(feats, dim=-1)
 
     @staticmethod
     def _reflected(features: FrameFeatures, query: RayQuery, viewdir: torch.Tensor) -> torch.Tensor:
