@@ -143,14 +143,16 @@ def _blocked_backward(model: DeliffasModel, sample: FrameSample, device: torch.d
         l1_sum += float(chunk.l1.detach())
         sq_sum += float((pred.detach() - target_rays[sl]).square().sum())
         feature_grads.append(leaf.grad)
-    roots, grads = [feats], [torch.cat(feature_grads)]
+    # frozen feature maps (no parameter below the MLP needs a gradient): the MLP's blocks were all
+    roots, grads = ([feats], [torch.cat(feature_grads)]) if feats.requires_grad else ([], [])
     out = {"loss": l1_sum, "l1": l1_sum}
     if saturation is not None:  # through the U-Nets' graph, with the light field's gradient
         penalty = saturation.penalty(model)
         roots.append(saturation.weight * penalty)
         grads.append(None)
         out["saturation"] = float(penalty.detach())
-    torch.autograd.backward(roots, grads)
+    if roots:
+        torch.autograd.backward(roots, grads)
     return out, sq_sum / (3 * n)
 
 

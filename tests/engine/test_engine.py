@@ -42,6 +42,23 @@ def test_overfit_one_frame(tiny_shards):
     assert last["l1"] < 0.5 * first["l1"]
 
 
+def test_train_step_with_frozen_feature_maps(tiny_shards):
+    """With the U-Nets frozen (fine-tuning the light field only), the blocked step trains the MLP alone."""
+    torch.manual_seed(0)
+    samples, info = evaluation_samples(str(tiny_shards), "train", with_rays=True, protocol="all", temporal_window=2)
+    sample = next(samples)
+    model = DeliffasModel(resolve_model_config(_cfg(tiny_shards, "unused"), info["atlas_res"], 2))
+    frozen = [p for name, p in model.named_parameters() if not name.startswith("mlp.")]
+    for p in frozen:
+        p.requires_grad_(False)
+    before = [p.clone() for p in frozen]
+    mlp_before = [p.clone() for p in model.mlp.parameters()]
+    opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=1e-3)
+    assert np.isfinite(train_step(model, sample, opt, torch.device("cpu"), mlp_block=64)["loss"])
+    assert all(torch.equal(a, b) for a, b in zip(before, frozen))
+    assert any(not torch.equal(a, b) for a, b in zip(mlp_before, model.mlp.parameters()))
+
+
 def test_train_resume_eval_render(tiny_shards, tmp_path):
     run = tmp_path / "run"
     res = train(_cfg(tiny_shards, run))
