@@ -112,14 +112,21 @@ def _chunked_backward(model: DeliffasModel, sample: FrameSample, device: torch.d
         sq_sum += float((pred.detach() - target_rays[sl]).square().sum())
     roots = [(f, leaf.grad) for f, leaf in ((features.inner, leaves.inner), (features.outer, leaves.outer))
              if f is not None and leaf.grad is not None]
-    out = terms or {"loss": l1_sum, "l1": l1_sum}
+    out = _backward_below_mlp(model, roots, terms or {"loss": l1_sum, "l1": l1_sum}, saturation)
+    return out, sq_sum / (3 * n)
+
+
+def _backward_below_mlp(model: DeliffasModel, roots: list[tuple[torch.Tensor, torch.Tensor | None]],
+                        terms: dict[str, float], saturation: SaturationTerm | None) -> dict[str, float]:
+    """One backward through the sampling and the U-Nets from the light field's gradients ``roots``
+    ((tensor, gradient) pairs), with the saturation penalty added; returns ``terms`` with it."""
     if saturation is not None:  # through the U-Nets' graph, with the light field's gradient
         penalty = saturation.penalty(model)
-        roots.append((saturation.weight * penalty, None))
-        out = {**out, "saturation": float(penalty.detach())}
+        roots = [*roots, (saturation.weight * penalty, None)]
+        terms = {**terms, "saturation": float(penalty.detach())}
     if roots:
         torch.autograd.backward([f for f, _ in roots], [g for _, g in roots])
-    return out, sq_sum / (3 * n)
+    return terms
 
 
 def _blocked_backward(model: DeliffasModel, sample: FrameSample, device: torch.device, block: int,
@@ -143,17 +150,9 @@ def _blocked_backward(model: DeliffasModel, sample: FrameSample, device: torch.d
         l1_sum += float(chunk.l1.detach())
         sq_sum += float((pred.detach() - target_rays[sl]).square().sum())
         feature_grads.append(leaf.grad)
-    # frozen feature maps (no parameter below the MLP needs a gradient): the MLP's blocks were all
-    roots, grads = ([feats], [torch.cat(feature_grads)]) if feats.requires_grad else ([], [])
-    out = {"loss": l1_sum, "l1": l1_sum}
-    if saturation is not None:  # through the U-Nets' graph, with the light field's gradient
-        penalty = saturation.penalty(model)
-        roots.append(saturation.weight * penalty)
-        grads.append(None)
-        out["saturation"] = float(penalty.detach())
-    if roots:
-        torch.autograd.backward(roots, grads)
-    return out, sq_sum / (3 * n)
+    # with frozen feature maps no parameter below the MLP needs a gradient: the blocks' backward was all
+    roots = [(feats, torch.cat(feature_grads))] if feats.requires_grad else []
+    return _backward_below_mlp(model, roots, {"loss": l1_sum, "l1": l1_sum}, saturation), sq_sum / (3 * n)
 
 
 def train_step(model: DeliffasModel, sample: FrameSample, optimizer: torch.optim.Optimizer, device: torch.device,
