@@ -1,22 +1,25 @@
 """Where it fails: held-out quality against the number of training cameras and the image size, and the error budget.
 
-Usage: ``python -m recipes.where_it_fails --out OUT [--quick] [--seeds N] [--cameras-list 4,8,16,32]
-[--sizes 128,256,512] [--models single_surface,two_surface,default] [--threshold-db 24]``.
+Usage: ``python -m recipes.where_it_fails --out OUT [--quick] [--seeds N] [--default-seeds N]
+[--cameras-list 4,8,16,32] [--size 256] [--sizes 128,256,512] [--models single_surface,two_surface,default]
+[--threshold-db 24]``.
 
 Camera sweep: one synthetic capture with enough cameras (the largest count + a quarter held out as
-test cameras), converted once per count with that many training cameras (the test cameras fixed).
+test cameras), converted once per count with that many training cameras (the test cameras fixed), at
+``--size`` (default 256 px; the atlas side follows a given ``--size``).
 Size sweep: one capture per image side (atlas side = image side, the recipe capture's other sizes). Captures
 are rendered with 3 x 3 rays per pixel (``--supersample`` to change; 1 with ``--quick``).
 Every point is trained with the default run's settings (``TrainConfig`` defaults, ``--iters`` to
-change) over seeds and scored on the held-out test cameras in masked PSNR (the person's pixels) and
-foreground PSNR/FLIP. For each model the table states the smallest camera count and image side at
-which its masked PSNR stays at or above ``--threshold-db``. The error budget
-(:mod:`deliffas.models.error_budget`) of the default model at the base point (the largest camera
-count, 256 px) says where its remaining error sits: ``error_budget.png`` and a table.
+change) over ``--seeds`` (the ``default`` model over ``--default-seeds``) and scored on the held-out
+test cameras in masked PSNR (the person's pixels) and foreground PSNR/FLIP. For each model the table
+states the smallest camera count and image side at which its masked PSNR stays at or above
+``--threshold-db``. The error budget (:mod:`deliffas.models.error_budget`) of the default model at the
+camera sweep's largest count says where its remaining error sits: ``error_budget.png`` and a table.
 """
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import json
 from pathlib import Path
@@ -56,7 +59,7 @@ def _point(out: Path, shards: Path, sizes: RunSizes, model: str, fields: dict, s
     return {**mean, "per_seed": per_seed}
 
 
-def _sweep_cameras(args, sizes: RunSizes, counts: list[int], seeds: list[int], models: dict) -> dict:
+def _sweep_cameras(args, sizes: RunSizes, counts: list[int], seeds: dict[str, list[int]], models: dict) -> dict:
     total = max(counts) + max(1, (max(counts) + 2) // 3)  # a quarter of the rig held out as test cameras
     rig = dataclasses.replace(sizes, cameras=total)
     subject = prepare_capture(args.out / "cameras", rig, 0, jobs=1 if args.quick else 2)
@@ -67,19 +70,19 @@ def _sweep_cameras(args, sizes: RunSizes, counts: list[int], seeds: list[int], m
         keep = sorted(test + train[:: max(1, len(train) // n)][:n])
         shards = prepare_shards(args.out / "cameras", subject, rig, name=f"shards_{n}", cameras=keep,
                                 jobs=1 if args.quick else 2)
-        result[n] = {m: _point(args.out / "cameras" / f"runs_{n}", shards, rig, m, f, seeds, args.device)
+        result[n] = {m: _point(args.out / "cameras" / f"runs_{n}", shards, rig, m, f, seeds[m], args.device)
                      for m, f in models.items()}
     return result
 
 
-def _sweep_sizes(args, sizes: RunSizes, sides: list[int], seeds: list[int], models: dict) -> dict:
+def _sweep_sizes(args, sizes: RunSizes, sides: list[int], seeds: dict[str, list[int]], models: dict) -> dict:
     result = {}
     for side in sides:
         at = dataclasses.replace(sizes, size=side, atlas_res=side)
         root = args.out / f"size_{side}"
         shards = prepare_shards(root, prepare_capture(root, at, 0, jobs=1 if args.quick else 2), at,
                                 jobs=1 if args.quick else 2)
-        result[side] = {m: _point(root / "runs", shards, at, m, f, seeds, args.device) for m, f in models.items()}
+        result[side] = {m: _point(root / "runs", shards, at, m, f, seeds[m], args.device) for m, f in models.items()}
     return result
 
 
@@ -137,9 +140,13 @@ def main(argv=None) -> dict:
     p.add_argument("--cameras-list", default=None, help="training camera counts (default 4,8,16,32; quick 2,3)")
     p.add_argument("--sizes", default=None, help="image sides in px (default 128,256,512; quick 32,64; atlas side = image side, a power of two)")
     p.add_argument("--models", default=None, help=f"comma-separated, of {','.join(MODELS)} (default all)")
+    p.add_argument("--default-seeds", type=int, default=None,
+                   help="training seeds of the default model (default: --seeds); more seeds where it matters most")
     p.add_argument("--threshold-db", type=float, default=24.0, help="the stated quality, masked PSNR (default 24)")
     args = p.parse_args(argv)
     sizes = sized_by_args(dataclasses.replace(RunSizes.quick(), cameras_per_frame=2) if args.quick else BASE, args)
+    if args.size:
+        sizes = dataclasses.replace(sizes, atlas_res=args.size)
     if not args.iters and not args.quick:
         sizes = dataclasses.replace(sizes, iters=TrainConfig.iters)
     names = args.models.split(",") if args.models else list(MODELS)
@@ -148,7 +155,9 @@ def main(argv=None) -> dict:
     models = {n: ({**MODELS[n], "preset": "tiny"} if args.quick else MODELS[n]) for n in names}
     counts = _ints(args.cameras_list or ("2,3" if args.quick else "4,8,16,32"), "--cameras-list")
     sides = _ints(args.sizes or ("32,64" if args.quick else "128,256,512"), "--sizes")
-    seeds = seed_list(args)
+    seeds = {m: seed_list(args) for m in models}
+    if args.default_seeds is not None and "default" in models:
+        seeds["default"] = seed_list(argparse.Namespace(**{**vars(args), "seeds": args.default_seeds}))
     cams = _sweep_cameras(args, sizes, counts, seeds, models)
     by_size = _sweep_sizes(args, sizes, sides, seeds, models)
     title = "Where it fails" + (" — quick mode" if args.quick else "")
@@ -158,7 +167,8 @@ def main(argv=None) -> dict:
     budgets = _budget(args, [s["run"] for s in cams[max(counts)][budget_model]["per_seed"]])
     falls = {m: {"cameras": _first_ok(cams, m, args.threshold_db), "size": _first_ok(by_size, m, args.threshold_db)}
              for m in models}
-    md = [f"# {title}", "", f"Masked PSNR (dB) on the held-out cameras, mean over seeds {seeds}; "
+    md = [f"# {title}", "", f"Masked PSNR (dB) on the held-out cameras, mean over seeds "
+          f"{'; '.join(f'{m} {s}' for m, s in seeds.items())}; "
           f"{sizes.iters} iterations per run.", "", "| model | " + " | ".join(f"{n} cameras" for n in counts)
           + " | " + " | ".join(f"{s} px" for s in sides) + " | holds >= threshold from |",
           "|---|" + "---:|" * (len(counts) + len(sides)) + "---|"]
