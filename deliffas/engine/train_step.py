@@ -194,37 +194,43 @@ def train_step(model: DeliffasModel, sample: FrameSample, optimizer: torch.optim
     if ray_chunk is not None and num_rays > ray_chunk:
         out, mse = _chunked_backward(model, sample, device, perceptual, perceptual_weight, generator, ray_chunk,
                                      saturation)
-        optimizer.step()
-        return {**out, "skipped": 0.0, "psnr_rays": _psnr(mse)}
-    if mlp_block is not None and num_rays and not ddp and not (perceptual is not None and perceptual_weight > 0):
+    elif mlp_block is not None and num_rays and not ddp and not (perceptual is not None and perceptual_weight > 0):
         out, mse = _blocked_backward(model, sample, device, mlp_block, saturation)
-        optimizer.step()
-        return {**out, "skipped": 0.0, "psnr_rays": _psnr(mse)}
+    else:
+        out, mse = _one_graph_backward(model, sample, device, perceptual, perceptual_weight, net, generator,
+                                       saturation)
+    optimizer.step()
+    return {**out, "skipped": 0.0 if num_rays else 1.0, "psnr_rays": _psnr(mse) if num_rays else float("nan")}
+
+
+def _one_graph_backward(model: DeliffasModel, sample: FrameSample, device: torch.device,
+                        perceptual: torch.nn.Module | None, perceptual_weight: float, net: torch.nn.Module | None,
+                        generator: torch.Generator | None, saturation: SaturationTerm | None
+                        ) -> tuple[dict[str, float], float]:
+    """Forward and backward of every ray in one graph; the loss terms and the rays' mean squared error
+    (NaN for a DDP rank with no ray, which backpropagates a zero loss that reaches every parameter)."""
     K = sample.num_cameras
     H, W = sample.images.shape[1:3]
     batch, query = _rays(model, sample, device)
     pred = (net or model)(*sample.normal_maps(device), query)  # (N, 3)
     target, target_rays = _targets(sample, batch, device)  # (K, H, W, 3), (N, 3)
-    if num_rays:
-        # L1 over the rays the model paints (pixels outside the shell are background in both images,
-        # up to person pixels the shell misses, which no parameter can change)
-        pred_images = paint_images(pred, batch, K, H, W) if perceptual is not None and perceptual_weight > 0 else None
-        loss = step_loss(pred, target_rays, perceptual=perceptual, weight=perceptual_weight, pred_images=pred_images,
-                         target_images=target, masks=torch.from_numpy(sample.masks).to(device), generator=generator)
-        out = loss.terms()
-        total = loss.loss
-        if saturation is not None:
-            penalty = saturation.penalty(model)
-            total = total + saturation.weight * penalty
-            out["saturation"] = float(penalty.detach())
-        total.backward()
-    else:  # DDP only: a zero loss that reaches every parameter, so every gradient hook (all-reduce) fires
+    if not len(pred):  # DDP only: every gradient hook (all-reduce) must fire
         zero = pred.sum() * 0.0 + sum(p.sum() for p in model.parameters() if p.requires_grad) * 0.0
         zero.backward()
-        out = {"loss": 0.0, "l1": 0.0}
-    optimizer.step()
-    mse = float((pred.detach() - target_rays).square().mean()) if num_rays else float("nan")
-    return {**out, "skipped": 0.0 if num_rays else 1.0, "psnr_rays": _psnr(mse) if num_rays else float("nan")}
+        return {"loss": 0.0, "l1": 0.0}, float("nan")
+    # L1 over the rays the model paints (pixels outside the shell are background in both images,
+    # up to person pixels the shell misses, which no parameter can change)
+    pred_images = paint_images(pred, batch, K, H, W) if perceptual is not None and perceptual_weight > 0 else None
+    loss = step_loss(pred, target_rays, perceptual=perceptual, weight=perceptual_weight, pred_images=pred_images,
+                     target_images=target, masks=torch.from_numpy(sample.masks).to(device), generator=generator)
+    out = loss.terms()
+    total = loss.loss
+    if saturation is not None:
+        penalty = saturation.penalty(model)
+        total = total + saturation.weight * penalty
+        out["saturation"] = float(penalty.detach())
+    total.backward()
+    return out, float((pred.detach() - target_rays).square().mean())
 
 
 def balance_weight(model: DeliffasModel, sample: FrameSample, device: torch.device,
