@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Sequence
 
 from deliffas.engine.run_sizes import RunSizes
+from deliffas.engine.train_config import TrainConfig
 
 logger = logging.getLogger(__name__)
 
@@ -34,10 +35,10 @@ POSE_EVAL_FRAMES = 4
 """Novel-pose frames the ablations evaluate per run (every camera of each: 48 images with 12 cameras)."""
 ABLATION_EVAL_FRAMES = 12
 """Novel-view frames the ablations evaluate per run in full mode (36 images with 3 test cameras)."""
-ABLATION_ITERS = 1000
-"""Training iterations of the ablations in full mode: 3 seeds of every configuration fit in ~30 min on
-2 shared cores (measured: small preset at 128 px, 3 cameras per step, ~27 it/s single-surface, ~12 it/s
-two-surface, ~0.3 s per evaluated image); ``--iters`` overrides."""
+ABLATION_ITERS = TrainConfig.iters
+"""Training iterations of the ablations in full mode: ``deliffas train``'s default budget, at which the
+default schedule has converged to within about 0.5 dB of an 8x longer run (docs/results.md, "Time to
+quality"); ``--iters`` overrides."""
 
 RecipeSizes = RunSizes
 """The recipes' name for ``deliffas.engine.run_sizes.RunSizes`` (full defaults, ``quick()`` for tests)."""
@@ -232,7 +233,7 @@ def train_and_eval(name: str, shards: Path, run_dir: Path, sizes: RecipeSizes, m
     ``extra_splits``: also write comparison grids (``run_dir/grid_<split>.png``) and evaluate the novel
     poses (``novel_pose``) and the training cameras (``train_fit``: how well it fits what it saw)."""
     from deliffas.engine.evaluate import EvalConfig, evaluate
-    from deliffas.engine.train import TrainConfig, train
+    from deliffas.engine.train import train
 
     t0 = time.time()
     cfg = TrainConfig(shards=str(shards), out=str(run_dir), model=model, preset=train_kw.pop("preset", sizes.preset),
