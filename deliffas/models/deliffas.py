@@ -290,15 +290,14 @@ class DeliffasModel(nn.Module):
         peel = query.inner_from_outer
         if not spec.inner_from_outer and peel is not None and bool(peel.any()):
             raise ValueError(f"shade: inner_from_outer has True entries but variant {name!r} has no outer feature map")
-        feats = []
-        if spec.outer_unet:
-            if features.outer is None:
-                raise ValueError("shade: features.outer is None; encode() with normal_outer first")
-            feats.append(sample_uv(features.outer, query.batch_index, query.uv_outer))  # (N, C)
+        if spec.outer_unet and features.outer is None:
+            raise ValueError("shade: features.outer is None; encode() with normal_outer first")
         if spec.inner_from_outer:
-            feats.append(self._sample_inner(features, query.batch_index, query.uv_inner, peel))  # (N, C)
+            feats = self._sample_peeled(features, query.batch_index, query.uv_outer, query.uv_inner, peel)
         else:
-            feats.append(sample_uv(features.inner, query.batch_index, query.uv_inner))  # (N, n C)
+            feats = [sample_uv(features.inner, query.batch_index, query.uv_inner)]  # (N, n C)
+            if spec.outer_unet:
+                feats.insert(0, sample_uv(features.outer, query.batch_index, query.uv_outer))  # (N, C)
         uvs = {"inner": query.uv_inner, "outer": query.uv_outer}
         encoded = [(uvs[surface], self.pe_uv) for surface in spec.encoded_uvs]
         if self.pe_viewdir is not None:
@@ -323,27 +322,29 @@ class DeliffasModel(nn.Module):
         return self.mlp(*self.gather_inputs(features, query))
 
     @staticmethod
-    def _sample_inner(
+    def _sample_peeled(
         features: FrameFeatures,
         batch_index: torch.Tensor,
+        uv_outer: torch.Tensor,
         uv_inner: torch.Tensor,
         inner_from_outer: torch.Tensor | None,
-    ) -> torch.Tensor:
-        """Inner feature per ray, read from the outer map where ``inner_from_outer``: (N, C)."""
+    ) -> list[torch.Tensor]:
+        """Outer and inner features per ray, (N, C) each, the inner one read from the outer map where
+        ``inner_from_outer``: the outer map is sampled once, at the outer uvs and the peeled rays' exit
+        uvs together, so its backward scatters into one gradient map."""
         assert features.outer is not None
-        if inner_from_outer is None:
-            return sample_uv(features.inner, batch_index, uv_inner)
-        num_from_outer = int(inner_from_outer.sum())
-        if num_from_outer == 0:
-            return sample_uv(features.inner, batch_index, uv_inner)
-        if num_from_outer == inner_from_outer.numel():
-            return sample_uv(features.outer, batch_index, uv_inner)
-        idx_o = inner_from_outer.nonzero().squeeze(1)
-        idx_i = (~inner_from_outer).nonzero().squeeze(1)
-        vals_i = sample_uv(features.inner, batch_index[idx_i], uv_inner[idx_i])
-        vals_o = sample_uv(features.outer, batch_index[idx_o], uv_inner[idx_o])
-        out = vals_i.new_zeros(uv_inner.shape[0], vals_i.shape[1])
-        return out.index_copy(0, idx_i, vals_i).index_copy(0, idx_o, vals_o)
+        peeled = None if inner_from_outer is None else inner_from_outer.nonzero().squeeze(1)
+        if peeled is None or not len(peeled):
+            return [sample_uv(features.outer, batch_index, uv_outer), sample_uv(features.inner, batch_index, uv_inner)]
+        n = uv_outer.shape[0]
+        both = sample_uv(features.outer, torch.cat([batch_index, batch_index[peeled]]),
+                         torch.cat([uv_outer, uv_inner[peeled]]))
+        if len(peeled) == n:
+            return [both[:n], both[n:]]
+        kept = (~inner_from_outer).nonzero().squeeze(1)
+        vals = sample_uv(features.inner, batch_index[kept], uv_inner[kept])
+        inner = vals.new_zeros(n, vals.shape[1]).index_copy(0, kept, vals).index_copy(0, peeled, both[n:])
+        return [both[:n], inner]
 
     def shade_chunked(self, features: FrameFeatures, query: RayQuery, chunk_size: int = 65536) -> torch.Tensor:
         """:meth:`shade` over chunks of ``chunk_size`` rays; same arguments and result.

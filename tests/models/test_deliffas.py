@@ -108,6 +108,31 @@ def test_inner_from_outer_reads_outer_map():
     torch.testing.assert_close(all_outer, swapped)
 
 
+
+def test_peeled_rays_give_the_outer_map_the_gradient_of_two_lookups():
+    """The outer map is sampled once for the outer uvs and the peeled rays' exit uvs: its gradient
+    equals that of two separate lookups (and the inner map's that of the unpeeled rays)."""
+    from deliffas.geometry.sampling import sample_uv
+
+    gen = torch.Generator().manual_seed(3)
+    model = DeliffasModel(tiny_config("two_surface")).eval()
+    rays = make_rays(64, 2, gen)
+    for mask in (torch.rand(64, generator=gen) < 0.4, torch.ones(64, dtype=torch.bool)):
+        maps = [torch.randn(2, 4, S, S, generator=gen, requires_grad=True) for _ in range(2)]
+        weights = torch.randn(64, 8, generator=gen)
+        feats = torch.cat(model._sample_peeled(FrameFeatures(inner=maps[0], outer=maps[1]), rays["batch_index"],
+                                               rays["uv_outer"], rays["uv_inner"], mask), dim=-1)
+        (feats * weights).sum().backward()
+        ref = [m.detach().clone().requires_grad_(True) for m in maps]
+        inner = torch.where(mask[:, None], sample_uv(ref[1], rays["batch_index"], rays["uv_inner"]),
+                            sample_uv(ref[0], rays["batch_index"], rays["uv_inner"]))
+        outer = sample_uv(ref[1], rays["batch_index"], rays["uv_outer"])
+        torch.testing.assert_close(feats.detach(), torch.cat([outer, inner], dim=-1).detach())
+        (torch.cat([outer, inner], dim=-1) * weights).sum().backward()
+        for got, want in zip(maps, ref):  # every ray peeled: the inner map is not read at all
+            torch.testing.assert_close(torch.zeros_like(got) if got.grad is None else got.grad, want.grad)
+
+
 def test_inner_from_outer_rejected_without_outer_map(unchecked):
     model = DeliffasModel(tiny_config("single_surface"))
     f = model.encode(torch.randn(1, 9, S, S))
