@@ -36,14 +36,17 @@ def test_where_it_fails_quick(tmp_path):
     from recipes import where_it_fails
 
     out = tmp_path / "wif"
-    where_it_fails.main(["--quick", "--out", str(out), "--models", "two_surface,default"])
+    where_it_fails.main(["--quick", "--out", str(out), "--models", "two_surface,default", "--default-seeds", "2"])
     data = json.loads((out / "results.json").read_text())
+    assert data["seeds"] == {"two_surface": [0], "default": [0, 1]}
     assert set(data["cameras"]) == {"2", "3"} and set(data["sizes"]) == {"32", "64"}
     for sweep in (data["cameras"], data["sizes"]):
         for point in sweep.values():
             assert set(point) == {"two_surface", "default"}
+            assert [len(point[m]["per_seed"]) for m in ("two_surface", "default")] == [1, 2]
             assert all(math.isfinite(m["masked_psnr"]) for m in point.values())
-    (budget,) = data["error_budget"].values()
+    budget = data["error_budget"]["seed 0"]
+    assert set(data["error_budget"]) == {"seed 0", "seed 1"}
     shares = [c["error_share"] for name, c in budget["classes"].items() if name != "background"]
     assert sum(shares) == pytest.approx(1.0)
     for name in ("cameras.png", "sizes.png", "error_budget.png"):
