@@ -97,7 +97,7 @@ def _chart(sweep: dict, path: Path, xlabel: str, threshold: float, title: str) -
     from deliffas.engine.report import pyplot, save_figure
 
     plt = pyplot()
-    fig, ax = plt.subplots(figsize=(6.0, 4.2), dpi=120)
+    fig, ax = plt.subplots(figsize=(7.4, 4.2), dpi=120)
     keys = sorted(sweep)
     for i, model in enumerate(next(iter(sweep.values()))):
         ax.plot(keys, [sweep[k][model]["masked_psnr"] for k in keys], "o-", color=f"C{i}", label=model)
@@ -108,7 +108,7 @@ def _chart(sweep: dict, path: Path, xlabel: str, threshold: float, title: str) -
     ax.set_ylabel("masked PSNR (dB), held-out cameras")
     ax.set_title(title, fontsize=9)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0))  # outside: the lines end top right
     return save_figure(fig, path)
 
 
