@@ -155,9 +155,11 @@ def main(argv=None) -> dict:
     models = {n: ({**MODELS[n], "preset": "tiny"} if args.quick else MODELS[n]) for n in names}
     counts = _ints(args.cameras_list or ("2,3" if args.quick else "4,8,16,32"), "--cameras-list")
     sides = _ints(args.sizes or ("32,64" if args.quick else "128,256,512"), "--sizes")
+    if args.default_seeds is not None and args.default_seeds < 1:
+        p.error(f"--default-seeds: expected a whole number >= 1, got {args.default_seeds}")
     seeds = {m: seed_list(args) for m in models}
     if args.default_seeds is not None and "default" in models:
-        seeds["default"] = seed_list(argparse.Namespace(**{**vars(args), "seeds": args.default_seeds}))
+        seeds["default"] = seed_list(argparse.Namespace(quick=args.quick, seed=args.seed, seeds=args.default_seeds))
     cams = _sweep_cameras(args, sizes, counts, seeds, models)
     by_size = _sweep_sizes(args, sizes, sides, seeds, models)
     title = "Where it fails" + (" — quick mode" if args.quick else "")
