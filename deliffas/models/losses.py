@@ -257,8 +257,28 @@ def saturation_penalty(logits: Sequence[torch.Tensor], margin: float) -> torch.T
     """
     if margin <= 0:
         raise ValueError(f"saturation_penalty: margin must be > 0, got {margin}")
-    terms = [torch.relu(s.abs() - margin).square().mean() for s in logits]
+    terms = [_BeyondMargin.apply(s, margin) for s in logits]
     return torch.stack(terms).sum() if terms else torch.zeros(())
+
+
+class _BeyondMargin(torch.autograd.Function):
+    """mean(relu(|s| - m)^2) with its gradient 2 (s - clamp(s, -m, m)) / numel, in the map's own memory layout.
+
+    relu(|s| - m) sign(s) equals s - clamp(s, -m, m), so forward and backward each take a few passes over
+    the map. The autograd of the composed expression takes a dozen, several of them mixing a channels-last
+    map with an expanded gradient (a slow strided path): most of the penalty's cost in a training step.
+    """
+
+    @staticmethod
+    def forward(ctx, s: torch.Tensor, margin: float) -> torch.Tensor:
+        beyond = s - s.clamp(-margin, margin)
+        ctx.save_for_backward(beyond)
+        return beyond.square().sum() / max(s.numel(), 1)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        (beyond,) = ctx.saved_tensors
+        return beyond * (2 * grad / max(beyond.numel(), 1)), None
 
 
 @dataclass(frozen=True)

@@ -135,3 +135,18 @@ def test_unet_keeps_the_logits_of_its_training_forward_only():
     with torch.no_grad():
         net(x)
     assert net.last_logits is None  # nothing held after inference
+
+
+@pytest.mark.parametrize("channels_last", [False, True])
+def test_saturation_penalty_value_and_gradient_equal_the_composed_expression(channels_last):
+    g = torch.Generator().manual_seed(0)
+    s = (torch.randn(1, 5, 8, 8, generator=g) * 4).requires_grad_()
+    if channels_last:
+        s = s.detach().contiguous(memory_format=torch.channels_last).requires_grad_()
+    ref = s.detach().clone().requires_grad_()
+    (3.0 * saturation_penalty([s], 4.0)).backward()
+    expected = torch.relu(ref.abs() - 4.0).square().mean()
+    (3.0 * expected).backward()
+    assert torch.allclose(saturation_penalty([s.detach()], 4.0), expected.detach(), rtol=1e-6)
+    assert torch.allclose(s.grad, ref.grad, rtol=1e-6, atol=1e-9)
+    assert s.grad.is_contiguous(memory_format=torch.channels_last) == channels_last
