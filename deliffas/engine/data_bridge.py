@@ -198,9 +198,10 @@ def training_stream(cfg, temporal_window: int, rank: int = 0, world: int = 1, st
     sampler = _EndlessCameraSampler(ds, k, seed=cfg.seed + 7919 * rank + 104729 * start_iteration)
     raycast = uv_source(cfg.device, getattr(cfg, "uv", "auto")) == "raycast"
     collate = _ItemToSample(info["faces"], info["atlas"], info["cameras"], with_rays=raycast)
-    loader = DataLoader(ds, batch_size=1, sampler=sampler, collate_fn=collate, num_workers=cfg.num_workers,
-                        persistent_workers=cfg.num_workers > 0, prefetch_factor=2 if cfg.num_workers > 0 else None,
-                        worker_init_fn=_one_thread_worker if cfg.num_workers > 0 else None)
+    workers = cfg.data_workers
+    loader = DataLoader(ds, batch_size=1, sampler=sampler, collate_fn=collate, num_workers=workers,
+                        persistent_workers=workers > 0, prefetch_factor=2 if workers > 0 else None,
+                        worker_init_fn=_one_thread_worker if workers > 0 else None)
     info.update(train_frames=len(ds.frames), train_cameras=ds.cameras, protocol=ds.protocol, protocol_message=message,
                 validation_cameras=held_out, uv="raycast" if raycast else "torch")
     return iter(loader), info

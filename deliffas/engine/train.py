@@ -149,7 +149,7 @@ class Trainer:
         if device.type == "cpu":
             # Leave the cores the DataLoader workers (and the other ranks) use: oversubscribed OpenMP
             # threads spin and can make a step many times slower.
-            torch.set_num_threads(max(1, (os.cpu_count() or 1) // self.world - cfg.num_workers))
+            torch.set_num_threads(max(1, (os.cpu_count() or 1) // self.world - cfg.data_workers))
         resuming = resume and (run / STATE_FILE).is_file()
         self.start = read_training_state(run)["iteration"] if resuming else 0
         stored = shard_info(self.shards)

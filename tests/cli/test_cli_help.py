@@ -43,10 +43,11 @@ def test_train_help_states_the_config_defaults():
     helps = {a.dest: a.help for a in _commands(build_parser()).__next__()[1]._subparsers._group_actions[0]
              .choices["train"]._actions}
     for dest, field in (("iters", "iters"), ("cameras_per_frame", "cameras_per_frame"), ("device", "device"),
-                        ("num_workers", "num_workers"), ("seed", "seed"), ("checkpoint_every", "checkpoint_every"),
+                        ("seed", "seed"), ("checkpoint_every", "checkpoint_every"),
                         ("preview_every", "preview_every"), ("perceptual_mode", "perceptual_mode"),
                         ("perceptual", "perceptual")):
         assert f"default {TrainConfig.__dataclass_fields__[field].default}" in helps[dest], dest
+    assert "default: 0 on a CPU device with 2 cores or fewer, else 1" in helps["num_workers"]
 
 
 def test_os_errors_name_the_file_and_what_to_do():

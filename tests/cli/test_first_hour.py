@@ -194,7 +194,7 @@ def test_7_help_states_defaults():
 
     out = " ".join(deliffas("train", "--help").stdout.split())
     for text in (f"default {TrainConfig.iters}", f"default {TrainConfig.cameras_per_frame}", "default cpu",
-                 "default 1)", "default 0", "default 250"):
+                 "0 on a CPU device with 2 cores or fewer, else 1)", "default 0", "default 250"):
         assert text in out, text
     assert "realtime" in (REPO / "README.md").read_text().split("deliffas zoo list")[1].split("\n")[0]
 

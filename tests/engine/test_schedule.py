@@ -78,3 +78,10 @@ def test_a_run_saved_with_the_per_tensor_adam_resumes(tiny_shards, tmp_path):
             group["fused"] = None
 
     assert _resumes_after_editing_its_groups(tiny_shards, tmp_path / "run", unfuse)
+
+
+@pytest.mark.parametrize("cores, workers", [(1, 0), (2, 0), (4, 1), (None, 0)])
+def test_data_workers_default_to_the_process_on_two_cpu_cores(monkeypatch, cores, workers):
+    monkeypatch.setattr("os.cpu_count", lambda: cores)
+    assert TrainConfig(shards="s", out="o").data_workers == workers
+    assert TrainConfig(shards="s", out="o", num_workers=3).data_workers == 3
