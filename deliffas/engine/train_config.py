@@ -117,7 +117,8 @@ class TrainConfig:
     """DataLoader workers (they read the shards and, with ``uv`` resolving to ``raycast``, ray-cast the uv maps);
     None = :attr:`data_workers`' choice."""
     uv: UVSource = uv_field()
-    """Where the uv maps come from: ``raycast`` (open3d, in the DataLoader workers), ``torch`` (the torch
+    """Where the uv maps come from: ``raycast`` (open3d, where the samples are read: the DataLoader workers, or
+    the training process with none), ``torch`` (the torch
     rasteriser on ``device``, in the main process), ``auto`` = ``torch`` on CUDA, else ``raycast``."""
     ray_chunk: int | None = opt(None, help="rays per backward pass (bounds training memory; single process)",
                                 parse=positive_int, default_text="all rays at once")
