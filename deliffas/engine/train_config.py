@@ -143,12 +143,13 @@ class TrainConfig:
             raise ValueError(f"preset: {self.model!r} has no preset {self.preset!r}; "
                              f"presets: {', '.join(list_presets(self.model))}")
         for name, minimum in (("iters", 1), ("cameras_per_frame", 1), ("checkpoint_every", 1), ("log_every", 1),
-                              ("preview_every", 0), ("num_workers", 0), ("warmup_iters", 0), ("lr_decay_steps", 1)):
+                              ("preview_every", 0), ("warmup_iters", 0), ("lr_decay_steps", 1)):
             value = getattr(self, name)
-            if name == "num_workers" and value is None:
-                continue
             if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
                 raise ValueError(f"{name}: expected a whole number >= {minimum}, got {value!r}")
+        workers = self.num_workers
+        if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 0):
+            raise ValueError(f"num_workers: expected None or a whole number >= 0, got {workers!r}")
         if not (math.isfinite(self.saturation_weight) and self.saturation_weight >= 0):
             raise ValueError(f"saturation_weight: expected a finite number >= 0, got {self.saturation_weight!r}")
         if not (math.isfinite(self.saturation_margin) and self.saturation_margin > 0):
