@@ -160,6 +160,8 @@ def _train_config(args: argparse.Namespace) -> TrainConfig:
     given = given_values(TrainConfig, args)
     out, shards = given.pop("out"), given.pop("shards", None)  # SHARDS and --out, never --config's
     values = {k: v for k, v in values.items() if k not in ("out", "shards")} | given
+    if given.get("time_budget") is not None and "iters" in given:
+        raise ValueError("give --iters or --time-budget, not both (a time budget chooses the iterations)")
     if args.resume and (Path(out) / RUN_MARKER).is_file():  # the run's own settings; flags change what may change
         flags = option_names(TrainConfig)
         names = {f.name: flags.get(f.name, f"{f.name} (--config)") for f in dataclasses.fields(TrainConfig)}

@@ -44,7 +44,7 @@ from typing import Mapping, Sequence
 from deliffas.engine.auto_capacity_config import AutoCapacityConfig, Candidate
 from deliffas.engine.data_bridge import shard_info
 from deliffas.engine.evaluate import EvalConfig, evaluate
-from deliffas.engine.train import train
+from deliffas.engine.train import TrainConfig, train
 from deliffas.models.zoo import get_config
 
 __all__ = ["AutoCapacityConfig", "Candidate", "auto_capacity", "default_ladder", "choose"]
@@ -181,22 +181,16 @@ def auto_capacity(train_cfg, ac_cfg: AutoCapacityConfig | None = None) -> dict:
         RuntimeError: every candidate failed (the record is written first).
     """
     ac_cfg = ac_cfg or AutoCapacityConfig()
+    if train_cfg.time_budget is not None:
+        raise ValueError("--auto-capacity trains every candidate the same iterations: give --iters, not "
+                         "--time-budget")
     out = Path(train_cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     held_out = train_cfg.validation_cameras or ac_cfg.validation_cameras
     test_cameras = shard_info(train_cfg.shards)["test_cameras"]
     candidates = _candidates(train_cfg, ac_cfg)
     iters = ac_cfg.iters or train_cfg.iters
-    rule = (f"among candidates with foreground PSNR on the {ac_cfg.split} split >= best - {ac_cfg.tolerance_db} dB, "
-            f"the lowest {ac_cfg.cost}; costs within {100 * ac_cfg.ms_tie_rel:g}% of that lowest are ties, decided "
-            "by fewest parameters; the test split scores the chosen candidate only")
-    record: dict = {"model": train_cfg.model, "preset": train_cfg.preset, "shards": str(train_cfg.shards),
-                    "tolerance_db": ac_cfg.tolerance_db, "split": ac_cfg.split, "selection_split": ac_cfg.split,
-                    "selection_metric": "fg_psnr (foreground PSNR, padded mask box)", "validation_cameras": None,
-                    "test_cameras": test_cameras, "iters": iters, "cost": ac_cfg.cost,
-                    "ms_tie_rel": ac_cfg.ms_tie_rel, "timing_repeats": ac_cfg.timing_repeats, "rule": rule,
-                    "candidates": [], "best_psnr": None, "choice": None, "chosen_run": None, "chosen_link": None,
-                    "test": None}
+    record = _new_record(train_cfg, ac_cfg, test_cameras, iters)
     for cand in candidates:
         run = out / "candidates" / cand.name
         overrides = _merge(train_cfg.model_overrides, cand.overrides)
@@ -241,6 +235,20 @@ def auto_capacity(train_cfg, ac_cfg: AutoCapacityConfig | None = None) -> dict:
         record["test"] = _test_record(chosen_run, choice, ac_cfg, train_cfg.device)
     _write_json(out / RESULT_FILE, record)
     return record
+
+
+def _new_record(train_cfg: TrainConfig, ac_cfg: AutoCapacityConfig, test_cameras: list, iters: int) -> dict:
+    """The search's record before any candidate has run (the keys :func:`auto_capacity` documents)."""
+    rule = (f"among candidates with foreground PSNR on the {ac_cfg.split} split >= best - {ac_cfg.tolerance_db} dB, "
+            f"the lowest {ac_cfg.cost}; costs within {100 * ac_cfg.ms_tie_rel:g}% of that lowest are ties, decided "
+            "by fewest parameters; the test split scores the chosen candidate only")
+    return {"model": train_cfg.model, "preset": train_cfg.preset, "shards": str(train_cfg.shards),
+            "tolerance_db": ac_cfg.tolerance_db, "split": ac_cfg.split, "selection_split": ac_cfg.split,
+            "selection_metric": "fg_psnr (foreground PSNR, padded mask box)", "validation_cameras": None,
+            "test_cameras": test_cameras, "iters": iters, "cost": ac_cfg.cost,
+            "ms_tie_rel": ac_cfg.ms_tie_rel, "timing_repeats": ac_cfg.timing_repeats, "rule": rule,
+            "candidates": [], "best_psnr": None, "choice": None, "chosen_run": None, "chosen_link": None,
+            "test": None}
 
 
 def _retime(candidates: list[dict], ac_cfg: AutoCapacityConfig, device: str) -> None:

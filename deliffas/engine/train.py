@@ -33,6 +33,7 @@ from deliffas.engine.data_bridge import shard_info, training_stream, with_torch_
 from deliffas.engine.devices import resolve_device
 from deliffas.engine.identity import CAPTURE_KEYS, capture_identity, check_identity, shards_record
 from deliffas.engine.samples import FrameSample, composite_target
+from deliffas.engine.time_budget import CALIBRATION, BudgetPlanner
 from deliffas.engine.train_config import TrainConfig, TrainResult, resolve_model_config
 from deliffas.engine.train_step import balance_weight, render_sample_images, train_step
 from deliffas.models.deliffas import DeliffasModel
@@ -129,6 +130,7 @@ class Trainer:
     """
 
     def __init__(self, cfg: TrainConfig, resume: bool = False, overwrite: bool = False) -> None:
+        self.created = time.perf_counter()  # a time_budget counts from here
         cfg = self.cfg = dataclasses.replace(cfg, shards=str(Path(cfg.shards).resolve()))  # found from any folder
         self.rank, self.world = _distributed()
         if cfg.ray_chunk is not None and self.world > 1:
@@ -180,8 +182,10 @@ class Trainer:
         self.generator = torch.Generator().manual_seed(cfg.seed + 7919 * self.rank)
         self.saturation = (SaturationTerm(cfg.saturation_weight, cfg.saturation_margin)
                            if cfg.saturation_weight > 0 else None)
+        self.budget: dict | None = None  # how a time_budget run was sized, once it is
         if self.rank == 0:
             self._write_record()
+            write_run_capture(self.run_dir, self.shards)
 
     def _write_record(self) -> None:
         info = self.data_info
@@ -190,8 +194,29 @@ class Trainer:
                   "model": config_to_dict(self.model_config), "data": data,
                   "perceptual_backbone": self.backbone, "world_size": self.world, "device": str(self.device),
                   "num_parameters": self.model.num_parameters(), "identity": self.identity}
-        (self.run_dir / RUN_MARKER).write_text(json.dumps(record, indent=2, default=str) + "\n")
-        write_run_capture(self.run_dir, self.shards)
+        if self.budget is not None:
+            record["time_budget"] = self.budget
+        tmp = self.run_dir / f".{RUN_MARKER}.tmp"
+        tmp.write_text(json.dumps(record, indent=2, default=str) + "\n")
+        os.replace(tmp, self.run_dir / RUN_MARKER)
+
+    def _plan(self, planner: BudgetPlanner, n_done: int) -> bool:
+        """After iteration ``n_done`` of a ``time_budget`` run: when ``planner`` plans now, set the run's length
+        (rank 0's plan on every rank) and record it; True when it did."""
+        iters = planner.after(n_done, time.perf_counter())
+        if iters is None:
+            return False
+        if self.world > 1:
+            box = [iters]
+            dist.broadcast_object_list(box, src=0)
+            iters = box[0]
+        self.cfg = dataclasses.replace(self.cfg, iters=iters, time_budget=None)
+        self.budget = planner.record()
+        logger.info("time budget %.0f s: %d iterations (%.3f s each)", planner.seconds, iters,
+                    planner.plans[-1]["seconds_per_iteration"])
+        if self.rank == 0:
+            self._write_record()
+        return True
 
     def _stage_weight(self, it: int, sample: FrameSample) -> float:
         """The perceptual weight of iteration ``it``: 0 in stage 1, balanced once at the start of stage 2."""
@@ -234,9 +259,15 @@ class Trainer:
                              "preset": self.cfg.preset})
 
     def run(self) -> TrainResult:
-        """Iterate from the start (or resumed) iteration to ``cfg.iters``; rank 0 logs, previews, checkpoints."""
-        cfg, lead = self.cfg, self.rank == 0
+        """Iterate from the start (or resumed) iteration to ``cfg.iters`` (with ``cfg.time_budget``: to the
+        length it plans, ``engine.time_budget``); rank 0 logs, previews, checkpoints."""
+        lead = self.rank == 0
         log = open(self.run_dir / "log.jsonl", "a") if lead else None
+        planner = None
+        if self.cfg.time_budget is not None:  # the loop runs at least to the first plan, whatever --iters says
+            planner = BudgetPlanner(self.cfg.time_budget, self.created, self.start)
+            self.cfg = dataclasses.replace(self.cfg, iters=max(self.cfg.iters, self.start + CALIBRATION))
+        cfg = self.cfg
         bar = tqdm(total=cfg.iters, initial=self.start, desc=f"train {cfg.model}", unit="it",
                    dynamic_ncols=True) if lead and cfg.progress else None
         t0 = time.perf_counter()
@@ -244,12 +275,18 @@ class Trainer:
         last = {"loss": float("nan")}
         it = n_done = saved = self.start
         try:
-            for it in range(self.start, cfg.iters):
+            while n_done < cfg.iters:
+                it = n_done
                 record, sample = self.step(it)
                 data_s += record.pop("data_s")
                 step_s += record.pop("step_s")
                 last = record
                 n_done = it + 1
+                if planner is not None and self._plan(planner, n_done):
+                    cfg = self.cfg
+                    if bar is not None:
+                        bar.total = cfg.iters
+                        bar.refresh()
                 if log is not None and (n_done % cfg.log_every == 0 or n_done == cfg.iters):
                     log.write(json.dumps({**record, "elapsed_s": time.perf_counter() - t0}) + "\n")
                     log.flush()

@@ -51,6 +51,17 @@ class TrainConfig:
     iters: int = opt(1500, help="train to this iteration (with --resume: the run's, more extends it)",
                      parse=positive_int)
     """Training iterations (one frame with ``cameras_per_frame`` images each)."""
+    time_budget: float | None = opt(None, help="train for about this many seconds instead of --iters: the "
+                                          "iterations that fit, estimated from the speed of the first ones (L1 "
+                                          "runs; the count is recorded in train_config.json)",
+                                    parse=positive_float, metavar="SECONDS", default_text="--iters decides")
+    """Seconds the run may take, counted from the trainer's start (``engine.time_budget``): after the first
+    iterations (within the warm-up) the run plans its ``iters`` from their speed, and plans again at the
+    speed of the iterations since, halfway through what is left, a few times; the ``converge`` schedule
+    decays over the planned length. The plan replaces ``iters`` (and ``time_budget`` becomes None) in
+    ``train_config.json``, whose ``time_budget`` entry records the plans: a resumed run continues to the
+    last plan, and ``--iters N`` repeats the run's length. Needs ``perceptual`` none (stage 2's steps
+    cost several times stage 1's)."""
     schedule: Literal["converge", "paper"] = opt("converge", help="learning-rate schedule: converge = warm-up, "
                                                  "then decay 10x over the run's own --iters; paper = the official "
                                                  "Adam 2e-4 with its decay over 800 k steps (GPU-days runs)")
@@ -156,6 +167,15 @@ class TrainConfig:
             raise ValueError(f"saturation_margin: expected a finite number > 0, got {self.saturation_margin!r}")
         if self.ray_chunk is not None and (not isinstance(self.ray_chunk, int) or self.ray_chunk < 1):
             raise ValueError(f"ray_chunk: expected None or a whole number >= 1, got {self.ray_chunk!r}")
+        if self.time_budget is not None:
+            if isinstance(self.time_budget, bool) or not isinstance(self.time_budget, (int, float)) or not (
+                    math.isfinite(self.time_budget) and self.time_budget > 0):
+                raise ValueError(f"time_budget: expected None or a finite number of seconds > 0, "
+                                 f"got {self.time_budget!r}")
+            if self.perceptual != "none":
+                raise ValueError(f"time_budget: a run with a perceptual stage (perceptual {self.perceptual!r}) is "
+                                 "not sized by time, its stage-2 steps cost several times the first ones; give "
+                                 "--iters instead")
         if self.lr is not None and not (math.isfinite(self.lr) and self.lr > 0):
             raise ValueError(f"lr: expected None or a finite number > 0, got {self.lr!r}")
         if not (math.isfinite(self.texture_lr_scale) and self.texture_lr_scale > 0):
