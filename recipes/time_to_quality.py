@@ -1,6 +1,6 @@
 """Time to quality: held-out quality against training wall-clock, the default run against the paper's schedule.
 
-Usage: ``python -m recipes.time_to_quality --out OUT [--quick] [--seeds N] [--iters N]
+Usage: ``python -m recipes.time_to_quality --out OUT [--quick] [--seeds N] [--iters N] [--budgets S,...]
 [--subject DIR | --shards DIR]``.
 
 Each configuration is trained over seeds on the 256 x 256 recipe capture (40 training + 10 test frames,
@@ -13,7 +13,9 @@ masked PSNR, FLIP) and on the held-out test cameras. Training seconds exclude th
 Configurations: ``default`` is ``deliffas train`` without options (``TrainConfig`` defaults:
 ``two_surface_reflect_texture``); ``two_surface_texture`` the same without the reflected view direction (the
 previous default); ``paper schedule`` is the paper's model and schedule (``two_surface``, Adam 2e-4 with the
-official decay), the default before this recipe existed.
+official decay), the default before this recipe existed; ``default, S s budget`` is the default trained for
+S seconds (``deliffas train --time-budget S``: the iterations that fit on this machine), evaluated once at
+its end (``--budgets``, default :data:`FULL_BUDGETS`).
 """
 
 from __future__ import annotations
@@ -29,6 +31,11 @@ from recipes.common import FULL_SUPERSAMPLE, prepare_capture, prepare_shards, re
 CAPTURE = RunSizes(frames=40, test_frames=10, cameras=12, size=256, atlas_res=256, iters=0, cameras_per_frame=3,
                    preset="small", eval_frames=10, supersample=FULL_SUPERSAMPLE)
 """The recipe capture at 256 px, 3 x 3 rays per pixel (``iters`` 0: the configurations' own)."""
+FULL_BUDGETS = (540.0,)
+"""Time budgets (seconds) of the default's ``--time-budget`` runs in full mode: 9 minutes, so that the
+whole ``deliffas train`` ends within 10."""
+QUICK_BUDGETS = (6.0,)
+"""Time budgets of ``--quick``: enough for the timed first iterations and a few more."""
 CHECKPOINTS = (0.125, 0.25, 0.5, 0.75, 1.0)
 """Fractions of the run at which the model is evaluated."""
 CONFIGS: dict[str, dict] = {
@@ -81,6 +88,32 @@ def run_curve(shards: Path, run_dir: Path, fields: dict, iters: int, seed: int, 
     return points
 
 
+def run_budget(shards: Path, run_dir: Path, budget: float, seed: int, eval_frames: int | None,
+               device: str = "cpu", fields: dict | None = None) -> list[dict]:
+    """Train the default for ``budget`` seconds (``TrainConfig.time_budget``) and evaluate it once: a
+    one-point curve (the iterations it planned, its training seconds, the scores). A finished run
+    (``curve.json``) is read back."""
+    from deliffas.engine.evaluate import EvalConfig, evaluate
+    from deliffas.engine.train import TrainConfig, train
+
+    done = run_dir / "curve.json"
+    if done.is_file():
+        return json.loads(done.read_text())
+    cfg = TrainConfig(shards=str(shards), out=str(run_dir), time_budget=budget, protocol="all", seed=seed,
+                      device=device, validation_cameras=1, checkpoint_every=10**9, preview_every=0, progress=False,
+                      **(fields or {}))
+    t0 = time.perf_counter()
+    result = train(cfg, overwrite=True)
+    point = {"iteration": result.iterations, "train_s": time.perf_counter() - t0, "budget_s": budget}
+    for split in ("validation", "novel_view"):
+        point[split] = _scores(evaluate(EvalConfig(run=str(run_dir), split=split, max_frames=eval_frames,
+                                                   device=device)))
+    print(f"  {budget:g} s budget seed {seed}: {result.iterations} it, {point['train_s']:.0f} s, validation masked "
+          f"PSNR {point['validation']['masked_psnr']:.2f} dB", flush=True)
+    done.write_text(json.dumps([point], indent=1) + "\n")
+    return [point]
+
+
 def curve_chart(curves: dict[str, list[list[dict]]], path: Path, title: str, split: str = "validation") -> Path:
     """Masked PSNR on ``split`` against training seconds: one line per seed, one colour per configuration."""
     from deliffas.engine.report import pyplot, save_figure
@@ -99,6 +132,24 @@ def curve_chart(curves: dict[str, list[list[dict]]], path: Path, title: str, spl
     return save_figure(fig, path)
 
 
+def _budgets(text: str) -> tuple[float, ...]:
+    """``--budgets``: comma-separated seconds, or ``none``."""
+    from deliffas.options import positive_float
+
+    return () if text.strip() == "none" else tuple(positive_float(t) for t in text.split(","))
+
+
+def _row(name: str, fields: dict, seeds: list[int], seeds_points: list[list[dict]]) -> dict:
+    """One configuration's means over seeds of its last points (iterations, seconds, scores)."""
+    finals = [pts[-1] for pts in seeds_points]
+    row = {"name": name, "fields": fields, "iters": round(sum(f["iteration"] for f in finals) / len(finals)),
+           "seeds": seeds, "curves": seeds_points, "train_s": sum(f["train_s"] for f in finals) / len(finals)}
+    for split in ("validation", "novel_view"):
+        for key in ("fg_psnr", "masked_psnr", "fg_flip"):
+            row[f"{split}_{key}"] = sum(f[split][key] for f in finals) / len(finals)
+    return row
+
+
 def main(argv=None) -> dict:
     from deliffas.engine.train_config import TrainConfig
 
@@ -106,10 +157,15 @@ def main(argv=None) -> dict:
     p.add_argument("--configs", default=None,
                    help=f"comma-separated configurations to run, of {','.join(CONFIGS)} (default all); finished "
                         "runs in OUT are read back, so runs split over processes join in a last call without it")
+    p.add_argument("--budgets", type=_budgets, default=None,
+                   help="comma-separated time budgets (seconds) for the default trained with --time-budget, one "
+                        f"scored point each, or none (default {','.join(f'{b:g}' for b in FULL_BUDGETS)}; "
+                        f"{','.join(f'{b:g}' for b in QUICK_BUDGETS)} with --quick)")
     args = p.parse_args(argv)
     names = [n.strip() for n in args.configs.split(",")] if args.configs else list(CONFIGS)
     if any(n not in CONFIGS for n in names):
         p.error(f"--configs: expected names from {','.join(CONFIGS)}, got {args.configs!r}")
+    budgets = args.budgets if args.budgets is not None else (QUICK_BUDGETS if args.quick else FULL_BUDGETS)
     sizes = sized_by_args(RunSizes.quick() if args.quick else CAPTURE, args)
     iters = args.iters or (sizes.iters if args.quick else TrainConfig.iters)
     seeds = seed_list(args)
@@ -120,25 +176,23 @@ def main(argv=None) -> dict:
     curves = {name: [run_curve(shards, args.out / "runs" / name.replace(" ", "_") / f"seed{s}", fields, iters, s,
                                sizes.eval_frames, args.device) for s in seeds]
               for name, fields in configs.items()}
-    rows = []
-    for name, seeds_points in curves.items():
-        finals = [pts[-1] for pts in seeds_points]
-        row = {"name": name, "fields": configs[name], "iters": iters, "seeds": seeds, "curves": seeds_points}
-        for split in ("validation", "novel_view"):
-            for key in ("fg_psnr", "masked_psnr", "fg_flip"):
-                values = [f[split][key] for f in finals]
-                row[f"{split}_{key}"] = sum(values) / len(values)
-        row["train_s"] = sum(f["train_s"] for f in finals) / len(finals)
-        rows.append(row)
+    quick_fields = {"preset": "tiny"} if args.quick else {}
+    for budget in budgets:
+        name = f"default, {budget:g} s budget"
+        configs[name] = {**quick_fields, "time_budget": budget}
+        curves[name] = [run_budget(shards, args.out / "runs" / f"budget_{budget:g}s" / f"seed{s}", budget, s,
+                                   sizes.eval_frames, args.device, quick_fields) for s in seeds]
+    rows = [_row(name, configs[name], seeds, seeds_points) for name, seeds_points in curves.items()]
     title = "Time to quality" + (" — quick mode" if args.quick else "")
     curve_chart(curves, args.out / "time_to_quality.png", title)
-    notes = ["", "| configuration | train s | validation masked PSNR | validation fg PSNR | validation FLIP | "
-             "test masked PSNR | test fg PSNR | test FLIP |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
-    notes += [f"| {r['name']} | {r['train_s']:.0f} | {r['validation_masked_psnr']:.2f} | {r['validation_fg_psnr']:.2f} "
-              f"| {r['validation_fg_flip']:.4f} | {r['novel_view_masked_psnr']:.2f} | {r['novel_view_fg_psnr']:.2f} "
-              f"| {r['novel_view_fg_flip']:.4f} |" for r in rows]
-    notes += ["", f"Means over seeds {seeds}; {iters} iterations; capture {sizes.frames} frames, {sizes.cameras} cameras "
-              f"at {sizes.size} px.", "", "![time to quality](time_to_quality.png)",
+    notes = ["", "| configuration | iterations | train s | validation masked PSNR | validation fg PSNR | validation "
+             "FLIP | test masked PSNR | test fg PSNR | test FLIP |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    notes += [f"| {r['name']} | {r['iters']} | {r['train_s']:.0f} | {r['validation_masked_psnr']:.2f} | "
+              f"{r['validation_fg_psnr']:.2f} | {r['validation_fg_flip']:.4f} | {r['novel_view_masked_psnr']:.2f} | "
+              f"{r['novel_view_fg_psnr']:.2f} | {r['novel_view_fg_flip']:.4f} |" for r in rows]
+    notes += ["", f"Means over seeds {seeds}; a time budget's iterations are its seeds' mean; capture "
+              f"{sizes.frames} frames, {sizes.cameras} cameras at {sizes.size} px.", "",
+              "![time to quality](time_to_quality.png)",
               *(["", "Quick mode: a few iterations; the numbers show the pipeline works."] if args.quick else [])]
     payload = {"title": title, "quick": args.quick, "sizes": dataclasses.asdict(sizes), "seeds": seeds,
                "configurations": rows}

@@ -7,6 +7,8 @@ import math
 
 import pytest
 
+from deliffas.engine.time_budget import CALIBRATION
+
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
@@ -19,9 +21,15 @@ def test_time_to_quality_quick(tiny_recipe_capture, tmp_path):
     data = json.loads((out / "results.json").read_text())
     assert data["title"] == payload["title"] and data["quick"] is True
     names = [c["name"] for c in data["configurations"]]
-    assert names == list(time_to_quality.CONFIGS)
+    budgets = [f"default, {b:g} s budget" for b in time_to_quality.QUICK_BUDGETS]
+    assert names == [*time_to_quality.CONFIGS, *budgets]
     for config in data["configurations"]:
         (curve,) = config["curves"]
+        if config["name"] in budgets:  # one point, at the length the run planned
+            (point,) = curve
+            assert point["iteration"] >= CALIBRATION and point["budget_s"] == config["fields"]["time_budget"]
+            assert math.isfinite(point["validation"]["masked_psnr"])
+            continue
         assert [p["iteration"] for p in curve] == sorted({max(1, round(f * config["iters"]))
                                                           for f in time_to_quality.CHECKPOINTS})
         assert all(b["train_s"] >= a["train_s"] for a, b in zip(curve, curve[1:]))
