@@ -126,15 +126,17 @@ def _weights_digest(model) -> str:
     return h.hexdigest()
 
 
-def test_ddp_two_gloo_processes(tiny_shards, tmp_path):
-    """torchrun with 2 gloo processes runs a few steps; both ranks end with equal weights."""
+@pytest.mark.parametrize("length", ["iters=3", "time_budget=3.0"])
+def test_ddp_two_gloo_processes(tiny_shards, tmp_path, length):
+    """torchrun with 2 gloo processes runs a few steps; both ranks end with equal weights (with a time budget:
+    rank 0's planned length on both)."""
     script = tmp_path / "ddp_train.py"
     script.write_text(textwrap.dedent(f"""
         import hashlib, os, sys
         import torch
         from deliffas.engine.train import TrainConfig, train
         cfg = TrainConfig(shards={str(tiny_shards)!r}, out={str(tmp_path / 'ddp_run')!r}, model="two_surface",
-                          preset="tiny", iters=3, cameras_per_frame=2, protocol="all", num_workers=0,
+                          preset="tiny", {length}, cameras_per_frame=2, protocol="all", num_workers=0,
                           checkpoint_every=3, preview_every=0, progress=False)
         res = train(cfg)
         h = hashlib.sha256()
@@ -151,3 +153,5 @@ def test_ddp_two_gloo_processes(tiny_shards, tmp_path):
     assert h0 == h1
     record = json.loads((tmp_path / "ddp_run" / "train_config.json").read_text())
     assert record["world_size"] == 2
+    if length.startswith("time_budget"):
+        assert record["train"]["iters"] == record["time_budget"]["iterations"] >= 40
