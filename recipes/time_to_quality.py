@@ -14,7 +14,7 @@ Configurations: ``default`` is ``deliffas train`` without options (``TrainConfig
 ``two_surface_reflect_texture``); ``two_surface_texture`` the same without the reflected view direction (the
 previous default); ``paper schedule`` is the paper's model and schedule (``two_surface``, Adam 2e-4 with the
 official decay), the default before this recipe existed; ``default, S s budget`` is the default trained for
-S seconds (``deliffas train --time-budget S``: the iterations that fit on this machine), evaluated once at
+S seconds (``deliffas train --time-budget S``: the iterations that fit on the machine it runs on), evaluated once at
 its end (``--budgets``, default :data:`FULL_BUDGETS`).
 """
 
