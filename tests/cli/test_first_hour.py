@@ -127,7 +127,10 @@ def _interrupt(args: list, cwd: Path, when) -> subprocess.CompletedProcess:
         t0 = time.time()
         while p.poll() is None and not when(err_path.read_text(), time.time() - t0):
             time.sleep(0.1)
-        os.killpg(p.pid, signal.SIGINT)
+        try:
+            os.killpg(p.pid, signal.SIGINT)
+        except ProcessLookupError:  # the command (and its group) ended first: a fast machine finished the work
+            pass
         out, _ = p.communicate(timeout=300)
     return subprocess.CompletedProcess(p.args, p.returncode, out, err_path.read_text())
 
