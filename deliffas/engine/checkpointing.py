@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from deliffas.io.infra.files import write_bytes_atomic
 from deliffas.models.deliffas import DeliffasModel
 from deliffas.models.zoo import CheckpointError, load_checkpoint, save_checkpoint
 
@@ -24,15 +24,6 @@ __all__ = ["save_training_state", "load_training_state", "read_training_state", 
 CHECKPOINT_DIR = "checkpoint"
 OPTIMIZER_FILE = "optimizer.safetensors"
 STATE_FILE = "train_state.json"
-
-
-def _atomic_bytes(path: Path, data: bytes) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    with open(tmp, "wb") as fh:
-        fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
 
 
 def save_training_state(run_dir: Path, model: DeliffasModel, optimizer: torch.optim.Optimizer,
@@ -55,12 +46,12 @@ def save_training_state(run_dir: Path, model: DeliffasModel, optimizer: torch.op
             else:
                 scalars[f"{pid}.{key}"] = value
     blob = safetensors_save(tensors)
-    _atomic_bytes(run_dir / OPTIMIZER_FILE, blob)
+    write_bytes_atomic(run_dir / OPTIMIZER_FILE, blob)
     weights_sha = json.loads((run_dir / CHECKPOINT_DIR / "config.json").read_text())["weights_sha256"]
     full = dict(state, optimizer_scalars=scalars, optimizer_param_groups=opt["param_groups"],
                 optimizer_sha256=hashlib.sha256(blob).hexdigest(), optimizer_bytes=len(blob),
                 weights_sha256=weights_sha)
-    _atomic_bytes(run_dir / STATE_FILE, (json.dumps(full, indent=2) + "\n").encode())
+    write_bytes_atomic(run_dir / STATE_FILE, (json.dumps(full, indent=2) + "\n").encode())
 
 
 def read_training_state(run_dir: Path) -> dict[str, Any]:

@@ -38,7 +38,7 @@ from deliffas.engine.train_config import TrainConfig, TrainResult, resolve_model
 from deliffas.engine.train_step import balance_weight, render_sample_images, train_step
 from deliffas.models.deliffas import DeliffasModel
 from deliffas.models.losses import PerceptualLoss, SaturationTerm
-from deliffas.io.infra.files import claim_output
+from deliffas.io.infra.files import claim_output, write_bytes_atomic
 from deliffas.models.zoo import config_to_dict
 
 __all__ = ["TrainConfig", "TrainResult", "Trainer", "train", "train_step", "resolve_model_config",
@@ -182,7 +182,7 @@ class Trainer:
         self.generator = torch.Generator().manual_seed(cfg.seed + 7919 * self.rank)
         self.saturation = (SaturationTerm(cfg.saturation_weight, cfg.saturation_margin)
                            if cfg.saturation_weight > 0 else None)
-        self.budget: dict | None = None  # how a time_budget run was sized, once it is
+        self.planner: BudgetPlanner | None = None  # sizes a time_budget run (made when it runs)
         if self.rank == 0:
             self._write_record()
             write_run_capture(self.run_dir, self.shards)
@@ -194,15 +194,14 @@ class Trainer:
                   "model": config_to_dict(self.model_config), "data": data,
                   "perceptual_backbone": self.backbone, "world_size": self.world, "device": str(self.device),
                   "num_parameters": self.model.num_parameters(), "identity": self.identity}
-        if self.budget is not None:
-            record["time_budget"] = self.budget
-        tmp = self.run_dir / f".{RUN_MARKER}.tmp"
-        tmp.write_text(json.dumps(record, indent=2, default=str) + "\n")
-        os.replace(tmp, self.run_dir / RUN_MARKER)
+        if self.planner is not None and self.planner.plans:
+            record["time_budget"] = self.planner.record()
+        write_bytes_atomic(self.run_dir / RUN_MARKER, (json.dumps(record, indent=2, default=str) + "\n").encode())
 
-    def _plan(self, planner: BudgetPlanner, n_done: int) -> bool:
-        """After iteration ``n_done`` of a ``time_budget`` run: when ``planner`` plans now, set the run's length
+    def _plan(self, n_done: int) -> bool:
+        """After iteration ``n_done`` of a ``time_budget`` run: when :attr:`planner` plans now, set the run's length
         (rank 0's plan on every rank) and record it; True when it did."""
+        planner = self.planner
         iters = planner.after(n_done, time.perf_counter())
         if iters is None:
             return False
@@ -211,7 +210,6 @@ class Trainer:
             dist.broadcast_object_list(box, src=0)
             iters = box[0]
         self.cfg = dataclasses.replace(self.cfg, iters=iters, time_budget=None)
-        self.budget = planner.record()
         logger.info("time budget %.0f s: %d iterations (%.3f s each)", planner.seconds, iters,
                     planner.plans[-1]["seconds_per_iteration"])
         if self.rank == 0:
@@ -263,9 +261,8 @@ class Trainer:
         length it plans, ``engine.time_budget``); rank 0 logs, previews, checkpoints."""
         lead = self.rank == 0
         log = open(self.run_dir / "log.jsonl", "a") if lead else None
-        planner = None
         if self.cfg.time_budget is not None:  # the loop runs at least to the first plan, whatever --iters says
-            planner = BudgetPlanner(self.cfg.time_budget, self.created, self.start)
+            self.planner = BudgetPlanner(self.cfg.time_budget, self.created, self.start)
             self.cfg = dataclasses.replace(self.cfg, iters=max(self.cfg.iters, self.start + CALIBRATION))
         cfg = self.cfg
         bar = tqdm(total=cfg.iters, initial=self.start, desc=f"train {cfg.model}", unit="it",
@@ -282,7 +279,7 @@ class Trainer:
                 step_s += record.pop("step_s")
                 last = record
                 n_done = it + 1
-                if planner is not None and self._plan(planner, n_done):
+                if self.planner is not None and self._plan(n_done):
                     cfg = self.cfg
                     if bar is not None:
                         bar.total = cfg.iters
