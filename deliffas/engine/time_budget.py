@@ -11,6 +11,7 @@ time left for checkpoints, previews and drift.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 __all__ = ["CALIBRATION", "UNTIMED", "MARGIN", "MIN_LEFT", "MAX_PLANS", "budgeted_iters", "BudgetPlanner"]
@@ -50,14 +51,19 @@ class BudgetPlanner:
     def __post_init__(self) -> None:
         self.next_plan = self.start + CALIBRATION
 
-    def after(self, done: int, now: float) -> int | None:
-        """``done`` iterations are finished at ``now``: the run's new length when it plans now, else None."""
+    def after(self, done: int, now: float, agree: Callable[[int], int] | None = None) -> int | None:
+        """``done`` iterations are finished at ``now``: the run's new length when it plans now, else None.
+
+        ``agree`` turns this process's plan into the one every process follows (under DDP: rank 0's); the
+        next plan's iteration is derived from it, so every process plans again at the same iteration."""
         if done == self.start + UNTIMED:
             self.mark = (done, now)
         if done != self.next_plan or self.mark is None:
             return None
         per_it = (now - self.mark[1]) / (done - self.mark[0])
         iters = budgeted_iters(done, per_it, self.seconds - (now - self.created))
+        if agree is not None:
+            iters = agree(iters)
         self.plans.append({"at_iteration": done, "seconds_per_iteration": per_it, "iterations": iters})
         half = (iters - done) // 2
         self.next_plan = done + half if half >= MIN_LEFT and len(self.plans) < MAX_PLANS else None

@@ -109,6 +109,13 @@ def _distributed() -> tuple[int, int]:
     return 0, 1
 
 
+def _rank0_value(value: int) -> int:
+    """Rank 0's ``value`` on every rank (a collective: every rank calls it at the same point)."""
+    box = [value]
+    dist.broadcast_object_list(box, src=0)
+    return box[0]
+
+
 def _device(cfg: TrainConfig, world: int) -> torch.device:
     device = resolve_device(cfg.device)
     if device.type == "cuda" and world > 1:
@@ -202,13 +209,9 @@ class Trainer:
         """After iteration ``n_done`` of a ``time_budget`` run: when :attr:`planner` plans now, set the run's length
         (rank 0's plan on every rank) and record it; True when it did."""
         planner = self.planner
-        iters = planner.after(n_done, time.perf_counter())
+        iters = planner.after(n_done, time.perf_counter(), _rank0_value if self.world > 1 else None)
         if iters is None:
             return False
-        if self.world > 1:
-            box = [iters]
-            dist.broadcast_object_list(box, src=0)
-            iters = box[0]
         self.cfg = dataclasses.replace(self.cfg, iters=iters, time_budget=None)
         logger.info("time budget %.0f s: %d iterations (%.3f s each)", planner.seconds, iters,
                     planner.plans[-1]["seconds_per_iteration"])

@@ -67,3 +67,12 @@ def test_the_command_line_refuses_iters_and_a_time_budget_together(tiny_shards, 
     code = main(["train", str(tiny_shards), "--out", str(tmp_path / "run"), "--iters", "5", "--time-budget", "9"])
     assert code == 2 and "give --iters or --time-budget, not both" in capsys.readouterr().err
     assert not (tmp_path / "run").exists()
+
+
+def test_planners_that_agree_on_a_length_plan_again_at_the_same_iteration():
+    """Under DDP each rank times itself but follows rank 0's plan: the next plan must fall on the same iteration."""
+    fast, slow = (BudgetPlanner(seconds=100.0, created=0.0, start=0) for _ in range(2))
+    for n in range(1, CALIBRATION + 1):
+        first = fast.after(n, 0.1 * n)
+        second = slow.after(n, 0.3 * n, agree=lambda _, first=first: first)  # rank 0's value, as broadcast
+    assert second == first and slow.next_plan == fast.next_plan is not None
