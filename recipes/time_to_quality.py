@@ -51,12 +51,19 @@ def _scores(ev: dict) -> dict:
     return {"fg_psnr": fg["psnr"], "masked_psnr": fg.get("masked_psnr"), "fg_flip": fg.get("flip")}
 
 
+def _split_scores(run_dir: Path, eval_frames: int | None, device: str) -> dict:
+    """The run's scores on the validation camera and on the test cameras (``novel_view``)."""
+    from deliffas.engine.evaluate import EvalConfig, evaluate
+
+    return {split: _scores(evaluate(EvalConfig(run=str(run_dir), split=split, max_frames=eval_frames, device=device)))
+            for split in ("validation", "novel_view")}
+
+
 def run_curve(shards: Path, run_dir: Path, fields: dict, iters: int, seed: int, eval_frames: int | None,
               device: str = "cpu") -> list[dict]:
     """Train one configuration, evaluating at ``CHECKPOINTS``; one point per checkpoint (seconds, scores).
 
     A finished run (``curve.json`` in ``run_dir``) is read back instead of retrained."""
-    from deliffas.engine.evaluate import EvalConfig, evaluate
     from deliffas.engine.train import TrainConfig, Trainer
 
     done = run_dir / "curve.json"
@@ -75,10 +82,7 @@ def run_curve(shards: Path, run_dir: Path, fields: dict, iters: int, seed: int, 
         it = mark
         seconds += time.perf_counter() - t0
         trainer.checkpoint(mark)
-        point = {"iteration": mark, "train_s": seconds}
-        for split in ("validation", "novel_view"):
-            point[split] = _scores(evaluate(EvalConfig(run=str(run_dir), split=split, max_frames=eval_frames,
-                                                       device=device)))
+        point = {"iteration": mark, "train_s": seconds, **_split_scores(run_dir, eval_frames, device)}
         points.append(point)
         print(f"  {run_dir.parent.name} seed {seed}: {mark} it, {seconds:.0f} s, validation masked PSNR "
               f"{point['validation']['masked_psnr']:.2f} dB", flush=True)
@@ -93,7 +97,6 @@ def run_budget(shards: Path, run_dir: Path, budget: float, seed: int, eval_frame
     """Train the default for ``budget`` seconds (``TrainConfig.time_budget``) and evaluate it once: a
     one-point curve (the iterations it planned, its training seconds, the scores). A finished run
     (``curve.json``) is read back."""
-    from deliffas.engine.evaluate import EvalConfig, evaluate
     from deliffas.engine.train import TrainConfig, train
 
     done = run_dir / "curve.json"
@@ -104,10 +107,8 @@ def run_budget(shards: Path, run_dir: Path, budget: float, seed: int, eval_frame
                       **(fields or {}))
     t0 = time.perf_counter()
     result = train(cfg, overwrite=True)
-    point = {"iteration": result.iterations, "train_s": time.perf_counter() - t0, "budget_s": budget}
-    for split in ("validation", "novel_view"):
-        point[split] = _scores(evaluate(EvalConfig(run=str(run_dir), split=split, max_frames=eval_frames,
-                                                   device=device)))
+    point = {"iteration": result.iterations, "train_s": time.perf_counter() - t0, "budget_s": budget,
+             **_split_scores(run_dir, eval_frames, device)}
     print(f"  {budget:g} s budget seed {seed}: {result.iterations} it, {point['train_s']:.0f} s, validation masked "
           f"PSNR {point['validation']['masked_psnr']:.2f} dB", flush=True)
     done.write_text(json.dumps([point], indent=1) + "\n")
