@@ -99,14 +99,15 @@ def _save_preview(path: Path, pred: torch.Tensor, sample: FrameSample) -> None:
     os.replace(tmp, path)
 
 
-def _distributed() -> tuple[int, int]:
+def _distributed() -> tuple[int, int, bool]:
+    """(rank, world size, whether this call started the process group)."""
     if dist.is_available() and dist.is_initialized():
-        return dist.get_rank(), dist.get_world_size()
+        return dist.get_rank(), dist.get_world_size(), False
     if int(os.environ.get("WORLD_SIZE", "1")) > 1:
         backend = "nccl" if torch.cuda.is_available() else "gloo"
         dist.init_process_group(backend)
-        return dist.get_rank(), dist.get_world_size()
-    return 0, 1
+        return dist.get_rank(), dist.get_world_size(), True
+    return 0, 1, False
 
 
 def _rank0_value(value: int) -> int:
@@ -139,7 +140,7 @@ class Trainer:
     def __init__(self, cfg: TrainConfig, resume: bool = False, overwrite: bool = False) -> None:
         self.created = time.perf_counter()  # a time_budget counts from here
         cfg = self.cfg = dataclasses.replace(cfg, shards=str(Path(cfg.shards).resolve()))  # found from any folder
-        self.rank, self.world = _distributed()
+        self.rank, self.world, self.owns_process_group = _distributed()
         if cfg.ray_chunk is not None and self.world > 1:
             raise ValueError("ray_chunk needs a single process (under DDP every rank shades its rays in one graph)")
         self.device = device = _device(cfg, self.world)
@@ -325,4 +326,11 @@ def train(cfg: TrainConfig, resume: bool = False, overwrite: bool = False) -> Tr
 
     ``cfg.out`` must be missing, empty, a run to continue (``resume``) or a run to replace (``overwrite``).
     """
-    return Trainer(cfg, resume, overwrite).run()
+    trainer = Trainer(cfg, resume, overwrite)
+    try:
+        return trainer.run()
+    finally:
+        # A process group left to interpreter exit can abort a rank as gloo's threads are torn down
+        # ("terminate called without an active exception"): close the one this run started.
+        if trainer.owns_process_group:
+            dist.destroy_process_group()
