@@ -8,6 +8,7 @@ casting in the DataLoader workers.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -16,7 +17,7 @@ import torch
 from deliffas.io.cameras import Camera
 from deliffas.engine.rays import CameraRays
 
-__all__ = ["FrameSample", "composite_target"]
+__all__ = ["FrameSample", "composite_target", "subsample_rays"]
 
 
 @dataclass(frozen=True)
@@ -69,3 +70,23 @@ def composite_target(images: np.ndarray | torch.Tensor, masks: np.ndarray | torc
     person must come out as the background, so the target is defined everywhere.
     """
     return torch.as_tensor(images).float() * torch.as_tensor(masks).float()[..., None]
+
+
+def subsample_rays(sample: FrameSample, count: int, rng: np.random.Generator) -> FrameSample:
+    """``sample`` with at most ``count`` of its shaded rays: a uniform random subset of the K cameras' rays
+    together (without replacement, each camera's in pixel order). Unchanged when it has ``count`` or fewer."""
+    sizes = [r.num_rays for r in sample.rays]
+    total = sum(sizes)
+    if total <= count:
+        return sample
+    keep = np.zeros(total, bool)
+    keep[rng.choice(total, size=count, replace=False)] = True
+    rays, start = [], 0
+    for r, n in zip(sample.rays, sizes):
+        sel = keep[start:start + n]
+        start += n
+        if isinstance(r.pixels, torch.Tensor):
+            sel = torch.from_numpy(sel).to(r.pixels.device)
+        rays.append(CameraRays(r.pixels[sel], r.uv_inner[sel], r.inner_from_outer[sel], r.uv_outer[sel],
+                               None if r.viewdir is None else r.viewdir[sel], r.height, r.width))
+    return dataclasses.replace(sample, rays=rays)

@@ -32,7 +32,7 @@ from deliffas.engine.checkpointing import STATE_FILE, load_training_state, read_
 from deliffas.engine.data_bridge import shard_info, training_stream, with_torch_rays
 from deliffas.engine.devices import resolve_device
 from deliffas.engine.identity import CAPTURE_KEYS, capture_identity, check_identity, shards_record
-from deliffas.engine.samples import FrameSample, composite_target
+from deliffas.engine.samples import FrameSample, composite_target, subsample_rays
 from deliffas.engine.time_budget import CALIBRATION, BudgetPlanner
 from deliffas.engine.train_config import TrainConfig, TrainResult, resolve_model_config
 from deliffas.engine.train_step import balance_weight, render_sample_images, train_step
@@ -238,6 +238,8 @@ class Trainer:
         sample = next(self.stream)
         if self.data_info["uv"] == "torch":  # rasterised here, on the model's device (no ray casting in the workers)
             sample = with_torch_rays(sample, self.data_info["faces"], self.data_info["atlas"], self.device)
+        if self.cfg.rays_per_step is not None:  # L1 only (TrainConfig): no stage needs whole images
+            sample = subsample_rays(sample, self.cfg.rays_per_step, np.random.default_rng([self.cfg.seed, it]))
         tb = time.perf_counter()
         weight = self._stage_weight(it, sample)
         out = train_step(self.model, sample, self.optimizer, self.device, self.perceptual, weight, net=self.net,

@@ -86,6 +86,12 @@ class TrainConfig:
     cameras_per_frame: int = opt(3, help="training cameras per iteration; the U-Nets run once for all of them",
                                  parse=positive_int)
     """K training cameras per iteration; the U-Nets run once for all K."""
+    rays_per_step: int | None = opt(None, help="train each iteration on at most this many of its cameras' shaded "
+                                               "rays, a random subset (the light-field MLP's cost is per ray)",
+                                    parse=positive_int, default_text="every shaded ray")
+    """At most this many shaded rays per iteration: a uniform random subset of the K cameras' rays, drawn anew
+    each iteration (:func:`deliffas.engine.samples.subsample_rays`); None = every shaded ray. Needs
+    ``perceptual`` none (the perceptual loss compares whole images)."""
     protocol: Literal["auto", "paper", "all"] = opt("auto", help="frames used: paper = every 10th (DELIFFAS), "
                                                     "all = every frame, auto = paper from 100 training frames on, "
                                                     "else all; stated at start")
@@ -176,6 +182,12 @@ class TrainConfig:
                 raise ValueError(f"time_budget: a run with a perceptual stage (perceptual {self.perceptual!r}) is "
                                  "not sized by time, its stage-2 steps cost several times the first ones; give "
                                  "--iters instead")
+        if self.rays_per_step is not None:
+            if isinstance(self.rays_per_step, bool) or not isinstance(self.rays_per_step, int) or self.rays_per_step < 1:
+                raise ValueError(f"rays_per_step: expected None or a whole number >= 1, got {self.rays_per_step!r}")
+            if self.perceptual != "none":
+                raise ValueError(f"rays_per_step: the perceptual loss (perceptual {self.perceptual!r}) compares whole "
+                                 "images, every ray of them; leave --rays-per-step out or use --perceptual none")
         if self.lr is not None and not (math.isfinite(self.lr) and self.lr > 0):
             raise ValueError(f"lr: expected None or a finite number > 0, got {self.lr!r}")
         if not (math.isfinite(self.texture_lr_scale) and self.texture_lr_scale > 0):

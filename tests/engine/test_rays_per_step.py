@@ -1,0 +1,71 @@
+"""``TrainConfig.rays_per_step``: each iteration trains on a random subset of its cameras' shaded rays."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from deliffas.engine.rays import CameraRays
+from deliffas.engine.samples import FrameSample, subsample_rays
+from deliffas.engine.train import TrainConfig, train
+
+
+def _rays(n: int, width: int = 10, tensor: bool = False) -> CameraRays:
+    pixels = np.arange(n, dtype=np.int64) * 3
+    uv = np.stack([pixels / 100.0, pixels / 50.0], 1).astype(np.float32)
+    fields = [pixels, uv, pixels % 2 == 0, uv + 1, np.ones((n, 3), np.float32)]
+    if tensor:
+        fields = [torch.from_numpy(f) for f in fields]
+    return CameraRays(*fields, height=width, width=width)
+
+
+def _sample(rays: list[CameraRays]) -> FrameSample:
+    k = len(rays)
+    return FrameSample(frame=0, images=np.zeros((k, 10, 10, 3), np.float32), masks=np.zeros((k, 10, 10), np.float32),
+                       cameras=[], camera_ids=np.arange(k), normal_inner=np.zeros((3, 4, 4), np.float32),
+                       normal_outer=np.zeros((3, 4, 4), np.float32), inner_verts=np.zeros((1, 3), np.float32),
+                       outer_verts=np.zeros((1, 3), np.float32), rays=rays)
+
+
+@pytest.mark.parametrize("tensor", [False, True])
+def test_subsample_keeps_count_rays_with_their_fields_together(tensor):
+    sample = _sample([_rays(30, tensor=tensor), _rays(10, tensor=tensor), _rays(0, tensor=tensor)])
+    got = subsample_rays(sample, 12, np.random.default_rng(0))
+    assert sum(r.num_rays for r in got.rays) == 12 and len(got.rays) == 3
+    for r in got.rays:
+        pixels = np.asarray(r.pixels)
+        assert np.all(np.diff(pixels) > 0)  # each camera's kept rays stay in pixel order
+        np.testing.assert_array_equal(np.asarray(r.uv_inner)[:, 0], (pixels / 100.0).astype(np.float32))
+        np.testing.assert_array_equal(np.asarray(r.inner_from_outer), pixels % 2 == 0)
+        assert type(r.pixels) is type(sample.rays[0].pixels)
+    again = subsample_rays(sample, 12, np.random.default_rng(0))
+    assert all(np.array_equal(np.asarray(a.pixels), np.asarray(b.pixels)) for a, b in zip(got.rays, again.rays))
+    assert subsample_rays(sample, 40, np.random.default_rng(0)) is sample  # no more rays than asked: unchanged
+
+
+def test_subsample_draws_uniformly_over_the_cameras():
+    sample = _sample([_rays(3000), _rays(1000)])
+    counts = np.array([[r.num_rays for r in subsample_rays(sample, 400, np.random.default_rng(s)).rays]
+                       for s in range(50)])
+    np.testing.assert_allclose(counts.mean(0), [300, 100], rtol=0.05)
+
+
+@pytest.mark.parametrize("kw,match", [({"rays_per_step": 0}, "rays_per_step: expected"),
+                                      ({"rays_per_step": -3}, "rays_per_step: expected"),
+                                      ({"rays_per_step": 64, "perceptual": "vgg16-random"}, "compares whole images")])
+def test_bad_rays_per_step_is_refused(tiny_shards, tmp_path, kw, match):
+    with pytest.raises(ValueError, match=match):
+        TrainConfig(shards=str(tiny_shards), out=str(tmp_path / "r"), **kw)
+
+
+def test_a_run_trains_on_at_most_rays_per_step_rays(tiny_shards, tmp_path):
+    cfg = TrainConfig(shards=str(tiny_shards), out=str(tmp_path / "r"), model="two_surface", preset="tiny", iters=4,
+                      cameras_per_frame=2, protocol="all", num_workers=0, rays_per_step=50, log_every=1,
+                      preview_every=0, progress=False)
+    train(cfg)
+    records = [json.loads(line) for line in (tmp_path / "r" / "log.jsonl").read_text().splitlines()]
+    assert len(records) == 4 and all(0 < r["rays"] <= 50 for r in records)
+    assert json.loads((tmp_path / "r" / "train_config.json").read_text())["train"]["rays_per_step"] == 50
