@@ -127,11 +127,32 @@ def shard_info(shards_dir: ShardSet | str, temporal_window: int | None = None) -
     }
 
 
-class _ItemToSample:
-    """collate_fn (batch size 1): FrameItem -> FrameSample, ray-casting the item's cameras."""
+RAY_MARGIN = 1.5
+"""With a ray budget, the share of pixels cast is sized for this many times the budget (the frames' and
+cameras' shaded areas differ); the step keeps a uniform random ``rays_per_step`` of what comes back."""
 
-    def __init__(self, faces: np.ndarray, atlas: UVAtlas, cameras: list, with_rays: bool):
+
+class _ItemToSample:
+    """collate_fn (batch size 1): FrameItem -> FrameSample, ray-casting the item's cameras.
+
+    With a ``ray_budget`` (training with ``rays_per_step``) only a random share of each camera's pixels is
+    cast, sized from the shaded rays of the previous sample (the first sample casts every pixel)."""
+
+    def __init__(self, faces: np.ndarray, atlas: UVAtlas, cameras: list, with_rays: bool,
+                 ray_budget: int | None = None, seed: int = 0):
         self.faces, self.atlas, self.cameras, self.with_rays = faces, atlas, cameras, with_rays
+        self.ray_budget, self.seed, self.calls = ray_budget, seed, 0
+        self.full_rays: float | None = None  # shaded rays of the last sample's K cameras, all pixels cast
+
+    def _cast(self, item: FrameItem, cams: list, inner: np.ndarray, outer: np.ndarray) -> list:
+        if self.ray_budget is None:
+            return frame_rays(inner, outer, self.faces, self.atlas, cams)
+        fraction = 1.0 if not self.full_rays else min(1.0, RAY_MARGIN * self.ray_budget / self.full_rays)
+        rng = np.random.default_rng([self.seed, int(item.frame), self.calls])
+        self.calls += 1
+        rays = frame_rays(inner, outer, self.faces, self.atlas, cams, fraction, rng)
+        self.full_rays = sum(r.num_rays for r in rays) / fraction
+        return rays
 
     def __call__(self, items: list[FrameItem]) -> FrameSample:
         (item,) = items
@@ -139,7 +160,7 @@ class _ItemToSample:
         cams = [self.cameras[c] for c in ids]
         inner = item.inner_verts.numpy()
         outer = item.outer_verts.numpy()
-        rays = frame_rays(inner, outer, self.faces, self.atlas, cams) if self.with_rays else []
+        rays = self._cast(item, cams, inner, outer) if self.with_rays else []
         return FrameSample(frame=int(item.frame), images=item.images.numpy().astype(np.float32) / 255,
                            masks=item.masks.numpy().astype(np.float32) / 255, cameras=cams, camera_ids=np.asarray(ids),
                            normal_inner=item.normal_maps_inner.numpy().astype(np.float32),
@@ -195,9 +216,11 @@ def training_stream(cfg, temporal_window: int, rank: int = 0, world: int = 1, st
     if len(ds.frames) == 0:
         raise ValueError(f"{cfg.shards}: no training frames under protocol {protocol!r}")
     k = min(cfg.cameras_per_frame, len(ds.cameras))
-    sampler = _EndlessCameraSampler(ds, k, seed=cfg.seed + 7919 * rank + 104729 * start_iteration)
+    seed = cfg.seed + 7919 * rank + 104729 * start_iteration
+    sampler = _EndlessCameraSampler(ds, k, seed=seed)
     raycast = uv_source(cfg.device, getattr(cfg, "uv", "auto")) == "raycast"
-    collate = _ItemToSample(info["faces"], info["atlas"], info["cameras"], with_rays=raycast)
+    collate = _ItemToSample(info["faces"], info["atlas"], info["cameras"], with_rays=raycast,
+                            ray_budget=getattr(cfg, "rays_per_step", None), seed=seed)
     workers = cfg.data_workers
     loader = DataLoader(ds, batch_size=1, sampler=sampler, collate_fn=collate, num_workers=workers,
                         persistent_workers=workers > 0, prefetch_factor=2 if workers > 0 else None,

@@ -50,9 +50,11 @@ class CameraRays:
         return int(self.pixels.shape[0])
 
 
-def camera_rays(raycaster: UVRaycaster, camera: Camera) -> CameraRays:
-    """The rays of ``camera`` the light field shades (only the surfaces' projected window is cast)."""
-    hits = raycaster.cast_foreground(camera, exits="inner_miss")
+def camera_rays(raycaster: UVRaycaster, camera: Camera, fraction: float = 1.0,
+                rng: np.random.Generator | None = None) -> CameraRays:
+    """The rays of ``camera`` the light field shades (only the surfaces' projected window is cast); with
+    ``fraction`` < 1 a uniform random subset of them, each kept with that probability (drawn by ``rng``)."""
+    hits = raycaster.cast_foreground(camera, exits="inner_miss", fraction=fraction, rng=rng)
     uv_in, from_outer = uv_inner_or_exit(hits)
     keep = np.flatnonzero(hits.outer_hit & np.isfinite(uv_in).all(-1) & np.isfinite(hits.uv_outer).all(-1))
     pixels = hits.pixels[keep]  # (N, 2) (col, row)
@@ -69,7 +71,9 @@ def camera_rays(raycaster: UVRaycaster, camera: Camera) -> CameraRays:
 
 
 def frame_rays(inner_verts: np.ndarray, outer_verts: np.ndarray, faces: np.ndarray, atlas: UVAtlas,
-               cameras: Sequence[Camera]) -> list[CameraRays]:
-    """Ray sets of several cameras of one frame (the ray-casting scenes are built once)."""
+               cameras: Sequence[Camera], fraction: float = 1.0,
+               rng: np.random.Generator | None = None) -> list[CameraRays]:
+    """Ray sets of several cameras of one frame (the ray-casting scenes are built once); ``fraction`` and
+    ``rng`` as :func:`camera_rays`."""
     raycaster = UVRaycaster(np.asarray(inner_verts, np.float32), faces, np.asarray(outer_verts, np.float32), atlas)
-    return [camera_rays(raycaster, cam) for cam in cameras]
+    return [camera_rays(raycaster, cam, fraction, rng) for cam in cameras]

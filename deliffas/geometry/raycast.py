@@ -503,7 +503,8 @@ class UVRaycaster:
         hits = self.cast_rays(origins, dirs)
         return RaycastHits(**{**{f.name: getattr(hits, f.name) for f in fields(hits)}, "pixels": pixels})
 
-    def cast_foreground(self, camera: Camera, exits: ExitRays = "all") -> RaycastHits:
+    def cast_foreground(self, camera: Camera, exits: ExitRays = "all", fraction: float = 1.0,
+                        rng: np.random.Generator | None = None) -> RaycastHits:
         """Hits of the pixels of ``camera`` whose ray meets either surface, without full-image arrays.
 
         Only the pixels in the projected window of both surfaces (``projected_pixel_window``)
@@ -517,6 +518,9 @@ class UVRaycaster:
                 inner surface, the only place DELIFFAS uses it (``uv_inner_or_exit``); elsewhere
                 ``outer_exit_hit`` is then False. Saves most of the third cast. The "list"
                 peel method always finds every exit.
+            fraction: cast each candidate pixel with this probability (a uniform random subset of the
+                result, for a training step that shades only some rays); 1 = every pixel.
+            rng: the draw's generator (needed when ``fraction`` < 1).
 
         Returns:
             RaycastHits with (N,) fields and ``pixels`` (N, 2) int64 (col, row) in row-major
@@ -533,6 +537,12 @@ class UVRaycaster:
             cand = _box_candidates(origins, dirs, self.box_lo, self.box_hi)
             pixels = np.take(pixels, cand, axis=0)
             origins, dirs = np.take(origins, cand, axis=0), np.take(dirs, cand, axis=0)
+        if fraction < 1:
+            if rng is None or not fraction > 0:
+                raise ValueError(f"fraction: expected a number in (0, 1] and an rng, got {fraction!r}, rng {rng!r}")
+            pick = np.flatnonzero(rng.random(len(pixels)) < fraction)  # row-major order kept
+            pixels = np.take(pixels, pick, axis=0)
+            origins, dirs = np.take(origins, pick, axis=0), np.take(dirs, pick, axis=0)
         raw = self._cast_packed(_rays(origins, dirs), exits)
         keep = np.flatnonzero((raw["inner"][1] >= 0) | (raw["outer"][1] >= 0))
         return RaycastHits(**self._hits(raw, keep), pixels=np.take(pixels, keep, axis=0))

@@ -268,3 +268,20 @@ def test_projected_pixel_window_bounds_and_edge_cases():
     assert projected_pixel_window(cam, np.array([[np.nan, 0, 0]])) is None
     c0, r0, c1, r1 = projected_pixel_window(cam, np.array([[1e6, 1e6, 0.0]]))  # far off the image
     assert (c1 - c0) * (r1 - r0) == 0
+
+
+def test_foreground_cast_of_a_fraction_is_a_random_subset_of_the_full_one(sphere):
+    """``fraction`` casts each window pixel with that probability: the hits are those of the full cast."""
+    v, f, outer, atlas = sphere
+    rc = UVRaycaster(v, f, outer, atlas)
+    cam = ref.look_at([0, 0, 3000], [0, 0, 0], 48, 40, focal=60.0)
+    full = rc.cast_foreground(cam, exits="inner_miss")
+    part = rc.cast_foreground(cam, exits="inner_miss", fraction=0.25, rng=np.random.default_rng(3))
+    key = lambda p: p[:, 1] * cam.width + p[:, 0]  # noqa: E731
+    rows = np.searchsorted(key(full.pixels), key(part.pixels))
+    np.testing.assert_array_equal(full.pixels[rows], part.pixels)  # a subset, in row-major order
+    np.testing.assert_array_equal(full.uv_outer[rows], part.uv_outer)
+    np.testing.assert_array_equal(uv_inner_or_exit(full)[0][rows], uv_inner_or_exit(part)[0])
+    assert 0.15 * len(full.pixels) < len(part.pixels) < 0.35 * len(full.pixels)
+    with pytest.raises(ValueError, match="fraction"):
+        rc.cast_foreground(cam, fraction=0.5)  # no rng
