@@ -84,6 +84,11 @@ positive_int = _int_at_least(1)
 non_negative_int = _int_at_least(0)
 
 
+def positive_int_or_all(text: str) -> int | None:
+    """A whole number >= 1, or ``all`` (None: no limit)."""
+    return None if text.strip().lower() == "all" else positive_int(text)
+
+
 def power_of_two(text: str) -> int:
     """A power of two >= 16 (the U-Nets halve the atlas side down to a few texels)."""
     value = _int_at_least(16)(text)

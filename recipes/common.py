@@ -237,7 +237,8 @@ def train_and_eval(name: str, shards: Path, run_dir: Path, sizes: RecipeSizes, m
 
     t0 = time.time()
     cfg = TrainConfig(shards=str(shards), out=str(run_dir), model=model, preset=train_kw.pop("preset", sizes.preset),
-                      iters=sizes.iters, cameras_per_frame=sizes.cameras_per_frame, protocol="all", seed=seed,
+                      iters=sizes.iters, cameras_per_frame=sizes.cameras_per_frame,
+                      rays_per_step=train_kw.pop("rays_per_step", sizes.rays_per_step), protocol="all", seed=seed,
                       device=device, num_workers=1, checkpoint_every=max(sizes.iters, 1),
                       preview_every=max(sizes.iters, 1), progress=False, model_overrides=model_overrides or {},
                       **train_kw)

@@ -63,8 +63,8 @@ def run_demo(cfg: DemoConfig = DemoConfig()) -> Path:
         run = out / "runs" / name
         t = time.time()
         result = train(TrainConfig(shards=str(shards), out=str(run), model=name, preset=preset, iters=sz.iters,
-                                   cameras_per_frame=sz.cameras_per_frame, protocol="all", seed=cfg.seed,
-                                   checkpoint_every=max(sz.iters // 2, 1),
+                                   cameras_per_frame=sz.cameras_per_frame, rays_per_step=sz.rays_per_step,
+                                   protocol="all", seed=cfg.seed, checkpoint_every=max(sz.iters // 2, 1),
                                    preview_every=max(sz.iters // 2, 1)), resume=True)
         timings[f"train_{name}_s"] = time.time() - t
         _stage(f"4/5 evaluating {name} on held-out cameras (novel view) and the test motion (novel pose)")

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from deliffas.engine.run_sizes import RunSizes
+from deliffas.engine.train_config import RAYS_PER_STEP
 from deliffas.options import opt
 
 __all__ = ["DemoConfig"]
@@ -18,7 +19,8 @@ class DemoConfig:
     quick: bool = opt(False, help="a smaller run (used by tests)")
     """A much smaller run for tests (seconds, not minutes); numbers are then meaningless."""
     models: tuple[str, ...] = ("two_surface_reflect_texture", "single_surface")
-    sizes: RunSizes = RunSizes(frames=30, test_frames=10, cameras=10, iters=800, supersample=2)
+    sizes: RunSizes = RunSizes(frames=30, test_frames=10, cameras=10, iters=800, supersample=2,
+                               rays_per_step=RAYS_PER_STEP)
     """Ignored when ``quick`` (then ``RunSizes.quick()``). The capture is rendered with 2 x 2 rays per pixel: a
     camera integrates over its pixels, and at 128 px one ray per pixel aliases the skirt's plaid into lines that
     jump from view to view (the recipes render 3 x 3; 2 x 2 keeps the demo's synthesis under a minute)."""

@@ -49,6 +49,7 @@ def resumed_config(run: str | os.PathLike, given: dict, names: dict[str, str] | 
         raise ValueError(f"{path}: corrupted JSON ({exc})") from None
     known = {f.name for f in dataclasses.fields(TrainConfig)}
     values = {k: v for k, v in record.get("train", {}).items() if k in known}
+    values.setdefault("rays_per_step", None)  # recorded before the field existed: every ray was shaded
     name = (names or {}).get
     for key, value in given.items():
         if key not in known:

@@ -24,6 +24,8 @@ class RunSizes:
         cameras_per_frame: cameras per training sample.
         preset: zoo preset of the models ("paper", "small", "tiny").
         eval_frames: frames evaluated per split (None: all).
+        rays_per_step: shaded rays per training iteration (``TrainConfig.rays_per_step``); None = every ray, as the
+            recipes' documented runs trained.
         supersample: s, the synthetic capture's s x s rays per pixel (1: one ray through the pixel centre, which
             aliases texture finer than a pixel; a camera integrates over its pixels as s > 1 does).
     """
@@ -38,6 +40,7 @@ class RunSizes:
     preset: str = "small"
     eval_frames: int | None = None
     supersample: int = 1
+    rays_per_step: int | None = None
 
     @staticmethod
     def quick() -> "RunSizes":

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Literal
 
 from deliffas.engine.config_fields import UVSource, device_field, uv_field
 from deliffas.options import (count_or_indices, non_negative_float, non_negative_int, opt, positive_float,
-                              positive_int)
+                              positive_int, positive_int_or_all)
 
 if TYPE_CHECKING:
     from deliffas.models.deliffas import DeliffasModel, ModelConfig
@@ -30,6 +30,10 @@ PerceptualChoice = Literal["none", "vgg16-imagenet", "vgg16-random"]
 
 SCHEDULE_LR: dict[str, float] = {"converge": 1e-3, "paper": 2e-4}
 """The peak learning rate of each ``TrainConfig.schedule`` when ``TrainConfig.lr`` is None."""
+
+
+RAYS_PER_STEP = 8192
+"""The default :attr:`TrainConfig.rays_per_step` of an L1 run."""
 
 
 @dataclass(frozen=True)
@@ -48,7 +52,7 @@ class TrainConfig:
     """Size preset of the zoo entry (``paper``, ``small``, ``tiny``)."""
     model_overrides: dict = field(default_factory=dict)
     """ModelConfig fields replacing the preset's (nested dicts for ``unet``/``mlp``)."""
-    iters: int = opt(1500, help="train to this iteration (with --resume: the run's, more extends it)",
+    iters: int = opt(2500, help="train to this iteration (with --resume: the run's, more extends it)",
                      parse=positive_int)
     """Training iterations (one frame with ``cameras_per_frame`` images each)."""
     time_budget: float | None = opt(None, help="train for about this many seconds instead of --iters: the "
@@ -86,12 +90,15 @@ class TrainConfig:
     cameras_per_frame: int = opt(3, help="training cameras per iteration; the U-Nets run once for all of them",
                                  parse=positive_int)
     """K training cameras per iteration; the U-Nets run once for all K."""
-    rays_per_step: int | None = opt(None, help="train each iteration on at most this many of its cameras' shaded "
-                                               "rays, a random subset (the light-field MLP's cost is per ray)",
-                                    parse=positive_int, default_text="every shaded ray")
+    rays_per_step: int | None = opt(RAYS_PER_STEP, help="train each iteration on at most this many of its cameras' shaded "
+                                               "rays, a random subset (the light-field MLP's cost is per ray); "
+                                               "all = every ray", parse=positive_int_or_all, metavar="N|all")
     """At most this many shaded rays per iteration: a uniform random subset of the K cameras' rays, drawn anew
-    each iteration (:func:`deliffas.engine.samples.subsample_rays`); None = every shaded ray. Needs
-    ``perceptual`` none (the perceptual loss compares whole images)."""
+    each iteration (only about that many pixels are ray-cast, :func:`deliffas.engine.samples.subsample_rays`);
+    None (``all`` on the command line) = every shaded ray. 8192 is a quarter of a 256² step's rays: the step
+    costs about 0.7 x and learns as much per iteration (docs/results.md). A run with a perceptual stage
+    shades every ray (the perceptual loss compares whole images): the default becomes None there, another
+    value is refused."""
     protocol: Literal["auto", "paper", "all"] = opt("auto", help="frames used: paper = every 10th (DELIFFAS), "
                                                     "all = every frame, auto = paper from 100 training frames on, "
                                                     "else all; stated at start")
@@ -185,9 +192,11 @@ class TrainConfig:
         if self.rays_per_step is not None:
             if isinstance(self.rays_per_step, bool) or not isinstance(self.rays_per_step, int) or self.rays_per_step < 1:
                 raise ValueError(f"rays_per_step: expected None or a whole number >= 1, got {self.rays_per_step!r}")
-            if self.perceptual != "none":
+            if self.perceptual != "none" and self.rays_per_step != RAYS_PER_STEP:
                 raise ValueError(f"rays_per_step: the perceptual loss (perceptual {self.perceptual!r}) compares whole "
                                  "images, every ray of them; leave --rays-per-step out or use --perceptual none")
+            if self.perceptual != "none":  # the default resolves to every ray
+                object.__setattr__(self, "rays_per_step", None)
         if self.lr is not None and not (math.isfinite(self.lr) and self.lr > 0):
             raise ValueError(f"lr: expected None or a finite number > 0, got {self.lr!r}")
         if not (math.isfinite(self.texture_lr_scale) and self.texture_lr_scale > 0):

@@ -62,6 +62,15 @@ def test_bad_rays_per_step_is_refused(tiny_shards, tmp_path, kw, match):
         TrainConfig(shards=str(tiny_shards), out=str(tmp_path / "r"), **kw)
 
 
+def test_a_perceptual_run_shades_every_ray_by_default(tiny_shards, tmp_path):
+    from deliffas.engine.train_config import RAYS_PER_STEP
+
+    base = dict(shards=str(tiny_shards), out=str(tmp_path / "r"))
+    assert TrainConfig(**base).rays_per_step == RAYS_PER_STEP
+    assert TrainConfig(**base, perceptual="vgg16-random").rays_per_step is None
+    assert TrainConfig(**base, perceptual="vgg16-random", rays_per_step=None).rays_per_step is None
+
+
 def test_a_run_trains_on_at_most_rays_per_step_rays(tiny_shards, tmp_path):
     cfg = TrainConfig(shards=str(tiny_shards), out=str(tmp_path / "r"), model="two_surface", preset="tiny", iters=4,
                       cameras_per_frame=2, protocol="all", num_workers=0, rays_per_step=50, log_every=1,
@@ -83,3 +92,16 @@ def test_the_training_stream_casts_about_the_budget_after_the_first_sample(tiny_
     budgeted = [sum(r.num_rays for r in next(stream).rays) for _ in range(6)]
     assert budgeted[0] == everything[0] > 2 * RAY_MARGIN * 40  # the first sample sizes the share
     assert all(15 < n < 3 * RAY_MARGIN * 40 for n in budgeted[1:]), budgeted
+
+
+def test_a_run_recorded_before_rays_per_step_resumes_with_every_ray(tiny_shards, tmp_path):
+    from deliffas.engine.resume import resumed_config
+
+    cfg = TrainConfig(shards=str(tiny_shards), out=str(tmp_path / "r"), model="two_surface", preset="tiny", iters=2,
+                      cameras_per_frame=2, protocol="all", num_workers=0, preview_every=0, progress=False)
+    train(cfg)
+    path = tmp_path / "r" / "train_config.json"
+    record = json.loads(path.read_text())
+    assert record["train"].pop("rays_per_step") == 8192
+    path.write_text(json.dumps(record))
+    assert resumed_config(tmp_path / "r", {}).rays_per_step is None
