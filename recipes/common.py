@@ -35,10 +35,10 @@ POSE_EVAL_FRAMES = 4
 """Novel-pose frames the ablations evaluate per run (every camera of each: 48 images with 12 cameras)."""
 ABLATION_EVAL_FRAMES = 12
 """Novel-view frames the ablations evaluate per run in full mode (36 images with 3 test cameras)."""
-ABLATION_ITERS = TrainConfig.iters
-"""Training iterations of the ablations in full mode: ``deliffas train``'s default budget, at which the
-default schedule has converged to within about 0.5 dB of an 8x longer run (docs/results.md, "Time to
-quality"); ``--iters`` overrides."""
+ABLATION_ITERS = 1500
+"""Training iterations of the ablations in full mode, each on every shaded ray (``RunSizes.rays_per_step``
+None): the budget their rows in docs/results.md were measured at, 0.69 dB below an 8 x longer run on the
+validation camera (docs/results.md, "Time to quality"); ``--iters`` overrides."""
 
 RecipeSizes = RunSizes
 """The recipes' name for ``deliffas.engine.run_sizes.RunSizes`` (full defaults, ``quick()`` for tests)."""

@@ -11,10 +11,11 @@ masked PSNR, FLIP) and on the held-out test cameras. Training seconds exclude th
 ``results.json``, ``results.md`` and ``time_to_quality.png`` (masked PSNR against seconds).
 
 Configurations: ``default`` is ``deliffas train`` without options (``TrainConfig`` defaults:
-``two_surface_reflect_texture``); ``two_surface_texture`` the same without the reflected view direction (the
-previous default); ``paper schedule`` is the paper's model and schedule (``two_surface``, Adam 2e-4 with the
-official decay), the default before this recipe existed; ``default, S s budget`` is the default trained for
-S seconds (``deliffas train --time-budget S``: the iterations that fit on the machine it runs on), evaluated once at
+``two_surface_reflect_texture``, at most 8192 rays per iteration); ``two_surface_texture`` the same without
+the reflected view direction, on every shaded ray (the previous default); ``paper schedule`` is the paper's
+model and schedule (``two_surface``, Adam 2e-4 with the official decay, every shaded ray), the default before
+this recipe existed; ``default, S s budget`` is the default trained for S seconds (``deliffas train
+--time-budget S``: the iterations that fit on the machine it runs on), evaluated once at
 its end (``--budgets``, default :data:`FULL_BUDGETS`).
 """
 
@@ -40,8 +41,8 @@ CHECKPOINTS = (0.125, 0.25, 0.5, 0.75, 1.0)
 """Fractions of the run at which the model is evaluated."""
 CONFIGS: dict[str, dict] = {
     "default": {},
-    "two_surface_texture": {"model": "two_surface_texture"},
-    "paper schedule": {"model": "two_surface", "schedule": "paper"},
+    "two_surface_texture": {"model": "two_surface_texture", "rays_per_step": None},
+    "paper schedule": {"model": "two_surface", "schedule": "paper", "rays_per_step": None},
 }
 """Name -> TrainConfig fields that differ from ``deliffas train``'s defaults."""
 

@@ -9,8 +9,8 @@ test cameras), converted once per count with that many training cameras (the tes
 ``--size`` (default 256 px; the atlas side follows a given ``--size``).
 Size sweep: one capture per image side (atlas side = image side, the recipe capture's other sizes). Captures
 are rendered with 3 x 3 rays per pixel (``--supersample`` to change; 1 with ``--quick``).
-Every point is trained with the default run's settings (``TrainConfig`` defaults, ``--iters`` to
-change) over ``--seeds`` (the ``default`` model over ``--default-seeds``) and scored on the held-out
+Every point is trained with the default run's schedule for ``ABLATION_ITERS`` iterations on every shaded ray
+(the budget of the documented rows; ``--iters`` to change) over ``--seeds`` (the ``default`` model over ``--default-seeds``) and scored on the held-out
 test cameras in masked PSNR (the person's pixels) and foreground PSNR/FLIP. For each model the table
 states the smallest camera count and image side at which its masked PSNR stays at or above
 ``--threshold-db``. The error budget (:mod:`deliffas.models.error_budget`) of the default model at the
@@ -26,8 +26,8 @@ from pathlib import Path
 
 from deliffas.engine.run_sizes import RunSizes
 from deliffas.engine.train_config import TrainConfig
-from recipes.common import (FULL_SUPERSAMPLE, prepare_capture, prepare_shards, recipe_parser, seed_list, sized_by_args,
-                            train_and_eval)
+from recipes.common import (ABLATION_ITERS, FULL_SUPERSAMPLE, prepare_capture, prepare_shards, recipe_parser,
+                            seed_list, sized_by_args, train_and_eval)
 
 BASE = RunSizes(frames=40, test_frames=10, cameras=12, size=256, atlas_res=256, iters=0, cameras_per_frame=3,
                 preset="small", eval_frames=10, supersample=FULL_SUPERSAMPLE)
@@ -148,7 +148,7 @@ def main(argv=None) -> dict:
     if args.size:
         sizes = dataclasses.replace(sizes, atlas_res=args.size)
     if not args.iters and not args.quick:
-        sizes = dataclasses.replace(sizes, iters=TrainConfig.iters)
+        sizes = dataclasses.replace(sizes, iters=ABLATION_ITERS)
     names = args.models.split(",") if args.models else list(MODELS)
     if any(n not in MODELS for n in names):
         p.error(f"--models: expected names from {','.join(MODELS)}, got {args.models!r}")

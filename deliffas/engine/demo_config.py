@@ -19,7 +19,7 @@ class DemoConfig:
     quick: bool = opt(False, help="a smaller run (used by tests)")
     """A much smaller run for tests (seconds, not minutes); numbers are then meaningless."""
     models: tuple[str, ...] = ("two_surface_reflect_texture", "single_surface")
-    sizes: RunSizes = RunSizes(frames=30, test_frames=10, cameras=10, iters=800, supersample=2,
+    sizes: RunSizes = RunSizes(frames=30, test_frames=10, cameras=10, iters=1200, supersample=2,
                                rays_per_step=RAYS_PER_STEP)
     """Ignored when ``quick`` (then ``RunSizes.quick()``). The capture is rendered with 2 x 2 rays per pixel: a
     camera integrates over its pixels, and at 128 px one ray per pixel aliases the skirt's plaid into lines that
