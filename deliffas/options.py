@@ -86,7 +86,12 @@ non_negative_int = _int_at_least(0)
 
 def positive_int_or_all(text: str) -> int | None:
     """A whole number >= 1, or ``all`` (None: no limit)."""
-    return None if text.strip().lower() == "all" else positive_int(text)
+    if text.strip().lower() == "all":
+        return None
+    try:
+        return positive_int(text)
+    except argparse.ArgumentTypeError as exc:
+        raise argparse.ArgumentTypeError(f"{exc}; or 'all'") from None
 
 
 def power_of_two(text: str) -> int:
