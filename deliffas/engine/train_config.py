@@ -90,9 +90,10 @@ class TrainConfig:
     cameras_per_frame: int = opt(3, help="training cameras per iteration; the U-Nets run once for all of them",
                                  parse=positive_int)
     """K training cameras per iteration; the U-Nets run once for all K."""
-    rays_per_step: int | None = opt(RAYS_PER_STEP, help="train each iteration on at most this many of its cameras' shaded "
-                                               "rays, a random subset (the light-field MLP's cost is per ray); "
-                                               "all = every ray", parse=positive_int_or_all, metavar="N|all")
+    rays_per_step: int | None = opt(RAYS_PER_STEP, help="train each iteration on at most this many of its "
+                                                        "cameras' shaded rays, a random subset (the light-field "
+                                                        "MLP's cost is per ray); all = every ray",
+                                    parse=positive_int_or_all, metavar="N|all")
     """At most this many shaded rays per iteration: a uniform random subset of the K cameras' rays, drawn anew
     each iteration (only about that many pixels are ray-cast, :func:`deliffas.engine.samples.subsample_rays`);
     None (``all`` on the command line) = every shaded ray. 8192 is a quarter of a 256² step's rays: the step
@@ -189,14 +190,14 @@ class TrainConfig:
                 raise ValueError(f"time_budget: a run with a perceptual stage (perceptual {self.perceptual!r}) is "
                                  "not sized by time, its stage-2 steps cost several times the first ones; give "
                                  "--iters instead")
-        if self.rays_per_step is not None:
-            if isinstance(self.rays_per_step, bool) or not isinstance(self.rays_per_step, int) or self.rays_per_step < 1:
-                raise ValueError(f"rays_per_step: expected None or a whole number >= 1, got {self.rays_per_step!r}")
-            if self.perceptual != "none" and self.rays_per_step != RAYS_PER_STEP:
+        rays = self.rays_per_step
+        if rays is not None and (isinstance(rays, bool) or not isinstance(rays, int) or rays < 1):
+            raise ValueError(f"rays_per_step: expected None or a whole number >= 1, got {rays!r}")
+        if rays is not None and self.perceptual != "none":
+            if rays != RAYS_PER_STEP:
                 raise ValueError(f"rays_per_step: the perceptual loss (perceptual {self.perceptual!r}) compares whole "
                                  "images, every ray of them; leave --rays-per-step out or use --perceptual none")
-            if self.perceptual != "none":  # the default resolves to every ray
-                object.__setattr__(self, "rays_per_step", None)
+            object.__setattr__(self, "rays_per_step", None)  # the default resolves to every ray
         if self.lr is not None and not (math.isfinite(self.lr) and self.lr > 0):
             raise ValueError(f"lr: expected None or a finite number > 0, got {self.lr!r}")
         if not (math.isfinite(self.texture_lr_scale) and self.texture_lr_scale > 0):
