@@ -140,19 +140,21 @@ def _blocked_backward(model: DeliffasModel, sample: FrameSample, device: torch.d
     encoded, feats = model.gather_inputs(features, query)  # (N, E) without, (N, C) with a graph
     target_rays = _targets(sample, batch, device)[1]
     n = batch.num_rays
-    feature_grads, l1_sum, sq_sum = [], 0.0, 0.0
+    feature_grads, l1_sums, sq_sums = [], [], []
     for start in range(0, n, block):
         sl = slice(start, start + block)
         leaf = feats[sl].detach().requires_grad_()
         pred = model.mlp(encoded[sl], leaf)
         chunk = step_loss(pred, target_rays[sl], num_values=3 * n)
         chunk.loss.backward()
-        l1_sum += float(chunk.l1.detach())
-        sq_sum += float((pred.detach() - target_rays[sl]).square().sum())
+        l1_sums.append(chunk.l1.detach())
+        sq_sums.append((pred.detach() - target_rays[sl]).square().sum())
         feature_grads.append(leaf.grad)
     # with frozen feature maps no parameter below the MLP needs a gradient: the blocks' backward was all
     roots = [(feats, torch.cat(feature_grads))] if feats.requires_grad else []
-    return _backward_below_mlp(model, roots, {"loss": l1_sum, "l1": l1_sum}, saturation), sq_sum / (3 * n)
+    l1_sum = float(torch.stack(l1_sums).sum())  # one read of the device's sums, after every block
+    terms = _backward_below_mlp(model, roots, {"loss": l1_sum, "l1": l1_sum}, saturation)
+    return terms, float(torch.stack(sq_sums).sum()) / (3 * n)
 
 
 def train_step(model: DeliffasModel, sample: FrameSample, optimizer: torch.optim.Optimizer, device: torch.device,
@@ -170,9 +172,10 @@ def train_step(model: DeliffasModel, sample: FrameSample, optimizer: torch.optim
     summation order. Peak memory is then U-Nets + ``ray_chunk`` rays instead of every ray of the K
     images (docs/reliability.md).
 
-    Without ``ray_chunk``, a perceptual term or a DDP ``net``, the light field runs in blocks of
-    ``mlp_block`` rays (:data:`MLP_BLOCK`; None: one graph over every ray), the same gradient up
-    to float summation order.
+    On the CPU, without ``ray_chunk``, a perceptual term or a DDP ``net``, the light field runs in
+    blocks of ``mlp_block`` rays (:data:`MLP_BLOCK`; None: one graph over every ray), the same
+    gradient up to float summation order. Other devices run one graph: blocks would only add kernel
+    launches there (a 940 x 1285 step of 4 cameras is 221 blocks).
 
     A sample whose cameras shade no ray at all (every camera looks away from the subject, or the
     outer shell lies outside every image) has no pixel that depends on a parameter, and the mean L1
@@ -194,7 +197,8 @@ def train_step(model: DeliffasModel, sample: FrameSample, optimizer: torch.optim
     if ray_chunk is not None and num_rays > ray_chunk:
         out, mse = _chunked_backward(model, sample, device, perceptual, perceptual_weight, generator, ray_chunk,
                                      saturation)
-    elif mlp_block is not None and num_rays and not ddp and not (perceptual is not None and perceptual_weight > 0):
+    elif (mlp_block is not None and device.type == "cpu" and num_rays and not ddp
+          and not (perceptual is not None and perceptual_weight > 0)):
         out, mse = _blocked_backward(model, sample, device, mlp_block, saturation)
     else:
         out, mse = _one_graph_backward(model, sample, device, perceptual, perceptual_weight, net, generator,
