@@ -85,7 +85,7 @@ def backbone_title(backbone: str, seed: int) -> str:
     return "vgg16-imagenet: VGG-16 ImageNet backbone"
 
 
-def main(argv=None) -> dict:
+def _parser():
     p = recipe_parser(__doc__.splitlines()[0], seeds=True)
     p.add_argument("--perceptual", choices=("vgg16-imagenet", "vgg16-random"), default=None,
                    help="perceptual backbone (default: vgg16-imagenet when its weights are found, else vgg16-random)")
@@ -93,6 +93,41 @@ def main(argv=None) -> dict:
                    help="fraction of the iterations after which stage 2 (L1 + perceptual) starts")
     p.add_argument("--vgg16-path", default=None, help="ImageNet VGG-16 weight file (else env / torch hub cache)")
     p.set_defaults(seed=1)
+    return p
+
+
+def _train_rows(args, sizes, seeds: list[int], backbone: str, shards, stage2: int) -> list[dict]:
+    """One row per configuration of ``ROWS`` (L1 only, patch-level, image-level), trained over ``seeds``."""
+    rows = []
+    for label, perceptual, mode in ROWS:
+        perceptual = perceptual or backbone
+        row = train_and_eval_seeds(label, shards, args.out / "runs" / (perceptual if perceptual == "none" else mode),
+                                   sizes, MODEL, seeds, args.device, perceptual=perceptual, perceptual_mode=mode,
+                                   perceptual_start=args.perceptual_start, vgg16_path=args.vgg16_path)
+        row.update(perceptual=perceptual, perceptual_mode=None if perceptual == "none" else mode,
+                   stage2_from_iteration=None if perceptual == "none" else stage2,
+                   stage2_per_seed=[stage2_record(s["run"]) for s in row["per_seed"]])
+        rows.append(row)
+    return rows
+
+
+def _why_not(judged, width: int, height: int, backbone: str) -> list[str]:
+    """Reasons the paper's ordering (image-level beats patch-level) does not hold here; empty when it holds."""
+    if judged.holds:
+        return []
+    why = []
+    if judged.within_noise:
+        why.append(f"the difference is within the seeds' noise (± {judged.noise:.4f} s.e.)")
+    coverage = 100 * min(1.0, PATCH_PIXELS / (width * height))
+    why.append(f"at {width}×{height} the 8 patches of 32×32 cover up to {coverage:.0f}% of the image, so patch- "
+               "and image-level supervision see nearly the same pixels")
+    why.append(f"the loss network is {backbone}" + (" (random weights: its features are not ImageNet's)"
+                                                    if backbone == "vgg16-random" else ""))
+    return why
+
+
+def main(argv=None) -> dict:
+    p = _parser()
     args = p.parse_args(argv)
     if not 0.0 < args.perceptual_start < 1.0:
         p.error(f"--perceptual-start must be in (0, 1), got {args.perceptual_start}")
@@ -104,16 +139,7 @@ def main(argv=None) -> dict:
     shards = args.shards or prepare_shards(args.out, prepare_capture(args.out, sizes, 0, args.subject, jobs=jobs),
                                            sizes, jobs=jobs)
     stage2 = int(args.perceptual_start * sizes.iters)
-    rows = []
-    for label, perceptual, mode in ROWS:
-        perceptual = perceptual or backbone
-        row = train_and_eval_seeds(label, shards, args.out / "runs" / (perceptual if perceptual == "none" else mode),
-                                   sizes, MODEL, seeds, args.device, perceptual=perceptual, perceptual_mode=mode,
-                                   perceptual_start=args.perceptual_start, vgg16_path=args.vgg16_path)
-        row.update(perceptual=perceptual, perceptual_mode=None if perceptual == "none" else mode,
-                   stage2_from_iteration=None if perceptual == "none" else stage2,
-                   stage2_per_seed=[stage2_record(s["run"]) for s in row["per_seed"]])
-        rows.append(row)
+    rows = _train_rows(args, sizes, seeds, backbone, shards, stage2)
     a, b, c = rows
     width, height = a["resolution"]
     lpips_ok = all(r.get("lpips") is not None for r in rows)
@@ -131,15 +157,7 @@ def main(argv=None) -> dict:
               "patch_beats_l1_on_perceptual_metric": bool((mean(b, "fg_flip") or 0) < (mean(a, "fg_flip") or 0)),
               "image_beats_patch_on_lpips_family": bool(c[metric] < b[metric]),
               "image_beats_patch_on_psnr": bool(mean(c, "fg_psnr") > mean(b, "fg_psnr"))}
-    why = []
-    if not judged.holds:
-        coverage = 100 * min(1.0, PATCH_PIXELS / (width * height))
-        if judged.within_noise:
-            why.append(f"the difference is within the seeds' noise (± {judged.noise:.4f} s.e.)")
-        why.append(f"at {width}×{height} the 8 patches of 32×32 cover up to {coverage:.0f}% of the image, so patch- "
-                   "and image-level supervision see nearly the same pixels")
-        why.append(f"the loss network is {backbone}" + (" (random weights: its features are not ImageNet's)"
-                                                        if backbone == "vgg16-random" else ""))
+    why = _why_not(judged, width, height, backbone)
     shared_net = backbone == "vgg16-random" and EVAL_SUBSTITUTE_SEED in seeds and not lpips_ok
     title = (f"Ablation: perceptual supervision, patch vs image level (two-surface; {backbone_title(backbone, args.seed)})"
              + (" — quick mode" if args.quick else ""))

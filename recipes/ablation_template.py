@@ -97,9 +97,7 @@ def write_template_folder(folder: Path, character, name: str, offset_mm: float =
 
 
 # --------------------------------------------------------------------------------------------- recipe
-def main(argv=None) -> dict:
-    from deliffas.io.formats.dynacap.character import read_character
-
+def _parser():
     p = recipe_parser(__doc__.splitlines()[0], seeds=True)
     p.add_argument("--smpl-model", default=None,
                    help="your SMPL model file (.npz, or .pkl without chumpy), or 'procedural' (the license-free body "
@@ -110,6 +108,90 @@ def main(argv=None) -> dict:
                         "a sixth of it)")
     p.add_argument("--standin-faces", type=int, default=STANDIN_FACES, help="faces of the stand-in body model")
     p.add_argument("--standin-smooth", type=int, default=STANDIN_SMOOTH, help="Taubin iterations of the stand-in")
+    return p
+
+
+def _body_template(args, source, templates: Path, original: Path, packing: int) -> tuple[str, str, str, dict, dict]:
+    """The body template compared with the capture's: (name, label, what the comparison is, its build report,
+    the shard conversion's arguments per template), fitting SMPL or building the stand-in as needed."""
+    from deliffas.io.formats.dynacap.character import read_character
+
+    convert_args: dict[str, dict] = {"original": {"template": str(original)}}
+    if args.smpl_model is not None:
+        body, label = "smpl", "SMPL"
+        comparison = (f"DDC-style template of the capture vs SMPL ({Path(args.smpl_model).name}) fitted to every frame "
+                      "of the capture (fit-smpl), posed by SMPL's own kinematics and pose blend shapes")
+        iters = args.smpl_fit_iters or (60 if args.quick else SMPL_FIT_ITERS)
+        model, motions, build = fitted_smpl(templates / body, source.subject, args.smpl_model, args.smpl_uv_obj,
+                                            iters, max(5, iters // 6))
+        # the silhouette check would refuse the coarse body by design: its footprint is measured instead
+        convert_args[body] = {"template": str(model), "motions": [f"{k}={v}" for k, v in motions.items()],
+                              "check": False}
+        return body, label, comparison, build, convert_args
+    body, label = "standin", "stand-in body model"
+    comparison = (f"DDC-style template of the capture vs a simpler-body-model stand-in (the template decimated to "
+                  f"{args.standin_faces} faces and Taubin-smoothed {args.standin_smooth}×); no --smpl-model given")
+    stamp = {"faces": args.standin_faces, "smooth": args.standin_smooth, "character": str(source.character),
+             "packing": packing, "offset_mm": source.offset_mm}
+    folder = templates / body
+    stamp_path = folder / "recipe_request.json"
+    if stamp_path.is_file() and json.loads(stamp_path.read_text()).get("request") == stamp:
+        build = json.loads(stamp_path.read_text())["report"]
+    else:
+        character = read_character(source.character)
+        made, build = standin_character(character, args.standin_faces, args.standin_smooth, packing), {}
+        write_template_folder(folder, made, body, source.offset_mm)
+        stamp_path.write_text(json.dumps({"request": stamp, "report": build}, indent=2) + "\n")
+    convert_args[body] = {"template": str(folder)}
+    return body, label, comparison, build, convert_args
+
+
+def _template_geometry(variant: str, template: str, shards: Path, build: dict, source) -> dict:
+    """Faces, vertices, deviation from the capture's template (mm) and silhouette errors of one template."""
+    if variant == "smpl":
+        meta = ShardSet(shards).meta
+        residual = [v["residual_mm_mean"] for v in build.values()]
+        geometry = {"faces": int(len(meta.faces)), "verts": int(meta.rest_verts.shape[0]),
+                    "deviation_mean_mm": float(np.mean(residual)),
+                    "deviation_max_mm": float(max(v["residual_mm_max"] for v in build.values()))}
+    else:
+        geometry = template_deviation(next(iter(Path(template).glob("*.character"))), source.character)
+    print(f"template {variant}: {geometry['faces']} faces, {geometry['verts']} vertices, deviation from the original "
+          f"{geometry['deviation_mean_mm']:.1f} mm mean / {geometry['deviation_max_mm']:.1f} mm max", flush=True)
+    geometry.update(silhouette_errors(shards))
+    return geometry
+
+
+def _notes(comparison: str, body: str, label: str, geometry: dict, losses: dict, claims: dict, seeds: list[int],
+           quick: bool) -> list[str]:
+    """The results page's text under the table."""
+    g, o = geometry[body], geometry["original"]
+    loss, std, official = (losses[k] for k in ("fg_psnr_loss_vs_original_db", "fg_psnr_loss_std_db",
+                                                "official_psnr_loss_vs_original_db"))
+    return [f"Comparison run: {comparison}.",
+            f"{label}: {g['faces']:,} faces, {g['verts']:,} vertices; symmetric surface distance to the capture's "
+            f"template {g['deviation_mean_mm']:.1f} mm mean / {g['deviation_max_mm']:.1f} mm max; its inner surface covers "
+            f"{100 * g['inner_outside_mask']:.1f}% (mask-relative) of training pixels outside the person and misses "
+            f"{100 * g['mask_missed']:.1f}% of the person (DDC-style template: "
+            f"{100 * o['inner_outside_mask']:.1f}% / {100 * o['mask_missed']:.1f}%).",
+            f"Foreground PSNR lost against the DDC-style template (mean ± std over seeds {seeds}, paired by seed): "
+            f"single-surface {loss['single_surface']:+.2f} ± {std['single_surface']:.2f} dB, "
+            f"two-surface {loss['two_surface']:+.2f} ± {std['two_surface']:.2f} dB (official protocol: "
+            f"{official['single_surface']:+.2f} / "
+            f"{official['two_surface']:+.2f} dB) (two-surface loses less: {verdict(claims['two_surface_loses_less'])}); "
+            f"two-surface beats single-surface on the {label} template: "
+            f"{'yes' if claims['two_surface_beats_single_surface_on_body_model'] else 'no'}.",
+            "Paper (appendix, SMPL, figure only): two-surface on SMPL still recovers geometry beyond the mesh, "
+            "single-surface can only paint on it; a better template improves the results.",
+            *(["SMPL deviation = the per-frame fit's mean symmetric surface distance to the posed character "
+               "(fit-smpl), not a rest-pose distance."] if body == "smpl" else []),
+            *(["Quick mode: a few iterations of the tiny preset; the numbers show the pipeline works, not the "
+               "orderings."] if quick else []),
+            "", "![PSNR per template](psnr_by_template.png)", ""]
+
+
+def main(argv=None) -> dict:
+    p = _parser()
     args = p.parse_args(argv)
     if args.smpl_model not in (None, "procedural") and not Path(args.smpl_model).is_file():
         from deliffas.io.body_models.smpl import SMPL_NOT_SHIPPED
@@ -121,56 +203,15 @@ def main(argv=None) -> dict:
     packing = 256 if args.quick else 512
     templates = args.out / "templates"
     folders = prepare_template_variants(templates, source.character, offset_mm=source.offset_mm, packing_res=packing)
-    character = read_character(source.character)
-    if args.smpl_model is not None:
-        body, body_label = "smpl", "SMPL"
-        comparison = (f"DDC-style template of the capture vs SMPL ({Path(args.smpl_model).name}) fitted to every frame "
-                      "of the capture (fit-smpl), posed by SMPL's own kinematics and pose blend shapes")
-        iters = args.smpl_fit_iters or (60 if args.quick else SMPL_FIT_ITERS)
-        stamp = None
-    else:
-        body, body_label = "standin", "stand-in body model"
-        comparison = (f"DDC-style template of the capture vs a simpler-body-model stand-in (the template decimated to "
-                      f"{args.standin_faces} faces and Taubin-smoothed {args.standin_smooth}×); no --smpl-model given")
-        stamp = {"faces": args.standin_faces, "smooth": args.standin_smooth, "character": str(source.character),
-                 "packing": packing, "offset_mm": source.offset_mm}
+    body, body_label, comparison, build, convert_args = _body_template(args, source, templates, folders["original"],
+                                                                       packing)
     print(f"comparison: {comparison}", flush=True)
-    folder = templates / body
-    convert_args: dict[str, dict] = {"original": {"template": str(folders["original"])}}
-    if body == "smpl":
-        model, motions, build = fitted_smpl(folder, source.subject, args.smpl_model, args.smpl_uv_obj, iters,
-                                            max(5, iters // 6))
-        # the silhouette check would refuse the coarse body by design: its footprint is measured below instead
-        convert_args[body] = {"template": str(model), "motions": [f"{k}={v}" for k, v in motions.items()],
-                              "check": False}
-    else:
-        stamp_path = folder / "recipe_request.json"
-        if stamp_path.is_file() and json.loads(stamp_path.read_text()).get("request") == stamp:
-            build = json.loads(stamp_path.read_text())["report"]
-        else:
-            made, build = standin_character(character, args.standin_faces, args.standin_smooth, packing), {}
-            write_template_folder(folder, made, body, source.offset_mm)
-            stamp_path.write_text(json.dumps({"request": stamp, "report": build}, indent=2) + "\n")
-        folders[body] = folder
-        convert_args[body] = {"template": str(folder)}
     rows, geometry = [], {}
     labels = {"original": "DDC-style template", body: body_label}
     for variant, kwargs in convert_args.items():
         shards = prepare_shards(args.out, source.subject, source.sizes, name=f"shards_{variant}",
                                 offset_mm=source.offset_mm, cameras=source.cameras, jobs=1 if args.quick else 2, **kwargs)
-        if variant == "smpl":
-            meta_faces = ShardSet(shards).meta.faces
-            residual = [v["residual_mm_mean"] for v in build.values()]
-            geometry[variant] = {"faces": int(len(meta_faces)), "verts": int(ShardSet(shards).meta.rest_verts.shape[0]),
-                                 "deviation_mean_mm": float(np.mean(residual)),
-                                 "deviation_max_mm": float(max(v["residual_mm_max"] for v in build.values()))}
-        else:
-            geometry[variant] = template_deviation(next(iter(Path(kwargs["template"]).glob("*.character"))),
-                                                   source.character)
-        print(f"template {variant}: {geometry[variant]['faces']} faces, {geometry[variant]['verts']} vertices, deviation "
-              f"from the original {geometry[variant]['deviation_mean_mm']:.1f} mm mean / "
-              f"{geometry[variant]['deviation_max_mm']:.1f} mm max", flush=True)
-        geometry[variant].update(silhouette_errors(shards))
+        geometry[variant] = _template_geometry(variant, kwargs["template"], shards, build, source)
         for label, model in MODELS:
             row = train_and_eval_seeds(f"{label} · {labels[variant]}", shards, args.out / "runs" / variant / model,
                                        sizes, model, seeds, args.device)
@@ -178,9 +219,11 @@ def main(argv=None) -> dict:
             rows.append(row)
     by = {(r["variant"], r["template"]): r for r in rows}
     paired = losses_against_original(rows)  # per seed, then the mean: the headline metric is fg PSNR
-    loss = {m: paired[m][body]["psnr_loss_db"] for _, m in MODELS}
-    loss_std = {m: paired[m][body]["psnr_loss_std_db"] for _, m in MODELS}
-    official_loss = {m: paired[m][body]["official_psnr_loss_db"] for _, m in MODELS}
+    losses = {key: {m: paired[m][body][field] for _, m in MODELS}
+              for key, field in (("fg_psnr_loss_vs_original_db", "psnr_loss_db"),
+                                 ("fg_psnr_loss_std_db", "psnr_loss_std_db"),
+                                 ("official_psnr_loss_vs_original_db", "official_psnr_loss_db"))}
+    loss = losses["fg_psnr_loss_vs_original_db"]
     claims = {"comparison": body,
               "two_surface_beats_single_surface_on_body_model": bool(
                   mean(by[("two_surface", body)], "fg_psnr") > mean(by[("single_surface", body)], "fg_psnr")),
@@ -188,34 +231,11 @@ def main(argv=None) -> dict:
               "better_template_improves_two_surface": bool(loss["two_surface"] > 0)}
     title = (f"Ablation: DDC-style template vs {'SMPL' if body == 'smpl' else 'simpler body model (stand-in, no SMPL)'}, "
              "single vs two surfaces, L1" + (" — quick mode" if args.quick else ""))
-    g = geometry[body]
-    notes = [f"Comparison run: {comparison}.",
-             f"{body_label}: {g['faces']:,} faces, {g['verts']:,} vertices; symmetric surface distance to the capture's "
-             f"template {g['deviation_mean_mm']:.1f} mm mean / {g['deviation_max_mm']:.1f} mm max; its inner surface covers "
-             f"{100 * g['inner_outside_mask']:.1f}% (mask-relative) of training pixels outside the person and misses "
-             f"{100 * g['mask_missed']:.1f}% of the person (DDC-style template: "
-             f"{100 * geometry['original']['inner_outside_mask']:.1f}% / {100 * geometry['original']['mask_missed']:.1f}%).",
-             f"Foreground PSNR lost against the DDC-style template (mean ± std over seeds {seeds}, paired by seed): "
-             f"single-surface {loss['single_surface']:+.2f} ± {loss_std['single_surface']:.2f} dB, "
-             f"two-surface {loss['two_surface']:+.2f} ± {loss_std['two_surface']:.2f} dB (official protocol: "
-             f"{official_loss['single_surface']:+.2f} / "
-             f"{official_loss['two_surface']:+.2f} dB) (two-surface loses less: {verdict(claims['two_surface_loses_less'])}); "
-             f"two-surface beats single-surface on the {body_label} template: "
-             f"{'yes' if claims['two_surface_beats_single_surface_on_body_model'] else 'no'}.",
-             "Paper (appendix, SMPL, figure only): two-surface on SMPL still recovers geometry beyond the mesh, "
-             "single-surface can only paint on it; a better template improves the results.",
-             *(["SMPL deviation = the per-frame fit's mean symmetric surface distance to the posed character "
-                "(fit-smpl), not a rest-pose distance."] if body == "smpl" else []),
-             *(["Quick mode: a few iterations of the tiny preset; the numbers show the pipeline works, not the "
-                "orderings."] if args.quick else []),
-             "", "![PSNR per template](psnr_by_template.png)", ""]
+    notes = _notes(comparison, body, body_label, geometry, losses, claims, seeds, args.quick)
     payload = write_outputs(args.out, title, rows, {"quick": args.quick, "sizes": dataclasses.asdict(sizes),
                                                      "seeds": seeds, "comparison": comparison, "body_model": body,
-                                                     "body_model_build": build, "templates": geometry,
-                                                     "fg_psnr_loss_vs_original_db": loss,
-                                                     "fg_psnr_loss_std_db": loss_std,
-                                                     "official_psnr_loss_vs_original_db": official_loss, "claims": claims,
-                                                     "subject": str(source.subject)}, notes)
+                                                     "body_model_build": build, "templates": geometry, **losses,
+                                                     "claims": claims, "subject": str(source.subject)}, notes)
     bar_chart(rows, args.out / "psnr_by_template.png", title, key="fg_psnr_mean",
               ylabel="foreground PSNR (dB, padded mask box), mean over seeds", groups=[labels[r["template"]] for r in rows])
     return payload

@@ -280,6 +280,11 @@ def main(argv=None) -> dict:
                    ms_per_frame=total_ms(row))
         rows.append(row)
     retime(timed, args.timing_repeats, args.device)
+    return _report(rows, out, args, sizes, plan, seeds)
+
+
+def _report(rows: list[dict], out: Path, args, sizes, plan, seeds: list[int]) -> dict:
+    """Mark the Pareto fronts, draw the charts, write results.json and results.md; the payload."""
     mark_pareto(rows, HEADLINE, True, "pareto")
     have_lpips = any(_usable(r, "lpips") for r in rows)
     if have_lpips:
