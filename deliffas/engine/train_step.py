@@ -197,7 +197,7 @@ def train_step(model: DeliffasModel, sample: FrameSample, optimizer: torch.optim
     if ray_chunk is not None and num_rays > ray_chunk:
         out, mse = _chunked_backward(model, sample, device, perceptual, perceptual_weight, generator, ray_chunk,
                                      saturation)
-    elif (mlp_block is not None and device.type == "cpu" and num_rays and not ddp
+    elif (mlp_block is not None and torch.device(device).type == "cpu" and num_rays and not ddp
           and not (perceptual is not None and perceptual_weight > 0)):
         out, mse = _blocked_backward(model, sample, device, mlp_block, saturation)
     else:
