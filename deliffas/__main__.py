@@ -9,6 +9,24 @@ and, through it, torch), so an interrupt at any moment of start-up ends in the s
 import os
 import signal
 import sys
+import _thread
+import time
+
+
+def _deliver_lost_interrupt(hook_args) -> None:
+    """``sys.unraisablehook``: a Ctrl-C that landed in a finaliser or weakref callback (one of importlib's module
+    locks, say) is not lost with a printed traceback; it is sent again, to arrive in the command's own code."""
+    if not issubclass(hook_args.exc_type, KeyboardInterrupt):
+        sys.__unraisablehook__(hook_args)
+        return
+    # Not from here: a signal raised inside the hook runs its handler inside the hook, and is lost again. A thread
+    # sends it once the hook has returned (``_thread``: ``threading``'s start waits, and the wait can take it too).
+    _thread.start_new_thread(_send_ctrl_c_after, (0.01,))
+
+
+def _send_ctrl_c_after(delay_s: float) -> None:
+    time.sleep(delay_s)
+    signal.raise_signal(signal.SIGINT)
 
 
 def run() -> None:
@@ -23,6 +41,7 @@ def run() -> None:
 
         code = report_interrupted(None, sys.argv[1:])
     else:
+        sys.unraisablehook = _deliver_lost_interrupt
         signal.signal(signal.SIGINT, signal.default_int_handler)
         code = main()
     if code == 130:

@@ -192,6 +192,37 @@ def test_6_ctrl_c_while_the_console_script_starts(tmp_path, module):
         "resume with: deliffas convert capture out --resume"), lines[0]
 
 
+_INTERRUPT_IN_A_FINALISER = """
+import importlib.abc, os, signal, sys
+
+class _SendsCtrlCWhenCollected:
+    def __del__(self):
+        os.kill(os.getpid(), signal.SIGINT)  # its KeyboardInterrupt is raised here, in a finaliser: unraisable
+
+class _Interrupt(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name == "deliffas.data.convert":
+            sys.meta_path.remove(self)
+            _SendsCtrlCWhenCollected()
+        return None
+
+sys.meta_path.insert(0, _Interrupt())
+"""
+
+
+def test_6_ctrl_c_that_lands_in_a_finaliser_still_interrupts(tmp_path):
+    """A Ctrl-C whose KeyboardInterrupt Python raises in a finaliser or weakref callback (importlib's module locks
+    have them), where it cannot propagate: still one line and 130, not a printed traceback and a command that
+    carries on."""
+    (tmp_path / "sitecustomize.py").write_text(_INTERRUPT_IN_A_FINALISER)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), str(REPO)]), OMP_NUM_THREADS="1")
+    res = subprocess.run([sys.executable, "-m", "deliffas", "convert", "capture", "out"], cwd=tmp_path, env=env,
+                         text=True, capture_output=True, timeout=300)
+    lines = res.stderr.strip().splitlines()
+    assert res.returncode == 130 and len(lines) == 1 and "Traceback" not in res.stderr, res.stderr
+    assert lines[0].startswith("deliffas convert: interrupted"), lines[0]
+
+
 def test_7_help_states_defaults():
     from deliffas.engine.train_config import TrainConfig
 
