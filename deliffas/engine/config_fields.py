@@ -12,10 +12,11 @@ from deliffas.options import device_name, opt
 
 __all__ = ["UVSource", "UV_SOURCES", "check_uv_source", "uv_field", "device_field"]
 
-UVSource = Literal["auto", "raycast", "torch"]
-"""Where the uv maps come from: ``raycast`` = the open3d ray caster (CPU), ``torch`` = the torch rasteriser on
-the model's device, ``auto`` = ``torch`` on CUDA, else ``raycast``."""
-UV_SOURCES = ("auto", "raycast", "torch")
+UVSource = Literal["auto", "raster", "raycast", "torch"]
+"""Where the uv maps come from: ``raster`` = the C rasteriser (CPU, ``deliffas.fast.rasterize``), ``raycast`` =
+the open3d ray caster (CPU), ``torch`` = the torch rasteriser on the model's device, ``auto`` = ``raster`` where
+its C kernel builds, else ``torch`` on CUDA and ``raycast`` on the CPU."""
+UV_SOURCES = ("auto", "raster", "raycast", "torch")
 
 
 def check_uv_source(requested: str) -> None:
@@ -26,8 +27,9 @@ def check_uv_source(requested: str) -> None:
 
 def uv_field() -> Any:
     """``uv: UVSource``: where the uv maps come from (``engine.rays.uv_source`` resolves ``auto``)."""
-    return opt("auto", help="uv maps: raycast (open3d, CPU), torch (the torch rasteriser on --device), "
-                            "auto = torch on CUDA, else raycast")
+    return opt("auto", help="uv maps: raster (the C rasteriser, CPU), raycast (open3d, CPU), torch (the torch "
+                            "rasteriser on --device); auto = raster where its C kernel builds, else torch on CUDA "
+                            "and raycast on the CPU")
 
 
 def device_field() -> Any:

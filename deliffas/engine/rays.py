@@ -5,10 +5,12 @@ The rays themselves and the way to the model are lower down and re-exported here
 model's side (:func:`~deliffas.models.ray_query.stack_rays`, :func:`ray_query`, :func:`paint_images`,
 :class:`RayBatch`), so the fast path (``deliffas.fast``) uses them without the engine.
 
-Two sources give the same rays (up to pixel centres within round-off of a triangle edge): the open3d ray
-caster (:func:`camera_rays`, numpy, in the DataLoader workers during training) and the torch rasteriser
-(:func:`torch_camera_rays`, tensors on the model's device, in the main process). :func:`uv_source` picks
-one: ``auto`` = the torch rasteriser when the device is CUDA, the ray caster on the CPU.
+Three sources give the same rays (up to pixel centres within round-off of a triangle edge): the C rasteriser
+(:func:`raster_frame_rays`, numpy, where the samples are read: the DataLoader workers during training), the
+open3d ray caster (:func:`camera_rays`, numpy, there too) and the torch rasteriser (:func:`torch_camera_rays`,
+tensors on the model's device, in the main process). :func:`uv_source` picks one: ``auto`` = the C rasteriser
+where its kernel builds (a few times faster than the ray caster, and no open3d), else the torch rasteriser on
+CUDA and the ray caster on the CPU.
 """
 
 from __future__ import annotations
@@ -20,6 +22,8 @@ import numpy as np
 import torch
 
 from deliffas.engine.config_fields import UV_SOURCES, UVSource, check_uv_source
+from deliffas.fast.frame import fast_camera_rays
+from deliffas.fast.rasterize import raster_kernel_available
 from deliffas.geometry.atlas import UVAtlas
 from deliffas.geometry.camera_rays import CameraRays, camera_rays, frame_rays
 from deliffas.geometry.rasterize_torch import TorchUVRasterizer
@@ -28,15 +32,26 @@ from deliffas.io.cameras import Camera
 from deliffas.models.ray_query import RayBatch, paint_images, ray_query, stack_rays
 
 __all__ = ["CameraRays", "camera_rays", "frame_rays", "RayBatch", "stack_rays", "ray_query", "paint_images",
-           "UVSource", "UV_SOURCES", "uv_source", "torch_camera_rays", "torch_frame_rays", "device_camera_rays"]
+           "UVSource", "UV_SOURCES", "uv_source", "torch_camera_rays", "torch_frame_rays", "raster_frame_rays", "device_camera_rays"]
 
 
-def uv_source(device: torch.device | str, requested: str = "auto") -> Literal["raycast", "torch"]:
+def uv_source(device: torch.device | str, requested: str = "auto") -> Literal["raster", "raycast", "torch"]:
     """The resolved uv source for a model on ``device`` (``UV_SOURCES``; ValueError naming the choices)."""
     check_uv_source(requested)
     if requested == "auto":
+        if raster_kernel_available():
+            return "raster"
         return "torch" if torch.device(device).type == "cuda" else "raycast"
     return requested  # type: ignore[return-value]
+
+
+def raster_frame_rays(inner_verts: np.ndarray, outer_verts: np.ndarray, faces: np.ndarray, atlas: UVAtlas,
+                      cameras: Sequence[Camera]) -> list[CameraRays]:
+    """``frame_rays`` by the C rasteriser (:func:`~deliffas.fast.frame.fast_camera_rays`, the surfaces as
+    ``frame_rays`` casts them: float32); the ray caster's scenes are built only for a camera with a vertex behind
+    it (needs open3d)."""
+    raycaster = UVRaycaster(np.asarray(inner_verts, np.float32), faces, np.asarray(outer_verts, np.float32), atlas)
+    return [fast_camera_rays(raycaster, cam) for cam in cameras]
 
 
 def torch_camera_rays(rasterizer: TorchUVRasterizer, camera: Camera, viewdir: bool = True,
@@ -71,11 +86,15 @@ _TORCH_RASTERIZERS: "weakref.WeakKeyDictionary[UVRaycaster, dict[torch.device, T
 
 def device_camera_rays(raycaster: UVRaycaster, camera: Camera, device: torch.device | str, uv: str = "auto",
                        viewdir: bool = True) -> CameraRays:
-    """The shaded rays of ``camera`` from ``uv_source(device, uv)``: the ray caster's (numpy), or the torch
-    rasteriser's of the same frame on ``device`` (tensors; built once per ray caster and device)."""
+    """The shaded rays of ``camera`` from ``uv_source(device, uv)``: the ray caster's or the C rasteriser's of
+    the same frame (numpy), or the torch rasteriser's on ``device`` (tensors; built once per ray caster and
+    device)."""
     device = torch.device(device)
-    if uv_source(device, uv) == "raycast":
+    source = uv_source(device, uv)
+    if source == "raycast":
         return camera_rays(raycaster, camera)
+    if source == "raster":
+        return fast_camera_rays(raycaster, camera, viewdir=viewdir)
     per_device = _TORCH_RASTERIZERS.setdefault(raycaster, {})
     if device not in per_device:
         per_device[device] = TorchUVRasterizer(raycaster.inner_verts, raycaster.faces, raycaster.outer_verts,

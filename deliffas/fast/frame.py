@@ -34,7 +34,7 @@ from typing import Callable, ContextManager, Iterable, Iterator, Protocol, TypeV
 import torch
 
 from deliffas.fast.config import FastConfig
-from deliffas.fast.rasterize import UVRasterizer
+from deliffas.fast.rasterize import frame_rasterizer
 from deliffas.fast.shade import FastShader, supports
 from deliffas.geometry.camera_rays import CameraRays, camera_rays
 from deliffas.geometry.raycast import UVRaycaster
@@ -64,18 +64,9 @@ def fast_for_device(fast: FastConfig | None, device: torch.device | str) -> Fast
     return fast if torch.device(device).type == "cpu" else None
 
 
-# one rasteriser and one shader per frame geometry / model, alive as long as their owner
-_RASTERIZERS: "weakref.WeakKeyDictionary[UVRaycaster, UVRasterizer]" = weakref.WeakKeyDictionary()
+# one shader per model, alive as long as it
 _SHADERS: "weakref.WeakKeyDictionary[DeliffasModel, dict[tuple[torch.dtype, bool, bool], FastShader]]" = \
     weakref.WeakKeyDictionary()
-
-
-def _rasterizer(raycaster: UVRaycaster) -> UVRasterizer:
-    rz = _RASTERIZERS.get(raycaster)
-    if rz is None:
-        rz = _RASTERIZERS[raycaster] = UVRasterizer(raycaster.inner_verts, raycaster.faces, raycaster.outer_verts,
-                                                    raycaster.atlas)
-    return rz
 
 
 def _shader(model: DeliffasModel, dtype: torch.dtype, pe_table: bool, project_features: bool) -> FastShader:
@@ -89,7 +80,7 @@ def _shader(model: DeliffasModel, dtype: torch.dtype, pe_table: bool, project_fe
 def fast_camera_rays(raycaster: UVRaycaster, camera: Camera, rasterize: bool = True, viewdir: bool = True) -> CameraRays:
     """``camera_rays(raycaster, camera)`` by rasterisation (the ray caster where a vertex is behind the camera);
     ``viewdir=False``: the rasteriser leaves the view directions out (``viewdir`` None)."""
-    got = _rasterizer(raycaster).shaded_pixels(camera, viewdir) if rasterize else None
+    got = frame_rasterizer(raycaster).shaded_pixels(camera, viewdir) if rasterize else None
     if got is None:
         return camera_rays(raycaster, camera)
     return CameraRays(pixels=got.pixels, uv_inner=got.uv_inner, inner_from_outer=got.inner_from_outer,

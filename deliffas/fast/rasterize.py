@@ -30,6 +30,7 @@ import ctypes
 import dataclasses
 import logging
 import threading
+import weakref
 from typing import Literal
 
 import numpy as np
@@ -39,11 +40,11 @@ from deliffas.checks import check_shape
 from deliffas.geometry.arrays import ArrayLike, to_numpy
 from deliffas.geometry.shaded_pixels import ShadedPixels
 from deliffas.geometry.atlas import UVAtlas
-from deliffas.geometry.raycast import PEEL_EPS_REL, projected_pixel_window
+from deliffas.geometry.raycast import PEEL_EPS_REL, UVRaycaster, projected_pixel_window
 from deliffas.io.cameras import Camera
 from deliffas.native import LazyLibrary
 
-__all__ = ["ShadedPixels", "UVRasterizer", "OUTER_LAYERS", "raster_kernel_available"]
+__all__ = ["ShadedPixels", "UVRasterizer", "OUTER_LAYERS", "raster_kernel_available", "frame_rasterizer"]
 
 logger = logging.getLogger(__name__)
 
@@ -179,6 +180,19 @@ class UVRasterizer:
                             inner_from_outer=from_outer[:count].astype(bool),
                             uv_outer=uv_out[: 2 * count].reshape(count, 2).copy(),
                             viewdir=dirs[: 3 * count].reshape(count, 3).copy() if dirs is not None else None)
+
+
+# one rasteriser per frame geometry (its ray caster), alive as long as the ray caster
+_RASTERIZERS: "weakref.WeakKeyDictionary[UVRaycaster, UVRasterizer]" = weakref.WeakKeyDictionary()
+
+
+def frame_rasterizer(raycaster: UVRaycaster) -> UVRasterizer:
+    """The rasteriser of the surfaces of ``raycaster`` (built once per ray caster)."""
+    rz = _RASTERIZERS.get(raycaster)
+    if rz is None:
+        rz = _RASTERIZERS[raycaster] = UVRasterizer(raycaster.inner_verts, raycaster.faces, raycaster.outer_verts,
+                                                    raycaster.atlas)
+    return rz
 
 
 # ------------------------------------------------------------------------------------------- numpy version

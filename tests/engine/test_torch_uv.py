@@ -15,7 +15,8 @@ import pytest
 import torch
 
 from deliffas.engine.data_bridge import evaluation_samples, shard_info, with_torch_rays
-from deliffas.engine.rays import uv_source
+from deliffas.engine.rays import raster_frame_rays, uv_source
+from deliffas.fast.rasterize import raster_kernel_available
 from deliffas.engine.train import TrainConfig, resolve_model_config, train_step
 from deliffas.models.deliffas import DeliffasModel
 
@@ -30,11 +31,29 @@ def _cfg(shards, out, **kw):
     return TrainConfig(**base)
 
 
-def test_uv_source_is_chosen_by_device():
+def test_uv_source_is_chosen_by_device(monkeypatch):
+    import deliffas.engine.rays as rays
+
+    assert raster_kernel_available()  # a C compiler is part of the set-up: auto is the C rasteriser everywhere
+    assert uv_source("cpu") == "raster" and uv_source("cuda") == "raster"
+    monkeypatch.setattr(rays, "raster_kernel_available", lambda: False)  # no C compiler
     assert uv_source("cpu") == "raycast" and uv_source("cuda") == "torch" and uv_source("cuda:1") == "torch"
     assert uv_source("cpu", "torch") == "torch" and uv_source("cuda", "raycast") == "raycast"
-    with pytest.raises(ValueError, match="uv: expected one of auto, raycast, torch"):
+    assert uv_source("cuda", "raster") == "raster"
+    with pytest.raises(ValueError, match="uv: expected one of auto, raster, raycast, torch"):
         uv_source("cpu", "gpu")
+
+
+def test_the_c_rasteriser_gives_the_ray_casters_rays(tiny_shards):
+    samples, info = evaluation_samples(str(tiny_shards), "train", with_rays=True, protocol="all", temporal_window=2)
+    cast = next(samples)
+    raster = raster_frame_rays(cast.inner_verts, cast.outer_verts, info["faces"], info["atlas"], cast.cameras)
+    for a, b in zip(cast.rays, raster):  # the same pixels (no pixel centre on an edge here), uvs to 1e-4
+        np.testing.assert_array_equal(a.pixels, b.pixels)
+        np.testing.assert_array_equal(a.inner_from_outer, b.inner_from_outer)
+        np.testing.assert_allclose(a.uv_inner, b.uv_inner, atol=1e-4)
+        np.testing.assert_allclose(a.uv_outer, b.uv_outer, atol=1e-4)
+        np.testing.assert_allclose(a.viewdir, b.viewdir, atol=1e-6)
 
 
 @pytest.mark.parametrize("model", ["two_surface", "single_surface_viewdir"])
@@ -63,9 +82,11 @@ def test_training_step_equals_the_ray_cast_one(tiny_shards, model):
         torch.testing.assert_close(p1, p2, atol=1e-6, rtol=1e-4)
 
 
-def test_train_eval_render_without_the_cpu_geometry_packages(tiny_shards, tmp_path):
+@pytest.mark.parametrize("uv", ["torch", "raster"])
+def test_train_eval_render_without_the_cpu_geometry_packages(tiny_shards, tmp_path, uv):
     """In a fresh process with open3d, pymeshlab, xatlas, pycolmap, trimesh, viser, av and flip blocked: import
-    deliffas and the train/eval/render path, train with the torch uv source, evaluate and render with it."""
+    deliffas and the train/eval/render path, train with the torch rasteriser or the C one (in a DataLoader
+    worker), evaluate and render with it."""
     script = textwrap.dedent(f"""
         import json, sys
         for name in {BLOCKED!r}:
@@ -77,10 +98,10 @@ def test_train_eval_render_without_the_cpu_geometry_packages(tiny_shards, tmp_pa
         run = {str(tmp_path / "run")!r}
         cfg = TrainConfig(shards={str(tiny_shards)!r}, out=run, model="two_surface", preset="tiny", iters=2,
                           cameras_per_frame=2, protocol="all", num_workers=1, preview_every=1, progress=False,
-                          uv="torch")
+                          uv={uv!r})
         res = train(cfg)
-        ev = evaluate(EvalConfig(run=run, split="novel_view", uv="torch", max_frames=2))
-        video = render_video(RenderConfig(run=run, out={str(tmp_path / "frames")!r}, frames=2, fast=None, uv="torch"))
+        ev = evaluate(EvalConfig(run=run, split="novel_view", uv={uv!r}, max_frames=2))
+        video = render_video(RenderConfig(run=run, out={str(tmp_path / "frames")!r}, frames=2, fast=None, uv={uv!r}))
         print(json.dumps({{"iterations": res.iterations, "psnr": ev["psnr"], "uv": ev["uv"],
                           "frames": len(list(video.glob("*.png"))), "blocked": sys.modules["open3d"] is None}}))
     """)
@@ -88,10 +109,10 @@ def test_train_eval_render_without_the_cpu_geometry_packages(tiny_shards, tmp_pa
     r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=600)
     assert r.returncode == 0, r.stderr[-3000:]
     got = json.loads(r.stdout.strip().splitlines()[-1])
-    assert got == {"iterations": 2, "psnr": got["psnr"], "uv": "torch", "frames": 2, "blocked": True}
+    assert got == {"iterations": 2, "psnr": got["psnr"], "uv": uv, "frames": 2, "blocked": True}
     assert np.isfinite(got["psnr"])
     record = json.loads((tmp_path / "run" / "train_config.json").read_text())
-    assert record["data"]["uv"] == "torch" and record["train"]["uv"] == "torch"
+    assert record["data"]["uv"] == uv and record["train"]["uv"] == uv
 
 
 def test_cli_passes_the_uv_source(tiny_shards, tmp_path):
@@ -113,5 +134,5 @@ def test_configs_refuse_an_unknown_uv_source(tiny_shards, tmp_path, unchecked):
 
     for make in (lambda: EvalConfig(run="r", uv="gpu"), lambda: RenderConfig(run="r", out="v.mp4", uv="gpu"),
                  lambda: _cfg(tiny_shards, tmp_path, uv="gpu")):
-        with unchecked(), pytest.raises(ValueError, match="uv: expected one of auto, raycast, torch, got 'gpu'"):
+        with unchecked(), pytest.raises(ValueError, match="uv: expected one of auto, raster, raycast, torch, got 'gpu'"):
             make()
