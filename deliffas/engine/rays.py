@@ -22,8 +22,7 @@ import numpy as np
 import torch
 
 from deliffas.engine.config_fields import UV_SOURCES, UVSource, check_uv_source
-from deliffas.fast.frame import fast_camera_rays
-from deliffas.fast.rasterize import raster_kernel_available
+from deliffas.fast.rasterize import raster_kernel_available, rasterized_camera_rays
 from deliffas.geometry.atlas import UVAtlas
 from deliffas.geometry.camera_rays import CameraRays, camera_rays, frame_rays
 from deliffas.geometry.rasterize_torch import TorchUVRasterizer
@@ -47,11 +46,11 @@ def uv_source(device: torch.device | str, requested: str = "auto") -> Literal["r
 
 def raster_frame_rays(inner_verts: np.ndarray, outer_verts: np.ndarray, faces: np.ndarray, atlas: UVAtlas,
                       cameras: Sequence[Camera]) -> list[CameraRays]:
-    """``frame_rays`` by the C rasteriser (:func:`~deliffas.fast.frame.fast_camera_rays`, the surfaces as
+    """``frame_rays`` by the C rasteriser (:func:`~deliffas.fast.rasterize.rasterized_camera_rays`, the surfaces as
     ``frame_rays`` casts them: float32); the ray caster's scenes are built only for a camera with a vertex behind
     it (needs open3d)."""
     raycaster = UVRaycaster(np.asarray(inner_verts, np.float32), faces, np.asarray(outer_verts, np.float32), atlas)
-    return [fast_camera_rays(raycaster, cam) for cam in cameras]
+    return [rasterized_camera_rays(raycaster, cam) for cam in cameras]
 
 
 def torch_camera_rays(rasterizer: TorchUVRasterizer, camera: Camera, viewdir: bool = True,
@@ -94,7 +93,7 @@ def device_camera_rays(raycaster: UVRaycaster, camera: Camera, device: torch.dev
     if source == "raycast":
         return camera_rays(raycaster, camera)
     if source == "raster":
-        return fast_camera_rays(raycaster, camera, viewdir=viewdir)
+        return rasterized_camera_rays(raycaster, camera, viewdir=viewdir)
     per_device = _TORCH_RASTERIZERS.setdefault(raycaster, {})
     if device not in per_device:
         per_device[device] = TorchUVRasterizer(raycaster.inner_verts, raycaster.faces, raycaster.outer_verts,

@@ -34,7 +34,7 @@ from typing import Callable, ContextManager, Iterable, Iterator, Protocol, TypeV
 import torch
 
 from deliffas.fast.config import FastConfig
-from deliffas.fast.rasterize import frame_rasterizer
+from deliffas.fast.rasterize import rasterized_camera_rays
 from deliffas.fast.shade import FastShader, supports
 from deliffas.geometry.camera_rays import CameraRays, camera_rays
 from deliffas.geometry.raycast import UVRaycaster
@@ -78,13 +78,10 @@ def _shader(model: DeliffasModel, dtype: torch.dtype, pe_table: bool, project_fe
 
 
 def fast_camera_rays(raycaster: UVRaycaster, camera: Camera, rasterize: bool = True, viewdir: bool = True) -> CameraRays:
-    """``camera_rays(raycaster, camera)`` by rasterisation (the ray caster where a vertex is behind the camera);
-    ``viewdir=False``: the rasteriser leaves the view directions out (``viewdir`` None)."""
-    got = frame_rasterizer(raycaster).shaded_pixels(camera, viewdir) if rasterize else None
-    if got is None:
-        return camera_rays(raycaster, camera)
-    return CameraRays(pixels=got.pixels, uv_inner=got.uv_inner, inner_from_outer=got.inner_from_outer,
-                      uv_outer=got.uv_outer, viewdir=got.viewdir, height=camera.height, width=camera.width)
+    """``camera_rays(raycaster, camera)`` by rasterisation (:func:`~deliffas.fast.rasterize.rasterized_camera_rays`)
+    or, with ``rasterize`` False, by the ray caster; ``viewdir=False``: the rasteriser leaves the view directions
+    out (``viewdir`` None)."""
+    return rasterized_camera_rays(raycaster, camera, viewdir) if rasterize else camera_rays(raycaster, camera)
 
 
 def _camera_batch(rays: CameraRays) -> RayBatch:

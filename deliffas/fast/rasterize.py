@@ -38,13 +38,15 @@ from jaxtyping import Integer, Real
 
 from deliffas.checks import check_shape
 from deliffas.geometry.arrays import ArrayLike, to_numpy
+from deliffas.geometry.camera_rays import CameraRays, camera_rays
 from deliffas.geometry.shaded_pixels import ShadedPixels
 from deliffas.geometry.atlas import UVAtlas
 from deliffas.geometry.raycast import PEEL_EPS_REL, UVRaycaster, projected_pixel_window
 from deliffas.io.cameras import Camera
 from deliffas.native import LazyLibrary
 
-__all__ = ["ShadedPixels", "UVRasterizer", "OUTER_LAYERS", "raster_kernel_available", "frame_rasterizer"]
+__all__ = ["ShadedPixels", "UVRasterizer", "OUTER_LAYERS", "raster_kernel_available", "frame_rasterizer",
+           "rasterized_camera_rays"]
 
 logger = logging.getLogger(__name__)
 
@@ -193,6 +195,16 @@ def frame_rasterizer(raycaster: UVRaycaster) -> UVRasterizer:
         rz = _RASTERIZERS[raycaster] = UVRasterizer(raycaster.inner_verts, raycaster.faces, raycaster.outer_verts,
                                                     raycaster.atlas)
     return rz
+
+
+def rasterized_camera_rays(raycaster: UVRaycaster, camera: Camera, viewdir: bool = True) -> CameraRays:
+    """``camera_rays(raycaster, camera)`` by rasterisation (numpy; the ray caster where a vertex is behind the
+    camera); ``viewdir=False``: the rasteriser leaves the view directions out (``viewdir`` None)."""
+    got = frame_rasterizer(raycaster).shaded_pixels(camera, viewdir)
+    if got is None:
+        return camera_rays(raycaster, camera)
+    return CameraRays(pixels=got.pixels, uv_inner=got.uv_inner, inner_from_outer=got.inner_from_outer,
+                      uv_outer=got.uv_outer, viewdir=got.viewdir, height=camera.height, width=camera.width)
 
 
 # ------------------------------------------------------------------------------------------- numpy version

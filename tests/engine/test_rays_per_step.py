@@ -81,17 +81,20 @@ def test_a_run_trains_on_at_most_rays_per_step_rays(tiny_shards, tmp_path):
     assert json.loads((tmp_path / "r" / "train_config.json").read_text())["train"]["rays_per_step"] == 50
 
 
-def test_the_training_stream_casts_about_the_budget_after_the_first_sample(tiny_shards, tmp_path):
+def test_the_ray_caster_casts_about_the_budget_after_the_first_sample(tiny_shards, tmp_path):
     from deliffas.engine.data_bridge import RAY_MARGIN, training_stream
 
     full = TrainConfig(shards=str(tiny_shards), out=str(tmp_path / "r"), cameras_per_frame=2, protocol="all",
-                       num_workers=0, seed=1)
+                       num_workers=0, seed=1, uv="raycast")
     stream, _ = training_stream(full, 2)
     everything = [sum(r.num_rays for r in next(stream).rays) for _ in range(6)]
     stream, _ = training_stream(dataclasses.replace(full, rays_per_step=40), 2)
     budgeted = [sum(r.num_rays for r in next(stream).rays) for _ in range(6)]
     assert budgeted[0] == everything[0] > 2 * RAY_MARGIN * 40  # the first sample sizes the share
     assert all(15 < n < 3 * RAY_MARGIN * 40 for n in budgeted[1:]), budgeted
+    # the C rasteriser gives every shaded ray (a few times faster than casting the share); the step draws them
+    stream, info = training_stream(dataclasses.replace(full, rays_per_step=40, uv="raster"), 2)
+    assert info["uv"] == "raster" and [sum(r.num_rays for r in next(stream).rays) for _ in range(6)] == everything
 
 
 def test_a_run_recorded_before_rays_per_step_resumes_with_every_ray(tiny_shards, tmp_path):
