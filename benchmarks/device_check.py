@@ -2,7 +2,7 @@
 
 Self-contained for a bare GPU box that has torch, numpy, scipy, h5py, safetensors, opencv, matplotlib and tqdm
 and none of open3d, pymeshlab, xatlas, pycolmap, trimesh, viser or av: the uv maps come from the torch
-rasteriser (``uv="torch"``), the capture is a small shard set made beforehand by ``--prepare`` (which needs
+rasteriser (``uv="torch"``) or the C one (where a C compiler builds it), the capture is a small shard set made beforehand by ``--prepare`` (which needs
 the whole stack) and carried there with the repository.
 
 Printed (and written as JSON with ``--json``), per case (``--model``, by default the trainer's default model, at a
@@ -17,8 +17,9 @@ zoo preset and an image size):
 * ``agreement``: PSNR between one frame rendered on the device (torch rasteriser) and on the CPU with the
   same weights from the C/numpy rasteriser's rays (on ``--device cpu``: the two rasterisers);
 
-and once: ``trainer`` (``deliffas.engine.train.train`` on the shards with the torch uv source: it/s) and
-``eval`` (``evaluate`` of that run: per-stage ms, fps, PSNR).
+and once: ``trainer`` (``deliffas.engine.train.train`` on the shards with the torch uv source: it/s),
+``trainer_default_uv`` (the same with ``uv="auto"``: the C rasteriser in the data workers where it builds) and
+``eval`` (``evaluate`` of the first run with the torch uv source: per-stage ms, fps, PSNR).
 
 Usage::
 
@@ -229,18 +230,23 @@ def _agreement(model, sample, info, device: torch.device) -> dict:
 
 
 def _trainer_and_eval(shards: str, out: Path, device: torch.device, iters: int, preset: str, model_name: str) -> dict:
-    """``train`` on the shards with the torch uv source, then ``evaluate`` of the run."""
+    """``train`` on the shards with the torch uv source and with the default one, then ``evaluate`` of the first
+    run."""
     from deliffas.engine.evaluate import EvalConfig, evaluate
+    from deliffas.engine.rays import uv_source
     from deliffas.engine.train import TrainConfig, train
 
-    cfg = TrainConfig(shards=shards, out=str(out), model=model_name, preset=preset, iters=iters, protocol="all",
-                      device=str(device), uv="torch", num_workers=2, checkpoint_every=iters, preview_every=0,
-                      progress=False)
-    res = train(cfg)
-    ev = evaluate(EvalConfig(run=str(out), split="novel_view", device=str(device), uv="torch"))
-    return {"trainer": {"preset": preset, "iters": res.iterations, "it_per_s": res.iters_per_second,
-                        "stage_ms": res.stage_ms},
-            "eval": {k: ev[k] for k in ("stage_ms", "fps", "fps_shared_cnn", "psnr", "images", "resolution", "uv")}}
+    got = {}
+    for key, uv in (("trainer", "torch"), ("trainer_default_uv", "auto")):
+        cfg = TrainConfig(shards=shards, out=f"{out}_{uv}", model=model_name, preset=preset, iters=iters,
+                          protocol="all", device=str(device), uv=uv, num_workers=2, checkpoint_every=iters,
+                          preview_every=0, progress=False)
+        res = train(cfg)
+        got[key] = {"preset": preset, "iters": res.iterations, "it_per_s": res.iters_per_second,
+                    "stage_ms": res.stage_ms, "uv": uv_source(device, uv)}
+    ev = evaluate(EvalConfig(run=f"{out}_torch", split="novel_view", device=str(device), uv="torch"))
+    got["eval"] = {k: ev[k] for k in ("stage_ms", "fps", "fps_shared_cnn", "psnr", "images", "resolution", "uv")}
+    return got
 
 
 def run_checks(shards: str, device: torch.device, cases, trainer_iters: int, trainer_preset: str,
@@ -254,7 +260,7 @@ def run_checks(shards: str, device: torch.device, cases, trainer_iters: int, tra
     with tempfile.TemporaryDirectory() as tmp:
         _say(f"trainer + eval ({trainer_preset}, {trainer_iters} iterations, shards as stored)")
         out.update(_trainer_and_eval(shards, Path(tmp) / "run", device, trainer_iters, trainer_preset, model_name))
-        _say(json.dumps({k: out[k] for k in ("trainer", "eval")}, default=float))
+        _say(json.dumps({k: out[k] for k in ("trainer", "trainer_default_uv", "eval")}, default=float))
     for case in cases:
         _say(f"{model_name} {case.preset} at {case.width}x{case.height}")
         model, samples, info = _case_data(shards, case, device, model_name)

@@ -34,7 +34,8 @@ def test_device_check_on_cpu_without_the_geometry_packages(tmp_path):
     record = json.loads(out.read_text())
     assert record["passed"] and record["device"] == "cpu"
     assert record["eval"]["uv"] == "torch" and set(record["eval"]["stage_ms"]) == {"uv", "cnn", "sample", "mlp"}
-    assert record["trainer"]["it_per_s"] > 0
+    assert record["trainer"]["it_per_s"] > 0 and record["trainer"]["uv"] == "torch"
+    assert record["trainer_default_uv"]["it_per_s"] > 0 and record["trainer_default_uv"]["uv"] == "raster"
     assert [c["preset"] for c in record["cases"]] == ["tiny", "small"]
     for case in record["cases"]:
         assert case["train"]["it_per_s"] > 0 and case["render"]["fps"] > 0
