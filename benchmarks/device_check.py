@@ -2,8 +2,8 @@
 
 Self-contained for a bare GPU box that has torch, numpy, scipy, h5py, safetensors, opencv, matplotlib and tqdm
 and none of open3d, pymeshlab, xatlas, pycolmap, trimesh, viser or av: the uv maps come from the torch
-rasteriser (``uv="torch"``) or the C one (where a C compiler builds it), the capture is a small shard set made beforehand by ``--prepare`` (which needs
-the whole stack) and carried there with the repository.
+rasteriser (``uv="torch"``) or the C one (where a C compiler builds it), the capture is a small shard set made
+beforehand by ``--prepare`` (which needs the whole stack) and carried there with the repository.
 
 Printed (and written as JSON with ``--json``), per case (``--model``, by default the trainer's default model, at a
 zoo preset and an image size):

@@ -31,7 +31,8 @@ from deliffas.io.cameras import Camera
 from deliffas.models.ray_query import RayBatch, paint_images, ray_query, stack_rays
 
 __all__ = ["CameraRays", "camera_rays", "frame_rays", "RayBatch", "stack_rays", "ray_query", "paint_images",
-           "UVSource", "UV_SOURCES", "uv_source", "torch_camera_rays", "torch_frame_rays", "raster_frame_rays", "device_camera_rays"]
+           "UVSource", "UV_SOURCES", "uv_source", "torch_camera_rays", "torch_frame_rays", "raster_frame_rays",
+           "device_camera_rays"]
 
 
 def uv_source(device: torch.device | str, requested: str = "auto") -> Literal["raster", "raycast", "torch"]:
