@@ -1,8 +1,9 @@
 """Training speed: a training step against its irreducible work, and iterations per second at 128^2 and 256^2.
 
 The step is the default run's (``deliffas train`` without options: its model, K = 3 cameras of one
-frame, U-Nets once per frame, at most ``rays_per_step`` of the shaded rays, L1, Adam), timed as
-``engine.train_step`` runs it, with the rays already cast; at 256^2 also the step on every shaded ray.
+frame, U-Nets once per frame, at most ``rays_per_step`` of the shaded rays, L1 plus the saturation penalty on
+the U-Nets' logits, Adam), timed as ``engine.train_step`` runs it, with the rays already cast; at 256^2 also the
+step on every shaded ray.
 
 Irreducible work, counted from the shapes of this very step:
 
@@ -13,7 +14,7 @@ Irreducible work, counted from the shapes of this very step:
 * the light-field MLP: 2 x multiply-adds per ray (``LightFieldMLP.flops_per_ray``) x rays, times 3,
   at the GEMM rate measured in this run (a (rays x 64) @ (64 x 64) product).
 
-Sampling, encoding, the loss and the optimizer are counted as zero: the ratio step / irreducible is
+Sampling, encoding, the loss, the saturation penalty and the optimizer are counted as zero: the ratio step / irreducible is
 what the U-Nets and MLP would cost at the machine's dense rates, and the target is <= 2.
 """
 
@@ -106,8 +107,12 @@ def _run() -> list[Result]:
     import numpy as np
 
     from deliffas.engine.samples import subsample_rays
-    from deliffas.engine.train_config import RAYS_PER_STEP
+    from deliffas.engine.train_config import RAYS_PER_STEP, TrainConfig
     from deliffas.engine.train_step import train_step
+    from deliffas.models.losses import SaturationTerm
+
+    defaults = TrainConfig(shards="", out="")
+    saturation = SaturationTerm(defaults.saturation_weight, defaults.saturation_margin)  # as the trainer's
 
     rows = []
     for size in (128, 256):
@@ -119,7 +124,7 @@ def _run() -> list[Result]:
             cases.append(("every shaded ray", every_ray))
         for label, sample in cases:
             model, opt = _model(size)
-            step = lambda: train_step(model, sample, opt, torch.device("cpu"))  # noqa: E731
+            step = lambda: train_step(model, sample, opt, torch.device("cpu"), saturation=saturation)  # noqa: E731
             rays = sum(r.num_rays for r in sample.rays)
             t_step = best_times({"step": step}, repeat=4, min_time=3.0, max_rounds=12)["step"]
             rows.append(Result(GROUP, f"{label}, {size}^2, K={K} ({rays} of {shaded} rays)", 1 / t_step, "it/s",
