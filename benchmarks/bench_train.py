@@ -14,8 +14,8 @@ Irreducible work, counted from the shapes of this very step:
 * the light-field MLP: 2 x multiply-adds per ray (``LightFieldMLP.flops_per_ray``) x rays, times 3,
   at the GEMM rate measured in this run (a (rays x 64) @ (64 x 64) product).
 
-Sampling, encoding, the loss, the saturation penalty and the optimizer are counted as zero: the ratio step / irreducible is
-what the U-Nets and MLP would cost at the machine's dense rates, and the target is <= 2.
+Sampling, encoding, the loss, the saturation penalty and the optimizer are counted as zero: the ratio step /
+irreducible is what the U-Nets and MLP would cost at the machine's dense rates, and the target is <= 2.
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import logging
-from typing import Iterator
+from typing import Iterator, Literal
 
 import numpy as np
 import torch
@@ -134,20 +134,20 @@ cameras' shaded areas differ); the step keeps a uniform random ``rays_per_step``
 
 class _ItemToSample:
     """collate_fn (batch size 1): FrameItem -> FrameSample, with the rays of the item's cameras from the C
-    rasteriser (``raster``) or the ray caster (``with_rays``; ``raster`` False).
+    rasteriser (``rays="raster"``) or the ray caster (``rays="raycast"``), or none (``rays=None``).
 
     With a ``ray_budget`` (training with ``rays_per_step``) the ray caster casts only a random share of each
     camera's pixels, sized from the shaded rays of the previous sample (the first sample casts every pixel);
     the rasteriser, a few times faster, gives every shaded pixel."""
 
-    def __init__(self, faces: np.ndarray, atlas: UVAtlas, cameras: list, with_rays: bool,
-                 ray_budget: int | None = None, seed: int = 0, raster: bool = False):
-        self.faces, self.atlas, self.cameras, self.with_rays = faces, atlas, cameras, with_rays
-        self.ray_budget, self.seed, self.calls, self.raster = ray_budget, seed, 0, raster
+    def __init__(self, faces: np.ndarray, atlas: UVAtlas, cameras: list, rays: Literal["raster", "raycast"] | None,
+                 ray_budget: int | None = None, seed: int = 0):
+        self.faces, self.atlas, self.cameras, self.rays = faces, atlas, cameras, rays
+        self.ray_budget, self.seed, self.calls = ray_budget, seed, 0
         self.full_rays: float | None = None  # shaded rays of the last sample's K cameras, all pixels cast
 
     def _cast(self, item: FrameItem, cams: list, inner: np.ndarray, outer: np.ndarray) -> list:
-        if self.raster:
+        if self.rays == "raster":
             return raster_frame_rays(inner, outer, self.faces, self.atlas, cams)
         if self.ray_budget is None:
             return frame_rays(inner, outer, self.faces, self.atlas, cams)
@@ -164,7 +164,7 @@ class _ItemToSample:
         cams = [self.cameras[c] for c in ids]
         inner = item.inner_verts.numpy()
         outer = item.outer_verts.numpy()
-        rays = self._cast(item, cams, inner, outer) if self.with_rays else []
+        rays = self._cast(item, cams, inner, outer) if self.rays is not None else []
         return FrameSample(frame=int(item.frame), images=item.images.numpy().astype(np.float32) / 255,
                            masks=item.masks.numpy().astype(np.float32) / 255, cameras=cams, camera_ids=np.asarray(ids),
                            normal_inner=item.normal_maps_inner.numpy().astype(np.float32),
@@ -223,8 +223,8 @@ def training_stream(cfg, temporal_window: int, rank: int = 0, world: int = 1, st
     seed = cfg.seed + 7919 * rank + 104729 * start_iteration
     sampler = _EndlessCameraSampler(ds, k, seed=seed)
     source = uv_source(cfg.device, getattr(cfg, "uv", "auto"))
-    collate = _ItemToSample(info["faces"], info["atlas"], info["cameras"], with_rays=source != "torch",
-                            ray_budget=getattr(cfg, "rays_per_step", None), seed=seed, raster=source == "raster")
+    collate = _ItemToSample(info["faces"], info["atlas"], info["cameras"], rays=None if source == "torch" else source,
+                            ray_budget=getattr(cfg, "rays_per_step", None), seed=seed)
     workers = cfg.data_workers
     loader = DataLoader(ds, batch_size=1, sampler=sampler, collate_fn=collate, num_workers=workers,
                         persistent_workers=workers > 0, prefetch_factor=2 if workers > 0 else None,
@@ -248,5 +248,5 @@ def evaluation_samples(shards: ShardSet | str, split: str, max_frames: int | Non
         pick = np.linspace(0, len(frames) - 1, max_frames).round().astype(int)
         ds = ShardDataset(shards, split=split, cameras=cameras, frames=[frames[i] for i in pick],
                           cameras_per_item=None, temporal_window=info["temporal_window"], protocol=protocol)
-    collate = _ItemToSample(info["faces"], info["atlas"], info["cameras"], with_rays=with_rays)
+    collate = _ItemToSample(info["faces"], info["atlas"], info["cameras"], rays="raycast" if with_rays else None)
     return (collate([ds[i]]) for i in range(len(ds))), info

@@ -67,8 +67,7 @@ def torch_camera_rays(rasterizer: TorchUVRasterizer, camera: Camera, viewdir: bo
         as_t = lambda a: torch.from_numpy(a).to(rasterizer.device)  # noqa: E731
         return CameraRays(as_t(rays.pixels), as_t(rays.uv_inner), as_t(rays.inner_from_outer), as_t(rays.uv_outer),
                           as_t(rays.viewdir) if viewdir else None, camera.height, camera.width)
-    return CameraRays(pixels=got.pixels, uv_inner=got.uv_inner, inner_from_outer=got.inner_from_outer,
-                      uv_outer=got.uv_outer, viewdir=got.viewdir, height=camera.height, width=camera.width)
+    return CameraRays.from_shaded(got, camera)
 
 
 def torch_frame_rays(inner_verts: np.ndarray, outer_verts: np.ndarray, faces: np.ndarray, atlas: UVAtlas,

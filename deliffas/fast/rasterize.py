@@ -203,8 +203,7 @@ def rasterized_camera_rays(raycaster: UVRaycaster, camera: Camera, viewdir: bool
     got = frame_rasterizer(raycaster).shaded_pixels(camera, viewdir)
     if got is None:
         return camera_rays(raycaster, camera)
-    return CameraRays(pixels=got.pixels, uv_inner=got.uv_inner, inner_from_outer=got.inner_from_outer,
-                      uv_outer=got.uv_outer, viewdir=got.viewdir, height=camera.height, width=camera.width)
+    return CameraRays.from_shaded(got, camera)
 
 
 # ------------------------------------------------------------------------------------------- numpy version

@@ -17,6 +17,7 @@ import torch
 
 from deliffas.geometry.atlas import UVAtlas
 from deliffas.geometry.raycast import UVRaycaster, uv_inner_or_exit
+from deliffas.geometry.shaded_pixels import ShadedPixels
 from deliffas.io.cameras import Camera
 
 __all__ = ["CameraRays", "camera_rays", "frame_rays"]
@@ -48,6 +49,12 @@ class CameraRays:
     @property
     def num_rays(self) -> int:
         return int(self.pixels.shape[0])
+
+    @classmethod
+    def from_shaded(cls, shaded: ShadedPixels, camera: Camera) -> "CameraRays":
+        """The rays of a rasteriser's shaded pixels of ``camera`` (numpy or tensors, as the rasteriser gave)."""
+        return cls(pixels=shaded.pixels, uv_inner=shaded.uv_inner, inner_from_outer=shaded.inner_from_outer,
+                   uv_outer=shaded.uv_outer, viewdir=shaded.viewdir, height=camera.height, width=camera.width)
 
 
 def camera_rays(raycaster: UVRaycaster, camera: Camera, fraction: float = 1.0,
