@@ -12,14 +12,16 @@ zoo preset and an image size):
   side (images resized, cameras rescaled, normal maps rebuilt at the preset's side), uvs rasterised every
   step on the device as the trainer does (shard reading by the DataLoader is not in it), and the ms of the
   step's uv stage;
-* ``render``: frames rendered one by one with the U-Nets run per frame (a new pose every frame): fps over the
-  wall clock, and the ms per stage (uv, cnn, sample, mlp) from a second, synchronised pass;
+* ``render``: frames rendered one by one with the U-Nets run per frame (a new pose every frame) and the torch
+  rasteriser's uvs: fps over the wall clock, and the ms per stage (uv, cnn, sample, mlp) from a second,
+  synchronised pass; ``render_default_uv``: the same with ``uv="auto"`` (the C rasteriser where it builds);
 * ``agreement``: PSNR between one frame rendered on the device (torch rasteriser) and on the CPU with the
   same weights from the C/numpy rasteriser's rays (on ``--device cpu``: the two rasterisers);
 
 and once: ``trainer`` (``deliffas.engine.train.train`` on the shards with the torch uv source: it/s),
 ``trainer_default_uv`` (the same with ``uv="auto"``: the C rasteriser in the data workers where it builds) and
-``eval`` (``evaluate`` of the first run with the torch uv source: per-stage ms, fps, PSNR).
+``eval`` (``evaluate`` of the first run with the torch uv source: per-stage ms, fps, PSNR) and
+``eval_default_uv`` (``evaluate`` of the second run with ``uv="auto"``).
 
 Usage::
 
@@ -174,36 +176,39 @@ def _train(model, samples, info, device: torch.device, iters: int, k: int = 4) -
 
 
 @torch.no_grad()
-def _render_frame(model, sample, cam, info, device: torch.device, timer) -> torch.Tensor:
-    """One (H, W, 3) image of ``sample``'s pose from ``cam``: the U-Nets, then ``render_camera`` (torch uvs)."""
+def _render_frame(model, sample, cam, info, device: torch.device, timer, uv: str = "torch") -> torch.Tensor:
+    """One (H, W, 3) image of ``sample``'s pose from ``cam``: the U-Nets, then ``render_camera`` with the uvs of
+    ``uv``."""
     from deliffas.engine.shading import render_camera
     from deliffas.geometry.raycast import UVRaycaster
 
     with timer.stage("cnn"):
         features = model.encode(*sample.normal_maps(device))
     raycaster = UVRaycaster(sample.inner_verts, info["faces"], sample.outer_verts, info["atlas"])
-    return render_camera(model, features, raycaster, cam, device, timer, uv="torch")
+    return render_camera(model, features, raycaster, cam, device, timer, uv=uv)
 
 
-def _render(model, samples, info, device: torch.device, frames: int) -> dict:
-    """Frames with the U-Nets run per frame: fps over the wall clock (no per-stage synchronisation), then the
-    per-stage ms from a synchronised pass."""
+def _render(model, samples, info, device: torch.device, frames: int, uv: str = "torch") -> dict:
+    """Frames with the U-Nets run per frame and the uvs of ``uv``: fps over the wall clock (no per-stage
+    synchronisation), then the per-stage ms from a synchronised pass."""
+    from deliffas.engine.rays import uv_source
     from deliffas.engine.timing import STAGES, StageTimer
 
     model.eval()
     cam = samples[0].cameras[-1]
     for i in range(2):  # warm-up
-        _render_frame(model, samples[i % len(samples)], cam, info, device, StageTimer("cpu"))
+        _render_frame(model, samples[i % len(samples)], cam, info, device, StageTimer("cpu"), uv)
     _sync(device)
     t0 = time.perf_counter()
     for i in range(frames):
-        _render_frame(model, samples[i % len(samples)], cam, info, device, StageTimer("cpu"))
+        _render_frame(model, samples[i % len(samples)], cam, info, device, StageTimer("cpu"), uv)
     _sync(device)
     fps = frames / (time.perf_counter() - t0)
     timer = StageTimer(device)
     for i in range(frames):
-        _render_frame(model, samples[i % len(samples)], cam, info, device, timer)
-    return {"frames": frames, "fps": fps, "stage_ms": {s: timer.per_unit(frames)[s] for s in STAGES}}
+        _render_frame(model, samples[i % len(samples)], cam, info, device, timer, uv)
+    return {"frames": frames, "fps": fps, "stage_ms": {s: timer.per_unit(frames)[s] for s in STAGES},
+            "uv": uv_source(device, uv)}
 
 
 @torch.no_grad()
@@ -244,8 +249,10 @@ def _trainer_and_eval(shards: str, out: Path, device: torch.device, iters: int, 
         res = train(cfg)
         got[key] = {"preset": preset, "iters": res.iterations, "it_per_s": res.iters_per_second,
                     "stage_ms": res.stage_ms, "uv": uv_source(device, uv)}
-    ev = evaluate(EvalConfig(run=f"{out}_torch", split="novel_view", device=str(device), uv="torch"))
-    got["eval"] = {k: ev[k] for k in ("stage_ms", "fps", "fps_shared_cnn", "psnr", "images", "resolution", "uv")}
+    keys = ("stage_ms", "fps", "fps_shared_cnn", "psnr", "images", "resolution", "uv")
+    for key, uv in (("eval", "torch"), ("eval_default_uv", "auto")):
+        ev = evaluate(EvalConfig(run=f"{out}_{uv}", split="novel_view", device=str(device), uv=uv))
+        got[key] = {k: ev[k] for k in keys}
     return got
 
 
@@ -260,7 +267,8 @@ def run_checks(shards: str, device: torch.device, cases, trainer_iters: int, tra
     with tempfile.TemporaryDirectory() as tmp:
         _say(f"trainer + eval ({trainer_preset}, {trainer_iters} iterations, shards as stored)")
         out.update(_trainer_and_eval(shards, Path(tmp) / "run", device, trainer_iters, trainer_preset, model_name))
-        _say(json.dumps({k: out[k] for k in ("trainer", "trainer_default_uv", "eval")}, default=float))
+        _say(json.dumps({k: out[k] for k in ("trainer", "trainer_default_uv", "eval", "eval_default_uv")},
+                        default=float))
     for case in cases:
         _say(f"{model_name} {case.preset} at {case.width}x{case.height}")
         model, samples, info = _case_data(shards, case, device, model_name)
@@ -269,9 +277,11 @@ def run_checks(shards: str, device: torch.device, cases, trainer_iters: int, tra
         row["train"] = _train(model, samples, info, device, case.iters)
         _say(f"  train  {row['train']['it_per_s']:.2f} it/s (uv {row['train']['uv_ms_per_step']:.2f} ms/step)")
         row["render"] = _render(model, samples, info, device, case.render_frames)
-        ms = row["render"]["stage_ms"]
-        _say(f"  render {row['render']['fps']:.1f} fps, U-Nets per frame; ms uv {ms['uv']:.2f} cnn {ms['cnn']:.2f} "
-             f"sample {ms['sample']:.2f} mlp {ms['mlp']:.2f}")
+        row["render_default_uv"] = _render(model, samples, info, device, case.render_frames, "auto")
+        for key in ("render", "render_default_uv"):
+            ms = row[key]["stage_ms"]
+            _say(f"  render {row[key]['fps']:.1f} fps, U-Nets per frame, uv {row[key]['uv']}; ms uv {ms['uv']:.2f} "
+                 f"cnn {ms['cnn']:.2f} sample {ms['sample']:.2f} mlp {ms['mlp']:.2f}")
         row["agreement"] = _agreement(model, samples[0], info, device)
         row["rays_per_image"] = row["agreement"]["rays"]
         _say(f"  agreement {row['agreement']['psnr_db']:.1f} dB vs {row['agreement']['reference']} "

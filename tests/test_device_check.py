@@ -34,12 +34,15 @@ def test_device_check_on_cpu_without_the_geometry_packages(tmp_path):
     record = json.loads(out.read_text())
     assert record["passed"] and record["device"] == "cpu"
     assert record["eval"]["uv"] == "torch" and set(record["eval"]["stage_ms"]) == {"uv", "cnn", "sample", "mlp"}
+    assert record["eval_default_uv"]["uv"] == "raster" and record["eval_default_uv"]["fps"] > 0
     assert record["trainer"]["it_per_s"] > 0 and record["trainer"]["uv"] == "torch"
     assert record["trainer_default_uv"]["it_per_s"] > 0 and record["trainer_default_uv"]["uv"] == "raster"
     assert [c["preset"] for c in record["cases"]] == ["tiny", "small"]
     for case in record["cases"]:
         assert case["train"]["it_per_s"] > 0 and case["render"]["fps"] > 0
         assert set(case["render"]["stage_ms"]) == {"uv", "cnn", "sample", "mlp"}
+        assert case["render"]["uv"] == "torch" and case["render_default_uv"]["uv"] == "raster"
+        assert case["render_default_uv"]["fps"] > 0
         assert case["agreement"]["psnr_db"] >= 50 and case["rays_per_image"] > 0
     assert "[device_check] python" in r.stdout and "passed" in r.stdout
 
