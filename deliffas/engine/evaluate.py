@@ -121,7 +121,8 @@ def evaluate(cfg: EvalConfig) -> dict:
         "stage_ms": stage_ms,
         "fps": 1000.0 / total_single if total_single > 0 else None,
         "fps_shared_cnn": n_images / t_wall if t_wall > 0 else None,
-        "device": str(device), "uv": "rasterize (C)" if fast else uv_source(device, cfg.uv),
+        "device": str(device),
+        "uv": "rasterize (C)" if fast else uv_source(device, cfg.uv, sample.images.shape[1] * sample.images.shape[2]),
         "render_path": (f"fast ({'fused fp32' if fast.fused else fast.torch_dtype()})" if fast else "plain"),
         "perceptual_backbone": record.get("perceptual_backbone"),
     }

@@ -31,17 +31,27 @@ from deliffas.io.cameras import Camera
 from deliffas.models.ray_query import RayBatch, paint_images, ray_query, stack_rays
 
 __all__ = ["CameraRays", "camera_rays", "frame_rays", "RayBatch", "stack_rays", "ray_query", "paint_images",
-           "UVSource", "UV_SOURCES", "uv_source", "torch_camera_rays", "torch_frame_rays", "raster_frame_rays",
-           "device_camera_rays"]
+           "UVSource", "UV_SOURCES", "RASTER_MAX_PIXELS_ON_GPU", "uv_source", "torch_camera_rays", "torch_frame_rays",
+           "raster_frame_rays", "device_camera_rays"]
 
 
-def uv_source(device: torch.device | str, requested: str = "auto") -> Literal["raster", "raycast", "torch"]:
-    """The resolved uv source for a model on ``device`` (``UV_SOURCES``; ValueError naming the choices)."""
+RASTER_MAX_PIXELS_ON_GPU = 1 << 19
+"""Above this many pixels per image, ``uv="auto"`` renders on CUDA with the torch rasteriser: the C one runs on one
+CPU core in the rendering process, on the frame's critical path (on an H100, docs/performance.md "GPU": faster
+at 256², even at 384²-724², slower at 1024² and 940 x 1285)."""
+
+
+def uv_source(device: torch.device | str, requested: str = "auto",
+              pixels: int | None = None) -> Literal["raster", "raycast", "torch"]:
+    """The resolved uv source for a model on ``device`` (``UV_SOURCES``; ValueError naming the choices).
+    ``pixels``: an image's size where its uvs are made in the rendering process (None in the data workers); on
+    CUDA, ``auto`` takes the torch rasteriser above ``RASTER_MAX_PIXELS_ON_GPU``."""
     check_uv_source(requested)
     if requested == "auto":
-        if raster_kernel_available():
+        cuda = torch.device(device).type == "cuda"
+        if raster_kernel_available() and not (cuda and pixels is not None and pixels > RASTER_MAX_PIXELS_ON_GPU):
             return "raster"
-        return "torch" if torch.device(device).type == "cuda" else "raycast"
+        return "torch" if cuda else "raycast"
     return requested  # type: ignore[return-value]
 
 
@@ -89,7 +99,7 @@ def device_camera_rays(raycaster: UVRaycaster, camera: Camera, device: torch.dev
     the same frame (numpy), or the torch rasteriser's on ``device`` (tensors; built once per ray caster and
     device)."""
     device = torch.device(device)
-    source = uv_source(device, uv)
+    source = uv_source(device, uv, camera.width * camera.height)
     if source == "raycast":
         return camera_rays(raycaster, camera)
     if source == "raster":

@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from deliffas.engine.data_bridge import evaluation_samples, shard_info, with_torch_rays
-from deliffas.engine.rays import raster_frame_rays, uv_source
+from deliffas.engine.rays import RASTER_MAX_PIXELS_ON_GPU, raster_frame_rays, uv_source
 from deliffas.fast.rasterize import raster_kernel_available
 from deliffas.engine.train import TrainConfig, resolve_model_config, train_step
 from deliffas.models.deliffas import DeliffasModel
@@ -36,6 +36,9 @@ def test_uv_source_is_chosen_by_device(monkeypatch):
 
     assert raster_kernel_available()  # a C compiler is part of the set-up: auto is the C rasteriser everywhere
     assert uv_source("cpu") == "raster" and uv_source("cuda") == "raster"
+    big = RASTER_MAX_PIXELS_ON_GPU + 1  # an image rendered in the rendering process: the C rasteriser's one core
+    assert uv_source("cuda", pixels=big) == "torch" and uv_source("cuda", pixels=256 * 256) == "raster"
+    assert uv_source("cpu", pixels=big) == "raster" and uv_source("cuda", "raster", pixels=big) == "raster"
     monkeypatch.setattr(rays, "raster_kernel_available", lambda: False)  # no C compiler
     assert uv_source("cpu") == "raycast" and uv_source("cuda") == "torch" and uv_source("cuda:1") == "torch"
     assert uv_source("cpu", "torch") == "torch" and uv_source("cuda", "raycast") == "raycast"
