@@ -251,14 +251,13 @@ class UNet(nn.Module):
         x = skips.pop()  # bottleneck (B, C_{L-1}, H / 2^L, W / 2^L)
         for block in self.up:
             x = torch.cat([block(x), skips.pop()], dim=1)  # (B, 2 C_i, H / 2^(i+1), W / 2^(i+1))
-        y = self.final(x)
         # (tanh(y) + 1) / 2 == sigmoid(2 y) exactly in real arithmetic (within 1.2e-7 in float32);
         # sigmoid is ~5x cheaper than tanh on CPU and needs one pass less
         if torch.is_grad_enabled():
-            self.last_logits = 2.0 * y
+            self.last_logits = self.final(x, scale=2.0)  # 2 y, the factor in the weights
             return torch.sigmoid(self.last_logits)
         self.last_logits = None
-        return y.mul_(2.0).sigmoid_()  # inference: in place
+        return self.final(x).mul_(2.0).sigmoid_()  # inference: in place
 
     def _epilogues(self) -> tuple[list[Epilogue], list[Epilogue], Epilogue] | None:
         """The norms and activations of every block as conv epilogues, or None when one of them

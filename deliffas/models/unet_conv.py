@@ -82,6 +82,7 @@ class ConvTranspose2d(nn.ConvTranspose2d):
     """``nn.ConvTranspose2d`` (same parameters, same result up to float rounding) tuned for CPU:
     large maps in channels_last, small maps as one matrix product followed by ``fold`` (col2im).
 
+    ``forward(x, scale=k)`` is ``k x forward(x)`` with ``k`` in the weights (the U-Net's training forward).
     Outside autograd, ``forward(x, epilogue=..., out=...)`` also applies a per-channel scale, shift
     and activation (the U-Net's norm and ReLU) and writes the result into ``out`` (e.g. the first
     half of the skip concatenation's buffer), which it returns; weights are prepacked into
@@ -95,8 +96,13 @@ class ConvTranspose2d(nn.ConvTranspose2d):
         epilogue: Epilogue | None = None,
         out: torch.Tensor | None = None,
         prepacked: PrepackCache | None = None,
+        scale: float = 1.0,
     ) -> torch.Tensor:
         check_fused(epilogue, out)
+        if scale != 1.0:  # the U-Net's training forward: its final layer times 2
+            if epilogue is not None or out is not None or output_size is not None:
+                raise ValueError("ConvTranspose2d: scale takes no epilogue, out or output_size")
+            return self._scaled(x, scale)
         if epilogue is not None and prepacked is not None and output_size is None:
             y = packed_conv(self, dense_layout(x), epilogue, prepacked, out)
             if y is not None:
@@ -116,6 +122,16 @@ class ConvTranspose2d(nn.ConvTranspose2d):
         if y is None:
             y = epilogue.activate_(self._conv_transpose(x, weight, bias))
         return finish_output(y, None, out)
+
+    def _scaled(self, x: torch.Tensor, scale: float) -> torch.Tensor:
+        """``scale x`` the plain forward with the factor in the weights and bias, not in a pass over the output
+        (for a power of two the same values: doubling is exact in floating point)."""
+        if self.output_padding != (0, 0):
+            return super().forward(x) * scale
+        if gemm_ok(x, self):
+            return self._gemm(x) * scale
+        bias = None if self.bias is None else self.bias * scale
+        return self._conv_transpose(cpu_layout(x, CONV_TRANSPOSE_CHANNELS_LAST_MIN_PIXELS), self.weight * scale, bias)
 
     def _conv_transpose(self, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None) -> torch.Tensor:
         return F.conv_transpose2d(x, weight, bias, self.stride, self.padding, self.output_padding, self.groups,

@@ -137,6 +137,28 @@ def test_unet_keeps_the_logits_of_its_training_forward_only():
     assert net.last_logits is None  # nothing held after inference
 
 
+@pytest.mark.parametrize("side", [16, 256])  # the final layer as a matrix product, and by oneDNN in channels_last
+def test_unet_training_logits_are_its_final_layer_doubled_exactly(side):
+    """The factor 2 of sigmoid(2 y) sits in the final layer's weights during training: the same values as
+    doubling its output (exact in floating point), without the pass over the map."""
+    from deliffas.models.unet import UNet, UNetConfig
+
+    torch.manual_seed(0)
+    net = UNet(UNetConfig(in_channels=3, out_channels=4, base_channels=4, max_channels=8), side)
+    x = torch.randn(1, 3, side, side)
+    net(x)
+    skips, h = [], x
+    for block in net.down:
+        h = block(h)
+        skips.append(h)
+    h = skips.pop()
+    for block in net.up:
+        h = torch.cat([block(h), skips.pop()], dim=1)
+    assert torch.equal(net.last_logits, 2.0 * net.final(h))
+    with pytest.raises(ValueError, match="scale takes no epilogue"):
+        net.final(h, scale=2.0, output_size=[2 * side, 2 * side])
+
+
 @pytest.mark.parametrize("channels_last", [False, True])
 def test_saturation_penalty_value_and_gradient_equal_the_composed_expression(channels_last):
     g = torch.Generator().manual_seed(0)
