@@ -66,7 +66,7 @@ T = TypeVar("T")
 def frame_features_bytes(features) -> int:
     """F of :func:`render_peak_bound`: the bytes of a frame's ``FrameFeatures`` (the inner and outer feature maps,
     texture channels included, and the inner normals that a reflected-view-direction variant keeps)."""
-    maps = (features.inner, features.outer, features.normals)
+    maps = (features.inner, features.outer, features.normals, features.inner_texture, features.outer_texture)
     return sum(t.numel() * t.element_size() for t in maps if t is not None)
 
 

@@ -136,7 +136,7 @@ def _blocked_backward(model: DeliffasModel, sample: FrameSample, device: torch.d
     Returns the loss terms and the mean squared error over the shaded values.
     """
     batch, query = _rays(model, sample, device)
-    features = model.encode(*sample.normal_maps(device))
+    features = model.encode(*sample.normal_maps(device), joined=False)  # atlases sampled apart: no joined maps
     encoded, feats = model.gather_inputs(features, query)  # (N, E) without, (N, C) with a graph
     target_rays = _targets(sample, batch, device)[1]
     n = batch.num_rays

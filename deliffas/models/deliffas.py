@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from typing import Literal
 
 import torch
 import torch.nn.functional as F
@@ -150,7 +151,10 @@ class FrameFeatures:
         normals: see below.
 
     With ``ModelConfig.texture_channels`` = C_t > 0 each map carries C_t more channels: its learnable
-    texture atlas, appended after the U-Net channels (same for every frame).
+    texture atlas, appended after the U-Net channels (same for every frame). ``encode(..., joined=False)``
+    (the CPU training step) keeps the atlases apart instead, in ``inner_texture`` / ``outer_texture``, and
+    the lookups sample them separately: the same values, without writing the joined maps (and splitting their
+    gradient) every step.
 
     :meth:`DeliffasModel.encode` stores both in channels_last memory format (texel channels
     adjacent), which makes the per-ray lookups several times faster on large maps.
@@ -161,6 +165,21 @@ class FrameFeatures:
     normals: torch.Tensor | None = None
     """(B, 3, S, S) the current frame's inner normals (the first three channels of the normal maps), channels_last;
     set by :meth:`DeliffasModel.encode` for variants with ``reflect_viewdir`` only."""
+    inner_texture: torch.Tensor | None = None
+    """(1, C_t, S_t, S_t) the inner texture atlas, channels_last, where ``inner`` does not carry it."""
+    outer_texture: torch.Tensor | None = None
+    """(1, C_t, S_t, S_t) the outer texture atlas, channels_last, where ``outer`` does not carry it."""
+
+    def sample(self, surface: Literal["inner", "outer"], batch_index: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+        """(N, C + C_t) the ``surface``'s features at ``uv`` (:func:`~deliffas.geometry.sampling.sample_uv`),
+        its texture atlas's channels last."""
+        maps = self.inner if surface == "inner" else self.outer
+        texture = self.inner_texture if surface == "inner" else self.outer_texture
+        assert maps is not None
+        values = sample_uv(maps, batch_index, uv)
+        if texture is None:
+            return values
+        return torch.cat([values, sample_uv(texture, torch.zeros_like(batch_index), uv)], dim=-1)
 
     @property
     def batch_size(self) -> int:
@@ -216,7 +235,8 @@ class DeliffasModel(nn.Module):
         return [net.last_logits for net in nets if net.last_logits is not None]
 
     # ------------------------------------------------------------------ stage 1: per frame
-    def encode(self, normal_inner: torch.Tensor, normal_outer: torch.Tensor | None = None) -> FrameFeatures:
+    def encode(self, normal_inner: torch.Tensor, normal_outer: torch.Tensor | None = None, *,
+               joined: bool = True) -> FrameFeatures:
         """Run the U-Net(s) on a batch of temporal normal maps.
 
         Args:
@@ -224,6 +244,9 @@ class DeliffasModel(nn.Module):
                 f, f-1, ..., f-T stacked along channels.
             normal_outer: (B, 3 (T + 1), S, S), outer-surface normals; required when the
                 variant has an outer U-Net, ignored otherwise.
+            joined: the texture atlases appended to the maps' channels (for renderers, which sample each
+                frame's maps many times); False keeps them apart (``FrameFeatures.inner_texture``: the
+                training step, whose maps change every step and are sampled once).
 
         Returns:
             The frame's feature maps.
@@ -231,19 +254,22 @@ class DeliffasModel(nn.Module):
         cfg = self.config
         shape = f"B {cfg.input_channels} {cfg.atlas_res} {cfg.atlas_res}"
         sizes = check_shape("normal_inner", normal_inner, shape)
+        split = not joined and cfg.texture_scale == 1  # finer atlases: the maps upsampled and joined to them
         maps = [net(normal_inner) for net in self.inner_unets()]
-        inner = self._with_texture(maps, self.texture_inner)  # (B, n C + C_t, S, S)
+        inner = self._with_texture(maps, None if split else self.texture_inner)  # (B, n C [+ C_t], S, S)
         outer = None
         if self.unet_outer is not None:
             if normal_outer is None:
                 raise ValueError(f"encode: normal_outer is required for variant {cfg.variant!r}")
             check_shape("normal_outer", normal_outer, shape, sizes)
-            outer = self._with_texture([self.unet_outer(normal_outer)], self.texture_outer)
-            outer = outer.contiguous(memory_format=torch.channels_last)
+            outer = self._with_texture([self.unet_outer(normal_outer)], None if split else self.texture_outer)
         normals = None
         if self.spec.reflect_viewdir:
             normals = normal_inner[:, :3].contiguous(memory_format=torch.channels_last)
-        return FrameFeatures(inner=inner.contiguous(memory_format=torch.channels_last), outer=outer, normals=normals)
+        apart = [t.contiguous(memory_format=torch.channels_last) if split and t is not None else None
+                 for t in (self.texture_inner, self.texture_outer)]
+        return FrameFeatures(inner=inner, outer=outer, normals=normals, inner_texture=apart[0],
+                             outer_texture=apart[1])
 
     @staticmethod
     def _with_texture(maps: list[torch.Tensor], texture: torch.Tensor | None) -> torch.Tensor:
@@ -259,7 +285,7 @@ class DeliffasModel(nn.Module):
             maps = [*maps, texture.to(maps[0].dtype).expand(maps[0].shape[0], -1, -1, -1)]
         if len(maps) == 1:
             return maps[0].contiguous(memory_format=torch.channels_last)
-        return torch.cat([m.permute(0, 2, 3, 1) for m in maps], dim=3).permute(0, 3, 1, 2)
+        return torch.cat([m.permute(0, 2, 3, 1) for m in maps], dim=3).permute(0, 3, 1, 2)  # channels_last
 
     def texture_parameters(self) -> list[nn.Parameter]:
         """The texture atlases (empty without ``texture_channels``): the optimiser may give them their own rate."""
@@ -295,9 +321,9 @@ class DeliffasModel(nn.Module):
         if spec.inner_from_outer:
             feats = self._sample_peeled(features, query.batch_index, query.uv_outer, query.uv_inner, peel)
         else:
-            feats = [sample_uv(features.inner, query.batch_index, query.uv_inner)]  # (N, n C)
+            feats = [features.sample("inner", query.batch_index, query.uv_inner)]  # (N, n C [+ C_t])
             if spec.outer_unet:
-                feats.insert(0, sample_uv(features.outer, query.batch_index, query.uv_outer))  # (N, C)
+                feats.insert(0, features.sample("outer", query.batch_index, query.uv_outer))  # (N, C [+ C_t])
         uvs = {"inner": query.uv_inner, "outer": query.uv_outer}
         encoded = [(uvs[surface], self.pe_uv) for surface in spec.encoded_uvs]
         if self.pe_viewdir is not None:
@@ -335,14 +361,14 @@ class DeliffasModel(nn.Module):
         assert features.outer is not None
         peeled = None if inner_from_outer is None else inner_from_outer.nonzero().squeeze(1)
         if peeled is None or not len(peeled):
-            return [sample_uv(features.outer, batch_index, uv_outer), sample_uv(features.inner, batch_index, uv_inner)]
+            return [features.sample("outer", batch_index, uv_outer), features.sample("inner", batch_index, uv_inner)]
         n = uv_outer.shape[0]
-        both = sample_uv(features.outer, torch.cat([batch_index, batch_index[peeled]]),
-                         torch.cat([uv_outer, uv_inner[peeled]]))
+        both = features.sample("outer", torch.cat([batch_index, batch_index[peeled]]),
+                               torch.cat([uv_outer, uv_inner[peeled]]))
         if len(peeled) == n:
             return [both[:n], both[n:]]
         kept = (~inner_from_outer).nonzero().squeeze(1)
-        vals = sample_uv(features.inner, batch_index[kept], uv_inner[kept])
+        vals = features.sample("inner", batch_index[kept], uv_inner[kept])
         inner = vals.new_zeros(n, vals.shape[1]).index_copy(0, kept, vals).index_copy(0, peeled, both[n:])
         return [both[:n], inner]
 

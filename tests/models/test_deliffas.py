@@ -249,3 +249,41 @@ def test_tiny_two_surface_overfits_one_frame():
         opt.step()
         losses.append(float(loss.detach()))
     assert losses[-1] < losses[0] / 5, (losses[0], losses[-1])
+
+
+@pytest.mark.parametrize("variant", ["two_surface", "single_surface_two_unet"])
+@pytest.mark.parametrize("batch", [1, 2])
+def test_atlases_sampled_apart_give_the_joined_maps_values_and_gradients(variant, batch):
+    """``encode(joined=False)`` (the training step) samples the texture atlases apart from the U-Net maps: the
+    same MLP inputs and the same gradient of every parameter as the joined maps, peeled rays included."""
+    gen = torch.Generator().manual_seed(5)
+    torch.manual_seed(0)
+    model = DeliffasModel(tiny_config(variant, texture_channels=3))
+    with torch.no_grad():
+        for t in model.texture_parameters():
+            t.normal_(generator=gen)
+    normals = torch.randn(batch, 9, S, S, generator=gen)
+    rays = make_rays(50, batch, gen)
+    peel = torch.rand(50, generator=gen) < 0.4
+    query = RayQuery(**rays, inner_from_outer=peel if model.spec.inner_from_outer else None)
+    weights = torch.randn(50, model.mlp.feature_dim, generator=gen)
+    got = {}
+    for joined in (True, False):
+        model.zero_grad()
+        features = model.encode(normals, normals.flip(-1), joined=joined)
+        assert (features.inner_texture is None) == joined
+        encoded, feats = model.gather_inputs(features, query)
+        (feats * weights).sum().backward()
+        got[joined] = feats.detach(), {n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None}
+    torch.testing.assert_close(got[False][0], got[True][0])
+    assert got[False][1].keys() == got[True][1].keys() and any("texture" in n for n in got[True][1])
+    for name, grad in got[True][1].items():
+        torch.testing.assert_close(got[False][1][name], grad, msg=name)
+
+
+def test_atlases_finer_than_the_maps_stay_joined():
+    """With ``texture_scale`` > 1 the U-Net maps are upsampled to the atlas side and joined to it either way."""
+    model = DeliffasModel(tiny_config("two_surface", texture_channels=3, texture_scale=2))
+    normals = torch.randn(1, 9, S, S)
+    features = model.encode(normals, normals, joined=False)
+    assert features.inner_texture is None and features.inner.shape == (1, 4 + 3, 2 * S, 2 * S)
