@@ -19,29 +19,32 @@ conv = torch.nn.Conv2d(32, 32, 3, padding=1, bias=False)
 x = torch.rand(1, 32, 256, 256)
 steady = []
 with torch.inference_mode():
-    for i in range(12):  # a render loop: the same 8 MiB conv output allocated and freed every frame
+    for i in range(16):  # a render loop: the same 8 MiB conv output allocated and freed every frame
         before = faults()
         conv(x)
         steady.append(faults() - before)
-print(applied, sum(steady[-4:]))  # once glibc's free lists have settled
+print(applied, ",".join(map(str, steady[-8:])))  # once glibc's free lists have settled
 """
 
 
-def _second_allocation_faults(mode: str) -> tuple[str, int]:
+def _faulting_calls(mode: str) -> tuple[str, list[int]]:
+    """Whether the tuning applied, and the page faults of each of the loop's last 8 calls."""
     out = subprocess.run([sys.executable, "-c", _PROBE, mode], capture_output=True, text=True, check=True)
     applied, faults = out.stdout.split()
-    return applied, int(faults)
+    return applied, [int(f) for f in faults.split(",")]
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc malloc tuning is Linux-only")
 def test_retained_memory_is_not_faulted_in_again():
     """With glibc's defaults a conv's freed 8 MiB output is returned to the system and its 2048+
     pages fault in again on every call; after retain_freed_memory() the loop reuses heap memory."""
-    applied, retained = _second_allocation_faults("retain")
+    applied, retained = _faulting_calls("retain")
     if applied != "True":
         pytest.skip("not glibc: retain_freed_memory() changes nothing")
-    _, default = _second_allocation_faults("default")
-    assert retained < 400, f"retained: expected no page faults, got {retained} in 4 calls"
-    # glibc's default sometimes keeps a freed block for a call or two (4075 in 4 calls seen in a loaded CI
-    # run, 2048+ per call when quiet): what the fix must show is that it faults far less than the default.
-    assert default > retained + 2000, f"default allocator: expected 2048+ page faults per call, got {default} in 4"
+    _, default = _faulting_calls("default")
+    # a call that faults its output in again: 2048+ pages. Retained, the loop reuses its heap, though a rare
+    # call still faults (one of the last 4 calls in 2 of 7 runs on a 2-core Zen 5, cause not found); glibc's
+    # default faults most calls (it sometimes keeps a freed block for a call or two).
+    faulting = lambda calls: sum(f > 1024 for f in calls)  # noqa: E731
+    assert faulting(retained) <= 1, f"retained: expected no call to fault its output in again, got {retained}"
+    assert faulting(default) >= 5, f"default allocator: expected most calls to fault 2048+ pages, got {default}"
