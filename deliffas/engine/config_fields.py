@@ -28,8 +28,8 @@ def check_uv_source(requested: str) -> None:
 def uv_field() -> Any:
     """``uv: UVSource``: where the uv maps come from (``engine.rays.uv_source`` resolves ``auto``)."""
     return opt("auto", help="uv maps: raster (the C rasteriser, CPU), raycast (open3d, CPU), torch (the torch "
-                            "rasteriser on --device); auto = raster where its C kernel builds, else torch on CUDA "
-                            "and raycast on the CPU")
+                            "rasteriser on --device); auto = raster where its C kernel builds (on CUDA, for "
+                            "rendering: images of at most 2^19 pixels), else torch on CUDA and raycast on the CPU")
 
 
 def device_field() -> Any:

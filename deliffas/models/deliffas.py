@@ -266,8 +266,8 @@ class DeliffasModel(nn.Module):
         normals = None
         if self.spec.reflect_viewdir:
             normals = normal_inner[:, :3].contiguous(memory_format=torch.channels_last)
-        apart = [t.contiguous(memory_format=torch.channels_last) if split and t is not None else None
-                 for t in (self.texture_inner, self.texture_outer)]
+        textures = (self.texture_inner, self.texture_outer) if split else (None, None)
+        apart = [None if t is None else t.contiguous(memory_format=torch.channels_last) for t in textures]
         return FrameFeatures(inner=inner, outer=outer, normals=normals, inner_texture=apart[0],
                              outer_texture=apart[1])
 
