@@ -43,13 +43,19 @@ def run() -> None:
     else:
         sys.unraisablehook = _deliver_lost_interrupt
         signal.signal(signal.SIGINT, signal.default_int_handler)
-        code = main()
+        try:
+            code = main()
+        except SystemExit as exit_:  # --help, or a command line argparse refused: ended as well
+            code = exit_.code
     if code == 130:
         # interrupted and reported: leave now. The interpreter's exit would join worker pools and threads that the
         # Ctrl-C also reached, and one of them could end the process by the signal after the line was printed.
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(130)
+    # the work is done and reported: a Ctrl-C while the interpreter exits (it restores the default handler late in
+    # its exit, and that one would end the process by the signal) no longer changes the outcome
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     raise SystemExit(code)
 
 

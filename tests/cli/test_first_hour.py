@@ -223,6 +223,30 @@ def test_6_ctrl_c_that_lands_in_a_finaliser_still_interrupts(tmp_path):
     assert lines[0].startswith("deliffas convert: interrupted"), lines[0]
 
 
+_INTERRUPT_AT_EXIT = """
+import atexit, os, signal
+
+def _ctrl_c_at_exit():
+    with open("sigint_at_exit.txt", "w") as f:  # what a Ctrl-C later in the exit meets (Python keeps SIG_IGN)
+        f.write(str(signal.getsignal(signal.SIGINT) is signal.SIG_IGN))
+    os.kill(os.getpid(), signal.SIGINT)
+
+atexit.register(_ctrl_c_at_exit)
+"""
+
+
+def test_6_ctrl_c_after_the_command_ended_keeps_its_exit_code(tmp_path):
+    """A Ctrl-C that lands while the interpreter exits, after the command's work and its report: the command's own
+    exit code and no traceback, not the signal's exit (-2: Python restores the default handler late in its exit),
+    which would tell a script that the work did not finish."""
+    (tmp_path / "sitecustomize.py").write_text(_INTERRUPT_AT_EXIT)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), str(REPO)]), OMP_NUM_THREADS="1")
+    res = subprocess.run([sys.executable, "-m", "deliffas", "convert", "capture", "out"], cwd=tmp_path, env=env,
+                         text=True, capture_output=True, timeout=300)
+    assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1, res.stderr
+    assert (tmp_path / "sigint_at_exit.txt").read_text() == "True"
+
+
 def test_7_help_states_defaults():
     from deliffas.engine.train_config import TrainConfig
 
