@@ -193,6 +193,7 @@ def train_step(model: DeliffasModel, sample: FrameSample, optimizer: torch.optim
         optimizer.zero_grad(set_to_none=True)
         return {"l1": 0.0, "loss": 0.0, "psnr_rays": float("nan"), "skipped": 1.0}
     model.train()
+    model.track_saturation(None if saturation is None else saturation.margin)  # computed with the sigmoid
     optimizer.zero_grad(set_to_none=True)
     if ray_chunk is not None and num_rays > ray_chunk:
         out, mse = _chunked_backward(model, sample, device, perceptual, perceptual_weight, generator, ray_chunk,

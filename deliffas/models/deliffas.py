@@ -229,10 +229,26 @@ class DeliffasModel(nn.Module):
         """The U-Nets on the inner normal maps, in the order their maps are concatenated."""
         return [self.unet_inner] + [getattr(self, f"unet_inner_{i}") for i in range(2, self.spec.inner_unets + 1)]
 
+    def _unets(self) -> list[UNet]:
+        return self.inner_unets() + ([self.unet_outer] if self.unet_outer is not None else [])
+
     def feature_logits(self) -> list[torch.Tensor]:
         """The sigmoid inputs of every U-Net's last forward with autograd on (``UNet.last_logits``)."""
-        nets = self.inner_unets() + ([self.unet_outer] if self.unet_outer is not None else [])
-        return [net.last_logits for net in nets if net.last_logits is not None]
+        return [net.last_logits for net in self._unets() if net.last_logits is not None]
+
+    def track_saturation(self, margin: float | None) -> None:
+        """Have every U-Net's forward with autograd on compute its saturation penalty at ``margin`` (None: not),
+        read by :meth:`feature_penalties`."""
+        for net in self._unets():
+            net.saturation_margin = margin
+
+    def feature_penalties(self, margin: float) -> list[torch.Tensor] | None:
+        """The saturation penalties at ``margin`` of every U-Net's last forward with autograd on
+        (``UNet.last_penalty``), or None when one of those forwards did not compute it at that margin."""
+        nets = [net for net in self._unets() if net.last_logits is not None]
+        if any(net.last_penalty is None or net.saturation_margin != margin for net in nets):
+            return None
+        return [net.last_penalty for net in nets]
 
     # ------------------------------------------------------------------ stage 1: per frame
     def encode(self, normal_inner: torch.Tensor, normal_outer: torch.Tensor | None = None, *,

@@ -304,8 +304,13 @@ class SaturationTerm:
             raise ValueError(f"SaturationTerm: weight and margin must be > 0, got {self.weight}, {self.margin}")
 
     def penalty(self, model) -> torch.Tensor:
-        """() the unweighted penalty of ``model`` (a DeliffasModel) after its training forward."""
-        return saturation_penalty(model.feature_logits(), self.margin)
+        """() the unweighted penalty of ``model`` (a DeliffasModel) after its training forward: the penalties its
+        U-Nets computed with their sigmoid (``DeliffasModel.track_saturation(margin)`` before the forward), else
+        :func:`saturation_penalty` of their logits."""
+        terms = model.feature_penalties(self.margin)
+        if terms is None:
+            return saturation_penalty(model.feature_logits(), self.margin)
+        return torch.stack(terms).sum() if terms else torch.zeros(())
 
 
 def step_loss(

@@ -46,6 +46,7 @@ from typing import Literal
 import torch
 from torch import nn
 
+from deliffas.models.feature_sigmoid import sigmoid_with_penalty
 from deliffas.models.unet_conv import Conv2d, ConvTranspose2d
 from deliffas.models.unet_cpu import CONV_TRANSPOSE_CHANNELS_LAST_MIN_PIXELS, Epilogue, new_map
 from deliffas.models.unet_prepack import PrepackCache
@@ -203,6 +204,12 @@ class UNet(nn.Module):
         self.last_logits: torch.Tensor | None = None
         """(B, out_channels, H, W) the final sigmoid's inputs of the last forward with autograd on
         (None after one without): what :func:`deliffas.models.losses.saturation_penalty` reads."""
+        self.saturation_margin: float | None = None
+        """When set, a forward with autograd on also computes the saturation penalty of its logits at this
+        margin (:attr:`last_penalty`), in the sigmoid's autograd node (:mod:`deliffas.models.feature_sigmoid`)."""
+        self.last_penalty: torch.Tensor | None = None
+        """() ``mean(relu(|last_logits| - saturation_margin)^2)`` of the last forward with autograd on and a
+        ``saturation_margin``, else None."""
         self.reset_parameters()
 
     @property
@@ -242,7 +249,7 @@ class UNet(nn.Module):
         if self._prepacked is not None and not torch.is_grad_enabled() and x.device.type == "cpu":
             epilogues = self._epilogues()
             if epilogues is not None:
-                self.last_logits = None
+                self.last_logits = self.last_penalty = None
                 return self._forward_fused(x, *epilogues)
         skips = []
         for block in self.down:
@@ -253,9 +260,13 @@ class UNet(nn.Module):
             x = torch.cat([block(x), skips.pop()], dim=1)  # (B, 2 C_i, H / 2^(i+1), W / 2^(i+1))
         # (tanh(y) + 1) / 2 == sigmoid(2 y) exactly in real arithmetic (within 1.2e-7 in float32);
         # sigmoid is ~5x cheaper than tanh on CPU and needs one pass less
+        self.last_penalty = None
         if torch.is_grad_enabled():
             self.last_logits = self.final(x, scale=2.0)  # 2 y, the factor in the weights
-            return torch.sigmoid(self.last_logits)
+            if self.saturation_margin is None:
+                return torch.sigmoid(self.last_logits)
+            features, self.last_penalty = sigmoid_with_penalty(self.last_logits, self.saturation_margin)
+            return features
         self.last_logits = None
         return self.final(x).mul_(2.0).sigmoid_()  # inference: in place
 
