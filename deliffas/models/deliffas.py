@@ -217,8 +217,11 @@ class DeliffasModel(nn.Module):
             setattr(self, f"unet_inner_{i}", UNet(unet_cfg, size))
         self.unet_outer = UNet(unet_cfg, size) if spec.outer_unet else None
         ct, side = config.texture_channels, config.texture_scale * size
-        self.texture_inner = nn.Parameter(torch.zeros(1, ct, side, side)) if ct else None
-        self.texture_outer = nn.Parameter(torch.zeros(1, ct, side, side)) if ct and spec.outer_unet else None
+        # channels-last, the layout the sampler reads and its backward writes: no copy of an atlas or of its
+        # gradient per step (the state_dict's values are the same; checkpoints store them contiguous)
+        atlas = lambda: nn.Parameter(torch.zeros(1, ct, side, side).contiguous(memory_format=torch.channels_last))  # noqa: E731
+        self.texture_inner = atlas() if ct else None
+        self.texture_outer = atlas() if ct and spec.outer_unet else None
         self.pe_uv = PositionalEncoding(2, config.pe_freqs)
         self.pe_viewdir = PositionalEncoding(3, config.viewdir_pe_freqs) if spec.viewdir else None
         in_dim = spec.encoded_dim(self.pe_uv.out_dim, self.pe_viewdir.out_dim if self.pe_viewdir else 0)

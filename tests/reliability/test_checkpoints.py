@@ -231,3 +231,32 @@ def test_train_resume_cli_names_the_truncated_state_file(tmp_path, capsys):
                    "--out", str(run), "--iters", "1", "--resume"])
     err = capsys.readouterr().err
     assert rc == 2 and "train_state.json" in err and "Traceback" not in err
+
+
+def test_a_resumed_step_equals_the_uninterrupted_one_with_channels_last_atlases(tmp_path):
+    """The texture atlases are channels-last parameters; their Adam moments, stored contiguous, come back in the
+    parameter's layout, so that Adam's fused kernel (which pairs tensors by memory) takes the same step after a
+    resume as without one."""
+    from deliffas.engine.train import TrainConfig, make_optimizer
+
+    def model_and_optimizer():
+        torch.manual_seed(0)
+        model = DeliffasModel(get_config("two_surface_reflect_texture", "tiny"))
+        return model, make_optimizer(model, TrainConfig(shards="-", out="-"))
+
+    def step(model, opt, k):
+        opt.zero_grad()
+        sum(((p * (k + 1)).sin() * p).sum() for p in model.parameters()).backward()
+        opt.step()
+
+    model, opt = model_and_optimizer()
+    assert model.texture_inner.is_contiguous(memory_format=torch.channels_last)
+    step(model, opt, 0)
+    save_training_state(tmp_path / "run", model, opt, {"iteration": 1, "perceptual_weight": None})
+    step(model, opt, 1)
+    resumed, resumed_opt = model_and_optimizer()
+    load_training_state(tmp_path / "run", resumed, resumed_opt)
+    moment = resumed_opt.state[resumed.texture_inner]["exp_avg"]
+    assert moment.stride() == resumed.texture_inner.stride()
+    step(resumed, resumed_opt, 1)
+    assert all(torch.equal(a, b) for a, b in zip(model.parameters(), resumed.parameters()))
