@@ -30,6 +30,7 @@ from deliffas.models.unet_cpu import (
     finish_output,
     gemm_ok,
 )
+from deliffas.models.unet_grad import conv_transpose_k4s2, native_grad_applies
 from deliffas.models.unet_prepack import PrepackCache, onednn_act, packed_conv
 
 logger = logging.getLogger(__name__)
@@ -131,7 +132,11 @@ class ConvTranspose2d(nn.ConvTranspose2d):
         if gemm_ok(x, self):
             return self._gemm(x) * scale
         bias = None if self.bias is None else self.bias * scale
-        return self._conv_transpose(cpu_layout(x, CONV_TRANSPOSE_CHANNELS_LAST_MIN_PIXELS), self.weight * scale, bias)
+        x = cpu_layout(x, CONV_TRANSPOSE_CHANNELS_LAST_MIN_PIXELS)
+        if torch.is_grad_enabled() and native_grad_applies(x, self.weight, self.stride, self.padding,
+                                                           self.output_padding, self.groups, self.dilation):
+            return conv_transpose_k4s2(x, self.weight * scale, bias)  # the same forward, C loops for the gradients
+        return self._conv_transpose(x, self.weight * scale, bias)
 
     def _conv_transpose(self, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None) -> torch.Tensor:
         return F.conv_transpose2d(x, weight, bias, self.stride, self.padding, self.output_padding, self.groups,

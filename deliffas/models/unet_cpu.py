@@ -30,6 +30,13 @@ CONV_GEMM_MAX_PIXELS = 16 * 16
 """The same for convolutions (one matrix product with the unfolded input): faster than oneDNN up to
 16 x 16 inputs, where the weights outweigh the map."""
 
+TRAINING_GEMM_MAX_PIXELS = 4 * 4
+TRAINING_CONV_GEMM_MAX_PIXELS = 8 * 8
+"""``GEMM_MAX_PIXELS`` and ``CONV_GEMM_MAX_PIXELS`` for a layer whose weights need a gradient (training): there
+oneDNN's forward and backward together beat the matrix product and its backward (``fold`` / ``unfold``) on
+16 x 16 convolutions and 8 x 8 transposed ones (the ``small`` preset's two U-Nets at S = 256: with the final
+layer's C gradients, :mod:`deliffas.models.unet_grad`, 2.8 ms of a 60 ms step)."""
+
 CHANNELS_LAST_MIN_PIXELS = 32 * 32
 """On CPU, every convolution whose input has at least this many pixels runs in channels_last
 memory format: oneDNN is much faster there in that layout (e.g. the first 9 -> 16
@@ -202,7 +209,11 @@ def new_map(
 
 def gemm_ok(x: torch.Tensor, conv: nn.Module) -> bool:
     """Whether ``conv`` on ``x`` takes the matrix-product path (small CPU maps, plain convolution)."""
-    max_pixels = GEMM_MAX_PIXELS if isinstance(conv, nn.ConvTranspose2d) else CONV_GEMM_MAX_PIXELS
+    transposed = isinstance(conv, nn.ConvTranspose2d)
+    if torch.is_grad_enabled() and conv.weight.requires_grad:
+        max_pixels = TRAINING_GEMM_MAX_PIXELS if transposed else TRAINING_CONV_GEMM_MAX_PIXELS
+    else:
+        max_pixels = GEMM_MAX_PIXELS if transposed else CONV_GEMM_MAX_PIXELS
     return (
         x.device.type == "cpu"
         and x.dim() == 4

@@ -1,0 +1,88 @@
+"""The U-Net's transposed convolutions in training with their gradients from one C loop each.
+
+A transposed convolution with kernel 4, stride 2 and padding 1 on a channels-last CPU float32 map runs its
+forward as before (``F.conv_transpose2d``, oneDNN) and takes its input and weight gradients from
+``csrc/conv_transpose_grad.c`` (:func:`conv_transpose_k4s2`): oneDNN's backward for the final 16 -> 16 layer
+on 128 -> 256 pixel maps runs well below the machine's FMA rate. Both gradients are the exact sums in another
+order (FMA contraction, a fixed order: deterministic); the tests compare them with torch's. Other shapes,
+layouts, dtypes and devices, or no C compiler: torch's autograd as before.
+"""
+
+from __future__ import annotations
+
+import ctypes
+
+import torch
+import torch.nn.functional as F
+
+from deliffas.native import LazyLibrary
+
+__all__ = ["conv_transpose_k4s2", "native_grad_applies"]
+
+
+def _declare(lib: ctypes.CDLL) -> None:
+    ptr, i64 = ctypes.c_void_p, ctypes.c_int64
+    for fn in (lib.deliffas_conv_transpose_k4s2_input_grad_f32, lib.deliffas_conv_transpose_k4s2_weight_grad_f32):
+        fn.argtypes = [ptr, ptr, i64, i64, i64, i64, ptr]
+        fn.restype = ctypes.c_int
+
+
+_KERNEL = LazyLibrary("conv_transpose_grad", "conv_transpose_grad.c", flags=("-ffp-contract=fast",), setup=_declare,
+                      fallback="torch's convolution backward")
+
+CHANNELS = frozenset({(16, 16)})
+"""(input, output) channel pairs the C loops are built for: the final layer of the ``small`` and ``realtime``
+presets' U-Nets (for their 32 -> 8 and 64 -> 16 layers below it oneDNN's backward was as fast)."""
+
+
+def _channels_last(t: torch.Tensor) -> bool:
+    return t.dim() == 4 and t.shape[0] == 1 and t.is_contiguous(memory_format=torch.channels_last)
+
+
+def native_grad_applies(x: torch.Tensor, weight: torch.Tensor, stride, padding, output_padding, groups,
+                        dilation) -> bool:
+    """Whether :func:`conv_transpose_k4s2` takes the C gradients for this call (else it is plain torch)."""
+    return (x.device.type == "cpu" and x.dtype == torch.float32 and weight.dtype == torch.float32
+            and _channels_last(x) and tuple(weight.shape[2:]) == (4, 4) and tuple(stride) == (2, 2)
+            and tuple(padding) == (1, 1) and tuple(output_padding) == (0, 0) and groups == 1
+            and tuple(dilation) == (1, 1) and (int(weight.shape[0]), int(weight.shape[1])) in CHANNELS
+            and _KERNEL.get() is not None)
+
+
+class _ConvTransposeK4S2(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None) -> torch.Tensor:
+        ctx.save_for_backward(x, weight)
+        ctx.has_bias = bias is not None
+        return F.conv_transpose2d(x, weight, bias, stride=2, padding=1)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        x, weight = ctx.saved_tensors
+        ci, co = int(weight.shape[0]), int(weight.shape[1])
+        h, w = int(x.shape[2]), int(x.shape[3])
+        lib = _KERNEL.get()
+        g = grad.contiguous(memory_format=torch.channels_last)
+        grad_x = grad_w = grad_b = None
+        if ctx.needs_input_grad[0]:
+            wt = weight.permute(2, 3, 1, 0).contiguous()  # (ky, kx, co, ci)
+            grad_x = torch.empty_like(x, memory_format=torch.channels_last)
+            if lib.deliffas_conv_transpose_k4s2_input_grad_f32(g.data_ptr(), wt.data_ptr(), h, w, ci, co,
+                                                               grad_x.data_ptr()):
+                raise RuntimeError(f"conv_transpose_grad: no input-gradient loop for {ci} -> {co} channels")
+        if ctx.needs_input_grad[1]:
+            dwt = weight.new_empty(4, 4, ci, co)
+            if lib.deliffas_conv_transpose_k4s2_weight_grad_f32(x.data_ptr(), g.data_ptr(), h, w, ci, co,
+                                                                dwt.data_ptr()):
+                raise RuntimeError(f"conv_transpose_grad: no weight-gradient loop for {ci} -> {co} channels")
+            grad_w = dwt.permute(2, 3, 0, 1)  # (ci, co, ky, kx)
+        if ctx.has_bias and ctx.needs_input_grad[2]:
+            grad_b = g.sum((0, 2, 3))
+        return grad_x, grad_w, grad_b
+
+
+def conv_transpose_k4s2(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None) -> torch.Tensor:
+    """``F.conv_transpose2d(x, weight, bias, stride=2, padding=1)`` whose backward runs the C loops; call it
+    where :func:`native_grad_applies` holds (a (1, CI, H, W) channels-last float32 CPU map, (CI, CO, 4, 4)
+    weights)."""
+    return _ConvTransposeK4S2.apply(x, weight, bias)
