@@ -3,11 +3,11 @@
 The C sources are package data in ``deliffas/csrc/`` (:data:`CSRC`): the rasteriser and the shading passes of
 the real-time path (``deliffas/fast/``), the fused normal-map gather (``geometry/normal_maps.py``), the
 training's bilinear feature gather (``geometry/sampling.py``), the MLP's positional encodings
-(``models/encoding.py``), the U-Nets' training sigmoid with its saturation penalty (``models/feature_sigmoid.py``) and their final layer's
-gradients (``models/unet_grad.py``) and the U-Net's input conversion (``models/unet_cpu.py``). Each library is built once per process, with
-``-march=native`` first (the build machine is the run machine) and portable flags if that fails, from
-``$CC`` or the first of ``cc``, ``gcc``, ``clang`` on PATH, into a temporary directory that is removed after
-loading (the library stays mapped). Nothing is cached on disk.
+(``models/encoding.py``), the U-Nets' training sigmoid with its saturation penalty (``models/feature_sigmoid.py``),
+their final layer's gradients (``models/unet_grad.py``) and the U-Net's input conversion (``models/unet_cpu.py``).
+Each library is built once per process, with ``-march=native`` first (the build machine is the run machine) and
+portable flags if that fails, from ``$CC`` or the first of ``cc``, ``gcc``, ``clang`` on PATH, into a temporary
+directory that is removed after loading (the library stays mapped). Nothing is cached on disk.
 
 Callers hold a :class:`LazyLibrary`, which builds on first use and logs once when it falls back.
 :func:`build_declared` builds every library declared so far at once (the viewer, before its first frame).
