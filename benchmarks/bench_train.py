@@ -9,7 +9,8 @@ Irreducible work, counted from the shapes of this very step:
 
 * the U-Nets: FLOPs of every (transposed) convolution in one forward (``bench_unet.conv_flops``),
   times 3 for forward + backward (the backward computes the input and the weight gradients, each as
-  many multiply-adds as the forward), at the convolution rate measured in this run (one 3x3 conv
+  many multiply-adds as the forward), less once the first layer's (its input, the normal maps, needs no
+  gradient), at the convolution rate measured in this run (one 3x3 conv
   64 -> 64 at 256^2, forward, timed in the same interleaved rounds as the step);
 * the light-field MLP: 2 x multiply-adds per ray (``LightFieldMLP.flops_per_ray``) x rays, times 3,
   at the GEMM rate measured in this run (a (rays x 64) @ (64 x 64) product, in the same rounds).
@@ -81,7 +82,8 @@ def _irreducible_s(model, sample, conv_rate: float, gemm_rate: float) -> tuple[f
     """(seconds, U-Net FLOPs, MLP FLOPs) of forward + backward at the measured rates."""
     ni = torch.from_numpy(sample.normal_inner)[None]
     nets = [n for n in (*model.inner_unets(), model.unet_outer) if n is not None]
-    unet = 3 * sum(conv_flops(n, ni) for n in nets)
+    # the first layer's input (the normal maps) needs no gradient: its backward is the weight gradient alone
+    unet = sum(3 * conv_flops(n, ni) - conv_flops(n.down[0][0], ni) for n in nets)
     rays = sum(r.num_rays for r in sample.rays)
     mlp = 3 * model.mlp.flops_per_ray() * rays
     return unet / conv_rate + mlp / gemm_rate, unet, mlp

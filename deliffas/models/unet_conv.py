@@ -30,7 +30,8 @@ from deliffas.models.unet_cpu import (
     finish_output,
     gemm_ok,
 )
-from deliffas.models.unet_grad import conv_transpose_k4s2, native_grad_applies
+from deliffas.models.unet_grad import (conv_k4s2_input_fixed, conv_transpose_k4s2, native_conv_grad_applies,
+                                       native_grad_applies)
 from deliffas.models.unet_prepack import PrepackCache, onednn_act, packed_conv
 
 logger = logging.getLogger(__name__)
@@ -57,7 +58,12 @@ class Conv2d(nn.Conv2d):
         if gemm_ok(x, self):
             return finish_output(self._gemm(x), epilogue, None)
         if epilogue is None:
-            return super().forward(cpu_layout(x))
+            x = cpu_layout(x)
+            if (torch.is_grad_enabled() and self.weight.requires_grad and self.bias is None
+                    and native_conv_grad_applies(x, self.weight, self.stride, self.padding, self.groups,
+                                                 self.dilation)):
+                return conv_k4s2_input_fixed(x, self.weight)  # the same forward, a C loop for the weight gradient
+            return super().forward(x)
         h_out = (x.shape[-2] + 2 * self.padding[0] - self.kernel_size[0]) // self.stride[0] + 1
         w_out = (x.shape[-1] + 2 * self.padding[1] - self.kernel_size[1]) // self.stride[1] + 1
         if self.weight.numel() > x.shape[0] * self.out_channels * h_out * w_out:

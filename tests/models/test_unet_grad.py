@@ -1,4 +1,4 @@
-"""The U-Net's final transposed convolution in training with its gradients from C loops (models.unet_grad), and
+"""The U-Net's first and final layers in training with gradients from C loops (models.unet_grad), and
 the training thresholds of the matrix-product path (models.unet_cpu): the values of torch's own autograd."""
 
 from __future__ import annotations
@@ -8,7 +8,8 @@ import torch
 import torch.nn.functional as F
 
 from deliffas.models import unet_grad
-from deliffas.models.unet_grad import conv_transpose_k4s2, native_grad_applies
+from deliffas.models.unet_grad import (conv_k4s2_input_fixed, conv_transpose_k4s2, native_conv_grad_applies,
+                                       native_grad_applies)
 from deliffas.native import LazyLibrary, NativeLibrary
 
 
@@ -62,7 +63,7 @@ def test_the_c_gradients_apply_only_where_built():
     assert not native_grad_applies(x, w, (1, 1), (1, 1), (0, 0), 1, (1, 1))
 
 
-def test_the_unet_trains_its_final_layer_through_the_c_gradients(monkeypatch):
+def test_the_unet_trains_its_first_and_final_layers_through_the_c_gradients(monkeypatch):
     """The ``small`` preset's U-Net: the parameter gradients of one training forward and backward with the C
     loops equal those without them, up to float summation order."""
     from deliffas.models.unet import UNet, UNetConfig
@@ -73,8 +74,9 @@ def test_the_unet_trains_its_final_layer_through_the_c_gradients(monkeypatch):
     x = torch.rand(1, 9, 64, 64)
     g = torch.randn(1, 16, 64, 64)
     calls = []
-    real = unet_grad._ConvTransposeK4S2.backward
-    monkeypatch.setattr(unet_grad._ConvTransposeK4S2, "backward", lambda ctx, grad: calls.append(1) or real(ctx, grad))
+    for fn in (unet_grad._ConvTransposeK4S2, unet_grad._ConvK4S2InputFixed):
+        monkeypatch.setattr(fn, "backward", (lambda real: lambda ctx, grad: calls.append(1) or real(ctx, grad))(
+            fn.backward))
 
     def grads():
         net.zero_grad()
@@ -82,12 +84,12 @@ def test_the_unet_trains_its_final_layer_through_the_c_gradients(monkeypatch):
         return {k: p.grad.clone() for k, p in net.named_parameters()}
 
     with_c = grads()
-    assert calls == [1]
+    assert calls == [1, 1]  # the final layer's and the first layer's
     unavailable = LazyLibrary("conv_transpose_grad", unet_grad._KERNEL.source, fallback="torch")
     monkeypatch.setattr(unavailable, "_built", NativeLibrary(None, "test: no compiler"))
     monkeypatch.setattr(unet_grad, "_KERNEL", unavailable)
     plain = grads()
-    assert calls == [1]  # torch's autograd this time
+    assert calls == [1, 1]  # torch's autograd this time
     for k in plain:
         torch.testing.assert_close(with_c[k], plain[k], rtol=1e-4, atol=1e-5 * float(plain[k].abs().max()) + 1e-12)
 
@@ -105,3 +107,37 @@ def test_training_takes_onednn_for_mid_size_maps():
         assert gemm_ok(x16, conv) and gemm_ok(x8, up)
     conv.weight.requires_grad_(False)  # frozen weights: the inference choice
     assert gemm_ok(x16, conv)
+
+
+def test_without_a_bias():
+    _kernel_or_skip()
+    x, w, _, g = _case(5)
+    xa, wa = x.clone().requires_grad_(), w.clone().requires_grad_()
+    F.conv_transpose2d(xa, wa, None, stride=2, padding=1).backward(g)
+    xb, wb = x.clone().requires_grad_(), w.clone().requires_grad_()
+    conv_transpose_k4s2(xb, wb, None).backward(g)
+    torch.testing.assert_close(xb.grad, xa.grad, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(wb.grad, wa.grad, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("side", [2, 8, 38])
+def test_the_first_layers_weight_gradient_equals_torchs(side):
+    """A 9 -> 8 convolution (kernel 4, stride 2, padding 1) on a map that needs no gradient: torch's forward and,
+    up to float summation order, torch's weight gradient; other cases are left to torch."""
+    _kernel_or_skip()
+    gen = torch.Generator().manual_seed(side)
+    x = torch.rand(1, 9, side, side, generator=gen).contiguous(memory_format=torch.channels_last)
+    w = torch.randn(8, 9, 4, 4, generator=gen) * 0.1
+    g = torch.randn(1, 8, side // 2, side // 2, generator=gen).contiguous(memory_format=torch.channels_last)
+    assert native_conv_grad_applies(x, w, (2, 2), (1, 1), 1, (1, 1))
+    wa, wb = w.clone().requires_grad_(), w.clone().requires_grad_()
+    ya, yb = F.conv2d(x, wa, None, 2, 1), conv_k4s2_input_fixed(x, wb)
+    ya.backward(g)
+    yb.backward(g)
+    assert torch.equal(ya, yb)
+    torch.testing.assert_close(wb.grad, wa.grad, rtol=1e-5, atol=1e-5 * float(wa.grad.abs().max()))
+    args = ((2, 2), (1, 1), 1, (1, 1))
+    assert not native_conv_grad_applies(x.clone().requires_grad_(), w, *args)  # an input that needs a gradient
+    assert not native_conv_grad_applies(x[..., :-1], w, *args)  # an odd side
+    assert not native_conv_grad_applies(x.contiguous(), w, *args)
+    assert not native_conv_grad_applies(x, w[:4], *args)
