@@ -1,16 +1,15 @@
 /* The gradients of a transposed convolution with kernel 4, stride 2, padding 1 (the U-Net's final layer in
    training; deliffas/models/unet_grad.py), one image, every map channels-last:
-     forward   y[oy][ox][co] = sum over (iy, ky) with oy = 2 iy + ky - 1, (ix, kx) likewise, ci of x[iy][ix][ci] w[ci][co][ky][kx]
+     forward   y[oy][ox][co] = sum of x[iy][ix][ci] w[ci][co][ky][kx] over iy, ky (oy = 2 iy + ky - 1), ix, kx, ci
      input     dx[iy][ix][ci] = sum over ky, kx, co of g[2 iy + ky - 1][2 ix + kx - 1][co] w[ci][co][ky][kx]
      weight    dw[ci][co][ky][kx] = sum over iy, ix of x[iy][ix][ci] g[2 iy + ky - 1][2 ix + kx - 1][co]
    (terms whose output pixel falls outside the map are left out). The weights come as wt[ky][kx][co][ci] and the
    weight gradient leaves as dwt[ky][kx][ci][co] (and, where db is not NULL, the bias gradient db[co], the sum of
-   g over its pixels), so that the vectorised channels are contiguous: the input
-   gradient runs 16 input channels per vector, the weight gradient 16 output channels in one vector (GNU vector
-   extensions, split into two registers where the CPU's are narrower). Built for 16 output channels; other
-   input channel counts that are multiples of 16 need only another case below (oneDNN was as fast for 32 -> 8
-   and 64 -> 16). Each sum runs in a fixed order
-   (deterministic), with FMA contraction. The functions return 1 for channel counts they are not built for. */
+   g over its pixels), so that the vectorised channels are contiguous: the input gradient runs 16 input channels
+   per vector, the weight gradient 16 output channels in one vector (GNU vector extensions, split into two
+   registers where the CPU's are narrower). Built for 16 input and 16 output channels (oneDNN was as fast for the
+   32 -> 8 and 64 -> 16 layers below). Each sum runs in a fixed order (deterministic), with FMA contraction. The
+   functions return 1 for channel counts they are not built for. */
 #include <stdint.h>
 #include <string.h>
 

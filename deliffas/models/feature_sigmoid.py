@@ -67,7 +67,8 @@ class _SigmoidWithPenalty(torch.autograd.Function):
             return F.softshrink(logits, ctx.margin) * scale, None
         lib = _KERNEL.get() if _dense_like(logits, features, grad_features) else None
         if lib is None:
-            return torch.ops.aten.sigmoid_backward(grad_features, features) + F.softshrink(logits, ctx.margin) * scale, None
+            sigmoid_grad = torch.ops.aten.sigmoid_backward(grad_features, features)
+            return sigmoid_grad + F.softshrink(logits, ctx.margin) * scale, None
         grad = torch.empty_like(logits)
         lib.deliffas_sigmoid_saturation_backward_f32(grad_features.data_ptr(), features.data_ptr(), logits.data_ptr(),
                                                      logits.numel(), ctx.margin, float(scale), grad.data_ptr())

@@ -1,11 +1,13 @@
-"""The U-Net's transposed convolutions in training with their gradients from one C loop each.
+"""The U-Net's first and final layers in training with their gradients from C loops.
 
 A transposed convolution with kernel 4, stride 2 and padding 1 on a channels-last CPU float32 map runs its
-forward as before (``F.conv_transpose2d``, oneDNN) and takes its input and weight gradients from
+forward as before (``F.conv_transpose2d``, oneDNN) and takes its input, weight and bias gradients from
 ``csrc/conv_transpose_grad.c`` (:func:`conv_transpose_k4s2`): oneDNN's backward for the final 16 -> 16 layer
-on 128 -> 256 pixel maps runs well below the machine's FMA rate. Both gradients are the exact sums in another
-order (FMA contraction, a fixed order: deterministic); the tests compare them with torch's. Other shapes,
-layouts, dtypes and devices, or no C compiler: torch's autograd as before.
+on 128 -> 256 pixel maps runs well below the machine's FMA rate. The first layer, a convolution of the same
+kernel whose input (the normal maps) needs no gradient, likewise takes its weight gradient from a C loop
+(:func:`conv_k4s2_input_fixed`). The gradients are the exact sums in another order (FMA contraction, a fixed
+order: deterministic); the tests compare them with torch's. Other shapes, layouts, dtypes and devices, or no C
+compiler: torch's autograd as before.
 """
 
 from __future__ import annotations
