@@ -60,6 +60,7 @@ class Conv2d(nn.Conv2d):
         if epilogue is None:
             x = cpu_layout(x)
             if (torch.is_grad_enabled() and self.weight.requires_grad and self.bias is None
+                    and self.padding_mode == "zeros"
                     and native_conv_grad_applies(x, self.weight, self.stride, self.padding, self.groups,
                                                  self.dilation)):
                 return conv_k4s2_input_fixed(x, self.weight)  # the same forward, a C loop for the weight gradient
