@@ -92,6 +92,17 @@ static void input_grad_pixel(const float *restrict g, const float *restrict wt, 
     }                                                                                                               \
     if (db) store16(db, bias_acc);
 
+/* 1 where the 16-float vectors above are single registers (AVX-512): elsewhere the compiler splits them and the
+   loops run several times slower than oneDNN, so the caller keeps torch's backward (the 8-float loops below run
+   at full speed with AVX2 as well). */
+int deliffas_conv_transpose_grad_wide_vectors(void) {
+#ifdef __AVX512F__
+    return 1;
+#else
+    return 0;
+#endif
+}
+
 int deliffas_conv_transpose_k4s2_input_grad_f32(const float *restrict g, const float *restrict wt, int64_t h,
                                                  int64_t w, int64_t ci, int64_t co, float *restrict dx) {
     if (ci == 16 && co == 16) { INPUT_GRAD(16, 16, 8) return 0; }

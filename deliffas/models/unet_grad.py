@@ -7,7 +7,8 @@ on 128 -> 256 pixel maps runs well below the machine's FMA rate. The first layer
 kernel whose input (the normal maps) needs no gradient, likewise takes its weight gradient from a C loop
 (:func:`conv_k4s2_input_fixed`). The gradients are the exact sums in another order (FMA contraction, a fixed
 order: deterministic); the tests compare them with torch's. Other shapes, layouts, dtypes and devices, or no C
-compiler: torch's autograd as before.
+compiler: torch's autograd as before. The transposed convolution's loops run on 16-float vectors and are used
+only where the build has AVX-512 (:func:`wide_vectors`); the first layer's run on 8-float vectors (AVX2 too).
 """
 
 from __future__ import annotations
@@ -19,7 +20,8 @@ import torch.nn.functional as F
 
 from deliffas.native import LazyLibrary
 
-__all__ = ["conv_k4s2_input_fixed", "conv_transpose_k4s2", "native_conv_grad_applies", "native_grad_applies"]
+__all__ = ["conv_k4s2_input_fixed", "conv_transpose_k4s2", "native_conv_grad_applies", "native_grad_applies",
+           "wide_vectors"]
 
 
 def _declare(lib: ctypes.CDLL) -> None:
@@ -27,13 +29,21 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.deliffas_conv_transpose_k4s2_input_grad_f32.argtypes = [ptr, ptr, i64, i64, i64, i64, ptr]
     lib.deliffas_conv_transpose_k4s2_weight_grad_f32.argtypes = [ptr, ptr, i64, i64, i64, i64, ptr, ptr]
     lib.deliffas_conv_k4s2_weight_grad_f32.argtypes = [ptr, ptr, i64, i64, i64, i64, ptr]
+    lib.deliffas_conv_transpose_grad_wide_vectors.argtypes = []
     for fn in (lib.deliffas_conv_transpose_k4s2_input_grad_f32, lib.deliffas_conv_transpose_k4s2_weight_grad_f32,
-               lib.deliffas_conv_k4s2_weight_grad_f32):
+               lib.deliffas_conv_k4s2_weight_grad_f32, lib.deliffas_conv_transpose_grad_wide_vectors):
         fn.restype = ctypes.c_int
 
 
-_KERNEL = LazyLibrary("conv_transpose_grad", "conv_transpose_grad.c", flags=("-ffp-contract=fast",), setup=_declare,
-                      fallback="torch's convolution backward")
+_KERNEL = LazyLibrary("conv_transpose_grad", "conv_transpose_grad.c", flags=("-ffp-contract=fast", "-Wno-psabi"),
+                      setup=_declare, fallback="torch's convolution backward")
+
+
+def wide_vectors() -> bool:
+    """Whether the transposed convolution's C gradients run here: built with AVX-512, whose 16-float registers
+    their loops are written for (without it they run several times slower than oneDNN's backward)."""
+    lib = _KERNEL.get()
+    return lib is not None and bool(lib.deliffas_conv_transpose_grad_wide_vectors())
 
 CHANNELS = frozenset({(16, 16)})
 """(input, output) channel pairs the C loops are built for: the final layer of the ``small`` and ``realtime``
@@ -56,7 +66,7 @@ def native_grad_applies(x: torch.Tensor, weight: torch.Tensor, stride, padding, 
             and _channels_last(x) and tuple(weight.shape[2:]) == (4, 4) and tuple(stride) == (2, 2)
             and tuple(padding) == (1, 1) and tuple(output_padding) == (0, 0) and groups == 1
             and tuple(dilation) == (1, 1) and (int(weight.shape[0]), int(weight.shape[1])) in CHANNELS
-            and _KERNEL.get() is not None)
+            and wide_vectors())
 
 
 class _ConvTransposeK4S2(torch.autograd.Function):
