@@ -128,10 +128,11 @@ def load_training_state(run_dir: Path, model: DeliffasModel, optimizer: torch.op
             for key, value in tensors.items():
                 pid, name = key.split(".", 1)
                 param = params[int(pid)]
-                if value.dim() > 0 and value.shape != param.shape:
-                    raise ValueError(f"{key}: shape {tuple(value.shape)}, parameter {tuple(param.shape)}")
-                if value.dim() > 0:  # in the parameter's memory layout (channels-last atlases): Adam's fused
-                    value = torch.empty_like(param, dtype=value.dtype).copy_(value)  # kernel pairs them by memory
+                if value.dim() > 0:
+                    if value.shape != param.shape:
+                        raise ValueError(f"{key}: shape {tuple(value.shape)}, parameter {tuple(param.shape)}")
+                    # in the parameter's memory layout (channels-last atlases): Adam's fused kernel pairs by memory
+                    value = torch.empty_like(param, dtype=value.dtype).copy_(value)
                 per_param.setdefault(int(pid), {})[name] = value.to(device)
             for key, value in state.pop("optimizer_scalars", {}).items():
                 pid, name = key.split(".", 1)

@@ -16,6 +16,7 @@ import ctypes
 import torch
 import torch.nn.functional as F
 
+from deliffas.models.losses import saturation_penalty
 from deliffas.native import LazyLibrary
 
 __all__ = ["sigmoid_with_penalty"]
@@ -48,13 +49,11 @@ class _SigmoidWithPenalty(torch.autograd.Function):
         ctx.save_for_backward(logits, features)
         ctx.margin = margin
         ctx.set_materialize_grads(False)
-        n = max(logits.numel(), 1)
         lib = _KERNEL.get() if _dense_like(logits) else None
         if lib is not None:
             total = lib.deliffas_beyond_margin_sq_f32(logits.data_ptr(), logits.numel(), margin)
-            return features, logits.new_tensor(total / n)
-        beyond = F.softshrink(logits, margin).reshape(-1)
-        return features, torch.dot(beyond, beyond) / n
+            return features, logits.new_tensor(total / max(logits.numel(), 1))
+        return features, saturation_penalty([logits], margin)  # without the kernel: the penalty's own forward
 
     @staticmethod
     def backward(ctx, grad_features: torch.Tensor | None, grad_penalty: torch.Tensor | None):
