@@ -39,6 +39,10 @@ ABLATION_ITERS = 1500
 """Training iterations of the ablations in full mode, each on every shaded ray (``RunSizes.rays_per_step``
 None): the budget their rows in docs/results.md were measured at, 0.69 dB below an 8 x longer run on the
 validation camera (docs/results.md, "Time to quality"); ``--iters`` overrides."""
+RECIPE_SCHEDULE = "converge"
+"""The learning-rate schedule of every configuration :func:`train_and_eval` trains unless it names its own (the
+``paper schedule`` rows): the rows in docs/results.md were measured with it (``deliffas train``'s default is
+``cosine``, measured in "Time to quality")."""
 
 RecipeSizes = RunSizes
 """The recipes' name for ``deliffas.engine.run_sizes.RunSizes`` (full defaults, ``quick()`` for tests)."""
@@ -236,6 +240,7 @@ def train_and_eval(name: str, shards: Path, run_dir: Path, sizes: RecipeSizes, m
     from deliffas.engine.train import train
 
     t0 = time.time()
+    train_kw.setdefault("schedule", RECIPE_SCHEDULE)
     cfg = TrainConfig(shards=str(shards), out=str(run_dir), model=model, preset=train_kw.pop("preset", sizes.preset),
                       iters=sizes.iters, cameras_per_frame=sizes.cameras_per_frame,
                       rays_per_step=train_kw.pop("rays_per_step", sizes.rays_per_step), protocol="all", seed=seed,

@@ -28,8 +28,11 @@ logger = logging.getLogger(__name__)
 
 PerceptualChoice = Literal["none", "vgg16-imagenet", "vgg16-random"]
 
-SCHEDULE_LR: dict[str, float] = {"converge": 1e-3, "paper": 2e-4}
+SCHEDULE_LR: dict[str, float] = {"hold-decay": 1.5e-3, "converge": 1e-3, "paper": 2e-4}
 """The peak learning rate of each ``TrainConfig.schedule`` when ``TrainConfig.lr`` is None."""
+
+SCHEDULE_BETA2: dict[str, float] = {"hold-decay": 0.95, "converge": 0.999, "paper": 0.999}
+"""Adam's beta2 of each ``TrainConfig.schedule`` when ``TrainConfig.adam_beta2`` is None."""
 
 
 RAYS_PER_STEP = 8192
@@ -61,27 +64,39 @@ class TrainConfig:
                                     parse=positive_float, metavar="SECONDS", default_text="--iters decides")
     """Seconds the run may take, counted from the trainer's start (``engine.time_budget``): after the first
     iterations (within the warm-up) the run plans its ``iters`` from their speed, and plans again at the
-    speed of the iterations since, halfway through what is left, a few times; the ``converge`` schedule
-    decays over the planned length. The plan replaces ``iters`` (and ``time_budget`` becomes None) in
+    speed of the iterations since, halfway through what is left, a few times; the ``hold-decay`` and ``converge``
+    schedules decay over the planned length. The plan replaces ``iters`` (and ``time_budget`` becomes None) in
     ``train_config.json``, whose ``time_budget`` entry records the plans: a resumed run continues to the
     last plan, and ``--iters N`` repeats the run's length. Needs ``perceptual`` none (stage 2's steps
     cost several times stage 1's)."""
-    schedule: Literal["converge", "paper"] = opt("converge", help="learning-rate schedule: converge = warm-up, "
-                                                 "then decay 10x over the run's own --iters; paper = the official "
-                                                 "Adam 2e-4 with its decay over 800 k steps (GPU-days runs)")
-    """Learning-rate schedule. ``converge``: a linear warm-up over ``warmup_iters``, then an exponential
-    decay to ``lr_final`` x lr at the run's last iteration (the run's own length). ``paper``: the
-    official code's lr · 0.1^(step / lr_decay_steps), meant for GPU-days runs (1.29 M iterations)."""
+    schedule: Literal["hold-decay", "converge", "paper"] = opt(
+        "hold-decay", help="learning-rate schedule: hold-decay = warm-up, the peak held, then a decay to a tenth over "
+                           "the last 30 percent of the run's own --iters (Adam beta2 0.95); converge = warm-up, then a "
+                           "decay to a tenth over the whole run (beta2 0.999); paper = the official Adam 2e-4 with "
+                           "its decay over 800 k steps (GPU-days runs)")
+    """Learning-rate schedule. ``hold-decay``: a linear warm-up over ``warmup_iters``, the peak held, then an
+    exponential decay to ``lr_final`` x the peak over the last ``decay_share`` of the iterations after the warm-up,
+    ending at the run's last iteration (the run's own length). ``converge``: the same warm-up, then the exponential
+    decay over every iteration after it (the default before ``hold-decay``). ``paper``: the official code's
+    lr · 0.1^(step / lr_decay_steps), meant for GPU-days runs (1.29 M iterations). Each has its own peak rate and
+    Adam beta2 (``SCHEDULE_LR``, ``SCHEDULE_BETA2``)."""
     lr: float | None = opt(None, help="peak learning rate", parse=positive_float,
-                           default_text="the schedule's, converge 1e-3, paper 2e-4")
-    """Peak Adam learning rate; None = the schedule's (``converge`` 1e-3, ``paper`` 2e-4)."""
+                           default_text="the schedule's, hold-decay 1.5e-3, converge 1e-3, paper 2e-4")
+    """Peak Adam learning rate; None = the schedule's (``hold-decay`` 1.5e-3, ``converge`` 1e-3, ``paper`` 2e-4)."""
+    adam_beta2: float | None = opt(None, help="Adam's beta2, the decay of its squared-gradient average",
+                                   parse=positive_float, default_text="the schedule's, hold-decay 0.95, else 0.999")
+    """Adam's beta2; None = the schedule's (``hold-decay`` 0.95, chosen with its peak rate on the validation camera,
+    docs/results.md; ``converge`` and ``paper`` 0.999, torch's and the official code's)."""
     lr_decay_steps: int = 800_000
     """``paper`` schedule: lr = lr · 0.1^(step / lr_decay_steps), as the official code."""
     warmup_iters: int = 50
-    """``converge`` schedule: iterations of the linear warm-up from lr / warmup_iters to lr (at most a fifth
+    """``hold-decay`` and ``converge`` schedules: iterations of the linear warm-up from lr / warmup_iters to lr (at most a fifth
     of the run)."""
     lr_final: float = 0.1
-    """``converge`` schedule: the learning rate at the last iteration, as a fraction of the peak."""
+    """``hold-decay`` and ``converge`` schedules: the learning rate at the last iteration, as a fraction of the peak."""
+    decay_share: float = 0.3
+    """``hold-decay`` schedule: the share of the iterations after the warm-up over which the rate decays (the
+    peak is held before them)."""
     texture_lr_scale: float = 3.0
     """The texture atlases' learning rate as a multiple of the schedule's (``ModelConfig.texture_channels``):
     each texel sees the gradient of the few rays that sample it, so it may learn faster than the networks.
@@ -204,6 +219,11 @@ class TrainConfig:
             raise ValueError(f"texture_lr_scale: expected a finite number > 0, got {self.texture_lr_scale!r}")
         if not (math.isfinite(self.lr_final) and 0 < self.lr_final <= 1):
             raise ValueError(f"lr_final: expected a number in (0, 1], got {self.lr_final!r}")
+        if not (math.isfinite(self.decay_share) and 0 < self.decay_share <= 1):
+            raise ValueError(f"decay_share: expected a number in (0, 1], got {self.decay_share!r}")
+        beta2 = self.adam_beta2
+        if beta2 is not None and not (isinstance(beta2, (int, float)) and 0 < beta2 < 1):
+            raise ValueError(f"adam_beta2: expected None or a number in (0, 1), got {beta2!r}")
         if self.schedule not in SCHEDULE_LR:
             raise ValueError(f"schedule: expected one of {', '.join(SCHEDULE_LR)}, got {self.schedule!r}")
         uv_source(resolve_device(self.device), self.uv)
@@ -226,6 +246,11 @@ class TrainConfig:
         """``lr``, or the schedule's default when None."""
         return SCHEDULE_LR[self.schedule] if self.lr is None else self.lr
 
+    @property
+    def beta2(self) -> float:
+        """``adam_beta2``, or the schedule's when None."""
+        return SCHEDULE_BETA2[self.schedule] if self.adam_beta2 is None else self.adam_beta2
+
     def lr_at(self, step: int) -> float:
         """The learning rate of 0-based iteration ``step`` under ``schedule``."""
         lr = self.peak_lr
@@ -235,7 +260,11 @@ class TrainConfig:
         if step < warmup:
             return lr * (step + 1) / warmup
         span = max(self.iters - 1 - warmup, 1)
-        return lr * self.lr_final ** (min(step - warmup, span) / span)
+        t = min(step - warmup, span) / span  # 0 after the warm-up, 1 at the last iteration
+        if self.schedule == "hold-decay":
+            hold = 1 - self.decay_share
+            return lr if t < hold else lr * self.lr_final ** ((t - hold) / self.decay_share)
+        return lr * self.lr_final ** t
 
 
 @dataclass(frozen=True)

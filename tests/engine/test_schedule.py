@@ -1,4 +1,4 @@
-"""TrainConfig.schedule: the converge schedule (warm-up, decay over the run) and the paper's."""
+"""TrainConfig.schedule: the hold-decay and converge schedules (warm-up, decay over the run) and the paper's."""
 
 from __future__ import annotations
 
@@ -6,22 +6,47 @@ import math
 
 import pytest
 
-from deliffas.engine.train_config import SCHEDULE_LR, TrainConfig
+from deliffas.engine.train_config import SCHEDULE_BETA2, SCHEDULE_LR, TrainConfig
 
 
 def _cfg(**kw) -> TrainConfig:
     return TrainConfig(shards="s", out="o", **kw)
 
 
-def test_converge_warms_up_then_decays_to_lr_final_at_the_last_iteration():
-    cfg = _cfg(iters=1000, warmup_iters=50, lr_final=0.1)
-    assert cfg.peak_lr == SCHEDULE_LR["converge"]
+@pytest.mark.parametrize("schedule", ["hold-decay", "converge"])
+def test_the_run_long_schedules_warm_up_then_decay_to_lr_final_at_the_last_iteration(schedule):
+    cfg = _cfg(schedule=schedule, iters=1000, warmup_iters=50, lr_final=0.1)
+    assert cfg.peak_lr == SCHEDULE_LR[schedule]
     assert cfg.lr_at(0) == pytest.approx(cfg.peak_lr / 50)
     assert cfg.lr_at(49) == pytest.approx(cfg.peak_lr)
     assert cfg.lr_at(50) == pytest.approx(cfg.peak_lr)
     assert cfg.lr_at(999) == pytest.approx(0.1 * cfg.peak_lr)
     lrs = [cfg.lr_at(i) for i in range(50, 1000)]
     assert all(a >= b for a, b in zip(lrs, lrs[1:]))
+
+
+def test_hold_decay_is_the_default_and_holds_the_peak_before_its_decay():
+    cfg, converge = _cfg(iters=1051), _cfg(iters=1051, schedule="converge")  # 1000 iterations after the warm-up
+    assert cfg.schedule == "hold-decay"
+    assert cfg.lr_at(50) == cfg.lr_at(749) == cfg.peak_lr  # held for 70 % of them
+    assert cfg.lr_at(900) / cfg.peak_lr == pytest.approx(0.1 ** 0.5)  # halfway through the decay
+    assert cfg.lr_at(1050) == pytest.approx(0.1 * cfg.peak_lr)
+    assert converge.lr_at(550) / converge.peak_lr == pytest.approx(0.1 ** 0.5)  # converge: halfway through the run
+    lrs = [cfg.lr_at(i) for i in range(50, 1051)]
+    assert all(a >= b for a, b in zip(lrs, lrs[1:]))
+
+
+@pytest.mark.parametrize("schedule", ["hold-decay", "converge", "paper"])
+def test_each_schedule_has_its_adam_beta2_and_an_explicit_one_wins(schedule):
+    from deliffas.engine.train import make_optimizer
+    from deliffas.models.deliffas import DeliffasModel
+    from deliffas.models.zoo import get_config
+
+    model = DeliffasModel(get_config("two_surface", "tiny"))
+    for beta2, expected in ((None, SCHEDULE_BETA2[schedule]), (0.9, 0.9)):
+        cfg = _cfg(schedule=schedule, adam_beta2=beta2)
+        assert cfg.beta2 == expected
+        assert all(g["betas"] == (0.9, expected) for g in make_optimizer(model, cfg).param_groups)
 
 
 def test_warmup_is_at_most_a_fifth_of_a_short_run():
@@ -38,7 +63,8 @@ def test_paper_schedule_is_the_official_decay():
 
 
 @pytest.mark.parametrize("field,value", [("lr", 0.0), ("lr", float("nan")), ("lr_final", 0.0), ("lr_final", 2.0),
-                                         ("warmup_iters", -1)])
+                                         ("warmup_iters", -1), ("adam_beta2", 1.0), ("adam_beta2", 0.0),
+                                         ("decay_share", 0.0), ("decay_share", 1.5)])
 def test_bad_schedule_values_are_refused_naming_the_field(field, value):
     with pytest.raises(ValueError, match=field):
         _cfg(**{field: value})
