@@ -3,7 +3,7 @@
 Runs on the embedded procedural character (no external data). The capture's ground truth holds a
 loose garment the skinned template lacks, so the two-surface model (DELIFFAS, here with texture atlases:
 the training default) and the single-surface ablation can be told apart on held-out cameras at the same
-training budget (``deliffas train``'s defaults otherwise: the ``converge`` schedule).
+training budget (``deliffas train``'s defaults otherwise: the ``hold-decay`` schedule).
 """
 
 from __future__ import annotations

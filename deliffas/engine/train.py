@@ -5,7 +5,7 @@ once, every ray of the K images that meets the outer shell is shaded, and the lo
 images composited on black (:mod:`deliffas.engine.train_step`). Stage 1 is L1 only; stage 2 (from
 ``perceptual_start``) adds the VGG-16 perceptual loss on the whole images (or 32x32 patches),
 weighted so both terms start with the same magnitude (paper, appendix "Training Details"). Adam with the
-schedule of ``TrainConfig.schedule`` (``converge`` by default; ``paper`` is the official lr 2e-4 with
+schedule of ``TrainConfig.schedule`` (``hold-decay`` by default; ``paper`` is the official lr 2e-4 with
 its exponential decay). Runs under ``torchrun`` with DistributedDataParallel
 (gloo on CPU, nccl on GPU). :class:`Trainer` holds one run; :func:`train` runs it.
 """
