@@ -90,8 +90,8 @@ class TrainConfig:
     lr_decay_steps: int = 800_000
     """``paper`` schedule: lr = lr · 0.1^(step / lr_decay_steps), as the official code."""
     warmup_iters: int = 50
-    """``hold-decay`` and ``converge`` schedules: iterations of the linear warm-up from lr / warmup_iters to lr (at most a fifth
-    of the run)."""
+    """``hold-decay`` and ``converge`` schedules: iterations of the linear warm-up from lr / warmup_iters to lr
+    (at most a fifth of the run)."""
     lr_final: float = 0.1
     """``hold-decay`` and ``converge`` schedules: the learning rate at the last iteration, as a fraction of the peak."""
     decay_share: float = 0.3
