@@ -11,12 +11,12 @@ masked PSNR, FLIP) and on the held-out test cameras. Training seconds exclude th
 ``results.json``, ``results.md`` and ``time_to_quality.png`` (masked PSNR against seconds).
 
 Configurations: ``default`` is ``deliffas train`` without options (``TrainConfig`` defaults:
-``two_surface_reflect_texture``, at most 8192 rays per iteration); ``two_surface_texture`` the same without
-the reflected view direction, on every shaded ray (the previous default); ``paper schedule`` is the paper's
-model and schedule (``two_surface``, Adam 2e-4 with the official decay, every shaded ray), the default before
-this recipe existed; ``default, S s budget`` is the default trained for S seconds (``deliffas train
---time-budget S``: the iterations that fit on the machine it runs on), evaluated once at
-its end (``--budgets``, default :data:`FULL_BUDGETS`).
+``two_surface_reflect_texture``, the ``hold-decay`` schedule, at most 8192 rays per iteration);
+``two_surface_texture`` the same without the reflected view direction, on every shaded ray; ``paper schedule`` is
+the paper's model and schedule (``two_surface``, Adam 2e-4 with the official decay, every shaded ray), the default
+before this recipe existed; ``default, S s budget`` is the default trained for S seconds (``deliffas train
+--time-budget S``: the iterations that fit on the machine it runs on), evaluated once at its end (``--budgets``,
+default :data:`FULL_BUDGETS`).
 """
 
 from __future__ import annotations
