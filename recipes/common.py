@@ -42,7 +42,7 @@ validation camera (docs/results.md, "Time to quality"); ``--iters`` overrides.""
 RECIPE_SCHEDULE = "converge"
 """The learning-rate schedule of every configuration :func:`train_and_eval` trains unless it names its own (the
 ``paper schedule`` rows): the rows in docs/results.md were measured with it (``deliffas train``'s default is
-``cosine``, measured in "Time to quality")."""
+``hold-decay``, measured in "Time to quality")."""
 
 RecipeSizes = RunSizes
 """The recipes' name for ``deliffas.engine.run_sizes.RunSizes`` (full defaults, ``quick()`` for tests)."""
