@@ -50,6 +50,10 @@ def resumed_config(run: str | os.PathLike, given: dict, names: dict[str, str] | 
     known = {f.name for f in dataclasses.fields(TrainConfig)}
     values = {k: v for k, v in record.get("train", {}).items() if k in known}
     values.setdefault("rays_per_step", None)  # recorded before the field existed: every ray was shaded
+    # recorded before these existed: the schedule's beta2 (converge / paper: 0.999) and no hold-decay, so that a
+    # given value is compared with what the run used (its saved optimizer keeps its own betas)
+    values.setdefault("adam_beta2", None)
+    values.setdefault("decay_share", TrainConfig.decay_share)
     name = (names or {}).get
     for key, value in given.items():
         if key not in known:

@@ -49,6 +49,24 @@ def test_each_schedule_has_its_adam_beta2_and_an_explicit_one_wins(schedule):
         assert all(g["betas"] == (0.9, expected) for g in make_optimizer(model, cfg).param_groups)
 
 
+def test_a_run_recorded_before_adam_beta2_resumes_with_its_beta2_and_refuses_another(tiny_shards, tmp_path):
+    import json
+
+    from deliffas.engine.resume import resumed_config
+    from deliffas.engine.train import train
+
+    run = tmp_path / "r"
+    train(TrainConfig(shards=str(tiny_shards), out=str(run), schedule="converge", model="two_surface", preset="tiny",
+                      iters=2, cameras_per_frame=2, protocol="all", num_workers=0, preview_every=0, progress=False))
+    path = run / "train_config.json"
+    record = json.loads(path.read_text())
+    assert record["train"].pop("adam_beta2") is None and record["train"].pop("decay_share") == 0.3
+    path.write_text(json.dumps(record))
+    assert resumed_config(run, {}).beta2 == 0.999
+    with pytest.raises(ValueError, match="adam_beta2"):
+        resumed_config(run, {"adam_beta2": 0.9})
+
+
 def test_warmup_is_at_most_a_fifth_of_a_short_run():
     cfg = _cfg(iters=10, warmup_iters=50)
     assert cfg.lr_at(1) == pytest.approx(cfg.peak_lr)  # 2 warm-up iterations
