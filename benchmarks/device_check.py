@@ -208,7 +208,7 @@ def _render(model, samples, info, device: torch.device, frames: int, uv: str = "
     for i in range(frames):
         _render_frame(model, samples[i % len(samples)], cam, info, device, timer, uv)
     return {"frames": frames, "fps": fps, "stage_ms": {s: timer.per_unit(frames)[s] for s in STAGES},
-            "uv": uv_source(device, uv)}
+            "uv": uv_source(device, uv, cam.width * cam.height)}
 
 
 @torch.no_grad()
