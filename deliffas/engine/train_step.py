@@ -41,6 +41,16 @@ def _targets(sample: FrameSample, batch: RayBatch, device: torch.device) -> tupl
     return target, target.reshape(K, H * W, 3)[batch.image_index, batch.pixels]
 
 
+def _target_rays(sample: FrameSample, batch: RayBatch, device: torch.device) -> torch.Tensor:
+    """The training target's values at the rays' pixels (N, 3): ``_targets``' second value, with only those
+    pixels composited (the same values)."""
+    K, H, W = sample.images.shape[:3]
+    at = (batch.image_index.cpu(), batch.pixels.cpu())
+    colour = torch.as_tensor(sample.images).reshape(K, H * W, 3)[at]
+    coverage = torch.as_tensor(sample.masks).reshape(K, H * W)[at]
+    return composite_target(colour, coverage).to(device)
+
+
 def _psnr(mse: float) -> float:
     return 10 * math.log10(1.0 / mse) if mse > 0 else float("inf")
 
@@ -138,7 +148,7 @@ def _blocked_backward(model: DeliffasModel, sample: FrameSample, device: torch.d
     batch, query = _rays(model, sample, device)
     features = model.encode(*sample.normal_maps(device), joined=False)  # atlases sampled apart: no joined maps
     encoded, feats = model.gather_inputs(features, query)  # (N, E) without, (N, C) with a graph
-    target_rays = _targets(sample, batch, device)[1]
+    target_rays = _target_rays(sample, batch, device)
     n = batch.num_rays
     feature_grads, l1_sums, sq_sums = [], [], []
     for start in range(0, n, block):
