@@ -55,7 +55,7 @@ class TrainConfig:
     """Size preset of the zoo entry (``paper``, ``small``, ``tiny``)."""
     model_overrides: dict = field(default_factory=dict)
     """ModelConfig fields replacing the preset's (nested dicts for ``unet``/``mlp``)."""
-    iters: int = opt(2500, help="train to this iteration (with --resume: the run's, more extends it)",
+    iters: int = opt(5000, help="train to this iteration (with --resume: the run's, more extends it)",
                      parse=positive_int)
     """Training iterations (one frame with ``cameras_per_frame`` images each)."""
     time_budget: float | None = opt(None, help="train for about this many seconds instead of --iters: the "
