@@ -36,13 +36,13 @@ from deliffas.engine.samples import FrameSample, composite_target, subsample_ray
 from deliffas.engine.time_budget import CALIBRATION, BudgetPlanner
 from deliffas.engine.train_config import TrainConfig, TrainResult, resolve_model_config
 from deliffas.engine.train_step import balance_weight, render_sample_images, train_step
-from deliffas.models.deliffas import DeliffasModel
+from deliffas.models.deliffas import DeliffasModel, ModelConfig
 from deliffas.models.losses import PerceptualLoss, SaturationTerm
 from deliffas.io.infra.files import claim_output, write_bytes_atomic
-from deliffas.models.zoo import config_to_dict
+from deliffas.models.zoo import config_from_dict, config_to_dict
 
 __all__ = ["TrainConfig", "TrainResult", "Trainer", "train", "train_step", "resolve_model_config",
-           "render_sample_images", "claim_run", "make_optimizer", "RUN_MARKER"]
+           "render_sample_images", "claim_run", "make_optimizer", "recorded_model_config", "RUN_MARKER"]
 
 logger = logging.getLogger(__name__)
 
@@ -67,6 +67,13 @@ def claim_run(run: Path, resume: bool, overwrite: bool) -> None:
                                   "replace it")
         raise FileExistsError(f"{run}: not empty and not a training run (no {RUN_MARKER}); choose another --out")
     claim_output(run, overwrite, marker=RUN_MARKER, what="a training run")
+
+
+def recorded_model_config(run: str | os.PathLike) -> ModelConfig | None:
+    """The model configuration a run recorded in its ``train_config.json`` (None where it holds none)."""
+    path = Path(run) / RUN_MARKER
+    model = json.loads(path.read_text()).get("model") if path.is_file() else None
+    return config_from_dict(ModelConfig, model) if model else None
 
 
 def _check_resumed_capture(run: Path, shards: str, found: dict) -> None:
@@ -164,7 +171,9 @@ class Trainer:
         resuming = resume and (run / STATE_FILE).is_file()
         self.start = read_training_state(run)["iteration"] if resuming else 0
         stored = shard_info(self.shards)
-        self.model_config = resolve_model_config(cfg, stored["atlas_res"], stored["temporal_window"])
+        # a resumed run continues the model it recorded, whatever the zoo's preset has become since
+        self.model_config = (recorded_model_config(run) if resuming else None) or resolve_model_config(
+            cfg, stored["atlas_res"], stored["temporal_window"])
         self.stream, self.data_info = training_stream(cfg, self.model_config.temporal_window, rank=self.rank,
                                                       world=self.world, start_iteration=self.start, shards=self.shards)
         self.model = DeliffasModel(self.model_config).to(device)

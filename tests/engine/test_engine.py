@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -16,8 +17,10 @@ import torch
 from deliffas.engine.data_bridge import evaluation_samples
 from deliffas.engine.evaluate import EvalConfig, evaluate
 from deliffas.engine.render import RenderConfig, orbit_cameras, render_video
-from deliffas.engine.train import TrainConfig, resolve_model_config, train, train_step
-from deliffas.models.deliffas import DeliffasModel
+from deliffas.engine.train import TrainConfig, recorded_model_config, resolve_model_config, train, train_step
+from deliffas.models import zoo
+from deliffas.models.deliffas import DeliffasModel, ModelConfig
+from deliffas.models.zoo import config_from_dict
 
 
 def _cfg(shards, out, **kw):
@@ -93,6 +96,19 @@ def test_train_resume_eval_render(tiny_shards, tmp_path):
 
     video = render_video(RenderConfig(run=str(run), out=str(tmp_path / "frames"), frames=2))
     assert len(list(video.glob("*.png"))) == 2  # the capture's novel-pose motion has 2 frames
+
+
+def test_resume_keeps_the_recorded_model(tiny_shards, tmp_path, monkeypatch):
+    """A run resumed after its zoo preset changed (here: fewer U-Net levels) continues the model it recorded."""
+    run = tmp_path / "run"
+    train(_cfg(tiny_shards, run, iters=2))
+    recorded = json.loads((run / "train_config.json").read_text())["model"]
+    tiny = zoo.get_config("two_surface", "tiny")
+    monkeypatch.setitem(zoo._REGISTRY["two_surface"], "tiny",
+                        dataclasses.replace(tiny, unet=dataclasses.replace(tiny.unet, levels=3)))
+    assert train(_cfg(tiny_shards, run, iters=3), resume=True).iterations == 3
+    assert json.loads((run / "train_config.json").read_text())["model"] == recorded
+    assert recorded_model_config(run) == config_from_dict(ModelConfig, recorded) == tiny
 
 
 def test_cli_eval_json(tiny_shards, tmp_path):
