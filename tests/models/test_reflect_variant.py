@@ -10,7 +10,7 @@ import torch
 from deliffas.models.deliffas import DeliffasModel, FrameFeatures
 from deliffas.models.ray_query import RayQuery
 from deliffas.models.variants import VariantSpec, get_variant
-from deliffas.models.zoo import REFLECTED, TEXTURED, get_config
+from deliffas.models.zoo import DEFAULT_UNET_LEVELS, PRESETS, REFLECTED, TEXTURED, get_config
 from tests.models.test_deliffas import S, make_rays, tiny_config
 
 
@@ -27,8 +27,11 @@ def test_spec_and_zoo_entries():
     assert dataclasses.replace(spec, name="two_surface", viewdir=False, reflect_viewdir=False) == get_variant("two_surface")
     with pytest.raises(ValueError, match="reflect_viewdir needs viewdir"):
         VariantSpec("x", reflect_viewdir=True)
-    reflected, textured = get_config(REFLECTED), get_config(TEXTURED)
-    assert reflected == dataclasses.replace(textured, variant="two_surface_reflect")
+    for preset in PRESETS:  # the same model with the reflected direction; at `small` a shallower U-Net
+        reflected, textured = get_config(REFLECTED, preset), get_config(TEXTURED, preset)
+        levels = DEFAULT_UNET_LEVELS if preset == "small" else textured.unet.levels
+        assert reflected == dataclasses.replace(textured, variant="two_surface_reflect",
+                                                unet=dataclasses.replace(textured.unet, levels=levels))
 
 
 def test_encoded_direction_is_the_reflection():
