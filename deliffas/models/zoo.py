@@ -185,8 +185,8 @@ direction reflected about the posed surface normal gives the MLP the specular hi
 moving body (docs/results.md, "The view direction reflected about the normal")."""
 DEFAULT_UNET_LEVELS = 4
 """U-Net levels of ``REFLECTED`` at the ``small`` preset (the default of ``deliffas train``): its maps stop at
-S / 16 (16 x 16 at S = 256) instead of 1 x 1. The levels below hold almost no arithmetic but about a sixth of a
-CPU training step's time, and the validation camera scores no worse without them (docs/results.md, "The
+S / 16 (16 x 16 at S = 256) instead of 1 x 1. The levels below hold 14 % of the U-Nets' FLOPs but about a sixth
+of a CPU training step's time, and the validation camera scores no worse without them (docs/results.md, "The
 U-Net's depth")."""
 
 
