@@ -32,6 +32,7 @@ from deliffas.engine.checkpointing import STATE_FILE, load_training_state, read_
 from deliffas.engine.data_bridge import shard_info, training_stream, with_torch_rays
 from deliffas.engine.devices import resolve_device
 from deliffas.engine.identity import CAPTURE_KEYS, capture_identity, check_identity, shards_record
+from deliffas.engine.runs import read_run_record
 from deliffas.engine.samples import FrameSample, composite_target, subsample_rays
 from deliffas.engine.time_budget import CALIBRATION, BudgetPlanner
 from deliffas.engine.train_config import TrainConfig, TrainResult, resolve_model_config
@@ -71,8 +72,7 @@ def claim_run(run: Path, resume: bool, overwrite: bool) -> None:
 
 def recorded_model_config(run: str | os.PathLike) -> ModelConfig | None:
     """The model configuration a run recorded in its ``train_config.json`` (None where it holds none)."""
-    path = Path(run) / RUN_MARKER
-    model = json.loads(path.read_text()).get("model") if path.is_file() else None
+    model = read_run_record(run).get("model")
     return config_from_dict(ModelConfig, model) if model else None
 
 
