@@ -8,17 +8,22 @@ STAMP := $(VENV)/.setup-stamp
 DEMO_OUT ?= demo_out
 PYTEST_ARGS ?=
 
-.PHONY: setup test test-slow docs soak demo bench results dist clean
+.PHONY: setup ingest-setup test test-slow docs soak demo bench results own-recording dist clean
 
 setup: $(STAMP)
 
-$(STAMP): pyproject.toml scripts/system_deps.sh
+$(STAMP): pyproject.toml scripts/system_deps.sh scripts/install_ingest.sh
 	bash scripts/system_deps.sh
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet "$(TORCH_SPEC)"
 	$(PY) -m pip install --quiet -e ".[dev]"
+	bash scripts/install_ingest.sh $(PY)
 	touch $(STAMP)
+
+# The optional detector of `deliffas ingest` (MediaPipe 0.10.21 without its declared dependencies); `setup` runs it.
+ingest-setup: setup
+	bash scripts/install_ingest.sh $(PY)
 
 # The suite without the tests marked slow (about 10 min on 2 cores); CI runs both targets.
 test: setup
