@@ -3,11 +3,13 @@
 The DDC sample (``../shared/dynacap-sample``) posed at one frame of its motion; when the sample
 is absent, the procedural character (``deliffas.geometry.procedural``) in a temporary folder.
 Cameras are pinholes 3 m in front of the posed body looking at its bounding-box centre,
-fx = fy = 0.9 x W (the person is then ~70 % of the image height at 940 rows).
+fx = fy = 0.9 x W (the person is then ~70 % of the image height at 940 rows). Smoke mode: 32^2 and 64 x 96
+images, the paper model at atlas side 64.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import tempfile
 from dataclasses import dataclass
@@ -16,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmarks.common import SAMPLE_DIR
+from benchmarks.common import SAMPLE_DIR, sized
 
 SHELL_OFFSET_MM = 30.0
 """Outer surface offset, as DELIFFAS."""
@@ -24,6 +26,10 @@ CAMERA_DISTANCE_MM = 3000.0
 FOCAL_PER_WIDTH = 0.9
 SIZES = {"256^2": (256, 256), "940x1285": (1285, 940)}
 """Image sizes (W, H): a square 256^2 and the DynaCap frame (W x H = 1285 x 940)."""
+SMOKE_SIZES = {"32^2": (32, 32), "64x96": (96, 64)}
+"""Image sizes (W, H) in smoke mode."""
+SMOKE_ATLAS = 64
+"""Atlas side of the paper model in smoke mode."""
 POSE_FRAME = 500
 
 
@@ -104,9 +110,14 @@ def look_at(center: np.ndarray, target: np.ndarray, width: int, height: int, foc
     return Camera(f"bench_{width}x{height}", K, world_to_cam(center, target), width, height)
 
 
+def sizes() -> dict[str, tuple[int, int]]:
+    """The image sizes of this mode: :data:`SIZES`, or :data:`SMOKE_SIZES` in smoke mode."""
+    return sized(SIZES, SMOKE_SIZES)
+
+
 def camera(av: Avatar, size: str):
-    """The benchmark camera of ``size`` (a key of ``SIZES``) in front of the posed body."""
-    width, height = SIZES[size]
+    """The benchmark camera of ``size`` (a key of :func:`sizes`) in front of the posed body."""
+    width, height = sizes()[size]
     lo, hi = av.outer.min(0).astype(np.float64), av.outer.max(0).astype(np.float64)
     target = (lo + hi) / 2
     center = target + np.array([0.0, 0.0, CAMERA_DISTANCE_MM])
@@ -142,13 +153,20 @@ def rays(size: str):
     return camera_rays(UVRaycaster(av.inner, av.faces, av.outer, av.atlas), camera(av, size))
 
 
-@functools.lru_cache(maxsize=1)
 def paper_model():
-    """``DeliffasModel`` of ``two_surface`` at the ``paper`` preset, eval mode, seed 0 (cached)."""
+    """``DeliffasModel`` of ``two_surface`` at the ``paper`` preset, eval mode, seed 0 (cached); at atlas side
+    :data:`SMOKE_ATLAS` in smoke mode."""
+    return _paper_model(sized(None, SMOKE_ATLAS))
+
+
+@functools.lru_cache(maxsize=None)
+def _paper_model(atlas_res: int | None):
+    """The paper model at atlas side ``atlas_res`` (None: the preset's 1024)."""
     from deliffas.models import DeliffasModel, get_config
 
+    cfg = get_config("two_surface", "paper")
     torch.manual_seed(0)
-    return DeliffasModel(get_config("two_surface", "paper")).eval()
+    return DeliffasModel(cfg if atlas_res is None else dataclasses.replace(cfg, atlas_res=atlas_res)).eval()
 
 
 def random_features(model, seed: int = 0):

@@ -3,7 +3,8 @@
 ``python -m benchmarks._frame_memory SHARDS CHUNK`` prints JSON: the growth of the peak resident
 set of ``render_frame`` (paper preset widths at the capture's atlas side, one camera of the first
 frame rescaled to 1285 x 940) with ``CHUNK`` rays per chunk and with every ray in one chunk, and
-the stated bound ``deliffas.engine.memory.render_peak_bound`` for the chunked call.
+the stated bound ``deliffas.engine.memory.render_peak_bound`` for the chunked call. Smoke mode
+(``benchmarks.common.SMOKE_ENV``): a 96 x 64 frame.
 """
 
 from __future__ import annotations
@@ -13,6 +14,8 @@ import json
 import sys
 
 import torch
+
+from benchmarks.common import sized
 
 WIDTH, HEIGHT = 1285, 940
 
@@ -30,7 +33,8 @@ def main(shards: str, chunk: int) -> dict:
     torch.set_num_threads(1)
     samples, info = evaluation_samples(shards, "all", max_frames=1, protocol="all")
     sample = next(iter(samples))
-    cam = sample.cameras[0].rescaled(WIDTH, HEIGHT)
+    width, height = sized((WIDTH, HEIGHT), (96, 64))
+    cam = sample.cameras[0].rescaled(width, height)
     frame = dataclasses.replace(sample, cameras=[cam], camera_ids=sample.camera_ids[:1])
     torch.manual_seed(0)
     model = DeliffasModel(resolve_model_config(TrainConfig(shards="-", out="-", preset="paper"), info["atlas_res"],
@@ -43,8 +47,9 @@ def main(shards: str, chunk: int) -> dict:
     rays = camera_rays(raycaster, cam).num_rays
     with torch.no_grad():
         features_bytes = frame_features_bytes(model.encode(*frame.normal_maps(cpu)))
-    out = {"pixels": WIDTH * HEIGHT, "rays": rays, "chunk": chunk, "atlas_res": model.config.atlas_res,
-           "features_bytes": features_bytes, "bound": render_peak_bound(features_bytes, WIDTH * HEIGHT, chunk, rays)}
+    out = {"width": width, "height": height, "pixels": width * height, "rays": rays, "chunk": chunk,
+           "atlas_res": model.config.atlas_res, "features_bytes": features_bytes,
+           "bound": render_peak_bound(features_bytes, width * height, chunk, rays)}
     for name, size in (("chunked", chunk), ("unchunked", rays)):
         out[name], images = peak_rss_growth(lambda: render_frame(model, frame, raycaster, cpu, StageTimer(cpu),
                                                                  chunk_size=size))

@@ -6,6 +6,8 @@ import contextlib
 import time
 from typing import Callable, Iterator
 
+from benchmarks.common import smoke
+
 
 def best_times(fns: dict[str, Callable[[], object]], repeat: int = 5, min_time: float = 0.0,
                max_rounds: int | None = None) -> dict[str, float]:
@@ -16,8 +18,10 @@ def best_times(fns: dict[str, Callable[[], object]], repeat: int = 5, min_time: 
     rounds, and more while the total time of the rounds so far is below ``min_time`` seconds
     (at most ``max_rounds``, default 4 x ``repeat``). On a loaded 2-core machine a short
     multi-threaded op sometimes waits tens of ms for its second thread; the best of many rounds
-    is the undisturbed time.
+    is the undisturbed time. In smoke mode (``benchmarks.common.smoke``): one round after the warm-up.
     """
+    if smoke():
+        repeat, min_time, max_rounds = 1, 0.0, 1
     for fn in fns.values():
         fn()
     best = {name: float("inf") for name in fns}

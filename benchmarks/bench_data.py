@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmarks._capture import CAMERAS, FRAMES, SIZE, TEST_FRAMES, bench_capture
-from benchmarks.common import Result
+from benchmarks._capture import bench_capture, capture_size
+from benchmarks.common import Result, sized
 
 K = 4
 
@@ -42,7 +42,9 @@ def run() -> list[Result]:
     from deliffas.data.dataset import ShardDataset
 
     subject, shards, convert_s = bench_capture()
-    n_frames = FRAMES + TEST_FRAMES
+    dims = capture_size()
+    n_frames = dims.frames + dims.test_frames
+    tries = sized(2, 1)
     png_root = next((subject / "training").glob("rgb_*"))
     png_bytes = sum(p.stat().st_size for p in png_root.rglob("*.png"))
     ds = ShardDataset(shards, split="train", cameras_per_item=K, protocol="all")
@@ -53,7 +55,7 @@ def run() -> list[Result]:
         with h5py.File(p, "r") as f:
             if "rgba" in f:
                 shard_image_bytes += f["rgba"].id.get_storage_size()
-    rows = [Result("data", f"convert {n_frames} frames x {CAMERAS} cams {SIZE}^2 (jobs 1, incl. setup)",
+    rows = [Result("data", f"convert {n_frames} frames x {dims.cameras} cams {dims.size}^2 (jobs 1, incl. setup)",
                    n_frames / convert_s, "frames/s"),
             Result("data", "image bytes in shards / PNG folder bytes", shard_image_bytes / png_bytes, "ratio",
                    note=f"{shard_image_bytes / 1e6:.2f} MB vs {png_bytes / 1e6:.2f} MB")]
@@ -69,7 +71,7 @@ def run() -> list[Result]:
             _png_item(png_root, ds.frames[pos], list(c))
         return len(indices) / (time.perf_counter() - t)
 
-    png_only = max(png_rate() for _ in range(2))
+    png_only = max(png_rate() for _ in range(tries))
     rows.append(Result("data", f"PNG folder: K={K} images+masks only (no geometry)", png_only, "samples/s"))
     geometry = _geometry_from_motion(subject, ds)
 
@@ -80,10 +82,10 @@ def run() -> list[Result]:
             geometry(ds.frames[pos])
         return len(indices) / (time.perf_counter() - t)
 
-    png = max(png_sample_rate() for _ in range(2))
+    png = max(png_sample_rate() for _ in range(tries))
     rows.append(Result("data", f"PNG folder + pose/normal maps from the motion (same sample)", png, "samples/s"))
     for workers in (0, 2):
-        rate = max(_loader_rate(ds, indices, workers) for _ in range(2))
+        rate = max(_loader_rate(ds, indices, workers) for _ in range(tries))
         rows.append(Result("data", f"ShardDataset, {workers} workers (images, masks, normal maps, verts)", rate,
                            "samples/s", baseline="PNG + geometry", ratio=rate / png,
                            target=">= 5" if workers == 0 else "", passed=(rate / png >= 5) if workers == 0 else None,

@@ -1,4 +1,5 @@
-"""End-to-end frame time against the sum of its stages, and training speed of the small preset at 256^2."""
+"""End-to-end frame time against the sum of its stages, and training speed of the small preset at 256^2 (smoke mode:
+the smoke bench capture, 64 x 96 for 940 x 1285, two rounds)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import torch
 
 from benchmarks._capture import bench_capture
 from benchmarks._timing import BENCH_THREADS, torch_threads
-from benchmarks.common import Result
+from benchmarks.common import Result, sized
 from deliffas.models.unet import optimize_for_inference
 
 
@@ -41,7 +42,7 @@ def _end_to_end(model, sample, info, camera, label: str) -> list[Result]:
     s1 = dataclasses.replace(sample, cameras=[camera], images=sample.images[:1], masks=sample.masks[:1])
     device = torch.device("cpu")
     best_wall, best_stages = float("inf"), None
-    for i in range(4):
+    for i in range(sized(4, 2)):
         timer = StageTimer(device)
         t0 = time.perf_counter()
         with timer.stage("uv"):
@@ -58,7 +59,7 @@ def _end_to_end(model, sample, info, camera, label: str) -> list[Result]:
                    passed=best_wall / stage_sum <= 1.2)]
 
 
-def _frame_memory(shards, chunk: int = 16384) -> list[Result]:
+def _frame_memory(shards, chunk: int) -> list[Result]:
     """Peak memory of a 940 x 1285 frame (fresh process, see benchmarks/_frame_memory.py) against its bound."""
     import json
     import os
@@ -79,10 +80,11 @@ def _frame_memory(shards, chunk: int = 16384) -> list[Result]:
     m = json.loads(res.stdout.strip().splitlines()[-1])
     formula = (f"2 F + 320 B P + 4 KiB c + 64 B N + 16 MiB with F {m['features_bytes'] / MIB:.0f} MiB (paper widths, "
                f"S = {m['atlas_res']}), P {m['pixels']}, c {chunk}, N {m['rays']}")
-    return [Result("e2e", f"frame 940x1285: peak memory growth, chunk {chunk}", m["chunked"] / MIB, "MiB",
+    size = f"{m['height']}x{m['width']}"
+    return [Result("e2e", f"frame {size}: peak memory growth, chunk {chunk}", m["chunked"] / MIB, "MiB",
                    baseline="stated bound (docs/reliability.md)", ratio=m["chunked"] / m["bound"],
                    target=f"<= bound {m['bound'] / MIB:.0f} MiB", passed=m["chunked"] <= m["bound"], note=formula),
-            Result("e2e", f"frame 940x1285: peak memory growth, chunk_size = all {m['rays']} rays", m["unchunked"] / MIB,
+            Result("e2e", f"frame {size}: peak memory growth, chunk_size = all {m['rays']} rays", m["unchunked"] / MIB,
                    "MiB", note="sampling of every ray at once; the MLP still runs in INFERENCE_CHUNK row blocks")]
 
 
@@ -121,7 +123,7 @@ def _train_step(model, opt, sample, shared: bool):
     return step
 
 
-def _train_timing(model, sample, rounds: int = 5) -> dict[str, tuple[float, dict]]:
+def _train_timing(model, sample, rounds: int) -> dict[str, tuple[float, dict]]:
     """Best step time and its stage times of the shared and per-camera U-Net variants, interleaved
     (shared, per camera, shared, ...) so that both see the same load; the first round warms up."""
     from deliffas.engine.timing import StageTimer
@@ -148,16 +150,17 @@ def run() -> list[Result]:
     model = optimize_for_inference(_model(info).eval())  # as evaluate/render (load_run) run it
     rows = []
     with torch.no_grad():
-        rows += _end_to_end(model, sample, info, sample.cameras[0], "256^2")
-        big = sample.cameras[0].rescaled(1285, 940)
-        rows += _end_to_end(model, sample, info, big, "940x1285")
-    rows += _frame_memory(shards)
+        side = sample.cameras[0].width
+        rows += _end_to_end(model, sample, info, sample.cameras[0], f"{side}^2")
+        width, height = sized((1285, 940), (96, 64))
+        rows += _end_to_end(model, sample, info, sample.cameras[0].rescaled(width, height), f"{height}x{width}")
+    rows += _frame_memory(shards, sized(16384, 1024))
     model.train()
     with torch_threads():  # as the stage benchmarks: 2-thread waits under load would decide the ratio
-        timing = _train_timing(model, sample)
+        timing = _train_timing(model, sample, sized(5, 2))
     (shared_t, stages), (per_cam_t, _) = timing["shared"], timing["per_camera"]
     rays = sum(r.num_rays for r in sample.rays)
-    rows.append(Result("train", f"small preset two_surface, 256^2, K={sample.num_cameras} cameras ({rays} rays)",
+    rows.append(Result("train", f"small preset two_surface, {side}^2, K={sample.num_cameras} cameras ({rays} rays)",
                        1 / shared_t, "it/s",
                        note="share: " + ", ".join(f"{k} {100 * v / stages['total']:.0f}%" for k, v in stages.items()
                                                   if k != "total")

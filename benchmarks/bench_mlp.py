@@ -12,7 +12,8 @@ Target: >= 0.70 for fp32 and for bf16.
 
 bf16 runs on a copy of the MLP cast to bfloat16 with bfloat16 inputs. This CPU has AVX2 but no
 native bf16 arithmetic, so bf16 is timed on at most ``BF16_RAYS`` rays. Its quality change is the
-RGB difference to the fp32 MLP on the same inputs (max, mean, PSNR).
+RGB difference to the fp32 MLP on the same inputs (max, mean, PSNR). Smoke mode: the smoke sizes and atlas of
+``_avatar``.
 """
 
 from __future__ import annotations
@@ -30,7 +31,8 @@ GROUP = "mlp"
 TARGET = 0.70
 BF16_RAYS = 8192
 """bf16 is timed on at most this many rays (it runs several times slower than fp32 here)."""
-REPEATS = {"256^2": 5, "940x1285": 2}
+REPEATS = (5, 2)
+"""Timed rounds at the smaller and at the larger image size."""
 
 
 def matmul_chain(mlp: torch.nn.Module, num_rows: int, dtype: torch.dtype):
@@ -64,13 +66,13 @@ def _run(av: _avatar.Avatar) -> list[Result]:
     mlp16 = copy.deepcopy(model.mlp).to(torch.bfloat16)
     flops = mac_flops(mlp32)
     results = []
-    for size in ("256^2", "940x1285"):
+    for size, repeat in zip(_avatar.sizes(), REPEATS):
         r = _avatar.rays(size)
         with torch.inference_mode():
             enc, feats = model.gather_inputs(features, _avatar.ray_query(r))
             n = enc.shape[0]
             t = best_times({"mlp": lambda: mlp32(enc, feats), "mm": matmul_chain(mlp32, n, torch.float32)},
-                           repeat=REPEATS[size], min_time=3.0, max_rounds=40)
+                           repeat=repeat, min_time=3.0, max_rounds=40)
             nb = min(n, BF16_RAYS)
             enc_b, feats_b = enc[:nb].bfloat16(), feats[:nb].bfloat16()
             tb = best_times({"mlp": lambda: mlp16(enc_b, feats_b), "mm": matmul_chain(mlp32, nb, torch.bfloat16)},

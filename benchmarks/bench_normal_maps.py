@@ -12,7 +12,7 @@ texel table built once beforehand, against
 
 Also reported: the one-off build of the fused kernel (C compiler run + load, once per process),
 the sparse-product fallback (``method="sparse"``) against the same index_select, and maps per
-second of batched frames (8 frames per call).
+second of batched frames (8 frames per call). Smoke mode: S = 32, 64.
 """
 
 from __future__ import annotations
@@ -21,12 +21,13 @@ import torch
 
 from benchmarks import _avatar
 from benchmarks._timing import best_times
-from benchmarks.common import Result
+from benchmarks.common import Result, sized
 
 GROUP = "normals"
 NAIVE_TARGET = 20.0
 GATHER_TARGET = 2.0
 SIZES = (256, 512, 1024)
+SMOKE_SIZES = (32, 64)
 
 
 def run() -> list[Result]:
@@ -47,7 +48,7 @@ def _run(av: _avatar.Avatar) -> list[Result]:
         note=(f"{status.command}; AVX2 path: {'yes' if status.avx2 else 'no'}" if status.available
               else f"unavailable: {status.reason}"),
     )]  # fmt: skip
-    for size in SIZES:
+    for size in sized(SIZES, SMOKE_SIZES):
         gather = NormalMapGather.from_table(uv_texel_table(av.atlas, size), faces)
         state = {"k": 0}
 

@@ -25,6 +25,8 @@ torch thread (``BENCH_THREADS``) on both sides of every ratio.
   direction), pose held and U-Nets per frame, interleaved; no target.
 * fps: 1000 / frame ms, with the U-Nets run per frame (``deliffas render``: the pose changes every
   frame) and with them cached (pose held); no target, machines vary.
+
+Smoke mode: the smoke bench capture, 64x96 for 940x1285 and 32^2 for 256^2 and 512^2, 2 frames per stream.
 """
 
 from __future__ import annotations
@@ -36,10 +38,23 @@ import torch
 
 from benchmarks._capture import bench_capture
 from benchmarks._timing import BENCH_THREADS, best_times, torch_threads
-from benchmarks.common import Result
+from benchmarks.common import Result, sized
 
 RATIO_TARGET = 1.3
 SIZES = {"256^2": (256, 256), "512^2": (512, 512), "940x1285": (1285, 940)}
+"""Frame sizes, name: (width, height); the last one is the ratio, stream and reflection rows' size."""
+SMOKE_SIZES = {"32^2": (32, 32), "64x96": (96, 64)}
+
+
+def _sizes() -> dict[str, tuple[int, int]]:
+    """:data:`SIZES`, or :data:`SMOKE_SIZES` in smoke mode."""
+    return sized(SIZES, SMOKE_SIZES)
+
+
+def _frame_camera(sample) -> tuple[str, object]:
+    """The name of the last of :func:`_sizes` and the sample's first camera rescaled to it."""
+    name, size = list(_sizes().items())[-1]
+    return name, sample.cameras[0].rescaled(*size)
 
 
 def _model(info, preset: str, name: str = "two_surface"):
@@ -110,18 +125,19 @@ def _frame_fns(model, sample, info, camera, fast):
 def _ratio_rows(sample, info, name: str = "two_surface") -> list[Result]:
     """The frame of model ``name`` (realtime preset) against its irreducible work (PASS/FAIL), its fps and the
     encoding table's gain; rows named as ever for ``two_surface``, after the model otherwise."""
-    from deliffas.fast.frame import _rasterizer, fast_camera_rays
+    from deliffas.fast.frame import fast_camera_rays
+    from deliffas.fast.rasterize import frame_rasterizer
     from deliffas.fast.config import FastConfig
     from deliffas.engine.timing import StageTimer
 
     fast = FastConfig()
     dtype = fast.torch_dtype()
     model = _model(info, "realtime", name)
-    label = "940x1285 realtime preset" + ("" if name == "two_surface" else f" ({name})")
-    cam = sample.cameras[0].rescaled(*SIZES["940x1285"])
+    size, cam = _frame_camera(sample)
+    label = f"{size} realtime preset" + ("" if name == "two_surface" else f" ({name})")
     held, _full, features, rc = _frame_fns(model, sample, info, cam, fast)
     n = fast_camera_rays(rc, cam).num_rays
-    rz = _rasterizer(rc)
+    rz = frame_rasterizer(rc)
     gemm, gather = _gemm_chain(model, n, dtype), _gather(features, n)
     exact, _, _, _ = _frame_fns(model, sample, info, cam, dataclasses.replace(fast, pe_table=False))
     t = best_times({"frame": held, "raster": lambda: rz.depth_pass(cam), "gemm": gemm, "gather": gather,
@@ -153,7 +169,7 @@ def _reflect_rows(sample, info) -> list[Result]:
     from deliffas.fast.config import FastConfig
     from deliffas.models.zoo import REFLECTED, TEXTURED
 
-    cam = sample.cameras[0].rescaled(*SIZES["940x1285"])
+    size, cam = _frame_camera(sample)
     fns = {}
     for name in (TEXTURED, REFLECTED):
         held, full, _, _ = _frame_fns(_model(info, "realtime", name), sample, info, cam, FastConfig())
@@ -162,7 +178,7 @@ def _reflect_rows(sample, info) -> list[Result]:
     rows = []
     for kind, label in (("held", "pose held"), ("full", "U-Nets per frame")):
         ref, got = t[f"{TEXTURED} {kind}"], t[f"{REFLECTED} {kind}"]
-        rows.append(Result("realtime", f"940x1285 realtime preset, {label}: {REFLECTED} fps", 1 / got, "fps",
+        rows.append(Result("realtime", f"{size} realtime preset, {label}: {REFLECTED} fps", 1 / got, "fps",
                            baseline=f"{TEXTURED}, same frame", ratio=ref / got,
                            note=f"{TEXTURED} {1 / ref:.1f} fps; {BENCH_THREADS} torch thread; no target"))
     return rows
@@ -175,9 +191,9 @@ def _stream_rows(sample, info) -> list[Result]:
     from deliffas.fast.config import FastConfig
 
     model = _model(info, "realtime")
-    cam = sample.cameras[0].rescaled(*SIZES["940x1285"])
+    size, cam = _frame_camera(sample)
     held, full, _, _ = _frame_fns(model, sample, info, cam, FastConfig())
-    frames = 8
+    frames = sized(8, 2)
 
     def sequential(fn, threads):
         def run():
@@ -197,7 +213,7 @@ def _stream_rows(sample, info) -> list[Result]:
         t = best_times({"seq1": sequential(fn, 1), "seq2": sequential(fn, 2), "flight2": in_flight(fn)}, repeat=2,
                        max_rounds=3)
         fps = {k: frames / v for k, v in t.items()}
-        rows.append(Result("realtime", f"940x1285 realtime preset, {label}: fps, 2 frames in flight",
+        rows.append(Result("realtime", f"{size} realtime preset, {label}: fps, 2 frames in flight",
                            fps["flight2"], "fps", baseline="1 frame at a time, 2 intra-op threads",
                            ratio=fps["flight2"] / fps["seq2"],
                            note=f"1 frame at a time: {fps['seq1']:.1f} fps on 1 thread, {fps['seq2']:.1f} on 2; "
@@ -209,14 +225,15 @@ def _fps_rows(sample, info) -> list[Result]:
     from deliffas.fast.config import FastConfig
 
     rows = []
+    sizes = _sizes()
     for preset in ("realtime", "small", "paper"):
         model = _model(info, preset)
-        for size, (w, h) in SIZES.items():
+        for size, (w, h) in sizes.items():
             cam = sample.cameras[0].rescaled(w, h)
             fast_held, fast_full, _, _ = _frame_fns(model, sample, info, cam, FastConfig())
             plain_held, _, _, _ = _frame_fns(model, sample, info, cam, None)
             fns = {"fast_held": fast_held, "fast_full": fast_full}
-            if preset == "small" and size == "940x1285":
+            if preset == "small" and size == list(sizes)[-1]:
                 fns["plain_held"] = plain_held
             t = best_times(fns, repeat=2, max_rounds=2)
             note = f"U-Nets per frame {1 / t['fast_full']:.1f} fps ({t['fast_full'] * 1000:.0f} ms)"

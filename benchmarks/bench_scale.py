@@ -6,7 +6,8 @@ into set-up, a per-frame and a per-image cost (three runs: 8 cameras x 30 frames
 the peak resident set of a converting worker (one process; and each of a 2-worker LocalCluster),
 shard bytes per frame and per image, and ``ShardDataset`` samples/s (K = 4 cameras) on the
 shards. docs/scale.md extrapolates a full DynaCap subject from them. The capture is synthesized once into
-``bench_out/paper_capture`` (deterministic, seed 0) and reused by later runs.
+``bench_out/paper_capture`` (deterministic, seed 0) and reused by later runs. Smoke mode: the same runs on a
+64 x 48, 5-camera, 6-frame capture at S = 32 in a temporary folder, with the bench capture's character.
 """
 
 from __future__ import annotations
@@ -16,12 +17,14 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
-from benchmarks.common import Result
+from benchmarks.common import Result, smoke
 
 WIDTH, HEIGHT, CAMERAS, FRAMES, ATLAS = 1285, 940, 8, 30, 1024
 """The paper's image size (as bench_engine renders it), a DynaCap-like rig subset, its atlas side S."""
@@ -32,27 +35,57 @@ WORKER_RSS_TARGET = 3 << 30
 CAPTURE_DIR = Path(os.environ.get("DELIFFAS_PAPER_CAPTURE", "bench_out/paper_capture"))
 
 
-def paper_capture() -> Path:
-    """The synthetic subject at the paper's size (made once; ``capture.json`` records how)."""
+class ScaleSize(NamedTuple):
+    """The scale capture: image width and height, cameras, frames, atlas side S, frames per shard."""
+
+    width: int
+    height: int
+    cameras: int
+    frames: int
+    atlas: int
+    shard_frames: int
+
+
+FULL = ScaleSize(WIDTH, HEIGHT, CAMERAS, FRAMES, ATLAS, SHARD_FRAMES)
+SMOKE = ScaleSize(64, 48, 5, 6, 32, 2)
+
+
+def _setting() -> tuple[ScaleSize, Path]:
+    """The capture's size and folder: :data:`FULL` in :data:`CAPTURE_DIR`, or :data:`SMOKE` in a new temporary
+    folder in smoke mode."""
+    if smoke():
+        return SMOKE, Path(tempfile.mkdtemp(prefix="deliffas-bench-scale-"))
+    return FULL, CAPTURE_DIR
+
+
+def paper_capture(dims: ScaleSize = FULL, folder: Path = CAPTURE_DIR) -> Path:
+    """The synthetic subject of size ``dims`` in ``folder`` (made once; ``capture.json`` records how). In smoke
+    mode with the bench capture's character (no procedural character built a second time)."""
     from deliffas.data.synth import SynthConfig, synthesize_capture
 
-    record = {"width": WIDTH, "height": HEIGHT, "cameras": CAMERAS, "frames": FRAMES, "seed": 0}
-    done = CAPTURE_DIR / "capture.json"
+    record = {"width": dims.width, "height": dims.height, "cameras": dims.cameras, "frames": dims.frames, "seed": 0}
+    done = folder / "capture.json"
     if done.is_file() and json.loads(done.read_text()) == record:
-        return CAPTURE_DIR / "subject"
-    shutil.rmtree(CAPTURE_DIR, ignore_errors=True)
-    CAPTURE_DIR.mkdir(parents=True)
+        return folder / "subject"
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True)
+    character = None
+    if smoke():
+        from benchmarks._capture import bench_capture
+
+        character = str(next((bench_capture()[0] / "character").glob("*.character")))
     t0 = time.perf_counter()
-    synthesize_capture(CAPTURE_DIR / "subject", SynthConfig(num_frames=FRAMES, num_test_frames=1, num_cameras=CAMERAS,
-                                                            width=WIDTH, height=HEIGHT, seed=0))
+    synthesize_capture(folder / "subject", SynthConfig(num_frames=dims.frames, num_test_frames=1,
+                                                       num_cameras=dims.cameras, width=dims.width, height=dims.height,
+                                                       seed=0, character=character))
     done.write_text(json.dumps({**record, "synth_seconds": time.perf_counter() - t0}))
-    return CAPTURE_DIR / "subject"
+    return folder / "subject"
 
 
-def _probe(subject: Path, out: Path, **config) -> dict:
+def _probe(subject: Path, out: Path, dims: ScaleSize, **config) -> dict:
     """One conversion in a fresh process (benchmarks._convert_probe): timings and worker peak RSS."""
     shutil.rmtree(out, ignore_errors=True)
-    cfg = {"atlas_res": ATLAS, "shard_frames": SHARD_FRAMES, "sequences": ["training"], **config}
+    cfg = {"atlas_res": dims.atlas, "shard_frames": dims.shard_frames, "sequences": ["training"], **config}
     proc = subprocess.run([sys.executable, "-m", "benchmarks._convert_probe", str(subject), str(out), json.dumps(cfg)],
                           capture_output=True, text=True, check=True)
     return json.loads(proc.stdout.strip().splitlines()[-1])
@@ -85,12 +118,13 @@ def cost_model(full: dict, two_cameras: dict, third: dict) -> dict:
 
 
 def run() -> list[Result]:
-    subject = paper_capture()
-    work = CAPTURE_DIR / "out"
-    full = _probe(subject, work / "all")
-    two = _probe(subject, work / "two", cameras=[0, 1])
-    third = _probe(subject, work / "third", frames="0:10")
-    dask = _probe(subject, work / "dask", dask_workers=2)
+    dims, folder = _setting()
+    subject = paper_capture(dims, folder)
+    work = folder / "out"
+    full = _probe(subject, work / "all", dims)
+    two = _probe(subject, work / "two", dims, cameras=[0, 1])
+    third = _probe(subject, work / "third", dims, frames=f"0:{dims.frames // 3}")
+    dask = _probe(subject, work / "dask", dims, dask_workers=2)
     load = os.getloadavg()[0]
     mib = 1 << 20
     model = cost_model(full, two, third)
@@ -103,12 +137,14 @@ def run() -> list[Result]:
     note = f"load {load:.1f} on {os.cpu_count()} cores"
     wall, per_cpu = _dataset_rate(work / "all")
     rows = [
-        Result("scale", f"convert {WIDTH}x{HEIGHT}, {CAMERAS} cams, S={ATLAS}, per CPU-s", images / work_cpu,
-               "images/s", note=f"per core (jobs 1, CPU time, setup excl.); {CAMERAS} cams x {FRAMES} frames"),
+        Result("scale", f"convert {dims.width}x{dims.height}, {dims.cameras} cams, S={dims.atlas}, per CPU-s",
+               images / work_cpu, "images/s",
+               note=f"per core (jobs 1, CPU time, setup excl.); {dims.cameras} cams x {dims.frames} frames"),
         Result("scale", "  the same, wall clock on this shared machine",
                images / (full["seconds"] - full["seconds_setup"]), "images/s", note=note),
         Result("scale", "  cost per frame (posing, surfaces, normal maps, stored)", model["per_frame"], "CPU s",
-               note="from runs of 8 cams x 30 frames, 2 cams x 30, 8 cams x 10"),
+               note=f"from runs of {dims.cameras} cams x {dims.frames} frames, 2 cams x {dims.frames}, "
+                    f"{dims.cameras} cams x {dims.frames // 3}"),
         Result("scale", "  cost per image (read, encode, write)", model["per_image"], "CPU s"),
         Result("scale", "  set-up per worker (template, texel table, meta.h5)", model["setup"], "CPU s"),
         Result("scale", "peak RSS of a converting worker (jobs 1 process)", peak / mib, "MiB",
@@ -119,17 +155,18 @@ def run() -> list[Result]:
         Result("scale", "convert on a Dask LocalCluster of 2 workers, wall clock",
                dask["images_converted"] / (dask["seconds"] - dask["seconds_setup"]), "images/s",
                note=f"{note}; incl. worker start-up"),
-        Result("scale", f"shard of {SHARD_FRAMES} frames x {CAMERAS} cams", float(np.mean(shard_bytes)) / mib, "MiB",
+        Result("scale", f"shard of {dims.shard_frames} frames x {dims.cameras} cams", float(np.mean(shard_bytes)) / mib,
+               "MiB",
                note=f"{len(shards)} shards; {(sum(shard_bytes) - geometry_bytes) / images / mib:.3f} MiB per image "
                     f"(raw codec, synthetic), {geometry_bytes / full['frames_converted'] / mib:.1f} MiB geometry per "
                     f"frame"),
-        Result("scale", f"ShardDataset S={ATLAS}, K={K} cams/item, 0 workers, per CPU-s", per_cpu, "samples/s"),
+        Result("scale", f"ShardDataset S={dims.atlas}, K={K} cams/item, 0 workers, per CPU-s", per_cpu, "samples/s"),
         Result("scale", "  the same, wall clock on this shared machine", wall, "samples/s", note=note),
     ]
-    (CAPTURE_DIR / "scale.json").write_text(json.dumps({"full": full, "two_cameras": two, "ten_frames": third,
-                                                        "dask2": dask, "model": model, "load": load,
-                                                        "geometry_bytes": geometry_bytes,
-                                                        "rows": [r.to_dict() for r in rows]}, indent=1))
+    (folder / "scale.json").write_text(json.dumps({"full": full, "two_cameras": two, "ten_frames": third,
+                                                   "dask2": dask, "model": model, "load": load,
+                                                   "geometry_bytes": geometry_bytes,
+                                                   "rows": [r.to_dict() for r in rows]}, indent=1))
     return rows
 
 

@@ -17,6 +17,7 @@ Irreducible work, counted from the shapes of this very step:
 
 Sampling, encoding, the loss, the saturation penalty and the optimizer are counted as zero: the ratio step /
 irreducible is what the U-Nets and MLP would cost at the machine's dense rates, and the target is <= 2.
+Smoke mode: 32^2 and 64^2 on the smoke bench capture, the ratio at the larger.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from torch import nn
 from benchmarks._capture import bench_capture
 from benchmarks._timing import BENCH_THREADS, best_times, torch_threads
 from benchmarks.bench_unet import conv_flops
-from benchmarks.common import Result
+from benchmarks.common import Result, sized
 
 GROUP = "train"
 TARGET = 2.0
@@ -126,7 +127,8 @@ def _run() -> list[Result]:
     saturation = SaturationTerm(defaults.saturation_weight, defaults.saturation_margin)  # as the trainer's
 
     rows = []
-    for size in (128, 256):
+    sizes = sized((128, 256), (32, 64))
+    for size in sizes:
         every_ray = _sample(size)
         shaded = sum(r.num_rays for r in every_ray.rays)
         default = subsample_rays(every_ray, RAYS_PER_STEP, np.random.default_rng(0))
@@ -137,23 +139,23 @@ def _run() -> list[Result]:
             model, opt = _model(size)
             step = lambda: train_step(model, sample, opt, torch.device("cpu"), saturation=saturation)  # noqa: E731
             rays = sum(r.num_rays for r in sample.rays)
-            if size == 256:
+            if size == sizes[-1]:
                 t_step, conv_rate, gemm_rate = _timed_with_rates(step, rays)
             else:
                 t_step = best_times({"step": step}, repeat=4, min_time=3.0, max_rounds=12)["step"]
             rows.append(Result(GROUP, f"{label}, {size}^2, K={K} ({rays} of {shaded} rays)", 1 / t_step, "it/s",
                                note=f"{t_step * 1e3:.0f} ms per step, rays cast beforehand; {BENCH_THREADS} torch "
                                     "thread"))
-            if size == 256:
-                rows.append(_ratio_row(label, model, sample, t_step, conv_rate, gemm_rate))
+            if size == sizes[-1]:
+                rows.append(_ratio_row(label, size, model, sample, t_step, conv_rate, gemm_rate))
     return rows
 
 
-def _ratio_row(label: str, model, sample, t_step: float, conv_rate: float, gemm_rate: float) -> Result:
+def _ratio_row(label: str, size: int, model, sample, t_step: float, conv_rate: float, gemm_rate: float) -> Result:
     """The step against its irreducible work at the rates measured with it (PASS/FAIL against :data:`TARGET`)."""
     floor, unet, mlp = _irreducible_s(model, sample, conv_rate, gemm_rate)
     ratio = t_step / floor
-    return Result(GROUP, f"step / irreducible work, 256^2, K={K}, {label}", ratio, "x",
+    return Result(GROUP, f"step / irreducible work, {size}^2, K={K}, {label}", ratio, "x",
                   baseline="U-Net + MLP forward and backward FLOPs at the measured conv / GEMM rates", ratio=ratio,
                   target=f"<= {TARGET:.1f}", passed=ratio <= TARGET,
                   note=f"U-Nets {unet / 1e9:.2f} GFLOP at {conv_rate / 1e9:.0f} GFLOP/s, MLP {mlp / 1e9:.2f} GFLOP at "

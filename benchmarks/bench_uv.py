@@ -10,7 +10,7 @@ beforehand and packed as an open3d float32 tensor (so the baseline pays no ray g
 Target: stage <= 2.5 x baseline.
 
 Also reported (no target): ``UVRaycaster.cast(camera)``, the dense full-image ``RaycastHits`` of
-every pixel, for callers that need per-pixel arrays.
+every pixel, for callers that need per-pixel arrays. Smoke mode: the smoke sizes of ``_avatar``.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ def _run(av: _avatar.Avatar) -> list[Result]:
 
     results = [Result(GROUP, "torch intra-op threads in the uv/mlp/unet/normals/lf_vs_nerf rows", BENCH_THREADS,
                       "threads", note="see benchmarks/_timing.py BENCH_THREADS")]
-    for size, repeat in (("256^2", 15), ("940x1285", 7)):
+    for size, repeat in zip(_avatar.sizes(), (15, 7)):
         cam = _avatar.camera(av, size)
         origins, dirs = cam.rays()  # (N, 3) float64 each
         packed = np.concatenate([origins, dirs], axis=1).astype(np.float32)  # (N, 6)

@@ -2,7 +2,8 @@
 
 The viewer renders as ``deliffas view`` serves it: through the CPU fast path (``ViewConfig.fast`` with the CLI's
 environment variables), and
-``render_frame`` / ``render_camera`` are given the same path; the plain viewer's rate is a row without target."""
+``render_frame`` / ``render_camera`` are given the same path; the plain viewer's rate is a row without target.
+Smoke mode: 64^2, 2 views, one timed pass."""
 
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ import torch
 
 from benchmarks._capture import bench_capture
 from benchmarks.bench_engine import _model, _sample
-from benchmarks.common import Result
+from benchmarks.common import Result, sized
 
 SIDE, VIEWS = 512, 8
 
@@ -32,13 +33,13 @@ def _run_dir(model, shards) -> Path:
     return run
 
 
-def _orbit(sample, info) -> list:
+def _orbit(sample, side: int, views: int) -> list:
     from deliffas.engine.render import orbit_cameras
 
     centre = sample.inner_verts.mean(0)
     ref = sample.cameras[0]
     radius = float(((ref.center - centre)[[0, 2]] ** 2).sum() ** 0.5)
-    return orbit_cameras(ref, [centre] * VIEWS, radius, float(ref.center[1]), (SIDE, SIDE))
+    return orbit_cameras(ref, [centre] * views, radius, float(ref.center[1]), (side, side))
 
 
 def run() -> list[Result]:
@@ -58,7 +59,9 @@ def run() -> list[Result]:
     sample, info = _sample(shards, K=1)
     run_dir = _run_dir(_model(info), shards)
     model, _ = load_run(run_dir)
-    cams = _orbit(sample, info)
+    side, views = sized((SIDE, VIEWS), (64, 2))
+    tries = sized(2, 1)
+    cams = _orbit(sample, side, views)
     device = torch.device("cpu")
     rc = UVRaycaster(sample.inner_verts, info["faces"], sample.outer_verts, info["atlas"])
     fast = fast_for_device(fast_from_env(ViewConfig.fast), device)
@@ -85,7 +88,7 @@ def run() -> list[Result]:
     def viewer(worker) -> float:
         t0 = time.perf_counter()
         for i, cam in enumerate(cams):
-            worker.submit(ViewRequest(cam, frame, "rgb", canvas=(SIDE, SIDE), serial=i))
+            worker.submit(ViewRequest(cam, frame, "rgb", canvas=(side, side), serial=i))
             done.acquire()
         return (time.perf_counter() - t0) / len(cams)
 
@@ -94,24 +97,24 @@ def run() -> list[Result]:
     try:
         with torch.no_grad():
             direct(True), viewer(worker), viewer(plain_worker)  # warm-up: open3d, kernels, the frame's features
-            alone = min(direct(True) for _ in range(2))
-            cached = min(direct(False) for _ in range(2))
-            served = min(viewer(worker) for _ in range(2))
-            plain = min(viewer(plain_worker) for _ in range(2))
+            alone = min(direct(True) for _ in range(tries))
+            cached = min(direct(False) for _ in range(tries))
+            served = min(viewer(worker) for _ in range(tries))
+            plain = min(viewer(plain_worker) for _ in range(tries))
     finally:
         worker.stop()
         plain_worker.stop()
     fps = 1.0 / served
     path = "fast path" if fast is not None else "plain path (DELIFFAS_FAST_RENDER=0)"
     return [
-        Result("view", f"viewer {SIDE}^2 small two_surface, camera orbit (frame fixed): fps", fps, "fps",
+        Result("view", f"viewer {side}^2 small two_surface, camera orbit (frame fixed): fps", fps, "fps",
                target=">= 10", passed=fps >= 10, note=f"{served * 1000:.1f} ms per image incl. PNG encoding; {path}"),
-        Result("view", f"viewer {SIDE}^2, plain path (--plain): fps", 1.0 / plain, "fps", ratio=plain / served,
+        Result("view", f"viewer {side}^2, plain path (--plain): fps", 1.0 / plain, "fps", ratio=plain / served,
                baseline="the viewer as served", note=f"{plain * 1000:.1f} ms per image; no target"),
-        Result("view", f"viewer {SIDE}^2: time per image / render_frame alone", served / alone, "ratio",
+        Result("view", f"viewer {side}^2: time per image / render_frame alone", served / alone, "ratio",
                baseline=f"render_frame {alone * 1000:.1f} ms (U-Net every call)", ratio=served / alone,
                target="<= 1.2", passed=served / alone <= 1.2),
-        Result("view", f"viewer {SIDE}^2: time per image / render_camera, features cached", served / cached, "ratio",
+        Result("view", f"viewer {side}^2: time per image / render_camera, features cached", served / cached, "ratio",
                baseline=f"render_camera {cached * 1000:.1f} ms", ratio=served / cached,
                note="the viewer's own overhead: worker thread, panel composition, PNG encoding"),
     ]
