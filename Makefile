@@ -60,6 +60,19 @@ results: setup
 	for r in $(RECIPES); do $(PY) -m recipes.$$r --out $(RESULTS_OUT)/$$r || exit 1; done
 	$(PY) -m recipes.ablation_template --out $(RESULTS_OUT)/ablation_template --smpl-model procedural
 
+# A real recording to an avatar (docs/own-recording.md): ingest, check, convert, train with the defaults (3 cameras;
+# the 4th held out), eval on the held-out camera and frames, an orbit video. RECORDING: videos + a calibration.
+RECORDING ?= ../shared/real-captures/pose2sim-demo
+OWN_OUT ?= own_recording_out
+own-recording: setup
+	$(VENV)/bin/deliffas ingest $(RECORDING) --out $(OWN_OUT)/subject --overwrite
+	$(VENV)/bin/deliffas check $(OWN_OUT)/subject --out $(OWN_OUT)/check || true
+	$(VENV)/bin/deliffas convert $(OWN_OUT)/subject $(OWN_OUT)/shards --overwrite
+	$(VENV)/bin/deliffas train $(OWN_OUT)/shards --out $(OWN_OUT)/run --overwrite
+	$(VENV)/bin/deliffas eval $(OWN_OUT)/run --split novel_view --grid $(OWN_OUT)/grid_novel_view.png --json > $(OWN_OUT)/eval_novel_view.json
+	$(VENV)/bin/deliffas eval $(OWN_OUT)/run --split novel_pose --grid $(OWN_OUT)/grid_novel_pose.png --json > $(OWN_OUT)/eval_novel_pose.json
+	$(VENV)/bin/deliffas render $(OWN_OUT)/run --orbit --frames 120 --loop --out $(OWN_OUT)/orbit.mp4 --overwrite
+
 # The sdist and the wheel (python -m build; the wheel is built from the sdist) into dist/.
 dist: setup
 	$(PY) -m build --outdir dist

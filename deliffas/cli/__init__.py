@@ -57,7 +57,20 @@ def _add_capture_commands(sub) -> None:
 
 
 def _add_capture_tool_commands(sub) -> None:
-    """fit-smpl, check, verify and cameras."""
+    """ingest, fit-smpl, check, verify and cameras."""
+    p = sub.add_parser("ingest", help="turn a raw calibrated multi-view recording (videos + calibration) into a "
+                                      "subject with masks and a fitted body per frame",
+                       description="Read RECORDING (one video or image folder per camera and a calibration in any "
+                                   "format 'deliffas cameras' reads), detect the person in every frame (mask and 2-D "
+                                   "keypoints, MediaPipe: pip install 'deliffas[ingest]'), triangulate the keypoints, "
+                                   "fit the body model (one shape, a pose per frame) to them and to the masks, and "
+                                   "write a DynaCap subject to --out that check, convert and train read unchanged, with "
+                                   "ingest_report.json and overlay pictures. See docs/own-recording.md.")
+    from deliffas.data.ingest.config import IngestConfig  # light; imported here: a Ctrl-C at start-up meets main()
+
+    add_config_arguments(p, IngestConfig)
+    p.set_defaults(handler="ingest")
+
     p = sub.add_parser("fit-smpl", help="fit SMPL to every frame of a capture (for converting it with SMPL)",
                        description="Fit an SMPL model (one shape, per-frame pose and translation) to the surface "
                                    "of every frame of SUBJECT (its posed template, or tracked .meshes), by "

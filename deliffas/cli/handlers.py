@@ -20,6 +20,7 @@ from deliffas.geometry.procedural import ProceduralConfig, make_procedural_chara
 from deliffas.data.check import CheckConfig
 from deliffas.data.check_report import CheckCaptureConfig, check_capture
 from deliffas.data.convert import ConvertConfig, convert
+from deliffas.data.ingest import IngestConfig, ingest
 from deliffas.data.subjects import SubjectOptions
 from deliffas.data.posing import PoseConfig, pose_to_file
 from deliffas.data.smpl_capture_fit import FitSmplConfig, fit_smpl_capture
@@ -59,6 +60,16 @@ def cmd_synth(args: argparse.Namespace) -> int:
           f"{len(res.frames['training'])} training + {len(res.frames['testing'])} testing frames at "
           f"{cfg.width}x{cfg.height} "
           f"in {res.seconds['total']:.1f} s ({res.seconds['render'] / max(n, 1):.2f} s/frame rendering)")
+    return 0
+
+
+def cmd_ingest(args: argparse.Namespace) -> int:
+    res = ingest(config_from_args(IngestConfig, args))
+    r = res.report
+    cams = ", ".join(f"{c['camera']} IoU {c['median_silhouette_iou']}" for c in r["cameras"])
+    print(f"wrote {res.out}: {r['frames']['fitted']} of {r['frames']['read']} frames fitted, {len(r['cameras'])} "
+          f"cameras (test {', '.join(r['test_cameras'])}); body vs masks: {cams}; keypoint reprojection median "
+          f"{r['keypoints'].get('median_px')} px; report {res.out / 'ingest_report.json'}")
     return 0
 
 

@@ -34,13 +34,18 @@ def _json(path: Path) -> dict:
 
 
 def interrupted_line(args: argparse.Namespace, argv: list[str]) -> str:
-    """``: <what is kept>; resume with: <command>`` for ``convert`` and ``train``, else empty."""
+    """``: <what is kept>; resume with: <command>`` for ``convert``, ``ingest`` and ``train``, else empty."""
     if args.command == "convert":
         m = _json(Path(args.out) / "manifest.json")
         shards, planned = m.get("shards"), m.get("planned")
         kept = (f"{len(shards)} of {len(planned)} shards kept in {args.out}"
                 if isinstance(shards, list) and isinstance(planned, list) and planned else "no shard finished yet")
         return f": {kept}; resume with: {resume_command(argv)}"
+    if args.command == "ingest":
+        work = Path(args.out) / ".ingest"
+        kept = sorted(p.stem for p in work.glob("*.npz")) if work.is_dir() else []
+        return (f": {', '.join(kept) if kept else 'no stage finished yet'} kept in {work}; resume with: "
+                f"{resume_command(argv)}")
     if args.command == "train" and not getattr(args, "auto_capacity", False):
         done = _json(Path(args.out) / "train_state.json").get("iteration")
         kept = f"checkpoint at iteration {done} kept in {args.out}" if isinstance(done, int) else "no checkpoint yet"
