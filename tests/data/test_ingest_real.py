@@ -12,7 +12,7 @@ import pytest
 
 from deliffas.cli import main
 from deliffas.data.ingest import IngestConfig, ingest
-from deliffas.data.subjects import SubjectOptions, parse_subject
+from deliffas.data.subjects import parse_subject
 
 REAL = Path(__file__).resolve().parents[3] / "shared" / "real-captures" / "pose2sim-demo"
 needs_real = pytest.mark.skipif(not (REAL / "videos").is_dir(),
@@ -38,7 +38,8 @@ def ingested(tmp_path_factory) -> Path:
     if not (REAL / "videos").is_dir() or not _have_detector():
         pytest.skip("needs the shared recording and the detector")
     out = tmp_path_factory.mktemp("ingest") / "subject"
-    ingest(IngestConfig(str(REAL), str(out), frames="40:52:2", size=320, min_frames=4, overlays=1, progress=False))
+    ingest(IngestConfig(str(REAL), str(out), frames="40:52:2", size=320, min_frames=4, overlays=1, progress=False,
+                        fit_iters=100))
     return out
 
 
@@ -53,7 +54,7 @@ def test_the_real_recording_becomes_a_subject_the_pipeline_reads(ingested):
     assert report["fit"]["median_silhouette_iou"] > 0.6
     assert report["image_size"] == [180, 320]
     assert (ingested / report["overlays"][0]).is_file() and not (ingested / ".ingest").exists()
-    subject = parse_subject(ingested, SubjectOptions())
+    subject = parse_subject(ingested)
     assert subject.format == "dynacap" and subject.test_cameras == (3,)
     assert set(subject.sequences) == {"training", "testing"}
     seq = subject.sequences["training"]
@@ -106,7 +107,7 @@ def test_an_interrupted_ingest_resumes_without_detecting_again(tmp_path, monkeyp
 
     out = tmp_path / "s"
     cfg = IngestConfig(str(REAL), str(out), frames="0:8:2", size=160, min_frames=2, overlays=1, progress=False,
-                       cameras="cam01,cam02,cam03", test_cameras=1)
+                       cameras="cam01,cam02,cam03", test_cameras=1, fit_iters=40)
 
     def crash(*args, **kwargs):
         raise KeyboardInterrupt

@@ -60,6 +60,9 @@ class IngestConfig:
     overlays: int = opt(4, help="frames with overlay pictures (mask and fitted body over the image)",
                         parse=positive_int)
     """Frames drawn as overlays (evenly spaced), every camera."""
+    fit_iters: int = opt(300, help="steps of the body fit's keypoint stage (its silhouette stage takes half as many)",
+                         parse=positive_int)
+    """Adam steps of the body fit's keypoint stage; the silhouette stage takes half as many."""
     seed: int = opt(0, help="random seed of the body fit's pixel samples")
     """Seeds the silhouette term's pixel samples."""
     resume: bool = opt(False, help="continue an interrupted ingest in --out (finished stages are kept)")

@@ -102,7 +102,9 @@ def fit_stage(work: Path, spec: TemplateSpec, tri: dict, alphas: np.ndarray, cam
     conf = tri["valid"][idx].astype(np.float64)
     masks = np.ascontiguousarray(np.transpose(alphas[:, idx] > 127, (1, 0, 2, 3)))  # (N, C, H, W)
     res = fit_body(template, np.nan_to_num(tri["points"][idx]), conf, list(SMPL_JOINT_IDS), list(cameras), masks,
-                   BodyFitConfig(), progress=config.progress)
+                   BodyFitConfig(iters_keypoints=config.fit_iters, iters_silhouette=max(1, config.fit_iters // 2),
+                                 seed=config.seed), progress=config.progress,
+                   frame_ids=np.asarray(frames, np.int64)[idx])
     out = {"frame_index": idx, "params": np.asarray(res.params, np.float64),
            "joint_error_mm": np.asarray(res.joint_error_mm, np.float64),
            "silhouette_iou": (np.asarray(res.silhouette_iou, np.float64) if res.silhouette_iou is not None

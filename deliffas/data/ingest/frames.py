@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Sequence
 
 import numpy as np
@@ -80,7 +81,7 @@ def output_size(aspect: float, size: tuple[int, int] | int) -> tuple[int, int]:
     return max(2, 2 * round(size * aspect / 2)), size
 
 
-def plan_frames(cameras: Sequence[Camera], stream_sizes: Sequence[tuple[int, int]], where: Sequence[str],
+def plan_frames(cameras: Sequence[Camera], stream_sizes: Sequence[tuple[int, int]], where: Sequence[str | Path],
                 size: tuple[int, int] | int) -> list[FramePlan]:
     """One :class:`FramePlan` per camera (the calibration's cameras, each stream's (w, h), each stream's path).
 

@@ -80,6 +80,7 @@ def _work_config(config: IngestConfig, calib: Path) -> dict:
     """What an ingest's intermediate results depend on (``--resume`` refuses another)."""
     return {"recording": str(Path(config.recording).resolve()), "calibration": str(calib.resolve()),
             "frames": config.frames, "cameras": config.cameras, "size": config.size, "body_model": config.body_model,
+            "fit_iters": config.fit_iters,
             "seed": config.seed}
 
 

@@ -8,6 +8,7 @@ module only holds the model's arrays as buffers.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 
@@ -138,8 +139,12 @@ def read_smpl_rows(path, spec: TemplateSpec, num_dofs: int | None = None):
 
 
 def write_smpl_rows(path, motion, fps: float) -> None:
-    """SMPL rows written as an AMASS-style ``.npz``."""
-    write_smpl_motion(path, params_to_motion(motion.dofs, fps=fps))
+    """SMPL rows written as an AMASS-style ``.npz`` (with the deliffas ``frames`` key when they are not 0..N-1)."""
+    out = params_to_motion(motion.dofs, fps=fps)
+    frames = np.asarray(motion.frames, np.int64)
+    if not np.array_equal(frames, np.arange(len(frames))):
+        out = dataclasses.replace(out, frames=frames)
+    write_smpl_motion(path, out)
 
 
 register_template_kind(TemplateKind("smpl", _build, ".npz", read_smpl_rows, write_smpl_rows, smpl_params=True))
