@@ -22,6 +22,7 @@ from benchmarks.common import SMOKE_ENV
 
 MODULES = [
     "benchmarks.bench_posing",
+    "benchmarks.bench_ingest",
     "benchmarks.bench_data",
     "benchmarks.bench_scale",
     "benchmarks.bench_engine",
