@@ -15,11 +15,13 @@ axis-angle pose (72), betas]``. The world is the calibration's: mm, any up axis 
    (``hinge_prior``: rotation off their bending axis, bending backwards), an L2 prior on the betas
    (``shape_prior``) and squared second differences over consecutive frames of the posed joints and body pose
    (``smooth``). The first ``warmup`` of the steps move only root and translation.
-3. **Silhouette stage** (with cameras and masks; :mod:`deliffas.geometry.body_fit_silhouette`): the posed vertices
-   projected into every view, an *outside* term (vertices outside the mask, ``outside`` x) and a *cover* term
-   (mask pixels far from every projected vertex, x 1), both x ``silhouette``, with the keypoint term kept at
-   ``keypoints_in_silhouette`` so the pose stays anatomical. The cover term weighs more: the body should cover
-   the mask (DELIFFAS's outer shell lies a few cm outside the template), never be thinner.
+3. **Silhouette stage** (``iters_silhouette`` steps, with cameras and masks;
+   :mod:`deliffas.geometry.body_fit_silhouette`): the posed vertices projected into every view, an *outside* term
+   (vertices beyond ``outside_margin_mm`` outside the mask, weight ``outside``) and a *cover* term (sampled mask
+   pixels outside the body's projected triangles pull their nearest projected vertex, weight 1), both times
+   ``silhouette``, with the keypoint term kept at ``keypoints_in_silhouette`` so the pose stays anatomical. The
+   cover term weighs more: the body should cover the mask (DELIFFAS's outer shell lies a few cm outside the
+   template), never be thinner.
 4. **Result**: per keypoint the distance of its fitted joint, per view the IoU of the fitted body's filled
    silhouette and the mask at ``mask_height``.
 
@@ -30,7 +32,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
@@ -122,7 +124,10 @@ def _fill_nearest(values: np.ndarray, ok: np.ndarray, times: np.ndarray) -> np.n
     if ok.all() or not ok.any():
         return values
     good = np.flatnonzero(ok)
-    nearest = good[np.abs(times[:, None] - times[good][None]).argmin(axis=1)]
+    after = np.clip(np.searchsorted(times[good], times), 1, len(good) - 1) if len(good) > 1 else np.zeros_like(times)
+    before = np.maximum(after - 1, 0)
+    closer = np.abs(times - times[good[before]]) <= np.abs(times[good[after]] - times)
+    nearest = good[np.where(closer, before, after)]
     return values[np.where(ok, np.arange(len(ok)), nearest)]
 
 
@@ -374,7 +379,8 @@ class _SilhouetteStage:
         return self.problem.weighted(self.terms(it)[0], self.problem.config.keypoints_in_silhouette)
 
 
-def _adam(problem: _Problem, iters: int, lr: float, objective, bar, warmup: int = 0) -> None:
+def _adam(problem: _Problem, iters: int, lr: float, objective: Callable[[int, bool], Tensor], bar,
+          warmup: int = 0) -> None:
     """``iters`` Adam steps on ``objective(it, free)`` with a cosine decay of the learning rate to 10 %."""
     if iters <= 0:
         return
@@ -402,7 +408,8 @@ def _check_inputs(keypoints: np.ndarray, keypoint_conf: np.ndarray, joint_ids: S
     check_shape("keypoint_conf", keypoint_conf, "N J", sizes)
     ids = np.asarray(list(joint_ids), np.int64)
     if ids.shape != (sizes["J"],) or ids.size and not ((ids >= 0) & (ids < NUM_JOINTS)).all():
-        raise ValueError(f"joint_ids: expected {sizes['J']} SMPL joint indices in 0..{NUM_JOINTS - 1}, got {ids.tolist()}")
+        raise ValueError(f"joint_ids: expected {sizes['J']} SMPL joint indices in 0..{NUM_JOINTS - 1}, "
+                         f"got {ids.tolist()}")
     if sizes["N"] == 0:
         raise ValueError("fit_body: no frames (keypoints has N = 0)")
     if not (_clean(keypoints, keypoint_conf)[1] > 0).any():

@@ -23,8 +23,7 @@ class BodyFitConfig:
     iters_silhouette: int = opt(150, help="Adam steps of the silhouette stage", parse=non_negative_int)
     """Adam steps of the silhouette stage (run only when cameras and masks are given; 0 skips it)."""
     lr: float = opt(0.02, help="peak Adam learning rate of the pose, radians per step", parse=positive_float)
-    """Peak Adam learning rate of the pose (radians); the betas use 10x, translations 0.5x (metres); the silhouette
-    stage starts at half; both decay it to a tenth (cosine)."""
+    """Peak Adam step of the pose (rad; betas 10x, translations 0.5x m); silhouette stage at half; cosine to 1/10."""
     warmup: float = opt(0.2, help="fraction of the keypoint steps that move only the root and translation",
                         parse=non_negative_float)
     """Fraction of ``iters_keypoints`` moving only the root orientation and translation (body pose and betas fixed)."""
@@ -41,7 +40,7 @@ class BodyFitConfig:
                         parse=non_negative_float)
     """Weight of the squared second differences over consecutive frames of the posed joints (cm) and body pose (rad)."""
     silhouette: float = opt(4.0, help="weight of the silhouette terms", parse=non_negative_float)
-    """Weight of the silhouette terms (``cover`` + ``outside`` x their mean squared distance in cm^2)."""
+    """Weight of the silhouette terms, ``cover + outside * outside-term`` (robust mean squared distances, cm^2)."""
     outside: float = opt(0.3, help="weight of the vertices-outside-the-mask term (the mask-coverage term weighs 1)",
                          parse=non_negative_float)
     """Relative weight of the term pulling vertices into the mask; below 1 so the body covers the mask."""
@@ -59,8 +58,8 @@ class BodyFitConfig:
     """Height in pixels of the masks the silhouette terms and ``silhouette_iou`` use (never upsampled)."""
     mask_samples: int = opt(256, help="mask pixels sampled per view and frame for the coverage term",
                             parse=positive_int)
-    """Pixels drawn once inside each mask; each is pulled to its nearest projected vertex (coverage term)."""
+    """Pixels drawn once inside each mask; each the body does not cover pulls its nearest projected vertex."""
     reassign_every: int = opt(5, help="silhouette steps between nearest-vertex searches", parse=positive_int)
-    """Steps between the searches of each mask sample's nearest projected vertices (8 candidates kept in between)."""
+    """Steps between searches of each mask sample's 8 nearest projected vertices and of whether the body covers it."""
     seed: int = opt(0, help="seed of the mask samples")
     """Seed of the random mask samples (the fit is deterministic for a given seed)."""

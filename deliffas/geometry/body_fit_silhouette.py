@@ -29,7 +29,8 @@ from torch import Tensor
 from deliffas.io.cameras import Camera
 
 __all__ = ["SilhouetteTargets", "binary_masks", "prepare_silhouettes", "project", "silhouette_terms",
-           "nearest_candidates", "vertex_face_table", "covered_samples", "mm_per_pixel", "rasterize_silhouettes", "silhouette_iou", "CANDIDATES", "COVER_TEST", "SUPERSAMPLE"]
+           "nearest_candidates", "vertex_face_table", "covered_samples", "mm_per_pixel", "rasterize_silhouettes",
+           "silhouette_iou", "CANDIDATES", "COVER_TEST", "SUPERSAMPLE"]
 
 CANDIDATES = 8
 """Nearest projected vertices kept per mask sample between two searches."""
@@ -130,8 +131,9 @@ def prepare_silhouettes(masks: Shaped[np.ndarray, "N C H W"], cameras: Sequence[
             jitter = rng.uniform(0.0, 1.0, (samples, 2))
             pts[n, c] = np.stack([cols[pick], rows[pick]], axis=1) + jitter
     factory = dict(dtype=like.dtype, device=like.device)
-    return SilhouetteTargets(torch.as_tensor(proj, **factory), torch.as_tensor(focal, **factory), small, torch.as_tensor(dist, **factory),
-                             torch.as_tensor(pts, **factory), torch.as_tensor(weight, **factory))
+    return SilhouetteTargets(torch.as_tensor(proj, **factory), torch.as_tensor(focal, **factory), small,
+                             torch.as_tensor(dist, **factory), torch.as_tensor(pts, **factory),
+                             torch.as_tensor(weight, **factory))
 
 
 def project(points: Float[Tensor, "N P 3"], proj: Float[Tensor, "C 3 4"]
@@ -164,7 +166,8 @@ def nearest_candidates(uv: Float[Tensor, "N C V 2"], samples: Float[Tensor, "N C
     return torch.as_tensor(out, device=uv.device).reshape(N, C, S, k)
 
 
-def vertex_face_table(faces: Integer[Tensor, "F 3"], num_verts: int) -> tuple[Integer[Tensor, "V D"], Integer[Tensor, "F1 3"]]:
+def vertex_face_table(faces: Integer[Tensor, "F 3"], num_verts: int
+                      ) -> tuple[Integer[Tensor, "V D"], Integer[Tensor, "F1 3"]]:
     """(V, D) the faces around each vertex, padded with index F, and the faces (F + 1, 3) with a degenerate
     last face (0, 0, 0) the padding points at."""
     flat = faces.reshape(-1)
@@ -274,7 +277,8 @@ def rasterize_silhouettes(uv: Float[np.ndarray, "N C V 2"], depth: Float[np.ndar
     return out
 
 
-def silhouette_iou(rendered: Bool[np.ndarray, "N C h w"], masks: Bool[np.ndarray, "N C h w"]) -> Float64[np.ndarray, "N C"]:
+def silhouette_iou(rendered: Bool[np.ndarray, "N C h w"], masks: Bool[np.ndarray, "N C h w"]
+                   ) -> Float64[np.ndarray, "N C"]:
     """(N, C) intersection over union per view; NaN where the mask is empty."""
     inter = (rendered & masks).sum(axis=(2, 3)).astype(np.float64)
     union = (rendered | masks).sum(axis=(2, 3)).astype(np.float64)
