@@ -14,7 +14,7 @@ import json
 import logging
 import shutil
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -156,7 +156,3 @@ def ingest(config: IngestConfig) -> IngestResult:
     shutil.rmtree(work)
     return IngestResult(out, report)
 
-
-def config_record(config: IngestConfig) -> dict:
-    """The config as JSON-ready values (tuples as lists)."""
-    return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(config).items()}

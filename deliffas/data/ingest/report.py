@@ -18,7 +18,8 @@ from deliffas.data.ingest.config import INGEST_MARKER, IngestConfig
 from deliffas.data.ingest.detect import DETECTOR_VERSION, KEYPOINT_NAMES
 from deliffas.data.ingest.frames import FramePlan
 from deliffas.data.ingest.stages import Detections, frame_path
-from deliffas.data.ingest.write import draw_overlay, silhouette, split_frames, write_cameras_and_split, write_sequence
+from deliffas.data.ingest.write import (FPS_DEFAULT, draw_overlay, silhouette, split_frames, write_cameras_and_split,
+                                        write_sequence)
 
 __all__ = ["write_outputs"]
 
@@ -106,7 +107,7 @@ def write_outputs(out: Path, work: Path, config: IngestConfig, spec: TemplateSpe
     row_of = {f: k for k, f in enumerate(fitted)}
     seqs = split_frames(fitted, config.test_frames)
     size = plans[0].size
-    fps = streams[0].fps or 25.0
+    fps = streams[0].fps or FPS_DEFAULT
     for name, seq_frames in seqs.items():
         rows = fit["params"][[row_of[f] for f in seq_frames]]
         write_sequence(out / name, seq_frames, len(names), lambda f, c: _read_rgb(work, names[c], f),

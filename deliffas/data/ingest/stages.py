@@ -8,7 +8,6 @@ it instead of running the stage again: detection per camera (``detect_<cam>.npz`
 from __future__ import annotations
 
 import logging
-import os
 import time
 from pathlib import Path
 from typing import Sequence
@@ -16,7 +15,7 @@ from typing import Sequence
 import numpy as np
 
 from deliffas.io.cameras import Camera
-from deliffas.io.infra.files import temp_path
+from deliffas.io.infra.files import atomic_path, write_bytes_atomic
 from deliffas.io.recording import Stream, StreamReader
 from deliffas.data.ingest.detect import PersonDetector
 from deliffas.data.ingest.frames import FramePlan
@@ -36,10 +35,8 @@ PNG_FAST = 1
 def save_npz(path: Path, **arrays) -> None:
     """``np.savez_compressed`` written atomically (a temporary name, then rename)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = temp_path(path)
-    with open(tmp, "wb") as f:
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
         np.savez_compressed(f, **arrays)
-    os.replace(tmp, path)
 
 
 def load_npz(path: Path) -> dict[str, np.ndarray] | None:
@@ -86,7 +83,7 @@ def detect_camera(stream: Stream, plan: FramePlan, frames: range, work: Path, pr
             ok, buf = cv2.imencode(".png", img[..., ::-1], [cv2.IMWRITE_PNG_COMPRESSION, PNG_FAST])
             if not ok:
                 raise RuntimeError(f"{p}: PNG encoding failed")
-            p.write_bytes(buf.tobytes())
+            write_bytes_atomic(p, buf.tobytes())
             det = detector(img)
             kps.append(det.keypoints)
             conf.append(det.conf)

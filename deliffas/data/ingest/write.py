@@ -22,7 +22,7 @@ from deliffas.io.infra.text_lines import write_text_atomic
 from deliffas.io.motion import Motion
 from deliffas.geometry.templates import TemplateSpec, template_kind
 
-__all__ = ["split_frames", "write_sequence", "write_cameras_and_split", "silhouette", "draw_overlay"]
+__all__ = ["FPS_DEFAULT", "split_frames", "write_sequence", "write_cameras_and_split", "silhouette", "draw_overlay"]
 
 FPS_DEFAULT = 25.0
 """Frame rate recorded in the motions when the streams state none (image folders)."""
