@@ -19,7 +19,7 @@ from deliffas.engine.avatar import load_avatar
 from deliffas.engine.devices import resolve_device
 from deliffas.engine.render_config import RenderConfig
 from deliffas.engine.rays import UVSource, device_camera_rays, paint_images, ray_query, stack_rays
-from deliffas.fast.frame import fast_for_device, fast_render_camera, render_stream
+from deliffas.fast.frame import describe_render_path, fast_for_device, fast_render_camera, render_stream
 from deliffas.engine.timing import StageTimer
 from deliffas.fast.config import FastConfig
 from deliffas.geometry.raycast import UVRaycaster
@@ -53,6 +53,7 @@ def render_images(model, normal_windows, geometry, faces, atlas, cameras: list[C
     """Yield one (H, W, 3) uint8 image per frame: frame i seen by ``cameras[i]`` (``fast``: fast.frame on CPU,
     ``fast.frames_in_flight()`` frames at once; else the uvs from ``uv``, ``engine.rays.uv_source``)."""
     fast = fast_for_device(fast, device)
+    logger.info("render path: %s", describe_render_path(model, fast, device))
 
     @torch.no_grad()
     def frame(i: int) -> np.ndarray:

@@ -21,6 +21,7 @@ import torch
 
 from deliffas.engine.shading import render_camera
 from deliffas.fast.config import FastConfig
+from deliffas.fast.frame import describe_render_path
 from deliffas.engine.rays import camera_rays, paint_images, stack_rays
 from deliffas.engine.timing import STAGES, StageTimer
 from deliffas.engine.view.scene import FrameData, ViewScene
@@ -141,6 +142,9 @@ class ViewRenderer:
         self.scene = scene
         self.chunk_size = chunk_size
         self.fast = fast  # the CPU fast path (deliffas.fast), None = plain
+        for run in scene.runs:
+            logger.info("render path of %s: %s", run.name,
+                        describe_render_path(run.model, fast, scene.device))
         self._features: OrderedDict[tuple[int, int], tuple[FrameFeatures, dict]] = OrderedDict()
 
     def features(self, run: int, frame: FrameData, timer: StageTimer) -> tuple[FrameFeatures, dict]:
