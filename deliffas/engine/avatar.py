@@ -32,7 +32,7 @@ from deliffas.io.avatar_file import AVATAR_SUFFIX, AvatarFileError, read_avatar_
 from deliffas.io.infra.files import claim_output_file, sha256_file, write_bytes_atomic
 from deliffas.models.deliffas import DeliffasModel, ModelConfig
 from deliffas.models.unet import optimize_for_inference
-from deliffas.models.zoo import config_from_dict, config_to_dict, load_checkpoint
+from deliffas.models.checkpoint import config_from_dict, config_to_dict, load_checkpoint
 
 __all__ = ["CAPTURE_FILE", "capture_record", "write_run_capture", "run_capture", "ExportConfig", "export_avatar",
            "load_avatar", "list_avatars", "cache_root"]
@@ -107,10 +107,32 @@ def _unpack_template(where: Path, arrays: dict[str, np.ndarray], template: dict,
     return TemplateSpec(str(template.get("kind")), out, dict(sums), dict(template.get("options", {})))
 
 
+def check_record_cameras(where: Path, arrays: dict[str, np.ndarray]) -> None:
+    """Refuse a capture record whose cameras cannot project: ``K`` (C, 3, 3) with positive focal lengths and last
+    row (0, 0, 1), ``world_to_cam`` (C, 4, 4) with last row (0, 0, 0, 1), ``sizes`` (C, 2) positive.
+
+    Raises:
+        AvatarFileError: naming the file, the camera and what is wrong.
+    """
+    K, E, sizes = (np.asarray(arrays[n]) for n in ("K", "world_to_cam", "sizes"))
+    n = len(K)
+    if K.shape != (n, 3, 3) or E.shape != (n, 4, 4) or sizes.shape != (n, 2):
+        raise AvatarFileError(f"{where}: camera arrays of shapes K {K.shape}, world_to_cam {E.shape}, sizes "
+                              f"{sizes.shape}; expected (C, 3, 3), (C, 4, 4), (C, 2)")
+    for c in range(n):
+        problem = ("a focal length <= 0" if not (K[c, 0, 0] > 0 and K[c, 1, 1] > 0) else
+                   "K's last row is not (0, 0, 1)" if not np.allclose(K[c, 2], (0, 0, 1)) else
+                   "world_to_cam's last row is not (0, 0, 0, 1)" if not np.allclose(E[c, 3], (0, 0, 0, 1)) else
+                   f"image size {tuple(int(v) for v in sizes[c])} not positive" if not (sizes[c] > 0).all() else None)
+        if problem:
+            raise AvatarFileError(f"{where}: camera {c} has {problem}; the record is damaged (export the run again)")
+
+
 def _meta_from(where: Path, arrays: dict[str, np.ndarray], record: dict, cache: Path) -> ShardMeta:
     missing = [n for n in _META_ARRAYS if n not in arrays]
     if missing or not isinstance(record.get("template"), dict):
         raise AvatarFileError(f"{where}: not a capture record (missing {missing or ['template']})")
+    check_record_cameras(where, arrays)
     spec = _unpack_template(where, arrays, record["template"], cache)
     attrs = dict(record.get("attrs", {}), template_spec=spec.to_json())
     return ShardMeta(camera_names=list(record.get("camera_names", [])), sequence_frames={}, first_frames={},
@@ -180,6 +202,10 @@ def load_avatar(path: str | os.PathLike, device: str | torch.device = "cpu",
     if f.record.get("kind") != "avatar" or not isinstance(f.record.get("model"), dict):
         raise AvatarFileError(f"{p}: holds no model (a run's {CAPTURE_FILE}? export the run with 'deliffas export')")
     config = config_from_dict(ModelConfig, f.record["model"], where=f"{p}: model")
+    meta = _meta_from(p, f.arrays, f.record, cache or cache_root())
+    if meta.atlas_res != config.atlas_res:
+        raise AvatarFileError(f"{p}: the model's atlas side {config.atlas_res} differs from its capture's "
+                              f"{meta.atlas_res} (texel table); the record is damaged (export the run again)")
     model = DeliffasModel(config)
     state = {k[len(_MODEL_PREFIX):]: torch.from_numpy(v.copy()) for k, v in f.arrays.items()
              if k.startswith(_MODEL_PREFIX)}
@@ -187,7 +213,6 @@ def load_avatar(path: str | os.PathLike, device: str | torch.device = "cpu",
         model.load_state_dict(state, strict=True)
     except RuntimeError as exc:
         raise AvatarFileError(f"{p}: weights do not match its model config ({str(exc)[:200]})") from None
-    meta = _meta_from(p, f.arrays, f.record, cache or cache_root())
     record = {"train": dict(f.record.get("train", {})), "model": f.record["model"], "identity": f.record["identity"]}
     return optimize_for_inference(model.to(torch.device(device)).eval()), record, meta
 

@@ -138,6 +138,36 @@ def test_render_and_export_refuse_existing_outputs_and_short_motions(rel_run, tm
     assert sorted(p.name for p in tmp_path.iterdir()) == ["mine.avatar", "mine.mp4"]
 
 
+@pytest.mark.parametrize("damage, match", [
+    ("K", "camera 1 has a focal length <= 0"),
+    ("K_row", "camera 0 has K's last row is not (0, 0, 1)"),
+    ("atlas", "the model's atlas side 64 differs from its capture's 32"),
+    ("capture", "holds no model"),
+])
+def test_loading_refuses_damaged_records_naming_the_file(portable, tmp_path, capsys, damage, match):
+    """An avatar whose cameras cannot project, whose model config no longer fits its capture, or a run's capture
+    record given as an avatar: one error line naming the file, before any work."""
+    from deliffas.io.avatar_file import read_avatar_file, write_avatar_file
+
+    avatar = tmp_path / "a.avatar"
+    assert main(["export", str(portable["run"]), str(avatar)]) == 0
+    f = read_avatar_file(portable["run"] / "capture.avatar" if damage == "capture" else avatar)
+    arrays, record = dict(f.arrays), dict(f.record)
+    if damage == "K":
+        arrays["K"] = arrays["K"].copy()
+        arrays["K"][1, 0, 0] = -arrays["K"][1, 0, 0]
+    elif damage == "K_row":
+        arrays["K"] = arrays["K"].copy()
+        arrays["K"][0, 2] = (0, 1, 1)
+    elif damage == "atlas":
+        record["model"] = dict(record["model"], atlas_res=64)
+    damaged = tmp_path / "damaged.avatar"
+    write_avatar_file(damaged, arrays, record)
+    capsys.readouterr()
+    _refused(capsys, ["render", damaged, "--camera", "0", "--out", tmp_path / "x.mp4"], f"damaged.avatar: {match}")
+    assert not (tmp_path / "x.mp4").exists()
+
+
 def test_export_then_render_after_shards_and_subject_are_deleted(portable, tmp_path, monkeypatch, capsys):
     """Runs last in this file: it deletes the portable capture."""
     from deliffas.io.avatar_file import read_avatar_file
