@@ -25,7 +25,7 @@ SIDE, VIEWS = 512, 8
 
 def _run_dir(model, shards) -> Path:
     """A run directory holding ``model`` (untrained weights time the same) on ``shards``."""
-    from deliffas.models.zoo import save_checkpoint
+    from deliffas.models.checkpoint import save_checkpoint
 
     run = Path(tempfile.mkdtemp(prefix="deliffas-bench-view-")) / "run"
     save_checkpoint(run / "checkpoint", model)

@@ -17,7 +17,7 @@ import torch
 
 from deliffas.io.infra.files import write_bytes_atomic
 from deliffas.models.deliffas import DeliffasModel
-from deliffas.models.zoo import CheckpointError, load_checkpoint, save_checkpoint
+from deliffas.models.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 
 __all__ = ["save_training_state", "load_training_state", "read_training_state", "CHECKPOINT_DIR"]
 

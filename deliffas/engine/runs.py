@@ -9,7 +9,7 @@ import torch
 
 from deliffas.models.deliffas import DeliffasModel
 from deliffas.models.unet import optimize_for_inference
-from deliffas.models.zoo import load_checkpoint
+from deliffas.models.checkpoint import load_checkpoint
 
 __all__ = ["load_run", "read_run_record"]
 

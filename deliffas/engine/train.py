@@ -40,7 +40,7 @@ from deliffas.engine.train_step import balance_weight, render_sample_images, tra
 from deliffas.models.deliffas import DeliffasModel, ModelConfig
 from deliffas.models.losses import PerceptualLoss, SaturationTerm
 from deliffas.io.infra.files import claim_output, write_bytes_atomic
-from deliffas.models.zoo import config_from_dict, config_to_dict
+from deliffas.models.checkpoint import config_from_dict, config_to_dict
 
 __all__ = ["TrainConfig", "TrainResult", "Trainer", "train", "train_step", "resolve_model_config",
            "render_sample_images", "claim_run", "make_optimizer", "recorded_model_config", "RUN_MARKER"]

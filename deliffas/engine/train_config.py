@@ -291,7 +291,8 @@ def resolve_model_config(cfg: TrainConfig, atlas_res: int | None = None, data_wi
             reduced to it. None = keep the requested T.
     """
     from deliffas.models.deliffas import ModelConfig  # imported here: the CLI reads this module without torch
-    from deliffas.models.zoo import config_from_dict, config_to_dict, get_config
+    from deliffas.models.checkpoint import config_from_dict, config_to_dict
+    from deliffas.models.zoo import get_config
 
     base = config_to_dict(get_config(cfg.model, cfg.preset))
     logger.info("model config: zoo %r preset %r (atlas_res %s, temporal_window %s)", cfg.model, cfg.preset,

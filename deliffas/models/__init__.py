@@ -9,7 +9,8 @@ from deliffas.models.ray_query import RayQuery
 from deliffas.models.unet import UNet, UNetConfig, optimize_for_inference
 from deliffas.models.variants import VariantSpec, get_variant, register_variant, variant_names
 from deliffas.models.vgg import BackboneRecord, PerceptualWeightsUnavailable, load_vgg16_weights
-from deliffas.models.zoo import CheckpointError, get_config, list_models, load_checkpoint, save_checkpoint
+from deliffas.models.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from deliffas.models.zoo import get_config, list_models
 
 __all__ = [
     "VARIANTS",

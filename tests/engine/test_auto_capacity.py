@@ -52,7 +52,8 @@ def test_default_ladder_small_to_large():
     ladder = default_ladder("two_surface", "tiny")
     assert len(ladder) >= 3 and len({c.name for c in ladder}) == len(ladder)
     from deliffas.models.deliffas import DeliffasModel
-    from deliffas.models.zoo import config_from_dict, config_to_dict, get_config
+    from deliffas.models.checkpoint import config_from_dict, config_to_dict
+    from deliffas.models.zoo import get_config
 
     params = []
     for c in ladder:

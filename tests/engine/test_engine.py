@@ -20,7 +20,7 @@ from deliffas.engine.render import RenderConfig, orbit_cameras, render_video
 from deliffas.engine.train import TrainConfig, recorded_model_config, resolve_model_config, train, train_step
 from deliffas.models import zoo
 from deliffas.models.deliffas import DeliffasModel, ModelConfig
-from deliffas.models.zoo import config_from_dict
+from deliffas.models.checkpoint import config_from_dict
 
 
 def _cfg(shards, out, **kw):

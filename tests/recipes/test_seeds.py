@@ -62,7 +62,7 @@ def test_viewdir_investigation_options(tmp_path):
     N cameras, with the raw direction and dropout 0.1, and the report says so."""
     import torch
 
-    from deliffas.models.zoo import load_checkpoint
+    from deliffas.models.checkpoint import load_checkpoint
     from recipes import ablation_single_surface
 
     out = tmp_path / "viewdir"

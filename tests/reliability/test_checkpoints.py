@@ -38,7 +38,7 @@ from deliffas.engine.checkpointing import (
     save_training_state,
 )
 from deliffas.models import DeliffasModel, get_config
-from deliffas.models.zoo import CheckpointError, load_checkpoint, save_checkpoint
+from deliffas.models.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 
 PACKAGE = Path(__file__).resolve().parents[2] / "deliffas"
 

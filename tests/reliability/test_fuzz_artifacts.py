@@ -24,7 +24,8 @@ from reliability_support import COUNTS, FUZZ_EXAMPLES
 from deliffas.data.shards import ShardSet
 from deliffas.io.avatar_file import AvatarFileError, read_avatar_file, write_avatar_file
 from deliffas.models.deliffas import DeliffasModel
-from deliffas.models.zoo import CheckpointError, get_config, load_checkpoint, save_checkpoint
+from deliffas.models.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from deliffas.models.zoo import get_config
 
 pytestmark = pytest.mark.timeout(300 if FUZZ_EXAMPLES <= 1000 else 3600)
 

@@ -107,7 +107,8 @@ def test_avatar_files_refuse_nan_arrays(tmp_path):
 
 def test_checkpoint_with_nan_weights_is_refused(tmp_path):
     from deliffas.models.deliffas import DeliffasModel
-    from deliffas.models.zoo import CheckpointError, get_config, load_checkpoint, save_checkpoint
+    from deliffas.models.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+    from deliffas.models.zoo import get_config
 
     model = DeliffasModel(get_config("two_surface", "tiny"))
     with torch.no_grad():
