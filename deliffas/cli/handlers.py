@@ -63,13 +63,17 @@ def cmd_synth(args: argparse.Namespace) -> int:
     return 0
 
 
+def _fmt(value: float | None, spec: str) -> str:
+    return "n/a" if value is None else format(value, spec)
+
+
 def cmd_ingest(args: argparse.Namespace) -> int:
     res = ingest(config_from_args(IngestConfig, args))
     r = res.report
-    cams = ", ".join(f"{c['camera']} IoU {c['median_silhouette_iou']}" for c in r["cameras"])
+    cams = ", ".join(f"{c['camera']} IoU {_fmt(c['median_silhouette_iou'], '.2f')}" for c in r["cameras"])
     print(f"wrote {res.out}: {r['frames']['fitted']} of {r['frames']['read']} frames fitted, {len(r['cameras'])} "
           f"cameras (test {', '.join(r['test_cameras'])}); body vs masks: {cams}; keypoint reprojection median "
-          f"{r['keypoints'].get('median_px')} px; report {res.out / 'ingest_report.json'}")
+          f"{_fmt(r['keypoints'].get('median_px'), '.1f')} px; report {res.out / 'ingest_report.json'}")
     return 0
 
 

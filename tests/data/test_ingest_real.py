@@ -59,6 +59,10 @@ def test_the_real_recording_becomes_a_subject_the_pipeline_reads(ingested):
     assert set(subject.sequences) == {"training", "testing"}
     seq = subject.sequences["training"]
     assert (seq.width, seq.height) == (180, 320) and seq.poses is not None
+    with np.load(ingested / "keypoints.npz") as kp:  # the 2-D and 3-D keypoints stay with the subject
+        assert kp["keypoints2d"].shape == (4, 6, 15, 2) and kp["points3d"].shape == (6, 15, 3)
+        assert list(kp["frames"]) == [40, 42, 44, 46, 48, 50] and list(kp["camera_names"])[0] == "cam01"
+        assert kp["valid3d"].mean() > 0.9
 
 
 @needs_real

@@ -17,11 +17,11 @@ from deliffas.geometry.triangulate import Triangulation, reprojection_summary
 from deliffas.data.ingest.config import INGEST_MARKER, IngestConfig
 from deliffas.data.ingest.detect import DETECTOR_VERSION, KEYPOINT_NAMES
 from deliffas.data.ingest.frames import FramePlan
-from deliffas.data.ingest.stages import Detections, frame_path
+from deliffas.data.ingest.stages import Detections, frame_path, save_npz
 from deliffas.data.ingest.write import (FPS_DEFAULT, draw_overlay, silhouette, split_frames, write_cameras_and_split,
                                         write_sequence)
 
-__all__ = ["write_outputs"]
+__all__ = ["write_outputs", "KEYPOINTS_FILE"]
 
 log = logging.getLogger(__name__)
 
@@ -96,6 +96,13 @@ def _camera_rows(names, streams: Sequence[Stream], plans, dets: Detections, alph
     return rows
 
 
+KEYPOINTS_FILE = "keypoints.npz"
+"""The subject's keypoints: ``frames`` (N,) stream frame numbers, ``keypoint_names`` (J,), ``camera_names`` (C,),
+``keypoints2d`` (C, N, J, 2) pixels of the written images and ``conf2d`` (C, N, J), ``points3d`` (N, J, 3) world mm
+(NaN where not triangulated), ``valid3d`` (N, J), ``used`` (N, J, C) the inlier views, ``reprojection_px``
+(N, J, C; NaN where a view has no detection, as ``deliffas.geometry.triangulate.Triangulation``)."""
+
+
 def write_outputs(out: Path, work: Path, config: IngestConfig, spec: TemplateSpec, plans: Sequence[FramePlan],
                   streams: Sequence[Stream], frames: list[int], dets: Detections, tri: dict, alphas: np.ndarray,
                   fit: dict, seconds: dict[str, float], calib: Path) -> dict:
@@ -114,6 +121,9 @@ def write_outputs(out: Path, work: Path, config: IngestConfig, spec: TemplateSpe
                        lambda f, c: alphas[c, idx[row_of[f]]], rows, spec, fps, size)
     test = list(range(len(names) - config.test_cameras, len(names)))
     write_cameras_and_split(out, [p.camera for p in plans], test, seqs)
+    save_npz(out / KEYPOINTS_FILE, frames=np.asarray(frames, np.int64), keypoint_names=np.asarray(KEYPOINT_NAMES),
+             camera_names=np.asarray(names), keypoints2d=dets.keypoints, conf2d=dets.conf, points3d=tri["points"],
+             valid3d=tri["valid"], used=tri["used"], reprojection_px=tri["reprojection_px"])
     seconds["write subject"] = time.perf_counter() - t
     t = time.perf_counter()
     overlays = _overlays(out, work, names, plans, frames, fit, alphas, tri, spec, config.overlays)
