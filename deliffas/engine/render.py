@@ -53,7 +53,8 @@ def render_images(model, normal_windows, geometry, faces, atlas, cameras: list[C
     """Yield one (H, W, 3) uint8 image per frame: frame i seen by ``cameras[i]`` (``fast``: fast.frame on CPU,
     ``fast.frames_in_flight()`` frames at once; else the uvs from ``uv``, ``engine.rays.uv_source``)."""
     fast = fast_for_device(fast, device)
-    logger.info("render path: %s", describe_render_path(model, fast, device))
+    path = describe_render_path(model, fast, device)
+    logger.log(logging.WARNING if path.fallback else logging.INFO, "render path: %s", path.line)
 
     @torch.no_grad()
     def frame(i: int) -> np.ndarray:

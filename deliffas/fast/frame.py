@@ -29,6 +29,7 @@ import collections
 import logging
 import weakref
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from typing import Callable, ContextManager, Iterable, Iterator, Protocol, TypeVar, runtime_checkable
 
 import torch
@@ -42,7 +43,7 @@ from deliffas.io.cameras import Camera
 from deliffas.models.deliffas import DeliffasModel, FrameFeatures
 from deliffas.models.ray_query import RayBatch, paint_images, ray_query
 
-__all__ = ["StageTiming", "fast_for_device", "describe_render_path", "fast_camera_rays", "fast_render_camera",
+__all__ = ["StageTiming", "RenderPath", "fast_for_device", "describe_render_path", "fast_camera_rays", "fast_render_camera",
            "render_stream"]
 
 logger = logging.getLogger(__name__)
@@ -65,24 +66,36 @@ def fast_for_device(fast: FastConfig | None, device: torch.device | str) -> Fast
     return fast if torch.device(device).type == "cpu" else None
 
 
-def describe_render_path(model: DeliffasModel, fast: FastConfig | None, device: torch.device | str) -> str:
-    """One line naming the path ``render_images`` takes for ``model`` on ``device`` with ``fast`` and, where it is
-    not the fused fast path, why (``deliffas render -v`` and ``deliffas view -v`` print it)."""
+@dataclass(frozen=True)
+class RenderPath:
+    """The path ``render_images`` takes for a model (:func:`describe_render_path`)."""
+
+    line: str
+    """One line naming the path and, where it is not the one asked for, why."""
+    fallback: bool
+    """True where the fast path was asked for and a slower one is taken (a variant it does not shade, or its C
+    kernel did not build): ``render`` and ``view`` warn instead of only logging at ``-v``."""
+
+
+def describe_render_path(model: DeliffasModel, fast: FastConfig | None, device: torch.device | str) -> RenderPath:
+    """The path ``render_images`` takes for ``model`` on ``device`` with ``fast`` (``deliffas render -v`` and
+    ``deliffas view -v`` print its line)."""
     dev = torch.device(device)
     if fast is None or dev.type != "cpu":
         why = "--plain" if fast is None else f"device {dev} (the fast path is the CPU's)"
-        return f"plain path ({why}): uvs by ray casting, model.shade in chunks"
+        return RenderPath(f"plain path ({why}): uvs by ray casting, model.shade in chunks", False)
     uvs = "rasterised uvs" if fast.rasterize else "ray-cast uvs"
     frames = f"{fast.frames_in_flight()} frame(s) in flight"
     if not supports(model):
-        return (f"fast path, {uvs}, {frames}; variant {model.spec.name} is not one FastShader shades, so its own "
-                "gather_inputs and MLP shade the rays")
+        return RenderPath(f"fast path, {uvs}, {frames}; variant {model.spec.name} is not one FastShader shades, so "
+                          "its own gather_inputs and MLP shade the rays", True)
     shader = _shader(model, fast.torch_dtype(), fast.pe_table, fast.project_features)
     if fast.fused and shader.fused_available():
         dtype = "bf16 hidden layers" if shader.fused_bf16() else "fp32"
-        return f"fast path, {uvs}, {frames}; fused C pass ({dtype})"
+        return RenderPath(f"fast path, {uvs}, {frames}; fused C pass ({dtype})", False)
     why = "fused=False" if not fast.fused else "the fused C kernel did not build (deliffas.native)"
-    return f"fast path, {uvs}, {frames}; per-stage shading ({why}), MLP in {str(fast.torch_dtype())[6:]}"
+    return RenderPath(f"fast path, {uvs}, {frames}; per-stage shading ({why}), MLP in {str(fast.torch_dtype())[6:]}",
+                      fast.fused)
 
 
 # one shader per model, alive as long as it

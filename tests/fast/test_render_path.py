@@ -12,20 +12,21 @@ from deliffas.models.zoo import REFLECTED
 
 def test_default_model_takes_the_fast_path():
     model = DeliffasModel(get_config(REFLECTED, "small"))
-    line = describe_render_path(model, FastConfig(), "cpu")
+    path = describe_render_path(model, FastConfig(), "cpu")
+    line = path.line
     assert line.startswith("fast path, rasterised uvs") and "frame(s) in flight" in line
-    assert "fused C pass" in line or "per-stage shading (the fused C kernel did not build" in line
+    assert ("fused C pass" in line and not path.fallback) or "the fused C kernel did not build" in line
 
 
 def test_plain_path_says_why():
     model = DeliffasModel(get_config("two_surface", "tiny"))
-    assert describe_render_path(model, None, "cpu").startswith("plain path (--plain)")
-    assert "device meta" in describe_render_path(model, FastConfig(), "meta")
-    line = describe_render_path(model, dataclasses.replace(FastConfig(), fused=False, rasterize=False), "cpu")
-    assert "ray-cast uvs" in line and "per-stage shading (fused=False)" in line
+    assert describe_render_path(model, None, "cpu").line.startswith("plain path (--plain)")
+    assert "device meta" in describe_render_path(model, FastConfig(), "meta").line
+    path = describe_render_path(model, dataclasses.replace(FastConfig(), fused=False, rasterize=False), "cpu")
+    assert "ray-cast uvs" in path.line and "per-stage shading (fused=False)" in path.line and not path.fallback
 
 
 def test_unsupported_variant_is_named():
     model = DeliffasModel(get_config("single_surface_two_unet", "tiny"))
-    line = describe_render_path(model, FastConfig(), "cpu")
-    assert "single_surface_two_unet is not one FastShader shades" in line
+    path = describe_render_path(model, FastConfig(), "cpu")
+    assert "single_surface_two_unet is not one FastShader shades" in path.line and path.fallback

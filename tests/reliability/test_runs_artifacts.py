@@ -168,6 +168,16 @@ def test_loading_refuses_damaged_records_naming_the_file(portable, tmp_path, cap
     assert not (tmp_path / "x.mp4").exists()
 
 
+def test_render_verbose_names_the_render_path(portable, tmp_path, caplog):
+    import logging
+
+    with caplog.at_level(logging.INFO, logger="deliffas.engine.render"):
+        assert main(["-v", "render", str(portable["run"]), "--camera", "0", "--frames", "1",
+                     "--out", str(tmp_path / "one")]) == 0
+    lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("render path: ")]
+    assert len(lines) == 1 and lines[0].startswith("render path: fast path, rasterised uvs"), lines
+
+
 def test_export_then_render_after_shards_and_subject_are_deleted(portable, tmp_path, monkeypatch, capsys):
     """Runs last in this file: it deletes the portable capture."""
     from deliffas.io.avatar_file import read_avatar_file

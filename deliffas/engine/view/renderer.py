@@ -143,8 +143,8 @@ class ViewRenderer:
         self.chunk_size = chunk_size
         self.fast = fast  # the CPU fast path (deliffas.fast), None = plain
         for run in scene.runs:
-            logger.info("render path of %s: %s", run.name,
-                        describe_render_path(run.model, fast, scene.device))
+            path = describe_render_path(run.model, fast, scene.device)
+            logger.log(logging.WARNING if path.fallback else logging.INFO, "render path of %s: %s", run.name, path.line)
         self._features: OrderedDict[tuple[int, int], tuple[FrameFeatures, dict]] = OrderedDict()
 
     def features(self, run: int, frame: FrameData, timer: StageTimer) -> tuple[FrameFeatures, dict]:
