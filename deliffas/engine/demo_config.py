@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 from deliffas.engine.run_sizes import RunSizes
 from deliffas.engine.train_config import RAYS_PER_STEP
+from deliffas.models.model_table import DEFAULT_MODEL
 from deliffas.options import opt
 
 __all__ = ["DemoConfig"]
@@ -18,7 +19,7 @@ class DemoConfig:
     out: str = opt("demo_out", help="output folder")
     quick: bool = opt(False, help="a smaller run (used by tests)")
     """A much smaller run for tests (seconds, not minutes); numbers are then meaningless."""
-    models: tuple[str, ...] = ("two_surface_reflect_texture", "single_surface")
+    models: tuple[str, ...] = (DEFAULT_MODEL, "single_surface")
     sizes: RunSizes = RunSizes(frames=30, test_frames=10, cameras=10, iters=1200, supersample=2,
                                rays_per_step=RAYS_PER_STEP)
     """Ignored when ``quick`` (then ``RunSizes.quick()``). The capture is rendered with 2 x 2 rays per pixel: a

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
 from deliffas.engine.config_fields import UVSource, device_field, uv_field
+from deliffas.models.model_table import DEFAULT_MODEL, DEFAULT_PRESET, PRESET_ROWS
 from deliffas.options import (count_or_indices, non_negative_float, non_negative_int, opt, positive_float,
                               positive_int, positive_int_or_all)
 
@@ -48,11 +49,10 @@ class TrainConfig:
     """Directory of converted HDF5 shards (``deliffas convert``)."""
     out: str = opt(help="run directory")
     """Run directory (checkpoints, log.jsonl, previews)."""
-    model: str = opt("two_surface_reflect_texture", help="zoo name; the paper's model: two_surface")
-    """Zoo name (``deliffas zoo list``): ``two_surface_reflect_texture`` is DELIFFAS with texture atlases whose MLP
-    also gets the view direction reflected about the surface normal; the paper's model is ``two_surface``."""
-    preset: str = opt("small", help="paper | small | realtime | tiny")
-    """Size preset of the zoo entry (``paper``, ``small``, ``tiny``)."""
+    model: str = opt(DEFAULT_MODEL, help="zoo name (deliffas zoo list); the paper's model: two_surface")
+    """Zoo name (``deliffas zoo list``; the table of docs/models.md)."""
+    preset: str = opt(DEFAULT_PRESET, help=" | ".join(r.name for r in PRESET_ROWS))
+    """Size preset of the zoo entry (the table of docs/models.md)."""
     model_overrides: dict = field(default_factory=dict)
     """ModelConfig fields replacing the preset's (nested dicts for ``unet``/``mlp``)."""
     iters: int = opt(5000, help="train to this iteration (with --resume: the run's, more extends it)",

@@ -166,3 +166,22 @@ def test_failed_save_leaves_previous_checkpoint(tmp_path):
     assert sorted(os.listdir(out)) == ["config.json", "weights.safetensors"]
     with pytest.raises(ValueError, match="differs"):
         save_checkpoint(out, model, config=get_config("single_surface", "tiny"))
+
+
+def test_model_table_is_the_zoo_and_the_docs():
+    """The zoo registers exactly the table's models at the table's presets; docs/models.md shows the tables as
+    generated; every built-in variant has a row; the default of ``deliffas train`` is the table's."""
+    from pathlib import Path
+
+    from deliffas.engine.train_config import TrainConfig
+    from deliffas.models.deliffas import VARIANTS
+    from deliffas.models.model_table import (DEFAULT_MODEL, MODEL_ROWS, PRESET_ROWS, model_table_markdown,
+                                             preset_table_markdown)
+    from deliffas.models.variants import EXTENSION_VARIANTS
+
+    names = {r.name for r in MODEL_ROWS}
+    assert names <= set(list_models()) and {*VARIANTS, *(v.name for v in EXTENSION_VARIANTS)} <= names
+    assert all(list_presets(n) == [p.name for p in PRESET_ROWS] for n in names)
+    assert TrainConfig.model == DEFAULT_MODEL and get_config(DEFAULT_MODEL, "small").unet.levels == 4
+    docs = (Path(__file__).resolve().parents[2] / "docs" / "models.md").read_text(encoding="utf-8")
+    assert model_table_markdown() in docs and preset_table_markdown() in docs
