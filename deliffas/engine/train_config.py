@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
-from deliffas.engine.config_fields import UVSource, device_field, uv_field
+from deliffas.engine.config_fields import UVSource, check_uv_source, device_field, uv_field
 from deliffas.models.model_table import DEFAULT_MODEL, DEFAULT_PRESET, PRESET_ROWS
 from deliffas.options import (count_or_indices, non_negative_float, non_negative_int, opt, positive_float,
                               positive_int, positive_int_or_all)
@@ -174,7 +174,6 @@ class TrainConfig:
     def __post_init__(self) -> None:
         """Refuse bad values when the run is described, before any work starts (ValueError naming the field)."""
         from deliffas.engine.devices import resolve_device  # imported here: the CLI reads this module without torch
-        from deliffas.engine.rays import uv_source
         from deliffas.models.zoo import list_models, list_presets
 
         if self.model not in list_models():
@@ -226,7 +225,8 @@ class TrainConfig:
             raise ValueError(f"adam_beta2: expected None or a number in (0, 1), got {beta2!r}")
         if self.schedule not in SCHEDULE_LR:
             raise ValueError(f"schedule: expected one of {', '.join(SCHEDULE_LR)}, got {self.schedule!r}")
-        uv_source(resolve_device(self.device), self.uv)
+        check_uv_source(self.uv)  # resolved when the run starts: building a config compiles nothing
+        resolve_device(self.device)  # --device cuda without CUDA: refused here, before any work
 
     @property
     def data_workers(self) -> int:
