@@ -9,7 +9,14 @@ Each library is built once per process, with ``-march=native`` first (the build 
 portable flags if that fails, from ``$CC`` or the first of ``cc``, ``gcc``, ``clang`` on PATH, into a temporary
 directory that is removed after loading (the library stays mapped). Nothing is cached on disk.
 
-Callers hold a :class:`LazyLibrary`, which builds on first use and logs once when it falls back.
+The headers are the binding table: each library ``<stem>.c`` includes its own ``<stem>.h``, which holds the prototype
+of every function it exports (so the compiler refuses a definition that differs), and :func:`declare` sets the ctypes
+``argtypes`` / ``restype`` of those functions from the same prototypes (:func:`c_prototypes`); no caller declares a
+signature by hand. Shared static code lives in headers too (``ray_inputs_impl.h``, ``fused_tiles.h``): no ``.c``
+includes another, and a library stays one translation unit.
+
+Callers hold a :class:`LazyLibrary`, which builds on first use, declares its header's signatures and logs once when it
+falls back.
 :func:`build_declared` builds every library declared so far at once (the viewer, before its first frame).
 Set ``DELIFFAS_NATIVE=0`` to never compile; every caller then keeps a pure-torch fallback.
 """
@@ -19,6 +26,7 @@ from __future__ import annotations
 import ctypes
 import logging
 import os
+import re
 import shlex
 import shutil
 import subprocess
@@ -27,9 +35,10 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Sequence
 
-__all__ = ["CSRC", "NATIVE_ENV", "LazyLibrary", "NativeLibrary", "build_library", "build_declared"]
+__all__ = ["CSRC", "NATIVE_ENV", "LazyLibrary", "NativeLibrary", "Prototype", "build_declared", "build_library",
+           "c_prototypes", "declare"]
 
 logger = logging.getLogger(__name__)
 
@@ -100,6 +109,107 @@ def build_library(name: str, source: str, flags: Sequence[str] = ()) -> NativeLi
     return NativeLibrary(lib, "", time.perf_counter() - t0, command)
 
 
+_C_TYPES: dict[str, type | None] = {"void": None, "int": ctypes.c_int32, "int32_t": ctypes.c_int32,
+                                    "int64_t": ctypes.c_int64, "uint8_t": ctypes.c_uint8, "float": ctypes.c_float,
+                                    "double": ctypes.c_double}
+"""The C types of the prototypes (a pointer of any type is a ``c_void_p``; ``void`` is a return type only)."""
+
+_QUALIFIERS = re.compile(r"\b(?:const|restrict|__restrict__|__restrict|volatile)\b")
+_COMMENTS = re.compile(r"/\*.*?\*/|//[^\n]*", re.S)
+_DIRECTIVES = re.compile(r"^[ \t]*#(?:\\\n|[^\n])*", re.M)
+_PROTOTYPE = re.compile(r"(?P<ret>[A-Za-z_][\w \t\n*]*?)\s*\b(?P<name>[A-Za-z_]\w*)\s*\((?P<params>[^()]*)\)", re.S)
+
+
+@dataclass(frozen=True)
+class Prototype:
+    """One C function prototype of a header, as ctypes declares it.
+
+    Attributes:
+        name: the function's name (its symbol).
+        restype: the ctypes return type (None for ``void``).
+        argtypes: the ctypes parameter types, in order.
+        text: the prototype, comments dropped and white space collapsed.
+    """
+
+    name: str
+    restype: type | None
+    argtypes: tuple[type, ...]
+    text: str
+
+
+def _ctype(decl: str, *, returned: bool, where: str) -> type | None:
+    """The ctypes type of one parameter declaration (type and name) or of a return type (type only)."""
+    if "*" in decl or "[" in decl:
+        return ctypes.c_void_p
+    words = _QUALIFIERS.sub(" ", decl).split()
+    c_type = " ".join(words if returned or len(words) < 2 else words[:-1])
+    if c_type not in _C_TYPES or (c_type == "void" and not returned):
+        raise ValueError(f"{where}: unsupported C type {c_type!r} (supported: pointers, {', '.join(_C_TYPES)})")
+    return _C_TYPES[c_type]
+
+
+def _statements(code: str) -> list[str]:
+    """The top-level statements of C code without comments and directives (a braced block stays in its statement)."""
+    statements, depth, start = [], 0, 0
+    for i, char in enumerate(code):
+        depth += {"{": 1, "}": -1}.get(char, 0)
+        if char == ";" and depth == 0:
+            statements.append(" ".join(code[start:i].split()))
+            start = i + 1
+    if code[start:].strip():
+        statements.append(" ".join(code[start:].split()))
+    return [s for s in statements if s]
+
+
+def c_prototypes(header_text: str, header: str = "<header>") -> dict[str, Prototype]:
+    """The function prototypes of a C header, by name, for the simple prototypes of :data:`CSRC`'s headers.
+
+    Comments and preprocessor lines are ignored, and so are ``typedef`` and ``struct`` declarations; every other
+    top-level statement must be a prototype ``return-type name(parameters)``. Types: any pointer is ``c_void_p``;
+    ``int`` and ``int32_t`` are ``c_int32``, ``int64_t`` ``c_int64``, ``uint8_t`` ``c_uint8``, ``float`` ``c_float``,
+    ``double`` ``c_double``; a ``void`` return is None and ``(void)`` no parameters.
+
+    Args:
+        header_text: the header's text.
+        header: its name, for error messages.
+
+    Raises:
+        ValueError: naming the header and the prototype, for a statement that is not a prototype or a type not
+            listed above.
+    """
+    code = _DIRECTIVES.sub("", _COMMENTS.sub(" ", header_text))
+    prototypes: dict[str, Prototype] = {}
+    for text in _statements(code):
+        if re.match(r"(?:typedef|struct|union|enum)\b", text):
+            continue
+        match = _PROTOTYPE.fullmatch(text)
+        if match is None:
+            raise ValueError(f"{header}: not a function prototype: {text[:200]!r}")
+        where = f"{header}: {text}"
+        params = match["params"].strip()
+        decls = [] if params in ("", "void") else [p.strip() for p in params.split(",")]
+        argtypes = tuple(_ctype(d, returned=False, where=where) for d in decls)
+        name = match["name"]
+        prototypes[name] = Prototype(name, _ctype(match["ret"], returned=True, where=where), argtypes, text)
+    return prototypes
+
+
+def declare(lib: ctypes.CDLL, header: str) -> dict[str, Prototype]:
+    """Set ``argtypes`` and ``restype`` of every function of the header ``header`` (a file name in :data:`CSRC`) on
+    the loaded library ``lib``; returns the prototypes.
+
+    Raises:
+        AttributeError: when the library lacks one of the header's functions.
+        OSError: when the header cannot be read. ValueError: when it does not parse (:func:`c_prototypes`).
+    """
+    prototypes = c_prototypes((CSRC / header).read_text(encoding="utf-8"), header)
+    for proto in prototypes.values():
+        fn = getattr(lib, proto.name)
+        fn.argtypes = list(proto.argtypes)
+        fn.restype = proto.restype
+    return prototypes
+
+
 class LazyLibrary:
     """A C library built on first use, once per process (thread-safe), for one caller.
 
@@ -107,33 +217,40 @@ class LazyLibrary:
         name: library stem and the name in log messages.
         source: file name in :data:`CSRC`.
         flags: extra compiler flags (see :func:`build_library`).
-        setup: called once with the loaded library to declare its ctypes signatures; an
-            ``AttributeError`` (a missing symbol) makes the library unavailable.
+        header: the header in :data:`CSRC` whose prototypes :func:`declare` sets on the loaded library (None: the
+            source's stem + ``.h``). A missing symbol (``AttributeError``), or a header that cannot be read or
+            parsed, makes the library unavailable.
         fallback: what the caller uses without it, for the log message.
     """
 
-    def __init__(self, name: str, source: str, flags: Sequence[str] = (), *,
-                 setup: Callable[[ctypes.CDLL], None] | None = None, fallback: str) -> None:
+    def __init__(self, name: str, source: str, flags: Sequence[str] = (), *, header: str | None = None,
+                 fallback: str) -> None:
         self.name, self.source, self.flags = name, source, tuple(flags)
-        self.setup, self.fallback = setup, fallback
+        self.header = Path(source).stem + ".h" if header is None else header
+        self.fallback = fallback
         self._lock = threading.Lock()
         self._built: NativeLibrary | None = None
         self._logged = False
         _DECLARED.append(self)
 
     def load(self) -> NativeLibrary:
-        """The outcome of the build, building on the first call."""
+        """The outcome of the build, building (and declaring the header's signatures) on the first call."""
         if self._built is None:
             with self._lock:
                 if self._built is None:
                     built = build_library(self.name, self.source, self.flags)
-                    if built.lib is not None and self.setup is not None:
-                        try:
-                            self.setup(built.lib)
-                        except AttributeError as exc:
-                            built = NativeLibrary(None, f"the built {self.name} library lacks a symbol: {exc}")
-                    self._built = built
+                    self._built = self._declared(built) if built.lib is not None else built
         return self._built
+
+    def _declared(self, built: NativeLibrary) -> NativeLibrary:
+        """``built`` after declaring its signatures, or unavailable when that fails."""
+        try:
+            declare(built.lib, self.header)
+        except AttributeError as exc:
+            return NativeLibrary(None, f"the built {self.name} library lacks a symbol: {exc}")
+        except (OSError, ValueError) as exc:
+            return NativeLibrary(None, f"the header {self.header} of the {self.name} library is unusable: {exc}")
+        return built
 
     def get(self) -> ctypes.CDLL | None:
         """The loaded library, or None after logging (once per process) why the fallback is used:

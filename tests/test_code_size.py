@@ -72,7 +72,7 @@ def _sizes() -> tuple[dict[str, int], dict[str, int]]:
             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
                 functions[f"{name}:{node.name}"] = max(functions.get(f"{name}:{node.name}", 0),
                                                        node.end_lineno - node.lineno + 1)
-    for path in sorted(PACKAGE.rglob("*.c")):
+    for path in sorted([*PACKAGE.rglob("*.c"), *PACKAGE.rglob("*.h")]):
         text = path.read_text(encoding="utf-8")
         name = path.relative_to(PACKAGE.parent).as_posix()
         files[name] = text.count("\n")

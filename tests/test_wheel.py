@@ -79,7 +79,7 @@ def test_wheel_installs_and_runs_from_another_folder(wheel_venv, tmp_path):
     assert version.stdout.strip() == f"deliffas {deliffas.__version__}" and wheel.name.startswith(
         f"deliffas-{deliffas.__version__}-")
     shipped = set(zipfile.ZipFile(wheel).namelist())  # the C kernels travel as package data
-    sources = {f"deliffas/csrc/{p.name}" for p in (REPO / "deliffas" / "csrc").glob("*.c")}
+    sources = {f"deliffas/csrc/{p.name}" for p in (REPO / "deliffas" / "csrc").iterdir() if p.suffix in (".c", ".h")}
     assert sources and sources <= shipped, sorted(sources - shipped)
     for argv in _example_args(tmp_path):
         example = _run(env_dir, [py, *argv], tmp_path)

@@ -10,6 +10,7 @@
    registers where the CPU's are narrower). Built for 16 input and 16 output channels (oneDNN was as fast for the
    32 -> 8 and 64 -> 16 layers below). Each sum runs in a fixed order (deterministic), with FMA contraction. The
    functions return 1 for channel counts they are not built for. */
+#include "conv_transpose_grad.h"
 #include <stdint.h>
 #include <string.h>
 

@@ -8,6 +8,7 @@
    MAX_FREQS, for |x| <= MAX_ABS), rounded to float once. Rows go in blocks; every loop over a block's
    coordinates vectorises (no libm call, no integer conversion), and the rows are then assembled by small copies.
    Built without FMA contraction and without fast-math (-fno-trapping-math lets nearbyint and floor vectorise). */
+#include "encoding.h"
 #include <math.h>
 #include <stdint.h>
 #include <string.h>

@@ -5,6 +5,7 @@
    mul of the penalty's gradient and the sum autograd forms of the two, in one pass: the same float32
    roundings in the same order. Built without FMA contraction (ISO C99). The penalty's sum is in 16 float lanes
    added in double: the logged value only, which no gradient reads. Arrays are in the maps' memory order. */
+#include "feature_sigmoid.h"
 #include <stdint.h>
 
 static inline float beyond(float s, float m) { return s > m ? s - m : (s < -m ? s + m : 0.0f); }

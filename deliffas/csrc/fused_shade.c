@@ -1,10 +1,11 @@
 /* The whole shading of a ray in one pass (deliffas/fast/shade.py, FastShader.shade_fused), a tile of rays at a
    time with the rays in the vector lanes (GCC/clang vector extensions: 16 rays in AVX-512 registers, 8 in AVX2's
-   under -march=native): encodings and samples (fused_tiles.c, into a transposed tile), every hidden layer (bias,
+   under -march=native): encodings and samples (fused_tiles.h, into a transposed tile), every hidden layer (bias,
    products, ReLU) in fp32 from tile to tile in L1, the output layer, its sigmoid and the write into the canvas.
    Nothing per ray reaches memory but its colour. FMA contraction is on here (a separate build), so values differ
    from torch's fp32 in the last bits. */
-#include "fused_tiles.c"
+#include "fused_shade.h"
+#include "fused_tiles.h"
 
 #include <stdlib.h>
 

@@ -4,6 +4,7 @@
    table and grad are (texels, C) float32 (channels-last), index int64 (4, M), weight float32 (4, M). Both return
    the number of indices outside [0, texels) and touch nothing when there is one (the caller then raises). Built
    without FMA contraction (ISO C99): each product is rounded as in torch's mul / addcmul. */
+#include "gather_bilinear.h"
 #include <stdint.h>
 #include <string.h>
 

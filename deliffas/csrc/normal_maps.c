@@ -3,6 +3,7 @@
      n = (v[vid0] w0 + v[vid1] w1) + v[vid2] w2,  n / |n| if |n|^2 > eps2 else 0,
    written to out[c][t]. Built without FMA contraction and without fast-math, so the AVX2 and the
    scalar loop give bit-identical results and the values equal the torch gather path's to an ulp. */
+#include "normal_maps.h"
 #include <stdint.h>
 #include <math.h>
 #if defined(__AVX2__)

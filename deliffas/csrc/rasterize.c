@@ -1,5 +1,6 @@
 /* Rasterised uvs of the inner and outer surfaces per camera pixel, with depth peeling
    (deliffas/fast/rasterize.py, UVRasterizer). Built without FMA contraction and without fast-math. */
+#include "rasterize.h"
 #include <math.h>
 #include <stdint.h>
 #include <stdlib.h>

@@ -1,6 +1,7 @@
 /* dst[n][p][c] = src[n][c][p] for float32 (deliffas/models/unet_cpu.py, channels_last): N maps of C planes of
    P pixels to channels_last order. Loops specialised for the U-Net's usual 3 (T + 1) input channels (gcc
    vectorises them), a pixel-blocked loop otherwise. Exact copies: no arithmetic. */
+#include "unet_layout.h"
 #include <stdint.h>
 #define INTERLEAVE(C) \
     static void interleave_##C(const float *restrict src, float *restrict dst, int64_t pixels) { \

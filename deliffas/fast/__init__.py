@@ -7,7 +7,7 @@ Reading order for a newcomer:
   with depth peeling (the ray caster's hits), C kernel ``csrc/rasterize.c``, numpy fallback;
 * :mod:`deliffas.fast.shade`: :class:`~deliffas.fast.shade.FastShader`, ``DeliffasModel.shade`` for inference
   (``csrc/ray_inputs.c``: sampled features and encodings as GEMM operands; ``csrc/fused_shade.c``: the whole
-  MLP in one pass, its tile inputs in ``csrc/fused_tiles.c``), the torch path as fallback;
+  MLP in one pass, its tile inputs in ``csrc/fused_tiles.h``), the torch path as fallback;
 * :mod:`deliffas.fast.frame`: a camera's image from them (``fast_render_camera``: uv, sample and mlp stages on
   any timer with ``stage(name)``), the ray caster where a vertex is behind the camera, and ``render_stream``
   (several frames in flight). The rays and their way to the model are the engine's too

@@ -26,7 +26,6 @@ without a C compiler, or with ``method="numpy"``.
 
 from __future__ import annotations
 
-import ctypes
 import dataclasses
 import logging
 import threading
@@ -60,17 +59,8 @@ _PAIR_CHUNK = 1 << 22  # (triangle, pixel) pairs per chunk of the numpy implemen
 Method = Literal["auto", "native", "numpy"]
 
 
-def _declare(lib: ctypes.CDLL) -> None:
-    p, i64 = ctypes.c_void_p, ctypes.c_int64
-    lib.deliffas_raster_uv.argtypes = [p, p, p, i64, p, i64, i64, i64, i64, i64, p, ctypes.c_double,
-                                       p, p, p, p, p, p, p, p, p]
-    lib.deliffas_raster_uv.restype = i64
-    lib.deliffas_raster_depth.argtypes = [p, p, i64, i64, i64, i64, i64, p, p]
-    lib.deliffas_raster_depth.restype = ctypes.c_int
-
-
-_KERNEL = LazyLibrary("rasterize", "rasterize.c", ("-fno-fast-math", "-ffp-contract=off", "-fno-math-errno"), setup=_declare,
-                      fallback="the numpy rasteriser, much slower")
+_KERNEL = LazyLibrary("rasterize", "rasterize.c", ("-fno-fast-math", "-ffp-contract=off", "-fno-math-errno"),
+                      fallback="the numpy rasteriser, much slower")  # signatures: rasterize.h
 
 
 def raster_kernel_available() -> bool:

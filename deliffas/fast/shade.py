@@ -67,33 +67,17 @@ ROW_CHUNK = 16384
 """Rays per MLP chunk of the per-stage path (the fastest of 2048 to 65536 rows on the realtime preset)."""
 
 
-def _declare_fused(lib: ctypes.CDLL) -> None:
-    p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
-    lib.deliffas_fused_shade.argtypes = [i64, p, p, p, i32, i32, i32, p, p, i64, i64, p, i64, p, p, i64, i64, i64, p, p,
-                                         i32, p, i64, p, p, p]
-    lib.deliffas_fused_shade.restype = i32
-    lib.deliffas_fused_bf16.argtypes = []
-    lib.deliffas_fused_bf16.restype = i32
-
-
+# signatures: fused_shade.h and ray_inputs.h (deliffas.native.declare)
 _FUSED = LazyLibrary("fused_shade", "fused_shade.c", ("-ffp-contract=fast", "-fno-math-errno", "-fno-trapping-math", "-std=gnu11"),
-                     setup=_declare_fused, fallback="the per-stage fast path (ray inputs, then the MLP by addmm)")
+                     fallback="the per-stage fast path (ray inputs, then the MLP by addmm)")
 
 
-def _declare(lib: ctypes.CDLL) -> None:
-    p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
-    lib.deliffas_ray_inputs.argtypes = [i64, i64, p, p, p, i32, i32, i32, p, p, i64, i64, p, i32, p, i64, p, i64]
-    lib.deliffas_ray_inputs.restype = None
-    lib.deliffas_rgb_out.argtypes = [i64, p, i64, i32, i64, p, p, p, p]
-    lib.deliffas_rgb_out.restype = None
-
-
-_KERNEL = LazyLibrary("ray_inputs", "ray_inputs.c", ("-fno-fast-math", "-ffp-contract=off", "-fno-math-errno"), setup=_declare,
+_KERNEL = LazyLibrary("ray_inputs", "ray_inputs.c", ("-fno-fast-math", "-ffp-contract=off", "-fno-math-errno"),
                       fallback="DeliffasModel.gather_inputs")
 
 
 class _DirArgs(ctypes.Structure):
-    """``dir_args`` of ``csrc/ray_inputs.c``: the rays' view directions (N, 3) fp32, the inner normal map (S, S, 3) fp32
+    """``dir_args`` of ``csrc/ray_inputs.h``: the rays' view directions (N, 3) fp32, the inner normal map (S, S, 3) fp32
     (None: the direction is encoded as it is) and the direction's encoding."""
 
     _fields_ = [("viewdir", ctypes.c_void_p), ("normals", ctypes.c_void_p), ("S", ctypes.c_int64), ("L", ctypes.c_int32),

@@ -76,14 +76,7 @@ class FusedKernelStatus:
     avx2: bool = False
 
 
-def _declare(lib: ctypes.CDLL) -> None:
-    ptr, i64 = ctypes.c_void_p, ctypes.c_int64
-    lib.deliffas_normal_maps_f32.argtypes = [ptr, i64, ptr, ptr, ptr, i64, i64, ctypes.c_float]
-    lib.deliffas_normal_maps_f64.argtypes = [ptr, i64, ptr, ptr, ptr, i64, i64, ctypes.c_double]
-    lib.deliffas_normal_maps_f32.restype = lib.deliffas_normal_maps_f64.restype = None
-
-
-_KERNEL = LazyLibrary("normal_maps", "normal_maps.c", _CFLAGS, setup=_declare,
+_KERNEL = LazyLibrary("normal_maps", "normal_maps.c", _CFLAGS,  # signatures: normal_maps.h
                       fallback="the sparse product for normal maps, slower")
 
 

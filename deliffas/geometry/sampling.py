@@ -67,14 +67,7 @@ def bilinear_corners(uv: Float[Tensor, "M 2"], height: int, width: int
     return index, weight
 
 
-def _declare(lib: ctypes.CDLL) -> None:
-    ptr, i64 = ctypes.c_void_p, ctypes.c_int64
-    for fn in (lib.deliffas_gather_bilinear_f32, lib.deliffas_scatter_bilinear_f32):
-        fn.argtypes = [ptr, i64, i64, ptr, ptr, i64, ptr]
-        fn.restype = i64
-
-
-_KERNEL = LazyLibrary("gather_bilinear", "gather_bilinear.c", setup=_declare,
+_KERNEL = LazyLibrary("gather_bilinear", "gather_bilinear.c",  # signatures: gather_bilinear.h
                       fallback="torch index_select / index_add_ for the bilinear gather, slower")
 
 

@@ -98,15 +98,9 @@ _MAX_FREQS, _MAX_DIMS = 16, 4
 """The most frequencies and coordinates per part the kernel encodes (``csrc/encoding.c``); more take the torch path."""
 
 
-def _declare(lib: ctypes.CDLL) -> None:
-    ptr = ctypes.c_void_p
-    lib.deliffas_encode_parts_f32.argtypes = [ctypes.c_int32, ptr, ptr, ptr, ptr, ctypes.c_int64, ptr, ctypes.c_int64]
-    lib.deliffas_encode_parts_f32.restype = ctypes.c_int64
-
-
 _KERNEL = LazyLibrary("encoding", "encoding.c", ("-fno-fast-math", "-ffp-contract=off", "-fno-math-errno",
                                                   "-fno-trapping-math"),
-                      setup=_declare, fallback="torch sin / cos for the positional encodings, slower")
+                      fallback="torch sin / cos for the positional encodings, slower")  # signatures: encoding.h
 
 
 def _encode_native(parts: Sequence[tuple[torch.Tensor, PositionalEncoding]]) -> torch.Tensor | None:

@@ -11,8 +11,6 @@ summed in another order.
 
 from __future__ import annotations
 
-import ctypes
-
 import torch
 import torch.nn.functional as F
 
@@ -22,15 +20,7 @@ from deliffas.native import LazyLibrary
 __all__ = ["sigmoid_with_penalty"]
 
 
-def _declare(lib: ctypes.CDLL) -> None:
-    ptr, i64, f32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float
-    lib.deliffas_beyond_margin_sq_f32.argtypes = [ptr, i64, f32]
-    lib.deliffas_beyond_margin_sq_f32.restype = ctypes.c_double
-    lib.deliffas_sigmoid_saturation_backward_f32.argtypes = [ptr, ptr, ptr, i64, f32, f32, ptr]
-    lib.deliffas_sigmoid_saturation_backward_f32.restype = None
-
-
-_KERNEL = LazyLibrary("feature_sigmoid", "feature_sigmoid.c", setup=_declare,
+_KERNEL = LazyLibrary("feature_sigmoid", "feature_sigmoid.c",  # signatures: feature_sigmoid.h
                       fallback="torch's sigmoid backward and softshrink, one pass each")
 
 

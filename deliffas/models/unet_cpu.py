@@ -119,13 +119,7 @@ def cpu_layout(x: torch.Tensor, min_pixels: int | None = None) -> torch.Tensor:
     return x.contiguous()
 
 
-def _declare_layout(lib: ctypes.CDLL) -> None:
-    i64 = ctypes.c_int64
-    lib.deliffas_planar_to_interleaved_f32.argtypes = [ctypes.c_void_p, ctypes.c_void_p, i64, i64, i64]
-    lib.deliffas_planar_to_interleaved_f32.restype = None
-
-
-_LAYOUT_KERNEL = LazyLibrary("unet_layout", "unet_layout.c", setup=_declare_layout,
+_LAYOUT_KERNEL = LazyLibrary("unet_layout", "unet_layout.c",  # signatures: unet_layout.h
                              fallback="torch's channels_last copy for the U-Net input, slower")
 
 

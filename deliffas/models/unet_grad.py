@@ -13,8 +13,6 @@ only where the build has AVX-512 (:func:`wide_vectors`); the first layer's run o
 
 from __future__ import annotations
 
-import ctypes
-
 import torch
 import torch.nn.functional as F
 
@@ -24,19 +22,8 @@ __all__ = ["conv_k4s2_input_fixed", "conv_transpose_k4s2", "native_conv_grad_app
            "wide_vectors"]
 
 
-def _declare(lib: ctypes.CDLL) -> None:
-    ptr, i64 = ctypes.c_void_p, ctypes.c_int64
-    lib.deliffas_conv_transpose_k4s2_input_grad_f32.argtypes = [ptr, ptr, i64, i64, i64, i64, ptr]
-    lib.deliffas_conv_transpose_k4s2_weight_grad_f32.argtypes = [ptr, ptr, i64, i64, i64, i64, ptr, ptr]
-    lib.deliffas_conv_k4s2_weight_grad_f32.argtypes = [ptr, ptr, i64, i64, i64, i64, ptr]
-    lib.deliffas_conv_transpose_grad_wide_vectors.argtypes = []
-    for fn in (lib.deliffas_conv_transpose_k4s2_input_grad_f32, lib.deliffas_conv_transpose_k4s2_weight_grad_f32,
-               lib.deliffas_conv_k4s2_weight_grad_f32, lib.deliffas_conv_transpose_grad_wide_vectors):
-        fn.restype = ctypes.c_int
-
-
 _KERNEL = LazyLibrary("conv_transpose_grad", "conv_transpose_grad.c", flags=("-ffp-contract=fast", "-Wno-psabi"),
-                      setup=_declare, fallback="torch's convolution backward")
+                      fallback="torch's convolution backward")  # signatures: conv_transpose_grad.h
 
 
 def wide_vectors() -> bool:

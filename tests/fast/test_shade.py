@@ -162,7 +162,7 @@ def _fused_built_with(flag: str, monkeypatch) -> LazyLibrary:
     """The fused kernel built with one more compiler ``flag``, patched in as ``fast_shade._FUSED`` (skips when there
     is no compiler, or one that does not know the flag)."""
     lib = LazyLibrary(f"fused_shade{flag.replace('-', '_')}", fast_shade._FUSED.source,
-                      (*fast_shade._FUSED.flags, flag), setup=fast_shade._declare_fused, fallback="none")
+                      (*fast_shade._FUSED.flags, flag), fallback="none")
     if lib.get() is None:
         pytest.skip(f"kernel not built with {flag}: {lib.load().reason}")
     monkeypatch.setattr(fast_shade, "_FUSED", lib)
@@ -175,7 +175,7 @@ def test_fused_pass_builds_and_agrees_without_avx(monkeypatch):
     ``-march`` at all, the same case) and agrees with ``shade``: the asm that keeps a tile in a register is left out
     where a tile is wider than the registers, which would not compile."""
     lib = LazyLibrary("fused_shade_no_avx", fast_shade._FUSED.source, (*fast_shade._FUSED.flags, "-mno-avx"),
-                      setup=fast_shade._declare_fused, fallback="none")
+                      fallback="none")
     built = lib.load()
     if built.lib is None and ("no C compiler" in built.reason or built.reason.startswith("disabled")):
         pytest.skip(built.reason)

@@ -1,8 +1,11 @@
-/* The inputs of a tile of rays for the fused pass (fused_shade.c, which includes this file): the rays in the vector
-   lanes (GCC/clang vector extensions: 16 rays in AVX-512 registers, 8 in AVX2's under -march=native), their
-   positional encodings, view directions and bilinear samples written as transposed tiles (a row per input, TILE
-   rays a row), as ray_inputs.c computes them per ray; and the first layer's encoded part from per-coordinate tables. */
-#include "ray_inputs.c"
+/* The inputs of a tile of rays for the fused pass (fused_shade.c, which includes this header: its static functions
+   inline into the pass): the rays in the vector lanes (GCC/clang vector extensions: 16 rays in AVX-512 registers, 8
+   in AVX2's under -march=native), their positional encodings, view directions and bilinear samples written as
+   transposed tiles (a row per input, TILE rays a row), as ray_inputs.c computes them per ray (its helpers in
+   ray_inputs_impl.h); and the first layer's encoded part from per-coordinate tables. */
+#ifndef DELIFFAS_FUSED_TILES_H
+#define DELIFFAS_FUSED_TILES_H
+#include "ray_inputs_impl.h"
 
 /* Rays per tile = float lanes of the widest vector registers: 16 with AVX-512, else 8. A 16-lane tile on AVX2 is
    emulated with register pairs, and the dense layers' accumulators then spill: the fp32 pass ran 5 x slower. */
@@ -288,3 +291,5 @@ static void encode_dir_tile(const dir_args *dir, int64_t r0, const float *uv, in
     }
     encode_points(x, 3, dir->L, dir->include_input, xt);
 }
+
+#endif
