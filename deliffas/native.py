@@ -12,8 +12,12 @@ directory that is removed after loading (the library stays mapped). Nothing is c
 The headers are the binding table: each library ``<stem>.c`` includes its own ``<stem>.h``, which holds the prototype
 of every function it exports (so the compiler refuses a definition that differs), and :func:`declare` sets the ctypes
 ``argtypes`` / ``restype`` of those functions from the same prototypes (:func:`c_prototypes`); no caller declares a
-signature by hand. Shared static code lives in headers too (``ray_inputs_impl.h``, ``fused_tiles.h``): no ``.c``
-includes another, and a library stays one translation unit.
+signature by hand. A function with many arguments takes one pointer to a ``typedef struct { ... } <name>;`` of its
+header instead, which :func:`header_structs` parses into a ``ctypes.Structure`` (:func:`c_structs`) that callers fill
+by field name (every field, by keyword: :class:`HeaderStruct`); where the header also declares
+``int64_t <name>_layout(int64_t *out)`` (``sizeof`` and each field's ``offsetof``, from the compiler), :func:`declare`
+refuses a library whose layout differs from the parsed one. Shared static code lives in headers too
+(``ray_inputs_impl.h``, ``fused_tiles.h``): no ``.c`` includes another, and a library stays one translation unit.
 
 Callers hold a :class:`LazyLibrary`, which builds on first use, declares its header's signatures and logs once when it
 falls back.
@@ -24,6 +28,7 @@ Set ``DELIFFAS_NATIVE=0`` to never compile; every caller then keeps a pure-torch
 from __future__ import annotations
 
 import ctypes
+import functools
 import logging
 import os
 import re
@@ -37,8 +42,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
-__all__ = ["CSRC", "NATIVE_ENV", "LazyLibrary", "NativeLibrary", "Prototype", "build_declared", "build_library",
-           "c_prototypes", "declare"]
+__all__ = ["CSRC", "NATIVE_ENV", "HeaderStruct", "LazyLibrary", "NativeLibrary", "Prototype", "build_declared",
+           "build_library", "c_prototypes", "c_structs", "check_layouts", "declare", "header_structs"]
 
 logger = logging.getLogger(__name__)
 
@@ -196,18 +201,116 @@ def c_prototypes(header_text: str, header: str = "<header>") -> dict[str, Protot
 
 def declare(lib: ctypes.CDLL, header: str) -> dict[str, Prototype]:
     """Set ``argtypes`` and ``restype`` of every function of the header ``header`` (a file name in :data:`CSRC`) on
-    the loaded library ``lib``; returns the prototypes.
+    the loaded library ``lib``, and check its structures' layouts (:func:`check_layouts`); returns the prototypes.
 
     Raises:
         AttributeError: when the library lacks one of the header's functions.
-        OSError: when the header cannot be read. ValueError: when it does not parse (:func:`c_prototypes`).
+        OSError: when the header cannot be read. ValueError: when it does not parse (:func:`c_prototypes`,
+            :func:`c_structs`), or a structure's layout is not the compiler's.
     """
     prototypes = c_prototypes((CSRC / header).read_text(encoding="utf-8"), header)
     for proto in prototypes.values():
         fn = getattr(lib, proto.name)
         fn.argtypes = list(proto.argtypes)
         fn.restype = proto.restype
+    check_layouts(lib, header)
     return prototypes
+
+
+class HeaderStruct(ctypes.Structure):
+    """The base of the Structures parsed from headers (:func:`c_structs`): built from keyword arguments only, one for
+    every field (ctypes would leave an omitted field 0 and take a misspelt name as a plain attribute)."""
+
+    def __init__(self, **fields) -> None:
+        names = [name for name, _ in self._fields_]
+        if set(fields) != set(names):
+            missing, unknown = sorted(set(names) - set(fields)), sorted(set(fields) - set(names))
+            raise TypeError(f"{type(self).__name__}: every field by name; missing {missing}, unknown {unknown}")
+        super().__init__(**fields)
+
+
+_STRUCT = re.compile(r"typedef struct(?: [A-Za-z_]\w*)? ?\{(?P<body>[^{}]*)\} ?(?P<name>[A-Za-z_]\w*)")
+_MEMBER = re.compile(r"(?P<base>[A-Za-z_][\w ]*?) ?(?P<first>\**[ ]?[A-Za-z_]\w*)")
+_DECLARATOR = re.compile(r"(?P<stars>\**) ?(?P<name>[A-Za-z_]\w*)")
+
+
+def _struct_fields(body: str, where: str) -> list[tuple[str, type]]:
+    """The ctypes ``_fields_`` of a struct's member declarations (``type a, *b;``: several declarators of one type)."""
+    fields: list[tuple[str, type]] = []
+    for member in _statements(body):
+        text = " ".join(_QUALIFIERS.sub(" ", member).replace("*", " * ").split()).replace("* ", "*")
+        match = _MEMBER.fullmatch(text.split(",")[0].strip())
+        declarators = [match["first"], *(d.strip() for d in text.split(",")[1:])] if match else []
+        parsed = [_DECLARATOR.fullmatch(d) for d in declarators]
+        if not parsed or None in parsed:
+            raise ValueError(f"{where}: unsupported field declaration {member!r} (one type, then names or pointers; "
+                             "no arrays, bit fields, nested or function-pointer members)")
+        for decl in parsed:
+            c_type = ctypes.c_void_p if decl["stars"] else _C_TYPES.get(match["base"])
+            if c_type is None:
+                raise ValueError(f"{where}: field {decl['name']!r}: unsupported C type {match['base']!r} "
+                                 f"(supported: pointers, {', '.join(t for t in _C_TYPES if t != 'void')})")
+            fields.append((decl["name"], c_type))
+    return fields
+
+
+def c_structs(header_text: str, header: str = "<header>") -> dict[str, type[HeaderStruct]]:
+    """The ``typedef struct { <type> <name>; ... } <name>;`` blocks of a C header as ctypes Structures (subclasses of
+    :class:`HeaderStruct`), by the typedef's name, fields in declaration order with the types of :func:`c_prototypes`
+    (any pointer ``c_void_p``, ``int`` / ``int32_t`` ``c_int32``, ``int64_t`` ``c_int64``, ``uint8_t`` ``c_uint8``,
+    ``float`` ``c_float``, ``double`` ``c_double``), laid out by ctypes as the platform's C compiler lays them out.
+    Other statements (prototypes, other typedefs) are ignored.
+
+    Raises:
+        ValueError: naming the header, the structure and the field, for a member of another type or form (arrays,
+            bit fields, function pointers); naming the header, for a ``typedef struct`` with nested braces.
+    """
+    structs: dict[str, type[HeaderStruct]] = {}
+    for text in _statements(_DIRECTIVES.sub("", _COMMENTS.sub(" ", header_text))):
+        match = _STRUCT.fullmatch(text)
+        if match is None and re.match(r"typedef struct\b[^{]*\{", text):
+            raise ValueError(f"{header}: unsupported structure (nested braces, or not 'typedef struct {{ ... }} "
+                             f"name'): {text[:200]!r}")
+        if match is not None:
+            name = match["name"]
+            fields = _struct_fields(match["body"], f"{header}: struct {name}")
+            doc = f"``{name}`` of ``{header}`` (parsed by deliffas.native.c_structs)."
+            structs[name] = type(name, (HeaderStruct,), {"_fields_": fields, "__doc__": doc})
+    return structs
+
+
+@functools.lru_cache(maxsize=None)
+def header_structs(header: str) -> dict[str, type[HeaderStruct]]:
+    """:func:`c_structs` of the header ``header`` (a file name in :data:`CSRC`), parsed once per process (one class per
+    structure). Raises OSError or ValueError as reading it or :func:`c_structs` does."""
+    return c_structs((CSRC / header).read_text(encoding="utf-8"), header)
+
+
+def check_layouts(lib: ctypes.CDLL, header: str) -> dict[str, list[int]]:
+    """Check each structure ``<name>`` of the header ``header`` whose layout function ``<name>_layout`` the header
+    declares against the compiler's layout: the function writes ``sizeof`` and then each field's ``offsetof`` in
+    declaration order (with NULL it only returns how many), which must equal ``ctypes.sizeof`` and the Structure's
+    field offsets. Returns the layouts checked, by structure.
+
+    Raises:
+        ValueError: naming the structure, when a layout differs. AttributeError: when the library lacks the function.
+    """
+    prototypes = c_prototypes((CSRC / header).read_text(encoding="utf-8"), header)
+    checked = {}
+    for name, struct in header_structs(header).items():
+        if f"{name}_layout" not in prototypes:
+            continue
+        fn = getattr(lib, f"{name}_layout")
+        fn.argtypes, fn.restype = [ctypes.c_void_p], ctypes.c_int64
+        count = fn(None)
+        values = (ctypes.c_int64 * max(count, 0))()
+        fn(values)
+        expected = [ctypes.sizeof(struct), *(getattr(struct, field).offset for field, _ in struct._fields_)]
+        if list(values) != expected:
+            raise ValueError(f"{header}: struct {name}: the compiler's layout (sizeof, offsets) {list(values)} is not "
+                             f"ctypes' {expected}")
+        checked[name] = expected
+    return checked
 
 
 class LazyLibrary:

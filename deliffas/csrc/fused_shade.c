@@ -7,6 +7,7 @@
 #include "fused_shade.h"
 #include "fused_tiles.h"
 
+#include <stddef.h>
 #include <stdlib.h>
 
 /* rows (TILE, N) = the bias b (N) for every ray */
@@ -300,11 +301,18 @@ static inline void shade_group_fp32(const fused_args *a, const tile_scratch *s, 
    (add_projected; S x S texels of that layer's N): proj_out at uv_out (NULL without an outer map), proj_in at uv_in,
    proj_peel at uv_in where from_outer (NULL without from_outer); no features sampled then. Returns 0, -1 when the
    scratch tiles cannot be allocated, -2 for more than 512 channels per map, -3 for bf16 without the kernel. */
-int deliffas_fused_shade(int64_t n, const float *uv_in, const uint8_t *from_outer, const float *uv_out,
-                         int outer_encoded, int L, int include_input, const float *map_in, const float *map_out,
-                         int64_t S, int64_t C, const dir_args *dir, int64_t nh, const int64_t *dims, const float *params, int64_t E,
-                         int64_t Fd, int64_t wmax, const int64_t *pixels, float *out, int bf16, const float *pe_table,
-                         int64_t table_nodes, const float *proj_out, const float *proj_in, const float *proj_peel) {
+int deliffas_fused_shade(const deliffas_fused_shade_args *args) {
+    /* the arguments as locals of their names (args, not a: the pass's fused_args is a) */
+    int64_t n = args->n, S = args->S, C = args->C, nh = args->nh, E = args->E, Fd = args->Fd, wmax = args->wmax;
+    int64_t table_nodes = args->table_nodes;
+    int outer_encoded = args->outer_encoded, L = args->L, include_input = args->include_input, bf16 = args->bf16;
+    const float *uv_in = args->uv_in, *uv_out = args->uv_out, *map_in = args->map_in, *map_out = args->map_out;
+    const float *params = args->params, *pe_table = args->pe_table, *proj_out = args->proj_out;
+    const float *proj_in = args->proj_in, *proj_peel = args->proj_peel;
+    const uint8_t *from_outer = args->from_outer;
+    const dir_args *dir = args->dir;
+    const int64_t *dims = args->dims, *pixels = args->pixels;
+    float *out = args->out;
     if (C > 512) return -2;
     if (bf16 && !FUSED_BF16) return -3;
     /* per tile, fp32: E + Fd input rows, two hidden layers and the rows; bf16: the inputs' and two hidden layers'
@@ -336,4 +344,20 @@ int deliffas_fused_shade(int64_t n, const float *uv_in, const uint8_t *from_oute
     }
     free(mem);
     return 0;
+}
+
+/* The layout of deliffas_fused_shade_args as this compiler lays it out: its sizeof, then the offsetof of each field
+   in declaration order, into out (unless NULL); returns their number. deliffas/native.py checks the Structure it
+   parses from fused_shade.h against it. */
+#define FUSED_AT(f) (int64_t)offsetof(deliffas_fused_shade_args, f)
+int64_t deliffas_fused_shade_args_layout(int64_t *out) {
+    const int64_t layout[] = {
+        (int64_t)sizeof(deliffas_fused_shade_args), FUSED_AT(uv_in), FUSED_AT(from_outer), FUSED_AT(uv_out),
+        FUSED_AT(map_in), FUSED_AT(map_out), FUSED_AT(dir), FUSED_AT(dims), FUSED_AT(params), FUSED_AT(pixels),
+        FUSED_AT(out), FUSED_AT(pe_table), FUSED_AT(proj_out), FUSED_AT(proj_in), FUSED_AT(proj_peel), FUSED_AT(n),
+        FUSED_AT(S), FUSED_AT(C), FUSED_AT(nh), FUSED_AT(E), FUSED_AT(Fd), FUSED_AT(wmax), FUSED_AT(table_nodes),
+        FUSED_AT(outer_encoded), FUSED_AT(L), FUSED_AT(include_input), FUSED_AT(bf16)};
+    int64_t count = (int64_t)(sizeof layout / sizeof layout[0]);
+    for (int64_t i = 0; out && i < count; i++) out[i] = layout[i];
+    return count;
 }

@@ -2,6 +2,7 @@
    (deliffas/fast/rasterize.py, UVRasterizer). Built without FMA contraction and without fast-math. */
 #include "rasterize.h"
 #include <math.h>
+#include <stddef.h>
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
@@ -235,10 +236,11 @@ static void face_consts(const double *P, const int32_t *faces, const float *corn
    Scratch: zi, fi (w h + 7), zo, fo (L w h + 7), layer-major. Outputs (capacity w h): pix (N,) int64 row W + col,
    uv_in (N, 2), from_outer (N,) uint8, uv_out (N, 2), viewdir (N, 3) (NULL: not computed).
    Band by band: both surfaces' z-buffer rows, then that band's shaded pixels, while its rows are in cache. */
-int64_t deliffas_raster_uv(const double *pin, const double *pout, const int32_t *faces, int64_t F,
-                           const float *corner_uvs, int64_t c0, int64_t r0, int64_t w, int64_t h, int64_t W,
-                           const double *m, double eps, float *zi, int32_t *fi, float *zo, int32_t *fo,
-                           int64_t *pix, float *uv_in, uint8_t *from_outer, float *uv_out, float *viewdir) {
+int64_t deliffas_raster_uv(const deliffas_raster_uv_args *a) {
+    const double *pin = a->pin, *pout = a->pout, *m = a->m; const int32_t *faces = a->faces; double eps = a->eps;
+    const float *corner_uvs = a->corner_uvs; int64_t F = a->F, c0 = a->c0, r0 = a->r0, w = a->w, h = a->h, W = a->W;
+    float *zi = a->zi, *zo = a->zo, *uv_in = a->uv_in, *uv_out = a->uv_out, *viewdir = a->viewdir;
+    int32_t *fi = a->fi, *fo = a->fo; int64_t *pix = a->pix; uint8_t *from_outer = a->from_outer;
     int64_t nb = (h + BAND - 1) / BAND, n = w * h;
     int64_t *start_in = malloc((size_t)(nb + 1) * sizeof(int64_t)), *start_out = malloc((size_t)(nb + 1) * sizeof(int64_t));
     double *k_in = malloc((size_t)(F > 0 ? F : 1) * 9 * sizeof(double)), *k_out = malloc((size_t)(F > 0 ? F : 1) * 9 * sizeof(double));
@@ -313,4 +315,20 @@ int64_t deliffas_raster_uv(const double *pin, const double *pout, const int32_t 
 done:
     free(start_in); free(start_out); free(k_in); free(k_out); free(list_in); free(list_out); free(rowbuf);
     return out;
+}
+
+/* The layout of deliffas_raster_uv_args as this compiler lays it out: its sizeof, then the offsetof of each field in
+   declaration order, into out (unless NULL); returns their number. deliffas/native.py checks the Structure it
+   parses from rasterize.h against it. */
+#define RASTER_UV_AT(f) (int64_t)offsetof(deliffas_raster_uv_args, f)
+int64_t deliffas_raster_uv_args_layout(int64_t *out) {
+    const int64_t layout[] = {
+        (int64_t)sizeof(deliffas_raster_uv_args), RASTER_UV_AT(pin), RASTER_UV_AT(pout), RASTER_UV_AT(faces),
+        RASTER_UV_AT(corner_uvs), RASTER_UV_AT(m), RASTER_UV_AT(zi), RASTER_UV_AT(fi), RASTER_UV_AT(zo),
+        RASTER_UV_AT(fo), RASTER_UV_AT(pix), RASTER_UV_AT(uv_in), RASTER_UV_AT(from_outer), RASTER_UV_AT(uv_out),
+        RASTER_UV_AT(viewdir), RASTER_UV_AT(F), RASTER_UV_AT(c0), RASTER_UV_AT(r0), RASTER_UV_AT(w), RASTER_UV_AT(h),
+        RASTER_UV_AT(W), RASTER_UV_AT(eps)};
+    int64_t count = (int64_t)(sizeof layout / sizeof layout[0]);
+    for (int64_t i = 0; out && i < count; i++) out[i] = layout[i];
+    return count;
 }

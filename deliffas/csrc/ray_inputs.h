@@ -1,6 +1,6 @@
 /* The exported functions of ray_inputs.c (the per-stage shading's ray inputs and output layer) and the dir_args
    structure they (and fused_shade.c) take: the ctypes bindings of deliffas/fast/shade.py are read from these
-   prototypes (deliffas/native.py, declare); _DirArgs there mirrors dir_args. */
+   prototypes and this struct (deliffas/native.py: declare, header_structs). */
 #ifndef DELIFFAS_RAY_INPUTS_H
 #define DELIFFAS_RAY_INPUTS_H
 #include <stdint.h>

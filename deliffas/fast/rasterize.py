@@ -26,6 +26,7 @@ without a C compiler, or with ``method="numpy"``.
 
 from __future__ import annotations
 
+import ctypes
 import dataclasses
 import logging
 import threading
@@ -42,7 +43,7 @@ from deliffas.geometry.shaded_pixels import ShadedPixels
 from deliffas.geometry.atlas import UVAtlas
 from deliffas.geometry.raycast import PEEL_EPS_REL, UVRaycaster, projected_pixel_window
 from deliffas.io.cameras import Camera
-from deliffas.native import LazyLibrary
+from deliffas.native import LazyLibrary, header_structs
 
 __all__ = ["ShadedPixels", "UVRasterizer", "OUTER_LAYERS", "raster_kernel_available", "frame_rasterizer",
            "rasterized_camera_rays"]
@@ -59,8 +60,9 @@ _PAIR_CHUNK = 1 << 22  # (triangle, pixel) pairs per chunk of the numpy implemen
 Method = Literal["auto", "native", "numpy"]
 
 
+# signatures and deliffas_raster_uv_args: rasterize.h
 _KERNEL = LazyLibrary("rasterize", "rasterize.c", ("-fno-fast-math", "-ffp-contract=off", "-fno-math-errno"),
-                      fallback="the numpy rasteriser, much slower")  # signatures: rasterize.h
+                      fallback="the numpy rasteriser, much slower")
 
 
 def raster_kernel_available() -> bool:
@@ -162,10 +164,12 @@ class UVRasterizer:
         pix, uv_in = self._buffer("pix", n, np.int64), self._buffer("uv_in", 2 * n, np.float32)
         from_outer, uv_out = self._buffer("from_outer", n, np.uint8), self._buffer("uv_out", 2 * n, np.float32)
         dirs = self._buffer("viewdir", 3 * n, np.float32) if viewdir else None
-        count = lib.deliffas_raster_uv(ptr(pin), ptr(pout), ptr(self.faces), len(self.faces), ptr(self.corner_uvs),
-                                       c0, r0, w, h, camera.width, ptr(m), self.peel_eps, ptr(zi), ptr(fi), ptr(zo),
-                                       ptr(fo), ptr(pix), ptr(uv_in), ptr(from_outer), ptr(uv_out),
-                                       ptr(dirs) if dirs is not None else None)
+        args = header_structs(_KERNEL.header)["deliffas_raster_uv_args"](
+            pin=ptr(pin), pout=ptr(pout), faces=ptr(self.faces), F=len(self.faces), corner_uvs=ptr(self.corner_uvs),
+            c0=c0, r0=r0, w=w, h=h, W=camera.width, m=ptr(m), eps=self.peel_eps, zi=ptr(zi), fi=ptr(fi), zo=ptr(zo),
+            fo=ptr(fo), pix=ptr(pix), uv_in=ptr(uv_in), from_outer=ptr(from_outer), uv_out=ptr(uv_out),
+            viewdir=ptr(dirs) if dirs is not None else None)
+        count = lib.deliffas_raster_uv(ctypes.byref(args))
         if count < 0:
             raise MemoryError("UVRasterizer.shaded_pixels: the face bins could not be allocated")
         return ShadedPixels(pixels=pix[:count].copy(), uv_inner=uv_in[: 2 * count].reshape(count, 2).copy(),

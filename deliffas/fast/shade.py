@@ -50,7 +50,7 @@ import torch
 
 from deliffas.models.deliffas import DeliffasModel, FrameFeatures
 from deliffas.models.ray_query import RayQuery
-from deliffas.native import LazyLibrary
+from deliffas.native import LazyLibrary, header_structs
 
 __all__ = ["FastShader", "supports", "native_bf16", "ROW_CHUNK", "TABLE_NODES", "PROJECTED_MAX_BYTES"]
 
@@ -67,21 +67,14 @@ ROW_CHUNK = 16384
 """Rays per MLP chunk of the per-stage path (the fastest of 2048 to 65536 rows on the realtime preset)."""
 
 
-# signatures: fused_shade.h and ray_inputs.h (deliffas.native.declare)
+# signatures: fused_shade.h and ray_inputs.h (deliffas.native.declare); their structures (deliffas_fused_shade_args,
+# dir_args): deliffas.native.header_structs
 _FUSED = LazyLibrary("fused_shade", "fused_shade.c", ("-ffp-contract=fast", "-fno-math-errno", "-fno-trapping-math", "-std=gnu11"),
                      fallback="the per-stage fast path (ray inputs, then the MLP by addmm)")
 
 
 _KERNEL = LazyLibrary("ray_inputs", "ray_inputs.c", ("-fno-fast-math", "-ffp-contract=off", "-fno-math-errno"),
                       fallback="DeliffasModel.gather_inputs")
-
-
-class _DirArgs(ctypes.Structure):
-    """``dir_args`` of ``csrc/ray_inputs.h``: the rays' view directions (N, 3) fp32, the inner normal map (S, S, 3) fp32
-    (None: the direction is encoded as it is) and the direction's encoding."""
-
-    _fields_ = [("viewdir", ctypes.c_void_p), ("normals", ctypes.c_void_p), ("S", ctypes.c_int64), ("L", ctypes.c_int32),
-                ("include_input", ctypes.c_int32)]
 
 
 @functools.lru_cache(maxsize=1)
@@ -181,9 +174,10 @@ class FastShader:
         return self._layers
 
     # ------------------------------------------------------------------ inputs
-    def _ray_args(self, features: FrameFeatures, query: RayQuery) -> tuple[tuple, list] | None:
-        """The per-ray arguments of the C passes (uv_in .. C), and the tensors they point into (keep them alive);
-        None when the C passes cannot read these inputs (several frames, non-fp32 maps)."""
+    def _ray_args(self, features: FrameFeatures, query: RayQuery) -> tuple[dict, list] | None:
+        """The per-ray arguments of the C passes by their C names, in deliffas_ray_inputs' order (uv_in .. dir; fields
+        of deliffas_fused_shade_args too), and the tensors they point into (keep them alive); None when the C passes
+        cannot read these inputs (several frames, non-fp32 maps)."""
         model = self.model
         single = features.batch_size == 1 and (query.batch_index.numel() == 0 or not bool(query.batch_index.any()))
         if not single or features.inner.dtype != torch.float32:
@@ -203,10 +197,11 @@ class FastShader:
         if direction is False:
             return None
         S, C = map_in.shape[1], map_in.shape[3]
-        args = (uv_in.data_ptr(), peel_u8.data_ptr() if peel_u8 is not None else None, uv_out.data_ptr(),
-                int(spec.encoded_uvs[0] == "outer"), model.pe_uv.num_freqs, int(model.pe_uv.include_input),
-                map_in.data_ptr(), map_out.data_ptr() if map_out is not None else None, S, C,
-                ctypes.addressof(direction[0]) if direction is not None else None)
+        args = dict(uv_in=uv_in.data_ptr(), from_outer=peel_u8.data_ptr() if peel_u8 is not None else None,
+                    uv_out=uv_out.data_ptr(), outer_encoded=int(spec.encoded_uvs[0] == "outer"),
+                    L=model.pe_uv.num_freqs, include_input=int(model.pe_uv.include_input), map_in=map_in.data_ptr(),
+                    map_out=map_out.data_ptr() if map_out is not None else None, S=S, C=C,
+                    dir=ctypes.addressof(direction[0]) if direction is not None else None)
         return args, [uv_in, uv_out, peel_u8, map_in, map_out, direction]
 
     def _direction(self, features: FrameFeatures, query: RayQuery) -> tuple | None | bool:
@@ -227,8 +222,10 @@ class FastShader:
             if features.normals.dtype != torch.float32:
                 return False
             normals = features.normals.permute(0, 2, 3, 1).contiguous()  # (1, S, S, 3)
-        args = _DirArgs(viewdir.data_ptr(), normals.data_ptr() if normals is not None else None,
-                        int(normals.shape[1]) if normals is not None else 0, pe.num_freqs, int(pe.include_input))
+        dir_args = header_structs(_KERNEL.header)["dir_args"]  # ray_inputs.h's
+        args = dir_args(viewdir=viewdir.data_ptr(), normals=normals.data_ptr() if normals is not None else None,
+                        S=int(normals.shape[1]) if normals is not None else 0, L=pe.num_freqs,
+                        include_input=int(pe.include_input))
         return args, viewdir, normals
 
     def inputs(self, features: FrameFeatures, query: RayQuery) -> tuple[torch.Tensor, torch.Tensor]:
@@ -242,7 +239,8 @@ class FastShader:
         E, F = model.mlp.in_dim, model.mlp.feature_dim
         enc = torch.empty(n, E, dtype=self.dtype)
         feats = torch.empty(n, F, dtype=self.dtype)
-        lib.deliffas_ray_inputs(0, n, *got[0], int(self.dtype == torch.bfloat16), enc.data_ptr(), E, feats.data_ptr(), F)
+        lib.deliffas_ray_inputs(0, n, *got[0].values(), int(self.dtype == torch.bfloat16), enc.data_ptr(), E,
+                                feats.data_ptr(), F)
         return enc, feats
 
     # ------------------------------------------------------------------ fused
@@ -391,12 +389,14 @@ class FastShader:
         table = self.encoding_table() if self.pe_table and not bf16 else None
         projected = self.projected_maps(features) if self.project_features and not bf16 else None
         projected = projected if projected is not None else (None, None, None)
-        model = self.model
-        status = lib.deliffas_fused_shade(n, *got[0], len(model.mlp.hidden), dims.data_ptr(), params.data_ptr(),
-                                          model.mlp.in_dim, model.mlp.feature_dim, widest,
-                                          rows.data_ptr() if rows is not None else None, out.data_ptr(), int(bf16),
-                                          table.data_ptr() if table is not None else None, TABLE_NODES,
-                                          *(t.data_ptr() if t is not None else None for t in projected))
+        mlp = self.model.mlp
+        ptr = lambda t: t.data_ptr() if t is not None else None  # noqa: E731
+        proj_out, proj_in, proj_peel = map(ptr, projected)
+        args = header_structs(_FUSED.header)["deliffas_fused_shade_args"](  # every field by name (fused_shade.h)
+            n=n, **got[0], nh=len(mlp.hidden), dims=dims.data_ptr(), params=params.data_ptr(), E=mlp.in_dim,
+            Fd=mlp.feature_dim, wmax=widest, pixels=ptr(rows), out=out.data_ptr(), bf16=int(bf16), pe_table=ptr(table),
+            table_nodes=TABLE_NODES, proj_out=proj_out, proj_in=proj_in, proj_peel=proj_peel)
+        status = lib.deliffas_fused_shade(ctypes.byref(args))
         if status == -2:
             raise ValueError(f"FastShader.shade_fused: at most 512 feature channels per map, got {features.inner.shape[1]}")
         if status != 0:
