@@ -170,27 +170,27 @@ def test_no_handler_passes_namespace_attributes_as_config_fields():
 HAND_WRITTEN = {
     "build_parser -v": "global: the log level, before any command",
     "build_parser --version": "global",
-    "_add_capture_commands out_dir": "synth: synthesize_capture(out_dir, SynthConfig)'s path, not a config field",
-    "_add_capture_commands --size": "synth: one option setting two fields, SynthConfig.width and height",
-    "_add_capture_commands subject": "convert: convert(subject, out, ConvertConfig)'s paths, not config fields",
-    "_add_capture_commands out": "convert: as SUBJECT",
-    "_add_training_commands --config": "train: a JSON file of TrainConfig fields, read before the options",
-    "_add_training_commands --resume": "train: Trainer(resume=); also changes how the config is built",
-    "_add_training_commands --overwrite": "train: Trainer(overwrite=)",
-    "_add_training_commands --auto-capacity": "train: calls auto_capacity() instead of Trainer",
-    "_add_evaluation_commands --json": "eval: how the result is printed",
-    "_add_evaluation_commands --fast": "eval: EvalConfig.fast from the environment (cli.fast_env)",
-    "_add_plain_option --plain": "render and view: fast=None instead of the fast path from the environment",
+    "_synth_out_dir out_dir": "synth: synthesize_capture(out_dir, SynthConfig)'s path, not a config field",
+    "_synth_size --size": "synth: one option setting two fields, SynthConfig.width and height",
+    "_convert_paths subject": "convert: convert(subject, out, ConvertConfig)'s paths, not config fields",
+    "_convert_paths out": "convert: as SUBJECT",
+    "_train_options --config": "train: a JSON file of TrainConfig fields, read before the options",
+    "_train_options --resume": "train: Trainer(resume=); also changes how the config is built",
+    "_train_options --overwrite": "train: Trainer(overwrite=)",
+    "_train_options --auto-capacity": "train: calls auto_capacity() instead of Trainer",
+    "_eval_options --json": "eval: how the result is printed",
+    "_eval_options --fast": "eval: EvalConfig.fast from the environment (cli.fast_env)",
+    "_plain_option --plain": "render and view: fast=None instead of the fast path from the environment",
 }
-"""The options still declared by hand in ``deliffas/cli/__init__.py`` (function, spelling) and why: none sets a
-config field one to one."""
+"""The options still declared by hand in ``deliffas/cli/__init__.py`` and the command table ``deliffas/cli/commands.py``
+(function, spelling) and why: none sets a config field one to one."""
 
 
 def test_options_are_declared_by_hand_only_where_no_config_field_fits():
-    tree = ast.parse((REPO / "deliffas" / "cli" / "__init__.py").read_text())
-    found = sorted(f"{fn.name} {call.args[0].value}" for fn in ast.walk(tree) if isinstance(fn, ast.FunctionDef)
-                   for call in ast.walk(fn) if isinstance(call, ast.Call) and isinstance(call.func, ast.Attribute)
-                   and call.func.attr == "add_argument")
+    trees = [ast.parse((REPO / "deliffas" / "cli" / name).read_text()) for name in ("__init__.py", "commands.py")]
+    found = sorted(f"{fn.name} {call.args[0].value}" for tree in trees for fn in ast.walk(tree)
+                   if isinstance(fn, ast.FunctionDef) for call in ast.walk(fn)
+                   if isinstance(call, ast.Call) and isinstance(call.func, ast.Attribute) and call.func.attr == "add_argument")
     assert found == sorted(HAND_WRITTEN), "declare the option as an opt() field of the command's config"
 
 
