@@ -55,7 +55,7 @@ bench: setup
 
 # Every recipe in full mode (3 seeds; hours on 2 cores, not in CI): the numbers of docs/results.md.
 RESULTS_OUT ?= results_out
-RECIPES := ablation_single_surface ablation_coarse_mesh ablation_perceptual time_to_quality where_it_fails presets
+RECIPES := ablation_single_surface ablation_coarse_mesh ablation_perceptual time_to_quality where_it_fails presets ingest_truth
 results: setup
 	for r in $(RECIPES); do $(PY) -m recipes.$$r --out $(RESULTS_OUT)/$$r || exit 1; done
 	$(PY) -m recipes.ablation_template --out $(RESULTS_OUT)/ablation_template --smpl-model procedural

@@ -184,13 +184,15 @@ def _reflect_rows(sample, info) -> list[Result]:
     return rows
 
 
-def _stream_rows(sample, info) -> list[Result]:
-    """Frames per second of a stream of 940x1285 frames: one after the other on 1 and on 2 intra-op threads,
-    and two frames in flight (``render_stream``, one thread each), interleaved; pose held and per frame."""
+def _stream_rows(sample, info, name: str = "two_surface", preset: str = "realtime") -> list[Result]:
+    """Frames per second of a stream of 940x1285 frames of ``name`` at ``preset``: one after the other on 1 and on
+    2 intra-op threads, and two frames in flight (``render_stream``, one thread each), interleaved; pose held and
+    per frame."""
     from deliffas.fast.frame import render_stream
     from deliffas.fast.config import FastConfig
 
-    model = _model(info, "realtime")
+    model = _model(info, preset, name)
+    what = f"{preset} preset" if name == "two_surface" else f"{name} ({preset}, the default of deliffas train)"
     size, cam = _frame_camera(sample)
     held, full, _, _ = _frame_fns(model, sample, info, cam, FastConfig())
     frames = sized(8, 2)
@@ -213,7 +215,7 @@ def _stream_rows(sample, info) -> list[Result]:
         t = best_times({"seq1": sequential(fn, 1), "seq2": sequential(fn, 2), "flight2": in_flight(fn)}, repeat=2,
                        max_rounds=3)
         fps = {k: frames / v for k, v in t.items()}
-        rows.append(Result("realtime", f"{size} realtime preset, {label}: fps, 2 frames in flight",
+        rows.append(Result("realtime", f"{size} {what}, {label}: fps, 2 frames in flight",
                            fps["flight2"], "fps", baseline="1 frame at a time, 2 intra-op threads",
                            ratio=fps["flight2"] / fps["seq2"],
                            note=f"1 frame at a time: {fps['seq1']:.1f} fps on 1 thread, {fps['seq2']:.1f} on 2; "
@@ -249,6 +251,7 @@ def _fps_rows(sample, info) -> list[Result]:
 def run() -> list[Result]:
     subject, shards, _ = bench_capture()
     from benchmarks.bench_engine import _sample
+    from deliffas.engine.train_config import TrainConfig
     from deliffas.models.zoo import REFLECTED
 
     sample, info = _sample(shards)
@@ -256,6 +259,7 @@ def run() -> list[Result]:
     t0 = time.perf_counter()
     with torch_threads():
         rows = (_ratio_rows(sample, info) + _ratio_rows(sample, info, REFLECTED) + _reflect_rows(sample, info)
-                + _stream_rows(sample, info) + _fps_rows(sample, info))
+                + _stream_rows(sample, info) + _stream_rows(sample, info, TrainConfig.model, TrainConfig.preset)
+                + _fps_rows(sample, info))
     rows[-1].note += f" (group took {time.perf_counter() - t0:.0f} s)"
     return rows
