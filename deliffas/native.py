@@ -30,9 +30,7 @@ from __future__ import annotations
 import ctypes
 import functools
 import logging
-import os
 import re
-import shlex
 import shutil
 import subprocess
 import tempfile
@@ -42,12 +40,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
+from deliffas import environment
+
 __all__ = ["CSRC", "NATIVE_ENV", "HeaderStruct", "LazyLibrary", "NativeLibrary", "Prototype", "build_declared",
            "build_library", "c_prototypes", "c_structs", "check_layouts", "declare", "header_structs"]
 
 logger = logging.getLogger(__name__)
 
-NATIVE_ENV = "DELIFFAS_NATIVE"
+NATIVE_ENV = environment.NATIVE_ENV
 """Environment variable: "0" disables every compiled kernel."""
 
 BASE_FLAGS = ("-O3", "-std=c99", "-fPIC", "-shared")
@@ -85,9 +85,9 @@ def build_library(name: str, source: str, flags: Sequence[str] = ()) -> NativeLi
         NativeLibrary; ``lib`` is None (with the reason) when disabled, when no compiler is found,
         or when compiling or loading fails. Never raises for those.
     """
-    if os.environ.get(NATIVE_ENV, "1").strip() == "0":
+    if environment.native_disabled():
         return NativeLibrary(None, f"disabled by {NATIVE_ENV}=0")
-    cc = shlex.split(os.environ.get("CC", "")) or [shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")]
+    cc = environment.c_compiler() or [shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")]
     if not cc[0]:
         return NativeLibrary(None, "no C compiler found (cc, gcc or clang on PATH, or $CC)")
     t0 = time.perf_counter()

@@ -22,6 +22,7 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 import torch
 
+from deliffas import environment
 from deliffas.data.shard_meta import ShardMeta
 from deliffas.data.shards import ShardSet, open_shard_set
 from deliffas.engine.export_config import ExportConfig
@@ -49,9 +50,7 @@ _MODEL_PREFIX = "model/"
 
 def cache_root() -> Path:
     """Where unpacked template files live: ``$DELIFFAS_CACHE``, ``$XDG_CACHE_HOME/deliffas`` or ``~/.cache/deliffas``."""
-    if os.environ.get("DELIFFAS_CACHE"):
-        return Path(os.environ["DELIFFAS_CACHE"])
-    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "deliffas"
+    return environment.cache_root()
 
 
 def capture_record(meta: ShardMeta) -> tuple[dict[str, np.ndarray], dict]:

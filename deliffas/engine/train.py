@@ -26,6 +26,7 @@ import torch
 import torch.distributed as dist
 from tqdm import tqdm
 
+from deliffas import environment
 from deliffas.data.shards import ShardSet
 from deliffas.engine.avatar import write_run_capture
 from deliffas.engine.checkpointing import STATE_FILE, load_training_state, read_training_state, save_training_state
@@ -111,7 +112,7 @@ def _distributed() -> tuple[int, int, bool]:
     """(rank, world size, whether this call started the process group)."""
     if dist.is_available() and dist.is_initialized():
         return dist.get_rank(), dist.get_world_size(), False
-    if int(os.environ.get("WORLD_SIZE", "1")) > 1:
+    if environment.world_size() > 1:
         backend = "nccl" if torch.cuda.is_available() else "gloo"
         dist.init_process_group(backend)
         return dist.get_rank(), dist.get_world_size(), True
@@ -128,7 +129,7 @@ def _rank0_value(value: int) -> int:
 def _device(cfg: TrainConfig, world: int) -> torch.device:
     device = resolve_device(cfg.device)
     if device.type == "cuda" and world > 1:
-        device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", 0)))
+        device = torch.device("cuda", environment.local_rank())
     return device
 
 

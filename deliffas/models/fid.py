@@ -25,13 +25,14 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from deliffas import environment
 from deliffas.models.vgg import read_state_dict
 
 __all__ = ["FID_WEIGHTS_NAME", "ENV_INCEPTION_WEIGHTS", "FIDInceptionV3", "inception_candidates",
            "load_fid_inception", "activation_statistics", "frechet_distance", "fid_from_features"]
 
 FID_WEIGHTS_NAME = "pt_inception-2015-12-05-6726825d.pth"
-ENV_INCEPTION_WEIGHTS = "DELIFFAS_INCEPTION_WEIGHTS"
+ENV_INCEPTION_WEIGHTS = environment.ENV_INCEPTION_WEIGHTS
 
 
 class BasicConv2d(nn.Module):
@@ -190,7 +191,7 @@ def inception_candidates(path: str | os.PathLike | None = None) -> list[Path]:
     if path is not None:
         return [Path(path)]
     out = []
-    env = os.environ.get(ENV_INCEPTION_WEIGHTS)
+    env = environment.weights_file(ENV_INCEPTION_WEIGHTS)
     if env:
         out.append(Path(env))
     out.append(Path(torch.hub.get_dir()) / "checkpoints" / FID_WEIGHTS_NAME)

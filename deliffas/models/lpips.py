@@ -14,12 +14,13 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from deliffas import environment
 from deliffas.models.vgg import VGG16Features, read_state_dict
 
 __all__ = ["ENV_LPIPS_WEIGHTS", "LPIPS", "lpips_candidates", "load_lpips_linear_weights"]
 
 #: Environment variable naming the LPIPS v0.1 VGG linear-layer file.
-ENV_LPIPS_WEIGHTS = "DELIFFAS_LPIPS_WEIGHTS"
+ENV_LPIPS_WEIGHTS = environment.ENV_LPIPS_WEIGHTS
 #: LPIPS VGG layers and their channels.
 _LPIPS_LAYERS = ("relu1_2", "relu2_2", "relu3_3", "relu4_3", "relu5_3")
 _LPIPS_CHANNELS = (64, 128, 256, 512, 512)
@@ -78,7 +79,7 @@ def lpips_candidates(path: str | os.PathLike | None) -> list[Path]:
     if path is not None:
         return [Path(path)]
     out = []
-    env = os.environ.get(ENV_LPIPS_WEIGHTS)
+    env = environment.weights_file(ENV_LPIPS_WEIGHTS)
     if env:
         out.append(Path(env))
     spec = importlib.util.find_spec("lpips")

@@ -7,13 +7,13 @@ narrow to fill the SIMD lanes.
 from __future__ import annotations
 
 import logging
-import os
 import weakref
 from dataclasses import dataclass
 
 import torch
 from torch import nn
 
+from deliffas import environment
 from deliffas.models.unet_cpu import CHANNELS_LAST_MIN_PIXELS, Epilogue, finish_output, new_map
 
 logger = logging.getLogger(__name__)
@@ -171,7 +171,7 @@ def simd_lanes() -> int:
     capability = torch.backends.cpu.get_cpu_capability()
     if capability not in ("AVX2", "AVX512"):
         return 0
-    cap = (os.environ.get("ONEDNN_MAX_CPU_ISA") or os.environ.get("DNNL_MAX_CPU_ISA") or "ALL").upper()
+    cap = environment.onednn_isa_cap()
     if capability == "AVX512" and (cap == "ALL" or cap.startswith(("AVX512", "AVX10"))):
         return 16
     return 8

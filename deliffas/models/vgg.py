@@ -36,6 +36,8 @@ from typing import Literal
 import torch
 from torch import nn
 
+from deliffas import environment
+
 __all__ = [
     "VGG16_CFG",
     "VGG16_LAYERS",
@@ -66,7 +68,7 @@ VGG16_LAYERS: dict[str, int] = {
 #: File name of torchvision's ImageNet VGG-16 weights in the torch hub cache.
 VGG16_HUB_FILENAME = "vgg16-397923af.pth"
 #: Environment variable naming a VGG-16 ImageNet weight file (.pth or .safetensors).
-ENV_VGG16_WEIGHTS = "DELIFFAS_VGG16_WEIGHTS"
+ENV_VGG16_WEIGHTS = environment.ENV_VGG16_WEIGHTS
 
 BackboneName = Literal["vgg16-imagenet", "vgg16-random"]
 
@@ -203,7 +205,7 @@ def vgg16_weight_candidates(path: str | os.PathLike | None = None) -> list[Path]
     if path is not None:
         return [Path(path)]
     candidates: list[Path] = []
-    env = os.environ.get(ENV_VGG16_WEIGHTS)
+    env = environment.weights_file(ENV_VGG16_WEIGHTS)
     if env:
         candidates.append(Path(env))
     hub = Path(torch.hub.get_dir()) / "checkpoints" / VGG16_HUB_FILENAME
