@@ -30,6 +30,7 @@ from deliffas.engine.runs import load_run
 from deliffas.engine.identity import capture_identity, recorded_shards
 from deliffas.geometry.templates import TemplateSpec
 from deliffas.io.avatar_file import AVATAR_SUFFIX, AvatarFileError, read_avatar_file, write_avatar_file
+from deliffas.io.cameras import check_camera
 from deliffas.io.infra.files import claim_output_file, sha256_file, write_bytes_atomic
 from deliffas.models.deliffas import DeliffasModel, ModelConfig
 from deliffas.models.unet import optimize_for_inference
@@ -106,32 +107,31 @@ def _unpack_template(where: Path, arrays: dict[str, np.ndarray], template: dict,
     return TemplateSpec(str(template.get("kind")), out, dict(sums), dict(template.get("options", {})))
 
 
-def check_record_cameras(where: Path, arrays: dict[str, np.ndarray]) -> None:
-    """Refuse a capture record whose cameras cannot project: ``K`` (C, 3, 3) with positive focal lengths and last
-    row (0, 0, 1), ``world_to_cam`` (C, 4, 4) with last row (0, 0, 0, 1), ``sizes`` (C, 2) positive.
+def check_record_cameras(where: Path, arrays: dict[str, np.ndarray], names: list[str] | None = None) -> None:
+    """Refuse a capture record whose cameras ``Camera`` would refuse (:func:`deliffas.io.cameras.check_camera`:
+    shapes, a positive image size, K's and world_to_cam's last rows, focal lengths, principal point, rotation),
+    before any work; ``names``: the record's camera names (else their indices).
 
     Raises:
         AvatarFileError: naming the file, the camera and what is wrong.
     """
     K, E, sizes = (np.asarray(arrays[n]) for n in ("K", "world_to_cam", "sizes"))
-    n = len(K)
-    if K.shape != (n, 3, 3) or E.shape != (n, 4, 4) or sizes.shape != (n, 2):
+    if len(E) != len(K) or sizes.shape != (len(K), 2):
         raise AvatarFileError(f"{where}: camera arrays of shapes K {K.shape}, world_to_cam {E.shape}, sizes "
                               f"{sizes.shape}; expected (C, 3, 3), (C, 4, 4), (C, 2)")
-    for c in range(n):
-        problem = ("a focal length <= 0" if not (K[c, 0, 0] > 0 and K[c, 1, 1] > 0) else
-                   "K's last row is not (0, 0, 1)" if not np.allclose(K[c, 2], (0, 0, 1)) else
-                   "world_to_cam's last row is not (0, 0, 0, 1)" if not np.allclose(E[c, 3], (0, 0, 0, 1)) else
-                   f"image size {tuple(int(v) for v in sizes[c])} not positive" if not (sizes[c] > 0).all() else None)
-        if problem:
-            raise AvatarFileError(f"{where}: camera {c} has {problem}; the record is damaged (export the run again)")
+    names = names if names is not None and len(names) == len(K) else [str(c) for c in range(len(K))]
+    for c, name in enumerate(names):
+        try:
+            check_camera(name, K[c], E[c], int(sizes[c, 0]), int(sizes[c, 1]))
+        except ValueError as err:
+            raise AvatarFileError(f"{where}: {err}; the record is damaged (export the run again)") from None
 
 
 def _meta_from(where: Path, arrays: dict[str, np.ndarray], record: dict, cache: Path) -> ShardMeta:
     missing = [n for n in _META_ARRAYS if n not in arrays]
     if missing or not isinstance(record.get("template"), dict):
         raise AvatarFileError(f"{where}: not a capture record (missing {missing or ['template']})")
-    check_record_cameras(where, arrays)
+    check_record_cameras(where, arrays, record.get("camera_names"))
     spec = _unpack_template(where, arrays, record["template"], cache)
     attrs = dict(record.get("attrs", {}), template_spec=spec.to_json())
     return ShardMeta(camera_names=list(record.get("camera_names", [])), sequence_frames={}, first_frames={},

@@ -139,8 +139,8 @@ def test_render_and_export_refuse_existing_outputs_and_short_motions(rel_run, tm
 
 
 @pytest.mark.parametrize("damage, match", [
-    ("K", "camera 1 has a focal length <= 0"),
-    ("K_row", "camera 0 has K's last row is not (0, 0, 1)"),
+    ("K", "camera 1 K: expected positive focal lengths"),
+    ("K_row", "camera 0 K: expected the last row (0, 0, 1)"),
     ("atlas", "the model's atlas side 64 differs from its capture's 32"),
     ("capture", "holds no model"),
 ])
