@@ -12,9 +12,11 @@ A shared leaf: importable from any layer, importing no deliffas layer.
 from __future__ import annotations
 
 import importlib
+from collections.abc import Callable, Mapping
 from types import ModuleType
+from typing import Any
 
-__all__ = ["import_optional", "interrupted_import"]
+__all__ = ["import_optional", "interrupted_import", "lazy_exports"]
 
 
 def interrupted_import(err: BaseException) -> bool:
@@ -45,3 +47,21 @@ def import_optional(module: str, need: str) -> ModuleType:
         if interrupted_import(err):
             raise KeyboardInterrupt from None
         raise ImportError(f"{need} ({type(err).__name__}: {err})") from err
+
+
+def lazy_exports(package: str, homes: Mapping[str, str]) -> tuple[Callable[[str], Any], Callable[[], list[str]]]:
+    """``(__getattr__, __dir__)`` for a package that exports the names of ``homes`` (name -> its module) and
+    imports a module only when one of its names is first used (PEP 562), so importing the package stays light.
+
+    Example (in a package's ``__init__``): ``__getattr__, __dir__ = lazy_exports(__name__, _HOMES)``.
+    """
+    def __getattr__(name: str) -> Any:
+        module = homes.get(name)
+        if module is None:
+            raise AttributeError(f"module {package!r} has no attribute {name!r}")
+        return getattr(importlib.import_module(module), name)
+
+    def __dir__() -> list[str]:
+        return sorted(homes)
+
+    return __getattr__, __dir__

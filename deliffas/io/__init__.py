@@ -1,7 +1,7 @@
 """File formats: every reader and writer of deliffas, returning plain records.
 
-The bottom layer: modules here import no other deliffas layer (only the shared leaves
-``deliffas.checks`` and ``deliffas.native``). Units stay as the files have them; each reader's
+The bottom layer: modules here import no other deliffas layer (only the shared leaves such as
+``deliffas.checks``, ``deliffas.native`` and ``deliffas.optional``). Units stay as the files have them; each reader's
 docstring states them.
 
 The readers and writers users call most are importable from here (``from deliffas.io import read_cameras``);
@@ -10,6 +10,8 @@ their old module for one release, with a ``DeprecationWarning`` naming the new h
 """
 
 from typing import TYPE_CHECKING
+
+from deliffas.optional import lazy_exports
 
 if TYPE_CHECKING:  # the names for type checkers and the API docs; at run time __getattr__ imports them
     from deliffas.io.avatar_file import read_avatar_file, write_avatar_file
@@ -46,14 +48,4 @@ MOVED = {"deliffas.io.calibration": "deliffas.io.formats.dynacap.calibration",
 __all__ = sorted(_HOMES)
 
 
-def __getattr__(name: str):
-    module = _HOMES.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    import importlib  # the facade's lazy import: ``import deliffas.io`` must not import every format
-
-    return getattr(importlib.import_module(module), name)
-
-
-def __dir__() -> list[str]:
-    return sorted(__all__)
+__getattr__, __dir__ = lazy_exports(__name__, _HOMES)

@@ -6,6 +6,8 @@ package (``deliffas.models.model_table``, read by the command line while it pars
 
 from typing import TYPE_CHECKING
 
+from deliffas.optional import lazy_exports
+
 if TYPE_CHECKING:  # the names for type checkers and the API docs; at run time __getattr__ imports them
     from deliffas.models.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
     from deliffas.models.deliffas import DeliffasModel, FrameFeatures, ModelConfig, VARIANTS
@@ -52,48 +54,7 @@ _HOMES = {
     "variant_names": "deliffas.models.variants",
 }
 
-__all__ = [
-    "VARIANTS",
-    "BackboneRecord",
-    "CheckpointError",
-    "DeliffasModel",
-    "Evaluator",
-    "FrameFeatures",
-    "LightFieldMLP",
-    "LightFieldMLPConfig",
-    "ModelConfig",
-    "PerceptualLoss",
-    "PerceptualWeightsUnavailable",
-    "PositionalEncoding",
-    "RayQuery",
-    "UNet",
-    "UNetConfig",
-    "VariantSpec",
-    "get_config",
-    "get_variant",
-    "l1_foreground",
-    "list_models",
-    "load_checkpoint",
-    "load_vgg16_weights",
-    "optimize_for_inference",
-    "perceptual_metrics_status",
-    "positional_encoding",
-    "psnr",
-    "register_variant",
-    "save_checkpoint",
-    "ssim",
-    "variant_names",
-]
+__all__ = sorted(_HOMES)
 
 
-def __getattr__(name: str):
-    module = _HOMES.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    import importlib
-
-    return getattr(importlib.import_module(module), name)
-
-
-def __dir__() -> list[str]:
-    return sorted(__all__)
+__getattr__, __dir__ = lazy_exports(__name__, _HOMES)

@@ -6,13 +6,11 @@ without torch); ``ingest`` and ``IngestResult`` are imported from :mod:`.pipelin
 """
 
 from deliffas.data.ingest.config import INGEST_MARKER, IngestConfig
+from deliffas.optional import lazy_exports
 
 __all__ = ["IngestConfig", "IngestResult", "ingest", "INGEST_MARKER"]
 
 
-def __getattr__(name: str):
-    if name in ("ingest", "IngestResult"):
-        from deliffas.data.ingest import pipeline  # start-up time: the config must not import torch
-
-        return getattr(pipeline, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+# start-up time: the config must not import torch; the pipeline is imported when first used
+__getattr__, _ = lazy_exports(__name__, {"ingest": "deliffas.data.ingest.pipeline",
+                                          "IngestResult": "deliffas.data.ingest.pipeline"})
