@@ -87,29 +87,11 @@ def run_ingest(subject: Path, out: Path, sizes: RunSizes, quick: bool) -> tuple[
 
 
 # --------------------------------------------------------------------------------------------- images and masks
-def _rgb_root(subject: Path) -> Path:
-    from deliffas.io.formats.dynacap.frames import find_image_folder
+def _images(subject: Path):
+    """The subject's training images (``ImageFolderSource``: ``read(frame, camera) -> (rgb, alpha)``, ``frames()``)."""
+    from deliffas.io.formats.dynacap.frames import ImageFolderSource
 
-    root = find_image_folder(Path(subject) / "training")
-    if root is None:
-        raise FileNotFoundError(f"{subject}/training: no rgb_<W>_<H> image folder")
-    return root
-
-
-def _rgba(root: Path, frame: int, camera: int) -> np.ndarray:
-    import cv2
-
-    from deliffas.io.formats.dynacap.frames import image_path
-
-    p = image_path(root, frame, camera)
-    bgra = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
-    if bgra is None or bgra.ndim != 3 or bgra.shape[2] != 4:
-        raise FileNotFoundError(f"{p}: expected an RGBA PNG")
-    return bgra
-
-
-def _frames(root: Path) -> list[int]:
-    return sorted(int(p.name) for p in root.iterdir() if p.is_dir() and p.name.isdigit())
+    return ImageFolderSource(Path(subject) / "training")
 
 
 def mask_iou(truth: np.ndarray, mask: np.ndarray) -> float:
@@ -121,10 +103,10 @@ def mask_iou(truth: np.ndarray, mask: np.ndarray) -> float:
 
 def mask_ious(truth_subject: Path, ingested: Path, num_cameras: int) -> dict:
     """Per camera the median IoU of the ingested masks against the true ones over the ingested frames."""
-    t_root, i_root = _rgb_root(truth_subject), _rgb_root(ingested)
+    truth, got = _images(truth_subject), _images(ingested)
     per_camera = []
     for c in range(num_cameras):
-        values = [mask_iou(_rgba(t_root, f, c)[..., 3], _rgba(i_root, f, c)[..., 3]) for f in _frames(i_root)]
+        values = [mask_iou(truth.read(f, c)[1], got.read(f, c)[1]) for f in got.frames()]
         per_camera.append(float(np.median(values)))
     return {"per_camera": per_camera, "median": float(np.median(per_camera))}
 
@@ -137,10 +119,11 @@ def swap_masks(subject: Path, mask_source: Path, out: Path) -> Path:
     """
     if (out / ".done").is_file():
         return out
-    src_root, mask_root = _rgb_root(subject), _rgb_root(mask_source)
+    src, masks = _images(subject), _images(mask_source)
+    src_root = src.root
     out.mkdir(parents=True, exist_ok=True)
     for entry in Path(subject).iterdir():
-        if entry.name not in ("training", ".ingest") and not (out / entry.name).exists():
+        if entry.name != "training" and not (out / entry.name).exists():
             os.symlink(entry.resolve(), out / entry.name)
     (out / "training").mkdir(exist_ok=True)
     for entry in (Path(subject) / "training").iterdir():
@@ -149,11 +132,10 @@ def swap_masks(subject: Path, mask_source: Path, out: Path) -> Path:
     from deliffas.io.formats.dynacap.frames import write_image
 
     root = out / "training" / src_root.name
-    cameras = len(list((src_root / f"{_frames(src_root)[0]:06d}").glob("*.png")))
-    for f in sorted(set(_frames(src_root)) & set(_frames(mask_root))):
+    cameras = len(list(src.path(src.frames()[0], 0).parent.glob("*.png")))
+    for f in sorted(set(src.frames()) & set(masks.frames())):
         for c in range(cameras):
-            bgra = _rgba(src_root, f, c)
-            write_image(root, f, c, bgra[..., 2::-1], _rgba(mask_root, f, c)[..., 3])
+            write_image(root, f, c, src.read(f, c)[0], masks.read(f, c)[1])
     (out / ".done").write_text("")
     return out
 
@@ -175,13 +157,13 @@ def _posed(subject: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.asarray(motion.frames), verts.numpy().astype(np.float64), joints.numpy().astype(np.float64)
 
 
-def surface_errors(truth_subject: Path, ingested: Path) -> dict:
-    """The fitted body against the true one over the ingested frames (mm): vertex to vertex and the
-    symmetric nearest-vertex distance (means per frame, then the median and max over frames)."""
+def surface_errors(truth: tuple, fitted: tuple) -> dict:
+    """The fitted body against the true one over the fitted frames (mm): vertex to vertex and the symmetric
+    nearest-vertex distance (means per frame, then the median and max over frames); both as :func:`_posed`."""
     from scipy.spatial import cKDTree
 
-    t_frames, t_verts, _ = _posed(truth_subject)
-    i_frames, i_verts, _ = _posed(ingested)
+    t_frames, t_verts, _ = truth
+    i_frames, i_verts, _ = fitted
     where = {int(f): k for k, f in enumerate(t_frames)}
     v2v, sym = [], []
     for k, f in enumerate(i_frames):
@@ -194,15 +176,15 @@ def surface_errors(truth_subject: Path, ingested: Path) -> dict:
             "surface_mm_median": float(np.median(sym)), "surface_mm_max": float(np.max(sym)), "frames": len(v2v)}
 
 
-def keypoint_errors(truth_subject: Path, ingested: Path) -> dict:
-    """The triangulated 3-D keypoints (the subject's ``keypoints.npz``) against the true SMPL joints they stand
-    for (mm): the median over every triangulated keypoint and per keypoint."""
+def keypoint_errors(truth: tuple, ingested: Path) -> dict:
+    """The triangulated 3-D keypoints (``ingested``'s ``keypoints.npz``) against the true SMPL joints they stand
+    for (mm; ``truth`` as :func:`_posed`): the median over every triangulated keypoint and per keypoint."""
     from deliffas.data.ingest.detect import KEYPOINT_NAMES, SMPL_JOINT_IDS
     from deliffas.data.ingest.report import KEYPOINTS_FILE
 
     with np.load(Path(ingested) / KEYPOINTS_FILE) as kp:
         frames, points, valid = kp["frames"], kp["points3d"], kp["valid3d"]
-    t_frames, _, joints = _posed(truth_subject)
+    t_frames, _, joints = truth
     where = {int(f): k for k, f in enumerate(t_frames)}
     rows = [k for k, f in enumerate(frames) if int(f) in where]
     true = joints[[where[int(frames[k])] for k in rows]][:, list(SMPL_JOINT_IDS)]
@@ -296,8 +278,9 @@ def main(argv=None) -> dict:
                    "ingested": prepare_shards(out, ingested_true_masks, sizes, name="shards_ingested_true_masks",
                                               jobs=jobs, check=False)}
     masks = mask_ious(truth, ingested, sizes.cameras)
-    keypoints = keypoint_errors(truth, ingested)
-    surface = surface_errors(truth, ingested)
+    true_body = _posed(truth)
+    keypoints = keypoint_errors(true_body, ingested)
+    surface = surface_errors(true_body, _posed(ingested))
     rows = avatars(out, shards, eval_shards, sizes, seeds, args.device)
     costs = _costs(rows)
     title = "Ingest against the truth: masks, keypoints, body fit and the avatar" + (" — quick mode" if args.quick else "")

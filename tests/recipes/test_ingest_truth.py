@@ -7,15 +7,7 @@ import json
 import numpy as np
 import pytest
 
-
-def _have_detector() -> bool:
-    try:
-        from deliffas.data.ingest.detect import require_detector
-
-        require_detector()
-        return True
-    except ValueError:
-        return False
+from tests.data.test_ingest_real import needs_detector
 
 
 def test_mask_iou_known_answers():
@@ -31,7 +23,7 @@ def test_mask_iou_known_answers():
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not _have_detector(), reason="MediaPipe 0.10.21 is not installed (make ingest-setup)")
+@needs_detector
 def test_quick_run_structure(tmp_path):
     from recipes.ingest_truth import CONFIGS, main
 
