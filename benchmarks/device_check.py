@@ -252,7 +252,7 @@ def _trainer_and_eval(shards: str, out: Path, device: torch.device, iters: int, 
     keys = ("stage_ms", "fps", "fps_shared_cnn", "psnr", "images", "resolution", "uv")
     for key, uv in (("eval", "torch"), ("eval_default_uv", "auto")):
         ev = evaluate(EvalConfig(run=f"{out}_{uv}", split="novel_view", device=str(device), uv=uv))
-        got[key] = {k: ev[k] for k in keys}
+        got[key] = {k: ev.to_json()[k] for k in keys}
     return got
 
 

@@ -72,7 +72,7 @@ def _psnr(run: str, fast: bool, max_frames: int | None) -> float:
     from deliffas.fast.config import FastConfig
 
     return float(evaluate(EvalConfig(run=run, split="novel_view", max_frames=max_frames,
-                                     fast=FastConfig() if fast else None))["foreground"]["psnr"])
+                                     fast=FastConfig() if fast else None)).foreground.psnr)
 
 
 def main(argv: list[str] | None = None) -> str:

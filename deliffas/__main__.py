@@ -33,12 +33,10 @@ def run() -> None:
     """Run the command line (``sys.argv``) and exit with its code."""
     interrupted = []
     signal.signal(signal.SIGINT, lambda *_: interrupted.append(True))  # reported once the imports below are done
-    from deliffas.cli import main  # after the handler: the import is part of start-up
+    from deliffas.cli import main, report_interrupted  # local: after the Ctrl-C handler (the import is start-up)
 
     if interrupted:  # Ctrl-C while the command line loaded: the line of a later one (what is kept, how to resume)
         signal.signal(signal.SIGINT, signal.SIG_IGN)
-        from deliffas.cli.interrupted import report_interrupted
-
         code = report_interrupted(None, sys.argv[1:])
     else:
         sys.unraisablehook = _deliver_lost_interrupt

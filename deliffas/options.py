@@ -174,7 +174,7 @@ def device_name(text: str) -> str:
 
 def dask_target(text: str) -> str:
     """A Dask scheduler address or ``local:N`` (``deliffas.parallel.dask_target``)."""
-    from deliffas.parallel.dask_target import parse_dask_target  # imported here: a Ctrl-C at start-up meets main()
+    from deliffas.parallel.dask_target import parse_dask_target  # local: a Ctrl-C at start-up meets main()
 
     try:
         parse_dask_target(text)

@@ -232,7 +232,8 @@ def check_same_configuration(run_dir: Path, cfg) -> None:
 def train_and_eval(name: str, shards: Path, run_dir: Path, sizes: RecipeSizes, model: str, seed: int = 0,
                    device: str = "cpu", split: str = "novel_view", model_overrides: dict | None = None,
                    extra_splits: bool = False, **train_kw) -> dict:
-    """Train one configuration and evaluate it; returns the evaluation dict plus ``name`` and timings.
+    """Train one configuration and evaluate it; returns the evaluation (``EvalResult.to_json()``) plus ``name``
+    and timings.
 
     ``extra_splits``: also write comparison grids (``run_dir/grid_<split>.png``) and evaluate the novel
     poses (``novel_pose``) and the training cameras (``train_fit``: how well it fits what it saw)."""
@@ -250,15 +251,15 @@ def train_and_eval(name: str, shards: Path, run_dir: Path, sizes: RecipeSizes, m
     check_same_configuration(run_dir, cfg)
     result = train(cfg, resume=True)
     row = evaluate(EvalConfig(run=str(run_dir), split=split, max_frames=sizes.eval_frames, device=device,
-                              grid=str(Path(run_dir) / f"grid_{split}.png") if extra_splits else None))
+                              grid=str(Path(run_dir) / f"grid_{split}.png") if extra_splits else None)).to_json()
     row.update(name=name, train_s=time.time() - t0, train_iters_per_s=result.iters_per_second,
                train_last_loss=result.last_loss)
     if extra_splits:
         row["novel_pose"] = evaluate(EvalConfig(run=str(run_dir), split="novel_pose",
                                                 max_frames=min(sizes.eval_frames or POSE_EVAL_FRAMES, POSE_EVAL_FRAMES),
-                                                device=device, grid=str(Path(run_dir) / "grid_novel_pose.png")))
+                                                device=device, grid=str(Path(run_dir) / "grid_novel_pose.png"))).to_json()
         row["train_fit"] = evaluate(EvalConfig(run=str(run_dir), split="train", max_frames=min(3, sizes.eval_frames or 3),
-                                               device=device))
+                                               device=device)).to_json()
     fg = row["foreground"]
     print(f"  {name} (seed {seed}): fg PSNR {fg['psnr']:.2f} dB, fg SSIM {fg['ssim']:.4f}, fg FLIP "
           f"{fg['flip'] if fg['flip'] is None else format(fg['flip'], '.4f')} (official PSNR {row['psnr']:.2f} dB), "

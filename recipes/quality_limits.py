@@ -42,7 +42,7 @@ def main(argv: list[str] | None = None) -> dict:
     except ValueError:
         raise SystemExit(f"--sides: expected comma-separated whole numbers, got {args.sides!r}") from None
     run_scores = {split: evaluate(EvalConfig(run=str(args.run), split=split, max_frames=args.frames))
-                  ["foreground"]["masked_psnr"] for split in HELD_OUT}
+                  .foreground.masked_psnr for split in HELD_OUT}
     ceiling = None if args.supersampled_shards is None else aliasing_ceiling(args.run, args.supersampled_shards,
                                                                               args.frames)
     oracle = texture_oracle(args.run, sides, args.frames)

@@ -204,7 +204,7 @@ def retime(timed: list[tuple[dict, Path]], repeats: int, device: str = "cpu") ->
             except Exception as exc:  # timing only: keep what was measured
                 logger.warning("re-timing %s failed: %s", run, exc)
                 continue
-            row["stage_ms"] = {k: min(v, again["stage_ms"].get(k, v)) for k, v in row["stage_ms"].items()}
+            row["stage_ms"] = {k: min(v, again.stage_ms.get(k, v)) for k, v in row["stage_ms"].items()}
     for row, _ in timed:
         total = sum(row["stage_ms"].values())
         row.update(fps=1000.0 / total if total > 0 else None, timing_repeats=max(repeats, 1),

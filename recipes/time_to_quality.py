@@ -26,6 +26,7 @@ import json
 import time
 from pathlib import Path
 
+from deliffas.engine.eval_result import EvalResult
 from deliffas.engine.run_sizes import RunSizes
 from recipes.common import FULL_SUPERSAMPLE, prepare_capture, prepare_shards, recipe_parser, seed_list, sized_by_args
 
@@ -47,9 +48,9 @@ CONFIGS: dict[str, dict] = {
 """Name -> TrainConfig fields that differ from ``deliffas train``'s defaults."""
 
 
-def _scores(ev: dict) -> dict:
-    fg = ev["foreground"]
-    return {"fg_psnr": fg["psnr"], "masked_psnr": fg.get("masked_psnr"), "fg_flip": fg.get("flip")}
+def _scores(ev: EvalResult) -> dict:
+    fg = ev.foreground
+    return {"fg_psnr": fg.psnr, "masked_psnr": fg.masked_psnr, "fg_flip": fg.flip}
 
 
 def _split_scores(run_dir: Path, eval_frames: int | None, device: str) -> dict:

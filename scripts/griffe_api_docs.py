@@ -12,6 +12,9 @@ reference, so they stay plain code.
 ``HiddenDunders``: special methods that are machinery, not API (``__post_init__`` validation,
 pickling, copying), are left out unless documented; protocol methods (``__len__``, ``__enter__``) stay.
 
+``OptionHelp``: a config field declared with ``opt(..., help=...)`` has no field docstring (the help is its one
+statement, tests/test_option_help.py); the reference shows the help as its docstring.
+
 ``SeparatePages``: the subpackages named in mkdocs.yml (``deliffas.geometry.templates``) are left out of
 their parent's page, which lists every other module by itself; they are rendered where a page names
 them (``::: deliffas.geometry.templates``).
@@ -19,6 +22,7 @@ them (``::: deliffas.geometry.templates``).
 
 from __future__ import annotations
 
+import ast
 import re
 
 import griffe
@@ -90,6 +94,44 @@ class HiddenDunders(griffe.Extension):
                 for name in HIDDEN_DUNDERS & set(cls.members):
                     if cls.members[name].docstring is None:  # a documented one says something about the API
                         cls.del_member(name)
+
+
+def option_help(value: str) -> str | None:
+    """The ``help=`` text of a field's value ``opt(..., help="...")`` (griffe's expression text); None when the value
+    is no ``opt`` call or its help is not a literal (a part computed at import time is left out)."""
+    try:
+        call = ast.parse(value, mode="eval").body
+    except SyntaxError:
+        return None
+    if not (isinstance(call, ast.Call) and getattr(call.func, "id", getattr(call.func, "attr", None)) == "opt"):
+        return None
+    node = next((k.value for k in call.keywords if k.arg == "help"), None)
+    while isinstance(node, ast.BinOp) and isinstance(node.op, ast.Add):  # "literal: " + computed -> the literal
+        node = node.left
+    if isinstance(node, ast.Constant) and isinstance(node.value, str):
+        text = node.value.strip().rstrip(":").strip()
+        text = text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")  # <cam:03d>: text, not a tag
+        return text[:1].upper() + text[1:] + ("" if text.endswith(".") else ".")
+    return None
+
+
+class OptionHelp(griffe.Extension):
+    """Gives each undocumented ``opt`` field of a class its ``help=`` text as the docstring."""
+
+    def on_package(self, *, pkg: griffe.Module, **kwargs) -> None:
+        modules = [pkg]
+        while modules:
+            module = modules.pop()
+            modules.extend(member for member in module.modules.values() if not member.is_alias)
+            classes = [cls for cls in module.classes.values() if not cls.is_alias]
+            while classes:
+                cls = classes.pop()
+                classes.extend(inner for inner in cls.classes.values() if not inner.is_alias)
+                for attr in cls.attributes.values():
+                    text = None if attr.is_alias or attr.docstring is not None or attr.value is None \
+                        else option_help(str(attr.value))
+                    if text:
+                        attr.docstring = griffe.Docstring(text, parent=attr)
 
 
 class SeparatePages(griffe.Extension):

@@ -15,6 +15,7 @@ import sys
 from deliffas import __version__
 from deliffas.cli.commands import COMMANDS, Command, Config
 from deliffas.cli.from_config import add_config_arguments
+from deliffas.cli.interrupted import report_interrupted
 from deliffas.optional import interrupted_import
 
 __all__ = ["main", "build_parser"]
@@ -69,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
         args = build_parser().parse_args(argv)
         logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                             format="%(levelname)s %(name)s: %(message)s")
-        from deliffas.cli import handlers  # start-up time: parsing and --help must not import torch
+        from deliffas.cli import handlers  # local: keeps `deliffas --help` and parsing free of torch
 
         return int(getattr(handlers, f"cmd_{args.handler}")(args) or 0)
     except (ValueError, OSError) as err:  # bad input: every deliffas format/config error is a ValueError
@@ -79,8 +80,6 @@ def main(argv: list[str] | None = None) -> int:
     except (KeyboardInterrupt, ImportError) as err:
         if not interrupted_import(err):  # an ImportError not caused by a Ctrl-C during the import
             raise
-        from deliffas.cli.interrupted import report_interrupted
-
         return report_interrupted(args, argv)
 
 

@@ -61,7 +61,7 @@ def report_interrupted(args: argparse.Namespace | None, argv: list[str]) -> int:
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C while the state is reported: no traceback
     if args is None:
-        from deliffas.cli import build_parser  # loaded already: the caller is the command line
+        from deliffas.cli import build_parser  # local: import cycle (deliffas.cli imports this module)
 
         try:
             with redirect_stdout(io.StringIO()), redirect_stderr(io.StringIO()):

@@ -18,10 +18,8 @@ class CheckCaptureConfig:
     """A capture folder's silhouette check with its report (:func:`deliffas.data.check_report.check_capture`)."""
 
     subject: Path = opt(help="capture folder (any supported format)", flag="")
-    out: Path = opt(help="report folder")
-    """Gets ``report.md``, ``overlays/`` and ``summary.json``."""
-    format: str = opt("auto", help="capture format", default_text="detected")
-    """A registered capture format (``deliffas.data.subjects.subject_format_names()``); auto = detected."""
+    out: Path = opt(help="report folder (report.md, overlays/, summary.json)")
+    format: str = opt("auto", help="capture format (auto = detected)", default_text="detected")
     check: CheckConfig = field(default_factory=CheckConfig)
     """What is sampled and how it is scored (its own options)."""
     subject_options: SubjectOptions = field(default_factory=SubjectOptions)

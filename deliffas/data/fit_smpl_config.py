@@ -18,10 +18,9 @@ class FitSmplConfig:
 
     subject: Path = opt(help="capture folder", flag="")
     model: Path = opt(help="SMPL model .npz/.pkl (official layout; not shipped)")
-    out: Path = opt(help="folder for the fitted motions")
-    """Gets ``<sequence>.npz`` per sequence and ``fit.json``."""
+    out: Path = opt(help="folder for the fitted motions (<sequence>.npz per sequence, fit.json)")
     uv: Path | None = opt(None, help="OBJ with the model's uv layout", default_text="MODEL_uv.obj if present")
-    overwrite: bool = opt(False, help="replace an earlier fit in --out")
-    """Without it a non-empty ``out`` is refused (before fitting)."""
+    overwrite: bool = opt(False, help="replace an earlier fit in --out (a non-empty one is refused otherwise, before "
+                                      "fitting)")
     fit: SurfaceFitConfig = field(default_factory=SurfaceFitConfig)
     """How each sequence is fitted (its own options)."""

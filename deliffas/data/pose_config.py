@@ -24,4 +24,3 @@ class PoseConfig:
     uv: Path | None = opt(None, help="SMPL: OBJ with the model's uv layout",
                           default_text="MODEL_uv.obj next to it, else none needed")
     overwrite: bool = opt(False, help="replace an existing --out file")
-    """Without it an existing ``out`` is refused."""

@@ -30,12 +30,13 @@ from deliffas.checks import finite_as
 from deliffas.io.infra.files import durable_replace, sha256_file, temp_path
 from deliffas.data.shard_meta import SCHEMA_VERSION, ShardMeta, read_meta
 from deliffas.data.shard_schema import SHARD_FORMAT, inside, shard_problems
-from deliffas.data.verify_config import VerifyConfig
+from deliffas.data.verify_config import ShardVerification, VerifyConfig
 
 __all__ = [
     "open_shard_set",
     "VerifyConfig",
     "verify_conversion",
+    "ShardVerification",
     "ShardReadError",
     "SCHEMA_VERSION",
     "MANIFEST_NAME",
@@ -491,8 +492,8 @@ def open_shard_set(shards: ShardSet | str | os.PathLike) -> ShardSet:
 
 
 # --------------------------------------------------------------------------------------------- verify
-def verify_conversion(config: VerifyConfig) -> list[str]:
-    """:func:`verify_shards` of a folder a user names: one message per problem (empty = all good).
+def verify_conversion(config: VerifyConfig) -> ShardVerification:
+    """:func:`verify_shards` of a folder a user names.
 
     Raises:
         FileNotFoundError: the folder holds no manifest (not a folder ``deliffas convert`` wrote).
@@ -503,8 +504,8 @@ def verify_conversion(config: VerifyConfig) -> list[str]:
     return verify_shards(out, deep=not config.quick)
 
 
-def verify_shards(out_dir: str | os.PathLike, deep: bool = True) -> list[str]:
-    """Check an output folder against its manifest; returns one message per problem (empty = all good).
+def verify_shards(out_dir: str | os.PathLike, deep: bool = True) -> ShardVerification:
+    """Check an output folder against its manifest; the result lists one message per problem (none = all good).
 
     Checks: manifest readable and of the documented structure; every name inside the output folder;
     ``meta.h5`` and every listed shard present, of the recorded size and sha256; every shard of the
@@ -512,18 +513,24 @@ def verify_shards(out_dir: str | os.PathLike, deep: bool = True) -> list[str]:
     :func:`deliffas.data.shard_schema.shard_problems`); ``deep``: every dataset read once; every
     planned shard listed as complete (otherwise the conversion is unfinished).
     """
-    import h5py
-
     out = Path(out_dir)
     try:
         m = read_manifest(out)
     except FileNotFoundError:
-        return [f"{out / MANIFEST_NAME}: missing (no conversion here, or it never started)"]
+        return ShardVerification(out, deep, 0, (f"{out / MANIFEST_NAME}: missing (no conversion here, or it never "
+                                                "started)",))
     except ValueError as err:
-        return [str(err)]
+        return ShardVerification(out, deep, 0, (str(err),))
     structure = _manifest_structure_problems(m)
     if structure:
-        return [f"{MANIFEST_NAME}: {p}" for p in structure]
+        return ShardVerification(out, deep, 0, tuple(f"{MANIFEST_NAME}: {p}" for p in structure))
+    return ShardVerification(out, deep, len(m["shards"]), tuple(_listed_file_problems(out, m, deep)))
+
+
+def _listed_file_problems(out: Path, m: dict, deep: bool) -> list[str]:
+    """``verify_shards``'s checks of the files a well-formed manifest ``m`` lists."""
+    import h5py
+
     problems: list[str] = []
     meta = None
     entries = [dict(m["meta"], kind="meta")] + [dict(s, kind="shard") for s in m["shards"]]

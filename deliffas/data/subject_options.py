@@ -17,10 +17,9 @@ __all__ = ["SubjectOptions"]
 class SubjectOptions:
     """Choices a user makes about how a capture is read (each format uses those it has)."""
 
-    template: str | None = opt(None, help="template: SMPL model .npz/.pkl (SMPL captures), or a DDC variant folder "
+    template: str | None = opt(None, help="template: SMPL model .npz/.pkl (SMPL captures; <stem>_uv.obj beside it is "
+                                          "its uv layout), or a DDC variant folder (.character + optional outer.obj) "
                                           "or .character", default_text="the capture's own")
-    """A template variant folder (its ``.character`` + optional ``outer.obj``), a ``.character`` file, or
-    an SMPL model file (``.npz``/``.pkl``; ``<stem>_uv.obj`` next to it is its uv layout)."""
     skinning: Skinning = "dqs"
     """Skinning of a DDC template."""
     sequences: tuple[str, ...] | None = None
@@ -32,8 +31,6 @@ class SubjectOptions:
     motions: tuple[str, ...] = opt((), help="pose parameters instead of the capture's own: .motion (DDC) or AMASS "
                                             ".npz (SMPL) (SEQ default training; repeatable)", repeat=True,
                                    metavar="[SEQ=]FILE", default_text="the capture's own")
-    """Pose parameters ``[SEQUENCE=]FILE`` (default sequence: training) instead of the sequence's own,
-    e.g. SMPL parameters fitted to a DDC capture (``.npz``) with an SMPL ``template``."""
     meshes: tuple[str, ...] = ()
     """Tracked surfaces ``[SEQUENCE=]FILE.meshes`` (default sequence: training) instead of the posed template."""
     test_cameras: tuple[int, ...] | None = None

@@ -43,46 +43,34 @@ class ShadingConfig:
 class SynthConfig:
     """What ``synthesize_capture`` renders."""
     num_frames: int = opt(20, help="training frames", flag="--frames", parse=positive_int)
-    """Frames of the training sequence (0 .. N-1)."""
     num_test_frames: int | None = opt(None, help="novel-pose frames", flag="--test-frames", parse=positive_int,
                                       default_text="frames // 2")
-    """Frames of the novel-pose testing sequence (default: max(1, num_frames // 2))."""
     num_cameras: int = opt(8, help="cameras of the dome, at least 2", flag="--cameras", parse=positive_int)
-    """Cameras of the dome."""
     width: int = 256
     """Image width in pixels."""
     height: int = 256
     """Image height in pixels."""
     test_cameras: int | tuple[int, ...] | None = opt(None, help="held-out cameras: a count N or a list a,b,...",
                                                      parse=count_or_indices, default_text="max(1, cameras // 8)")
-    """Held-out cameras: a count N (spread evenly) or explicit indices; None = max(1, C // 8)."""
-    seed: int = opt(0, help="random seed")
-    """Seeds the character, the motions, the camera dome and the AO sampling."""
-    character: str | None = opt(None, help=".character to use",
+    seed: int = opt(0, help="random seed of the character, the motions, the camera dome and the AO sampling")
+    character: str | None = opt(None, help=".character to use instead of the procedural character (copied into the "
+                                           "subject)",
                                 default_text="the procedural character, built into OUT_DIR/character")
-    """A ``.character`` to use instead of the procedural character (copied into the subject)."""
     body_model: str | None = opt(None, help="render an SMPL body instead of a DDC character: an SMPL model file "
                                             "(.npz/.pkl, official layout; not shipped, license) or 'procedural' (the "
                                             "license-free body in SMPL layout)", metavar="MODEL|procedural",
                                  default_text="a DDC character")
-    """An SMPL model file (``.npz``/``.pkl``, official layout) or ``"procedural"`` (the license-free body
-    in SMPL layout) to render instead of a DDC character; copied into ``body/``, motions as ``poses.npz``."""
     body_uv: str | None = opt(None, help="OBJ with the SMPL model's uv layout", default_text="an xatlas atlas")
-    """An OBJ with the SMPL model's uv layout (same faces); None = an xatlas atlas."""
-    motion: str | None = opt(None, help="training motion: .motion (DDC) or AMASS-style .npz (SMPL)",
+    motion: str | None = opt(None, help="training motion (its first --frames frames): .motion (DDC) or AMASS-style "
+                                        ".npz (SMPL)",
                              default_text="a procedural motion")
-    """Training motion file instead of the procedural motion (its first ``num_frames`` frames):
-    ``.motion`` for a DDC character, AMASS-style ``.npz`` for an SMPL body."""
-    test_motion: str | None = opt(None, help="novel-pose motion, as --motion", default_text="procedural, another seed")
-    """Testing motion file instead of a procedural one with another seed."""
+    test_motion: str | None = opt(None, help="novel-pose motion, as --motion (default: a procedural one with another "
+                                             "seed)", default_text="procedural, another seed")
     videos: bool = opt(False, help="also write FFV1 videos img/c_<cam>.avi + fg/c_<cam>.avi")
-    """Also write per-camera FFV1 videos ``<seq>/img/c_<name>.avi`` + ``<seq>/fg/c_<name>.avi``."""
-    jobs: int = opt(1, help="rendering processes", parse=positive_int)
-    """Rendering processes (frames are split between them)."""
+    jobs: int = opt(1, help="rendering processes (the frames are split between them)", parse=positive_int)
     fps: float = 25.0
     """Frame rate: velocities of the garment model and of the videos."""
-    supersample: int = opt(1, help="s x s rays per pixel", parse=positive_int)
-    """s x s rays per pixel (anti-aliased coverage alpha)."""
+    supersample: int = opt(1, help="s x s rays per pixel (anti-aliased coverage alpha)", parse=positive_int)
     garment_min_mm: float = 20.0
     """Smallest outward displacement inside the garment region."""
     garment_max_mm: float = 60.0
@@ -99,7 +87,6 @@ class SynthConfig:
     """Light and material."""
     overwrite: bool = opt(False, help="replace an earlier synthetic capture in OUT_DIR (a non-empty folder is "
                                       "refused otherwise)")
-    """Replace an existing synthetic capture in ``out_dir`` (a non-empty folder is refused otherwise)."""
 
 
 def check_synth_images(root: str | Path) -> None:

@@ -17,19 +17,13 @@ class TemplateConfig:
     (:func:`deliffas.data.template_build.build_templates`)."""
 
     character: Path = opt(help=".character file", flag="")
-    out: Path = opt(help="output folder")
-    """Created; ``out/<variant>/`` per variant and ``out/report.json``."""
+    out: Path = opt(help="output folder (out/<variant>/ per variant, out/report.json)")
     smooth_iters: int | None = opt(None, help="also a Taubin-smoothed variant (ITERS lambda/mu pairs)", flag="--smooth",
                                    metavar="ITERS", default_text="none")
-    """Taubin iterations of the ``smooth`` variant; None skips it."""
     coarse_faces: int | None = opt(None, help="also a decimated variant with about FACES faces", flag="--coarse",
                                    metavar="FACES", default_text="none")
-    """Face budget of the ``coarse`` variant; None skips it."""
     offset_mm: float = opt(30.0, help="outer-shell offset d in mm", flag="--offset", metavar="MM")
-    """Nominal outer-shell offset d (DELIFFAS: 30 mm)."""
     safe: bool = opt(False, help="limit d per vertex where the shell would cross another part")
-    """Limit d per vertex where the shell would cross another body part (``safe_offsets``)."""
     atlas_res: int = opt(512, help="xatlas packing resolution of new atlases and texel grid of the report", metavar="R")
-    """xatlas packing resolution for new atlases and the texel grid of the atlas statistics."""
-    overwrite: bool = opt(False, help="replace an earlier 'deliffas template' output in --out")
-    """Without it a non-empty ``out`` is refused."""
+    overwrite: bool = opt(False, help="replace an earlier 'deliffas template' output in --out (a non-empty one is "
+                                      "refused otherwise)")

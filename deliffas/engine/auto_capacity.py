@@ -207,11 +207,11 @@ def auto_capacity(train_cfg, ac_cfg: AutoCapacityConfig | None = None) -> dict:
             entry["train_s"] = time.perf_counter() - t0
             ev = evaluate(EvalConfig(run=str(run), split=ac_cfg.split, max_frames=ac_cfg.max_frames,
                                      device=train_cfg.device))
-            fg = ev["foreground"]
-            entry.update(fg_psnr=fg["psnr"], fg_ssim=fg["ssim"], flip=fg["flip"], psnr=ev["psnr"], ssim=ev["ssim"],
-                         lpips=ev["lpips"], num_parameters=ev["num_parameters"], resolution=ev.get("resolution"),
-                         images=ev["images"])
-            _set_costs(entry, ev["stage_ms"])
+            fg = ev.foreground
+            entry.update(fg_psnr=fg.psnr, fg_ssim=fg.ssim, flip=fg.flip, psnr=ev.official.psnr, ssim=ev.official.ssim,
+                         lpips=ev.official.lpips, num_parameters=ev.num_parameters, resolution=list(ev.resolution),
+                         images=ev.images)
+            _set_costs(entry, ev.stage_ms)
             if not _finite(entry["fg_psnr"]):
                 entry["error"] = f"non-finite validation foreground PSNR {entry['fg_psnr']}"
         except Exception as exc:  # a failing capacity is recorded, the search goes on
@@ -263,14 +263,14 @@ def _retime(candidates: list[dict], ac_cfg: AutoCapacityConfig, device: str) -> 
             except Exception as exc:  # timing only: keep what was measured
                 logger.warning("auto_capacity: re-timing %s failed: %s", entry["name"], exc)
                 continue
-            _set_costs(entry, {k: min(v, again["stage_ms"].get(k, v)) for k, v in entry["stage_ms"].items()})
+            _set_costs(entry, {k: min(v, again.stage_ms.get(k, v)) for k, v in entry["stage_ms"].items()})
 
 
 def _test_record(chosen_run: Path, choice: str, ac_cfg: AutoCapacityConfig, device: str) -> dict:
     """The chosen candidate's numbers on the test split (novel_view)."""
     ev = evaluate(EvalConfig(run=str(chosen_run), split="novel_view", max_frames=ac_cfg.max_frames, device=device))
-    return {"split": "novel_view", "candidate": choice, "images": ev["images"], "foreground": ev["foreground"],
-            "psnr": ev["psnr"], "ssim": ev["ssim"], "metric_protocol": ev["metric_protocol"]}
+    return {"split": "novel_view", "candidate": choice, "images": ev.images, "foreground": ev.foreground.to_json(),
+            "psnr": ev.official.psnr, "ssim": ev.official.ssim, "metric_protocol": ev.official.protocol}
 
 
 def _recorded_validation_cameras(run: Path) -> list[int] | None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal, Mapping, Sequence
 
+from deliffas.engine.config_fields import TEST_SPLITS
 from deliffas.options import opt
 
 __all__ = ["AutoCapacityConfig", "Candidate"]
@@ -26,8 +27,8 @@ class Candidate:
 class AutoCapacityConfig:
     """How ``auto_capacity`` searches."""
 
-    tolerance_db: float = opt(0.5, help="auto-capacity tolerance in dB")
-    """Keep candidates whose validation PSNR is at least (best PSNR - tolerance_db)."""
+    tolerance_db: float = opt(0.5, help="auto-capacity tolerance in dB: candidates within it of the best validation "
+                                        "PSNR are kept")
     candidates: Sequence[Candidate | Mapping] | None = None
     """Capacities to try: ``Candidate``s or override dicts (named by their content). None = the
     ``default_ladder`` of the run's model and preset."""
@@ -51,8 +52,6 @@ class AutoCapacityConfig:
     shared CPU only ever add time."""
 
     def __post_init__(self) -> None:
-        from deliffas.engine.data_bridge import TEST_SPLITS  # imported here: the CLI reads this module without torch
-
         if not self.tolerance_db >= 0:
             raise ValueError(f"AutoCapacityConfig: tolerance_db must be >= 0, got {self.tolerance_db}")
         if self.iters is not None and self.iters < 1:

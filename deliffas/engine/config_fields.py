@@ -1,4 +1,4 @@
-"""Fields the engine's command configs share (uv source, device), declared once with their command-line help.
+"""Fields the engine's command configs share (uv source, device; test splits), declared once with their command-line help.
 
 Light (stdlib and :mod:`deliffas.options` only): the CLI builds its parser from the configs that use them
 without importing torch.
@@ -10,7 +10,10 @@ from typing import Any, Literal
 
 from deliffas.options import device_name, opt
 
-__all__ = ["UVSource", "UV_SOURCES", "check_uv_source", "uv_field", "device_field"]
+__all__ = ["UVSource", "UV_SOURCES", "TEST_SPLITS", "check_uv_source", "uv_field", "device_field"]
+
+TEST_SPLITS = ("novel_view", "novel_pose")
+"""Splits that are test data: never used to choose a model, a capacity or a stopping point."""
 
 UVSource = Literal["auto", "raster", "raycast", "torch"]
 """Where the uv maps come from: ``raster`` = the C rasteriser (CPU, ``deliffas.fast.rasterize``), ``raycast`` =

@@ -19,6 +19,7 @@ from torch.utils.data import DataLoader, Sampler
 
 from deliffas.data.dataset import FrameItem, RandomCameraSampler, ShardDataset
 from deliffas.data.shards import ShardSet, open_shard_set
+from deliffas.engine.config_fields import TEST_SPLITS
 from deliffas.engine.rays import frame_rays, raster_frame_rays, torch_frame_rays, uv_source
 from deliffas.engine.samples import FrameSample
 from deliffas.geometry.atlas import UVAtlas
@@ -32,9 +33,7 @@ AUTO_PAPER_MIN_FRAMES = 100
 """Protocol ``auto`` keeps every 10th frame (``paper``) from this many training frames on, else every frame."""
 EVAL_SPLITS = ("validation", "novel_view", "novel_pose", "train")
 """What ``evaluate`` scores: ``validation`` = the run's validation cameras (training cameras it held out) on
-the training frames; ``novel_view`` / ``novel_pose`` = the test splits; ``train`` = what it was fitted to."""
-TEST_SPLITS = ("novel_view", "novel_pose")
-"""Splits that are test data: never used to choose a model, a capacity or a stopping point."""
+the training frames; ``novel_view`` / ``novel_pose`` = the test splits (``TEST_SPLITS``); ``train`` = what it was fitted to."""
 
 
 def resolve_protocol(shards_dir: ShardSet | str, requested: str) -> tuple[str, str]:

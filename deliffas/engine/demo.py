@@ -70,8 +70,9 @@ def run_demo(cfg: DemoConfig = DemoConfig()) -> Path:
         _stage(f"4/5 evaluating {name} on held-out cameras (novel view) and the test motion (novel pose)")
         images_dir = out / "images" / name
         row = evaluate(EvalConfig(run=str(run), split="novel_view", save_images=str(images_dir),
-                                  grid=str(out / f"grid_{name}_novel_view.png")))
-        pose = evaluate(EvalConfig(run=str(run), split="novel_pose", grid=str(out / f"grid_{name}_novel_pose.png")))
+                                  grid=str(out / f"grid_{name}_novel_view.png"))).to_json()
+        pose = evaluate(EvalConfig(run=str(run), split="novel_pose",
+                                   grid=str(out / f"grid_{name}_novel_pose.png"))).to_json()
         row["novel_pose"] = {k: pose[k] for k in ("foreground", "psnr", "ssim", "flip", "images", "grid", "warnings")}
         row["name"] = name
         print(f"{name}: foreground PSNR {row['foreground']['psnr']:.2f} dB novel view, "

@@ -17,8 +17,7 @@ class DemoConfig:
     """Sizes of the demo run (defaults fit ~10 minutes on 2 CPU cores)."""
 
     out: str = opt("demo_out", help="output folder")
-    quick: bool = opt(False, help="a smaller run (used by tests)")
-    """A much smaller run for tests (seconds, not minutes); numbers are then meaningless."""
+    quick: bool = opt(False, help="a much smaller run, for tests (seconds; its numbers are meaningless)")
     models: tuple[str, ...] = (DEFAULT_MODEL, "single_surface")
     sizes: RunSizes = RunSizes(frames=30, test_frames=10, cameras=10, iters=1200, supersample=2,
                                rays_per_step=RAYS_PER_STEP)

@@ -18,6 +18,7 @@ from deliffas.engine.identity import check_run_shards
 from deliffas.engine.runs import load_run
 from deliffas.engine.shading import render_frame
 from deliffas.engine.rays import camera_rays
+from deliffas.engine.report import pyplot, save_figure
 from deliffas.engine.samples import composite_target
 from deliffas.engine.timing import StageTimer
 from deliffas.geometry.raycast import UVRaycaster
@@ -53,8 +54,6 @@ def measure_error_budget(run: str | Path, split: str = "validation", max_frames:
 def budget_figure(budgets: dict[str, dict], path: str | Path, title: str = "error budget") -> Path:
     """Two panels per run: the masked squared error's share by pixel class, and by frequency band
     (error vs the ground truth's own energy). ``budgets``: run label -> ``measure_error_budget`` result."""
-    from deliffas.engine.report import pyplot, save_figure
-
     plt = pyplot()
     fig, (ax_c, ax_b) = plt.subplots(1, 2, figsize=(11, 4), dpi=120)
     labels = list(budgets)

@@ -21,21 +21,16 @@ class EvalConfig:
     run: str = opt(help="run directory written by `deliffas train`", flag="")
     split: Split = opt("novel_view", help="novel_view / novel_pose: test splits; validation: the run's held-out "
                                           "training cameras (--val-cameras at training); train: the fitted cameras")
-    """``novel_view``: held-out (test) cameras on training-motion frames; ``novel_pose``: the test motion;
-    ``validation``: the run's validation cameras (training cameras it held out, ``TrainConfig.validation_cameras``)
-    on the training frames, for choosing among runs; ``train``: the cameras it was fitted to (a sanity check)."""
     protocol: Literal["paper", "all"] | None = opt(None, help="frames: paper = every 10th, all = every frame",
                                                    default_text="the run's")
-    """None = the run's protocol, as resolved when it trained."""
     shards: str | None = opt(None, help="shard directory", default_text="the run's")
-    """Shard directory (default: the one the run was trained on)."""
     max_frames: int | None = opt(None, help="at most this many frames, evenly spaced", parse=positive_int,
                                  default_text="all")
     device: str = device_field()
     chunk_size: int = 262144
     """Rays shaded at once (bounds peak memory for large images)."""
-    save_images: str | None = opt(None, help="folder for predicted images (white background)", default_text="none")
-    """Predicted images are written as ``<cam:03d>/<frame:06d>.png``."""
+    save_images: str | None = opt(None, help="folder for predicted images (white background), as "
+                                             "<cam:03d>/<frame:06d>.png", default_text="none")
     vgg16_path: str | None = opt(None, help="ImageNet VGG-16 weights for LPIPS (.pth/.safetensors)",
                                  default_text="$DELIFFAS_VGG16_WEIGHTS / torch hub cache")
     lpips_path: str | None = opt(None, help="LPIPS v0.1 VGG linear layers (lpips' weights/v0.1/vgg.pth)",

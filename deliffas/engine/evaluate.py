@@ -23,7 +23,9 @@ import numpy as np
 import torch
 
 from deliffas.engine.devices import resolve_device
+from deliffas.engine.config_fields import TEST_SPLITS
 from deliffas.engine.eval_config import EvalConfig
+from deliffas.engine.eval_result import EvalResult, ForegroundMetrics, OfficialMetrics
 from deliffas.engine.data_bridge import run_protocol, run_split_samples
 from deliffas.engine.identity import check_run_shards
 from deliffas.io.infra.files import check_writable
@@ -37,7 +39,7 @@ from deliffas.engine.timing import StageTimer
 from deliffas.geometry.raycast import UVRaycaster
 from deliffas.models.metrics import METRICS, Evaluator
 
-__all__ = ["EvalConfig", "evaluate", "MIN_IMAGES_WARNING", "HEADLINE"]
+__all__ = ["EvalConfig", "EvalResult", "evaluate", "MIN_IMAGES_WARNING", "HEADLINE"]
 
 logger = logging.getLogger(__name__)
 
@@ -47,8 +49,8 @@ HEADLINE = "foreground.psnr"
 """The number tables, orderings and the demo lead with (``METRICS`` key)."""
 
 
-def evaluate(cfg: EvalConfig) -> dict:
-    """Evaluate a run on a split; returns the JSON-ready result (see ``deliffas eval --json``)."""
+def evaluate(cfg: EvalConfig) -> EvalResult:
+    """Evaluate a run on a split; ``to_json()`` of the result is ``deliffas eval --json``."""
     device = resolve_device(cfg.device)
     if cfg.grid:
         check_writable(cfg.grid)  # before the work: a late failure would lose the metrics
@@ -97,35 +99,19 @@ def evaluate(cfg: EvalConfig) -> dict:
         comparison_grid(grid_rows, cfg.grid, f"{record.get('train', {}).get('model')} · {cfg.split}")
     stage_ms = _stage_ms(timer, n_images, n_frames)
     total_single = sum(stage_ms.values())
-    return {
-        "run": str(cfg.run),
-        "split": cfg.split,
-        "is_test_split": cfg.split in ("novel_view", "novel_pose"),
-        "protocol": protocol,
-        "frames_protocol": protocol,
-        "headline": HEADLINE,
-        "metric_protocols": {m.key: m.protocol for m in METRICS},
-        "model": record.get("train", {}).get("model"),
-        "preset": record.get("train", {}).get("preset"),
-        "num_parameters": model.num_parameters(),
-        "frames": n_frames,
-        "cameras": sorted(cameras_seen),
-        "images": n_images,
-        "resolution": [int(sample.images.shape[2]), int(sample.images.shape[1])],
-        "metric_protocol": summary["protocol"],
-        **{k: summary[k] for k in ("psnr", "ssim", "mse", "mae", "lpips", "lpips_reason", "fid", "fid_reason",
-                                   "fid_images", "flip", "flip_reason", "flip_protocol", "lpips_random_vgg16",
-                                   "lpips_random_vgg16_backbone", "foreground")},
-        "warnings": warnings,
-        "grid": cfg.grid if cfg.grid and grid_rows else None,
-        "stage_ms": stage_ms,
-        "fps": 1000.0 / total_single if total_single > 0 else None,
-        "fps_shared_cnn": n_images / t_wall if t_wall > 0 else None,
-        "device": str(device),
-        "uv": "rasterize (C)" if fast else uv_source(device, cfg.uv, sample.images.shape[1] * sample.images.shape[2]),
-        "render_path": (f"fast ({'fused fp32' if fast.fused else fast.torch_dtype()})" if fast else "plain"),
-        "perceptual_backbone": record.get("perceptual_backbone"),
-    }
+    return EvalResult(
+        run=str(cfg.run), split=cfg.split, is_test_split=cfg.split in TEST_SPLITS, protocol=protocol,
+        headline=HEADLINE, metric_protocols={m.key: m.protocol for m in METRICS},
+        model=record.get("train", {}).get("model"), preset=record.get("train", {}).get("preset"),
+        num_parameters=model.num_parameters(), frames=n_frames, cameras=tuple(sorted(cameras_seen)), images=n_images,
+        resolution=(int(sample.images.shape[2]), int(sample.images.shape[1])),
+        official=OfficialMetrics.from_summary(summary), foreground=ForegroundMetrics(**summary["foreground"]),
+        warnings=tuple(warnings), grid=cfg.grid if cfg.grid and grid_rows else None, stage_ms=stage_ms,
+        fps=1000.0 / total_single if total_single > 0 else None,
+        fps_shared_cnn=n_images / t_wall if t_wall > 0 else None, device=str(device),
+        uv="rasterize (C)" if fast else uv_source(device, cfg.uv, sample.images.shape[1] * sample.images.shape[2]),
+        render_path=f"fast ({'fused fp32' if fast.fused else fast.torch_dtype()})" if fast else "plain",
+        perceptual_backbone=record.get("perceptual_backbone"))
 
 
 def _few_images_warnings(n_images: int, protocol: str, split: str) -> list[str]:

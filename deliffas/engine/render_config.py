@@ -18,19 +18,15 @@ class RenderConfig:
     run: str = opt(help="run directory of 'deliffas train' or an .avatar file of 'deliffas export'", flag="")
     out: str = opt(help="video file (.mp4: H.264; .avi: Motion-JPEG) or a new folder for PNG frames",
                    parse=video_or_folder)
-    """A folder of PNGs when it has no suffix."""
     orbit: bool = opt(False, help="camera orbits the avatar once over the video (default: a capture camera)")
-    """False = capture camera ``camera``."""
     motion: str | None = opt(None, help=".motion (DDC template) or AMASS .npz (SMPL template)",
                              default_text="the capture's test motion")
-    """Driving motion (default: the capture's novel-pose motion, else its training motion)."""
     frames: int | None = opt(None, help="number of frames; more than the motion has needs --loop", parse=positive_int,
                              default_text="all of the motion, max 300")
     loop: bool = opt(False, help="play the motion again from its start to fill --frames")
     camera: int | None = opt(None, help="capture camera (calibration index) to render from; not with --orbit",
                              parse=non_negative_int, metavar="INDEX", default_text="the first test camera")
-    overwrite: bool = opt(False, help="replace an existing --out video")
-    """A folder of PNGs must be new or empty."""
+    overwrite: bool = opt(False, help="replace an existing --out video (a folder of PNGs must be new or empty)")
     size: tuple[int, int] | None = opt(None, help="WxH of the video", parse=image_size,
                                        default_text="the capture's image size")
     device: str = device_field()

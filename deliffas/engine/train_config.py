@@ -42,51 +42,51 @@ RAYS_PER_STEP = 8192
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """Everything a training run needs; written to ``RUN/train_config.json``."""
+    """Everything a training run needs; written to ``RUN/train_config.json``.
+
+    ``time_budget``: after the first iterations (within the warm-up) the run plans ``iters`` from their speed,
+    and plans again at the speed since, halfway through what is left, a few times (``engine.time_budget``); the
+    ``hold-decay`` and ``converge`` schedules decay over the planned length. The plan replaces ``iters`` (and
+    ``time_budget`` becomes None) in ``train_config.json``, whose ``time_budget`` entry records the plans: a
+    resumed run continues to the last plan. Needs ``perceptual`` none.
+
+    ``schedule``: each has its own peak rate and Adam beta2 (``SCHEDULE_LR``, ``SCHEDULE_BETA2``); ``paper`` is
+    the official code's lr · 0.1^(step / lr_decay_steps).
+
+    ``rays_per_step``: a uniform random subset of the K cameras' rays, drawn anew each iteration
+    (:func:`deliffas.engine.samples.subsample_rays`); 8192, a quarter of a 256² step's rays, costs about 0.7x the
+    step and learns as much per iteration (docs/results.md). A perceptual stage shades every ray (the loss compares
+    whole images): the default becomes None there, another value is refused.
+
+    ``ray_chunk``: None = every ray of the step's K images in one graph (docs/reliability.md).
+
+    ``validation_cameras``: never trained on, never test cameras; ``eval --split validation`` scores them on the
+    training frames, auto-capacity chooses on them.
+    """
 
     shards: str = opt(help="folder written by 'deliffas convert'", flag="", nargs="?",
                       default_text="the run's, with --resume")
-    """Directory of converted HDF5 shards (``deliffas convert``)."""
-    out: str = opt(help="run directory")
-    """Run directory (checkpoints, log.jsonl, previews)."""
+    out: str = opt(help="run directory (checkpoints, log.jsonl, previews)")
     model: str = opt(DEFAULT_MODEL, help="zoo name (deliffas zoo list); the paper's model: two_surface")
-    """Zoo name (``deliffas zoo list``; the table of docs/models.md)."""
-    preset: str = opt(DEFAULT_PRESET, help=" | ".join(r.name for r in PRESET_ROWS))
-    """Size preset of the zoo entry (the table of docs/models.md)."""
+    preset: str = opt(DEFAULT_PRESET, help="size preset of the zoo entry (docs/models.md): "
+                                           + " | ".join(r.name for r in PRESET_ROWS))
     model_overrides: dict = field(default_factory=dict)
     """ModelConfig fields replacing the preset's (nested dicts for ``unet``/``mlp``)."""
     iters: int = opt(5000, help="train to this iteration (with --resume: the run's, more extends it)",
                      parse=positive_int)
-    """Training iterations (one frame with ``cameras_per_frame`` images each)."""
     time_budget: float | None = opt(None, help="train for about this many seconds instead of --iters: the "
                                           "iterations that fit, estimated from the speed of the first ones (L1 "
                                           "runs; the count is recorded in train_config.json)",
                                     parse=positive_float, metavar="SECONDS", default_text="--iters decides")
-    """Seconds the run may take, counted from the trainer's start (``engine.time_budget``): after the first
-    iterations (within the warm-up) the run plans its ``iters`` from their speed, and plans again at the
-    speed of the iterations since, halfway through what is left, a few times; the ``hold-decay`` and ``converge``
-    schedules decay over the planned length. The plan replaces ``iters`` (and ``time_budget`` becomes None) in
-    ``train_config.json``, whose ``time_budget`` entry records the plans: a resumed run continues to the
-    last plan, and ``--iters N`` repeats the run's length. Needs ``perceptual`` none (stage 2's steps
-    cost several times stage 1's)."""
     schedule: Literal["hold-decay", "converge", "paper"] = opt(
         "hold-decay", help="learning-rate schedule: hold-decay = warm-up, the peak held, then a decay to a tenth over "
                            "the last 30 percent of the run's own --iters (Adam beta2 0.95); converge = warm-up, then a "
                            "decay to a tenth over the whole run (beta2 0.999); paper = the official Adam 2e-4 with "
                            "its decay over 800 k steps (GPU-days runs)")
-    """Learning-rate schedule. ``hold-decay``: a linear warm-up over ``warmup_iters``, the peak held, then an
-    exponential decay to ``lr_final`` x the peak over the last ``decay_share`` of the iterations after the warm-up,
-    ending at the run's last iteration (the run's own length). ``converge``: the same warm-up, then the exponential
-    decay over every iteration after it (the default before ``hold-decay``). ``paper``: the official code's
-    lr · 0.1^(step / lr_decay_steps), meant for GPU-days runs (1.29 M iterations). Each has its own peak rate and
-    Adam beta2 (``SCHEDULE_LR``, ``SCHEDULE_BETA2``)."""
     lr: float | None = opt(None, help="peak learning rate", parse=positive_float,
                            default_text="the schedule's, hold-decay 1.5e-3, converge 1e-3, paper 2e-4")
-    """Peak Adam learning rate; None = the schedule's (``hold-decay`` 1.5e-3, ``converge`` 1e-3, ``paper`` 2e-4)."""
     adam_beta2: float | None = opt(None, help="Adam's beta2, the decay of its squared-gradient average",
                                    parse=positive_float, default_text="the schedule's, hold-decay 0.95, else 0.999")
-    """Adam's beta2; None = the schedule's (``hold-decay`` 0.95, chosen with its peak rate on the validation camera,
-    docs/results.md; ``converge`` and ``paper`` 0.999, torch's and the official code's)."""
     lr_decay_steps: int = 800_000
     """``paper`` schedule: lr = lr · 0.1^(step / lr_decay_steps), as the official code."""
     warmup_iters: int = 50
@@ -104,37 +104,22 @@ class TrainConfig:
     (docs/results.md): networks at 3e-3 leave two of three seeds with a third of the MLP's last layer dead."""
     cameras_per_frame: int = opt(3, help="training cameras per iteration; the U-Nets run once for all of them",
                                  parse=positive_int)
-    """K training cameras per iteration; the U-Nets run once for all K."""
     rays_per_step: int | None = opt(RAYS_PER_STEP, help="train each iteration on at most this many of its "
                                                         "cameras' shaded rays, a random subset (the light-field "
                                                         "MLP's cost is per ray); all = every ray",
                                     parse=positive_int_or_all, metavar="N|all")
-    """At most this many shaded rays per iteration: a uniform random subset of the K cameras' rays, drawn anew
-    each iteration (only about that many pixels are ray-cast, :func:`deliffas.engine.samples.subsample_rays`);
-    None (``all`` on the command line) = every shaded ray. 8192 is a quarter of a 256² step's rays: the step
-    costs about 0.7 x and learns as much per iteration (docs/results.md). A run with a perceptual stage
-    shades every ray (the perceptual loss compares whole images): the default becomes None there, another
-    value is refused."""
     protocol: Literal["auto", "paper", "all"] = opt("auto", help="frames used: paper = every 10th (DELIFFAS), "
                                                     "all = every frame, auto = paper from 100 training frames on, "
                                                     "else all; stated at start")
-    """Frames used: ``paper`` = every 10th frame (DELIFFAS, for DynaCap-scale captures), ``all`` = every
-    converted frame, ``auto`` = ``paper`` from 100 training frames on, else ``all`` (logged at start; the
-    resolved protocol is recorded in ``train_config.json`` ``data.protocol``)."""
     validation_cameras: int | tuple[int, ...] = opt(0, help="training cameras held out as the validation split: a "
                                                     "count N or calibration indices (--auto-capacity holds out at "
                                                     "least 1)", flag="--val-cameras", parse=count_or_indices,
                                                     metavar="N|a,b,...")
-    """Training cameras held out as the validation split (never trained on, never test cameras): a
-    count (evenly spaced over the training cameras) or calibration indices. ``eval --split validation``
-    scores them on the training frames; auto-capacity chooses on them."""
-    perceptual: PerceptualChoice = opt("none", help="stage-2 perceptual backbone; vgg16-random is the explicit "
-                                                    "offline option; none = L1 only")
-    """Stage-2 perceptual backbone: ``vgg16-imagenet`` (weights must exist), ``vgg16-random``
-    (the explicit offline option, seeded), or ``none`` (L1 only)."""
+    perceptual: PerceptualChoice = opt("none", help="stage-2 perceptual backbone: vgg16-imagenet (weights must "
+                                                    "exist), vgg16-random (the explicit offline option, seeded), none "
+                                                    "= L1 only")
     perceptual_mode: Literal["image", "patch"] = opt("image", help="perceptual loss on whole images (paper) or on "
-                                                                   "32x32 patches")
-    """Perceptual loss on whole images (paper) or on 32x32 patches (appendix ablation)."""
+                                                                   "32x32 patches (appendix ablation)")
     perceptual_start: float = 0.6
     """Fraction of ``iters`` after which stage 2 (L1 + perceptual) starts."""
     perceptual_weight: float | None = None
@@ -142,28 +127,23 @@ class TrainConfig:
     saturation_weight: float = opt(0.01, help="weight of the penalty on U-Net feature logits beyond +-4, which "
                                               "keeps feature maps off the rails of their sigmoid; 0 = off",
                                    parse=non_negative_float)
-    """Weight of the penalty on U-Net feature logits beyond ±``saturation_margin`` (0 = off): a feature
-    map driven to the rails of its sigmoid has no gradient left (``models.losses.saturation_penalty``)."""
     saturation_margin: float = 4.0
     """|logit| allowed without penalty (4: features within 0.018 of 0 or 1 are penalised)."""
-    vgg16_path: str | None = opt(None, help="ImageNet VGG-16 weights (.pth/.safetensors)",
+    vgg16_path: str | None = opt(None, help="ImageNet VGG-16 weights (.pth/.safetensors) for --perceptual "
+                                            "vgg16-imagenet",
                                  default_text="$DELIFFAS_VGG16_WEIGHTS or the torch hub cache")
-    """ImageNet VGG-16 weight file for ``vgg16-imagenet`` (else env / torch hub cache)."""
     seed: int = opt(0, help="random seed of the model, the data order and the random backbone")
     device: str = device_field()
-    num_workers: int | None = opt(None, help="DataLoader worker processes, 0 = in this process", flag="--workers",
+    num_workers: int | None = opt(None, help="DataLoader worker processes (they read the shards, and ray-cast with "
+                                             "--uv raycast), 0 = in this process", flag="--workers",
                                   parse=non_negative_int,
                                   default_text="0 on a CPU device with 2 cores or fewer, else 1")
-    """DataLoader workers (they read the shards and, with ``uv`` resolving to ``raycast``, ray-cast the uv maps);
-    None = :attr:`data_workers`' choice."""
     uv: UVSource = uv_field()
     """Where the uv maps come from: ``raycast`` (open3d, where the samples are read: the DataLoader workers, or
     the training process with none), ``torch`` (the torch
     rasteriser on ``device``, in the main process), ``auto`` = ``torch`` on CUDA, else ``raycast``."""
     ray_chunk: int | None = opt(None, help="rays per backward pass (bounds training memory; single process)",
                                 parse=positive_int, default_text="all rays at once")
-    """Rays per backward pass (single process): bounds the light-field activations of a step to
-    this many rays; None = every ray of the step's K images in one graph (docs/reliability.md)."""
     checkpoint_every: int = opt(250, help="save a checkpoint every N iterations, and at the last",
                                 parse=positive_int)
     preview_every: int = opt(250, help="write previews/iter_N.png every N iterations, 0 = never",
@@ -173,8 +153,8 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         """Refuse bad values when the run is described, before any work starts (ValueError naming the field)."""
-        from deliffas.engine.devices import resolve_device  # imported here: the CLI reads this module without torch
-        from deliffas.models.zoo import list_models, list_presets
+        from deliffas.engine.devices import resolve_device  # local: the CLI reads this module without torch
+        from deliffas.models.zoo import list_models, list_presets  # local: torch, as above
 
         if self.model not in list_models():
             raise ValueError(f"model: unknown {self.model!r}; the zoo has {', '.join(list_models())}")
@@ -235,7 +215,7 @@ class TrainConfig:
         A worker overlaps reading and ray casting with the step but takes a core from the step's threads; on
         2 cores the step at 2 threads plus the sample read in the same process is the faster iteration
         (docs/performance.md, "Training step")."""
-        from deliffas.engine.devices import resolve_device
+        from deliffas.engine.devices import resolve_device  # local: the CLI reads this module without torch
 
         if self.num_workers is not None:
             return self.num_workers
@@ -290,9 +270,9 @@ def resolve_model_config(cfg: TrainConfig, atlas_res: int | None = None, data_wi
         data_window: the largest temporal window the shards store; a larger requested T is
             reduced to it. None = keep the requested T.
     """
-    from deliffas.models.deliffas import ModelConfig  # imported here: the CLI reads this module without torch
-    from deliffas.models.checkpoint import config_from_dict, config_to_dict
-    from deliffas.models.zoo import get_config
+    from deliffas.models.deliffas import ModelConfig  # local: the CLI reads this module without torch
+    from deliffas.models.checkpoint import config_from_dict, config_to_dict  # local: torch, as above
+    from deliffas.models.zoo import get_config  # local: torch, as above
 
     base = config_to_dict(get_config(cfg.model, cfg.preset))
     logger.info("model config: zoo %r preset %r (atlas_res %s, temporal_window %s)", cfg.model, cfg.preset,

@@ -41,13 +41,10 @@ class ViewConfig:
 
     run: str = opt(help="run directory written by 'deliffas train', an .avatar file, or a capture folder (any "
                         "supported format)", flag="", metavar="RUN|SUBJECT")
-    """Run directory written by ``deliffas train`` or an ``.avatar`` file."""
-    compare: str | None = opt(None, help="a second run on the same shards, side by side", default_text="none")
-    """A second run on the same shards, shown side by side or toggled (e.g. single- vs two-surface)."""
+    compare: str | None = opt(None, help="a second run on the same shards, side by side or toggled", default_text="none")
     motion: str | None = opt(None, help="driving motion: DynaCap .motion or SMPL .npz",
                              default_text="the capture's own frames")
     shards: str | None = opt(None, help="shard directory", default_text="the run's")
-    """Shard directory (default: the one the run was trained on)."""
     host: str = _host_field()
     """Interface to bind; anything but localhost exposes the viewer (no authentication)."""
     port: int = _port_field()
@@ -96,7 +93,6 @@ class SubjectViewConfig:
     format: str = opt("auto", help="SUBJECT: capture format (auto = detected)")
     template: str | None = opt(None, help="SUBJECT: template, SMPL model .npz/.pkl (SMPL captures) or a DDC variant",
                                default_text="the capture's own")
-    """Template the capture's poses drive: SMPL model ``.npz``/``.pkl`` or a DDC variant (as for ``check``)."""
     motions: tuple[str, ...] = ()
     """Pose parameters ``[SEQ=]FILE`` instead of the capture's own."""
     host: str = _host_field()

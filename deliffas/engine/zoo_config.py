@@ -19,6 +19,5 @@ class ZooConfig:
     folder: Path | None = opt(None, help="also list the .avatar files found under this folder (name, model, preset, "
                                          "size)", flag="", nargs="?", default_text="none")
     json: bool = opt(False, help="print JSON")
-    """How the command prints the listing (the listing itself is the same)."""
-    count_paper: bool = opt(False, help="also build the paper-size models to count parameters")
-    """Without it the ``paper`` presets' parameter counts are None (building them takes memory and time)."""
+    count_paper: bool = opt(False, help="also build the paper-size models to count parameters (otherwise their counts "
+                                        "are null)")

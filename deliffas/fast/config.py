@@ -52,7 +52,7 @@ class FastConfig:
         """The resolved MLP dtype."""
         import torch  # imported here: the CLI reads the configs holding a FastConfig without torch (--help)
 
-        from deliffas.fast.shade import native_bf16
+        from deliffas.fast.shade import native_bf16  # local: torch, as above
 
         name = self.dtype if self.dtype != "auto" else ("bfloat16" if native_bf16() else "float32")
         return torch.bfloat16 if name == "bfloat16" else torch.float32

@@ -19,9 +19,6 @@ class ProceduralConfig:
     out_dir: Path = opt(help="folder to write (created)", flag="")
     seed: int = opt(0, help="proportions, colours and patterns")
     target_faces: int = opt(8000, help="template face budget", flag="--faces")
-    name: str = opt("procedural", help="file stem")
-    """Stem of every file written (``<name>.character``, ...)."""
+    name: str = opt("procedural", help="file stem (<name>.character, ...)")
     texture_size: int = opt(1024, help="texture atlas side in texels")
     overwrite: bool = opt(False, help="replace an earlier procedural character in OUT_DIR")
-    """Without it a non-empty ``out_dir`` is refused; with it, only one holding an earlier ``<name>.character``
-    is replaced."""

@@ -13,12 +13,10 @@ __all__ = ["SurfaceFitConfig"]
 class SurfaceFitConfig:
     """How :func:`deliffas.geometry.smpl_surface_fit.fit_smpl_to_surfaces` optimises."""
 
-    first_iters: int = opt(300, help="Adam steps on the first frame", parse=positive_int)
-    """Adam steps on the first frame (shape, global pose, then body pose)."""
+    first_iters: int = opt(300, help="Adam steps on the first frame (shape, global pose, then body pose)", parse=positive_int)
     stage_a: float = 0.4
     """Fraction of ``first_iters`` that move translation, global orientation and betas only."""
-    frame_iters: int = opt(40, help="Adam steps per later frame", parse=positive_int)
-    """Adam steps on each later frame, from the previous frame's parameters."""
+    frame_iters: int = opt(40, help="Adam steps per later frame, from the previous frame's parameters", parse=positive_int)
     pose_prior: float = 1e-2
     """Weight of |body pose|^2 (rad^2) x 100, against the data term in mm."""
     beta_prior: float = 1e-3

@@ -12,7 +12,7 @@ __all__ = ["CamerasConfig"]
 
 
 def _writable() -> tuple[str, ...]:
-    from deliffas.io.camera_formats import camera_format_names  # numpy: only when the parser is built
+    from deliffas.io.camera_formats import camera_format_names  # local: import cycle, and numpy only when the parser is built
 
     return camera_format_names()
 
@@ -38,8 +38,7 @@ class CamerasConfig:
                                        default_text="read from the first image of each camera")
     drop_distortion: bool = opt(False, help="write cameras whose distortion the target cannot hold without it (logged "
                                             "per camera)")
-    overwrite: bool = opt(False, help="replace an existing OUT")
-    """Without it an existing OUT (other than an empty folder) is refused."""
+    overwrite: bool = opt(False, help="replace an existing OUT (an empty folder is always replaced)")
     to_colmap: Path | None = opt(None, help="shorthand: SRC --to colmap DIR", metavar="DIR", default_text="not used")
     from_colmap: Path | None = opt(None, help="shorthand: DIR --to dynacap SRC", metavar="DIR",
                                    default_text="not used")

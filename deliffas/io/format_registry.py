@@ -118,7 +118,7 @@ def _load_builtins() -> None:
     global _BUILTINS_LOADED
     if not _BUILTINS_LOADED:
         _BUILTINS_LOADED = True
-        import deliffas.io.formats.builtin  # noqa: F401  (registers the built-in formats; imported here: it imports this module)
+        import deliffas.io.formats.builtin  # noqa: F401  # local: import cycle (registers the built-in formats; it imports this module)
 
 
 def capture_formats(*capabilities: str) -> tuple[CaptureFormat, ...]:

@@ -92,6 +92,6 @@ def open_executor(jobs: int = 1, dask: str | None = None, *, connect_timeout_s: 
     """
     if dask is None:
         return PoolExecutor(jobs)
-    from deliffas.parallel.dask_executor import DaskExecutor  # dask is imported only here, at call time
+    from deliffas.parallel.dask_executor import DaskExecutor  # local: dask is imported only here, at call time
 
     return DaskExecutor(dask, connect_timeout_s=connect_timeout_s)

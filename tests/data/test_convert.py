@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -31,8 +32,11 @@ def _tree_state(root: Path) -> dict:
 
 
 def test_round_trip_images_bit_exact(subject, converted):
-    assert verify_shards(converted) == []
+    checked = verify_shards(converted)
+    assert checked.problems == () and checked.ok and checked.deep
     sset = ShardSet(converted)
+    assert checked.to_json() == {"out": str(converted), "deep": True, "shards": len(sset.shards), "ok": True,
+                                 "problems": []}
     assert sset.complete and [s.name for s in sset.shards] == [
         "shards/training-00000.h5", "shards/training-00001.h5", "shards/testing-00000.h5"]
     for seq, n in (("training", 3), ("testing", 1)):
@@ -83,6 +87,10 @@ def test_verify_catches_flipped_byte_and_missing_shard(converted_copy, capsys):
     assert cli_main(["verify", str(out)]) == 1
     err = capsys.readouterr().err
     assert "shards/testing-00000.h5: missing shard file" in err
+    assert cli_main(["verify", str(out), "--quick", "--json"]) == 1
+    printed = json.loads(capsys.readouterr().out)
+    assert printed["ok"] is False and printed["deep"] is False and any("missing shard file" in p
+                                                                        for p in printed["problems"])
 
 
 def test_verify_reports_unreadable_and_incomplete(converted_copy):
@@ -93,7 +101,7 @@ def test_verify_reports_unreadable_and_incomplete(converted_copy):
     m["shards"] = [s for s in m["shards"] if s["name"] != "shards/testing-00000.h5"]
     m["complete"] = False
     write_manifest(out, m)
-    problems = verify_shards(out)
+    problems = verify_shards(out).problems
     assert any("training-00000.h5: unreadable" in p for p in problems)
     assert any("testing-00000.h5: planned but not converted" in p for p in problems)
 
@@ -116,7 +124,7 @@ def test_resume_after_interruption_gives_identical_manifest(subject, converted, 
     res = convert(subject, out, ConvertConfig(**CFG, resume=True))
     assert (res.shards_skipped, res.shards_converted) == (2, 1)  # testing-00000 was renamed, never listed
     assert _manifest_bytes(out) == _manifest_bytes(converted)
-    assert not list((out / "shards").glob(".*tmp*")) and verify_shards(out) == []
+    assert not list((out / "shards").glob(".*tmp*")) and verify_shards(out).problems == ()
 
 
 def test_resume_recognises_its_own_start_before_the_first_manifest(subject, converted, tmp_path):
@@ -131,7 +139,7 @@ def test_resume_recognises_its_own_start_before_the_first_manifest(subject, conv
     (out / "shards" / ".training-00000.h5.tmp-999").write_bytes(b"half a shard")
     res = convert(subject, out, ConvertConfig(**CFG, resume=True))
     assert res.shards_skipped == 0
-    assert _manifest_bytes(out) == _manifest_bytes(converted) and verify_shards(out) == []
+    assert _manifest_bytes(out) == _manifest_bytes(converted) and verify_shards(out).problems == ()
     other = tmp_path / "other"
     (other / "shards").mkdir(parents=True)
     (other / "notes.txt").write_text("mine")
@@ -348,19 +356,17 @@ def _replace(f, key, data):
 ])
 def test_verify_checks_the_shard_schema(converted_copy, edit, match):
     _edit_shard(converted_copy, "shards/training-00000.h5", edit)
-    problems = verify_shards(converted_copy)
+    problems = verify_shards(converted_copy).problems
     assert any(p.startswith("shards/training-00000.h5: ") and match in p for p in problems), problems
     assert not any("checksum" in p for p in problems)
 
 
 def test_verify_refuses_names_outside_and_broken_manifests(converted_copy, capsys):
-    import json
-
     out = converted_copy
     m = read_manifest(out)
     m["shards"][0]["name"] = "../../etc/passwd"
     write_manifest(out, m)
-    assert any("outside the output folder; refused" in p for p in verify_shards(out))
+    assert any("outside the output folder; refused" in p for p in verify_shards(out).problems)
     with pytest.raises(ValueError, match="outside the output folder"):
         ShardSet(out)
     m["shards"] = {"not": "a list"}

@@ -81,7 +81,7 @@ def test_train_resume_eval_render(tiny_shards, tmp_path):
     assert [r["iteration"] for r in log] == [1, 2, 3, 4, 5, 6]
     assert json.loads((run / "train_state.json").read_text())["iteration"] == 6
 
-    result = evaluate(EvalConfig(run=str(run), split="novel_view", save_images=str(tmp_path / "pred")))
+    result = evaluate(EvalConfig(run=str(run), split="novel_view", save_images=str(tmp_path / "pred"))).to_json()
     for key in ("psnr", "ssim", "lpips", "lpips_reason", "fid", "fid_reason", "fps", "stage_ms", "frames", "cameras"):
         assert key in result
     assert set(result["stage_ms"]) == {"uv", "cnn", "sample", "mlp"}

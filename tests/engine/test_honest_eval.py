@@ -28,17 +28,20 @@ def run30(tiny_shards, tmp_path_factory):
 def test_foreground_block_and_margin_on_a_30_iteration_model(run30, tmp_path):
     grid = tmp_path / "grid.png"
     ev = evaluate(EvalConfig(run=str(run30), split="novel_view", grid=str(grid)))
-    fg = ev["foreground"]
-    assert {"psnr", "ssim", "masked_psnr", "flip", "lpips", "lpips_reason", "protocol"} <= set(fg)
-    assert fg["protocol"].startswith("foreground") and ev["metric_protocol"].startswith("official")
-    assert fg["lpips"] is None and fg["lpips_reason"]  # no weights here: null with the reason
-    assert 0 < fg["flip"] < 1 and 0 < ev["flip"] < 1
+    fg, official = ev.foreground, ev.official
+    assert fg.protocol.startswith("foreground") and official.protocol.startswith("official")
+    assert fg.lpips is None and fg.lpips_reason  # no weights here: null with the reason
+    assert 0 < fg.flip < 1 and 0 < official.flip < 1
     # the official crop is mostly shared white background: a barely trained model looks good there only
-    assert ev["psnr"] - fg["psnr"] > 8.0, (ev["psnr"], fg["psnr"])  # measured: 36.7 vs 17.4 dB
-    assert fg["masked_psnr"] < ev["psnr"] - 4.0
-    assert ev["metric_protocols"]["foreground.psnr"].startswith("foreground") and ev["headline"] == "foreground.psnr"
-    assert ev["is_test_split"] and ev["protocol"] == "all"
-    assert ev["images"] < MIN_IMAGES_WARNING and "noisy" in ev["warnings"][0]
+    assert official.psnr - fg.psnr > 8.0, (official.psnr, fg.psnr)  # measured: 36.7 vs 17.4 dB
+    assert fg.masked_psnr < official.psnr - 4.0
+    assert ev.metric_protocols["foreground.psnr"].startswith("foreground") and ev.headline == "foreground.psnr"
+    assert ev.is_test_split and ev.protocol == "all"
+    assert ev.images < MIN_IMAGES_WARNING and "noisy" in ev.warnings[0]
+    data = ev.to_json()  # the keys of `deliffas eval --json`: official metrics at the top level, foreground nested
+    assert data["metric_protocol"] == official.protocol and data["psnr"] == official.psnr and "official" not in data
+    assert {"psnr", "ssim", "masked_psnr", "flip", "lpips", "lpips_reason", "protocol"} <= set(data["foreground"])
+    assert "frames_protocol" not in data and json.loads(json.dumps(data)) == data
     img = cv2.imread(str(grid))
     assert img is not None and img.shape[1] >= 3 * MIN_PANEL_PX and img.shape[0] >= MIN_PANEL_PX
 
@@ -49,8 +52,8 @@ def test_validation_split_is_held_out_training_cameras(run30, tiny_shards):
     assert data["validation_cameras"] and not set(data["validation_cameras"]) & set(data["train_cameras"])
     assert data["protocol"] == "all" and "auto -> all" in data["protocol_message"]
     ev = evaluate(EvalConfig(run=str(run30), split="validation"))
-    assert ev["cameras"] == data["validation_cameras"] and not ev["is_test_split"]
-    assert 3 not in ev["cameras"]  # the capture's test camera
+    assert list(ev.cameras) == data["validation_cameras"] and not ev.is_test_split
+    assert 3 not in ev.cameras  # the capture's test camera
 
 
 def test_protocol_resolution_and_validation_cameras(tiny_shards):

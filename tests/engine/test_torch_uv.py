@@ -105,7 +105,7 @@ def test_train_eval_render_without_the_cpu_geometry_packages(tiny_shards, tmp_pa
         res = train(cfg)
         ev = evaluate(EvalConfig(run=run, split="novel_view", uv={uv!r}, max_frames=2))
         video = render_video(RenderConfig(run=run, out={str(tmp_path / "frames")!r}, frames=2, fast=None, uv={uv!r}))
-        print(json.dumps({{"iterations": res.iterations, "psnr": ev["psnr"], "uv": ev["uv"],
+        print(json.dumps({{"iterations": res.iterations, "psnr": ev.official.psnr, "uv": ev.uv,
                           "frames": len(list(video.glob("*.png"))), "blocked": sys.modules["open3d"] is None}}))
     """)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (os.getcwd(), os.environ.get("PYTHONPATH")) if p)}

@@ -278,7 +278,7 @@ def test_sigkill_then_resume_equals_uninterrupted(rel_subject, rel_reference, tm
         for name, sha in reference.items():
             assert _sha(out / name) == sha, f"chain {r}: {name} differs from the reference"
         assert not list(out.glob("shards/.*")) and not list(out.glob(".*.tmp-*")), "temporary files left"
-        assert verify_shards(out) == []
+        assert verify_shards(out).problems == ()
     from deliffas.cli import main as cli_main
 
     assert cli_main(["verify", str(out)]) == 0

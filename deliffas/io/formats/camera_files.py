@@ -39,7 +39,7 @@ def need_size(fmt: str, size: tuple[int, int] | None, images: Path | None = None
         ValueError: ``size`` not positive, or missing with no image to read it from, saying to pass ``--size``.
     """
     if size is None:
-        from deliffas.io.formats.capture_frames import image_file_size, numbered_files  # (it imports this module)
+        from deliffas.io.formats.capture_frames import image_file_size, numbered_files  # local: import cycle (it imports this module)
 
         files = {} if images is None else {0: images} if images.is_file() else numbered_files(images)
         if not files:
