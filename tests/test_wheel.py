@@ -81,6 +81,9 @@ def test_wheel_installs_and_runs_from_another_folder(wheel_venv, tmp_path):
     shipped = set(zipfile.ZipFile(wheel).namelist())  # the C kernels travel as package data
     sources = {f"deliffas/csrc/{p.name}" for p in (REPO / "deliffas" / "csrc").iterdir() if p.suffix in (".c", ".h")}
     assert sources and sources <= shipped, sorted(sources - shipped)
+    player = {f"deliffas/engine/web/player/{p.name}" for p in (REPO / "deliffas" / "engine" / "web" / "player").iterdir()
+              if p.suffix in (".js", ".html")}  # the web player of export --web, package data as well
+    assert player and player <= shipped, sorted(player - shipped)
     for argv in _example_args(tmp_path):
         example = _run(env_dir, [py, *argv], tmp_path)
         assert example.returncode == 0, f"{argv[0]}: {example.stderr[-2000:]}"

@@ -180,10 +180,12 @@ COMMANDS: tuple[Command, ...] = (
             "frames, seen from a capture camera or an orbit. An orbit turns once over the video: the capture's "
             "test motion may have few frames, so pass --frames N --loop for a longer one.",
             configs=(f"{_ENGINE}.render_config:RenderConfig",), handler="render", extra=_plain_option),
-    Command("export", "write a run as one .avatar file (model, template, atlas, cameras)",
+    Command("export", "write a run as one .avatar file (model, template, atlas, cameras), or as a web page (--web)",
             "Write RUN's model (config and weights), template spec and source files, atlas, faces and capture "
             "cameras as one safetensors file with JSON metadata and sha256s (no pickle). 'deliffas render "
-            "OUT.avatar --motion M' and 'deliffas view' load it anywhere, without the shards or the subject.",
+            "OUT.avatar --motion M' and 'deliffas view' load it anywhere, without the shards or the subject. "
+            "With --web, OUT is a folder: a static page that plays the avatar in a browser (WebGL2), with no "
+            "server-side code (docs/web.md).",
             configs=(f"{_ENGINE}.export_config:ExportConfig",), handler="export"),
     Command("view", "interactive viewer in the browser (viser): a trained run, or a capture",
             "Serve a browser viewer of a trained run: free camera (orbit, pan, zoom), the capture's cameras as "

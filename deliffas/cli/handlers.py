@@ -38,6 +38,7 @@ from deliffas.engine.resume import iterations_done, resumed_config
 from deliffas.engine.train import RUN_MARKER, TrainConfig, Trainer
 from deliffas.engine.zoo_listing import ZooConfig, zoo_listing
 from deliffas.engine.view import SubjectViewConfig, ViewConfig, is_capture, view, view_subject
+from deliffas.engine.web import export_web
 from deliffas.fast.config import FastConfig
 from deliffas.cli.fast_env import fast_from_env
 from deliffas.cli.from_config import config_from_args, given_values, option_names
@@ -111,11 +112,14 @@ def cmd_check(args: argparse.Namespace) -> int:
 
 def cmd_verify(args: argparse.Namespace) -> int:
     cfg = config_from_args(VerifyConfig, args)
-    problems = verify_conversion(cfg)
-    for p in problems:
+    result = verify_conversion(cfg)
+    if cfg.json:
+        print(json.dumps(result.to_json()))
+        return 0 if result.ok else 1
+    for p in result.problems:
         print(f"BROKEN {p}", file=sys.stderr)
-    if problems:
-        print(f"deliffas verify: {len(problems)} problem(s) in {cfg.out}", file=sys.stderr)
+    if not result.ok:
+        print(f"deliffas verify: {len(result.problems)} problem(s) in {cfg.out}", file=sys.stderr)
         return 1
     print(f"{cfg.out}: every shard matches the manifest")
     return 0
@@ -215,21 +219,21 @@ def cmd_eval(args: argparse.Namespace) -> int:
     retain_freed_memory()
     result = evaluate(config_from_args(EvalConfig, args, fast=fast_from_env(FastConfig()) if args.fast else None))
     if args.json:
-        print(json.dumps(result))
+        print(json.dumps(result.to_json()))
         return 0
-    fg = result["foreground"]
+    fg, official = result.foreground, result.official
 
     def na(value, spec, reason):
         return format(value, spec) if value is not None else f"n/a ({reason})"
 
-    print(f"{args.split} ({result['images']} images, frames protocol {result['protocol']})")
-    print(f"  foreground (padded mask box): PSNR {fg['psnr']:.2f} dB, SSIM {fg['ssim']:.4f}, masked PSNR "
-          f"{fg['masked_psnr']:.2f} dB, FLIP {na(fg['flip'], '.4f', fg['flip_reason'])}, "
-          f"LPIPS {na(fg['lpips'], '.4f', fg['lpips_reason'])}")
-    print(f"  official (white composite, 600x496 crop): PSNR {result['psnr']:.2f} dB, SSIM {result['ssim']:.4f}, "
-          f"FID {na(result['fid'], '.2f', result['fid_reason'])}")
-    print(f"  {result['fps']:.2f} fps; stage ms " + ", ".join(f"{k} {v:.1f}" for k, v in result["stage_ms"].items()))
-    for warning in result["warnings"]:
+    print(f"{args.split} ({result.images} images, frames protocol {result.protocol})")
+    print(f"  foreground (padded mask box): PSNR {fg.psnr:.2f} dB, SSIM {fg.ssim:.4f}, masked PSNR "
+          f"{fg.masked_psnr:.2f} dB, FLIP {na(fg.flip, '.4f', fg.flip_reason)}, "
+          f"LPIPS {na(fg.lpips, '.4f', fg.lpips_reason)}")
+    print(f"  official (white composite, 600x496 crop): PSNR {official.psnr:.2f} dB, SSIM {official.ssim:.4f}, "
+          f"FID {na(official.fid, '.2f', official.fid_reason)}")
+    print(f"  {result.fps:.2f} fps; stage ms " + ", ".join(f"{k} {v:.1f}" for k, v in result.stage_ms.items()))
+    for warning in result.warnings:
         print(f"  warning: {warning}")
     return 0
 
@@ -244,6 +248,12 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 def cmd_export(args: argparse.Namespace) -> int:
     cfg = config_from_args(ExportConfig, args)
+    if cfg.web:
+        out = export_web(cfg)
+        size = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
+        print(f"wrote {out} ({size / 1e6:.1f} MB): a static page that plays {cfg.run}; serve it with "
+              f"'python -m http.server' in that folder")
+        return 0
     out = export_avatar(cfg)
     print(f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB): model, template files, atlas and cameras of {cfg.run}")
     return 0

@@ -1,0 +1,40 @@
+"""A tiny synthetic capture and small runs of the models the web player renders, shared by the web tests."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+
+@pytest.fixture(scope="session")
+def web_capture(tmp_path_factory):
+    """(subject folder, shards folder): 48 x 48 images, 4 cameras (3 held out), a 32 x 32 atlas."""
+    from deliffas.data.convert import ConvertConfig, convert
+    from deliffas.data.synth import SynthConfig, synthesize_capture
+
+    root = tmp_path_factory.mktemp("web_capture")
+    synthesize_capture(root / "subject", SynthConfig(num_frames=6, num_test_frames=3, num_cameras=4, width=48,
+                                                     height=48, test_cameras=(3,), seed=0))
+    convert(root / "subject", root / "shards", ConvertConfig(atlas_res=32, progress=False))
+    return root / "subject", root / "shards"
+
+
+@pytest.fixture(scope="session")
+def web_runs(web_capture, tmp_path_factory):
+    """``runs(model, preset)``: a run of that model trained for a few iterations on the capture (made once)."""
+    from deliffas.engine.train import TrainConfig, train
+
+    made: dict[tuple[str, str], Path] = {}
+    root = tmp_path_factory.mktemp("web_runs")
+
+    def runs(model: str, preset: str) -> Path:
+        if (model, preset) not in made:
+            run = root / f"{model}-{preset}"
+            train(TrainConfig(shards=str(web_capture[1]), out=str(run), model=model, preset=preset, iters=6,
+                              cameras_per_frame=2, protocol="all", num_workers=0, checkpoint_every=6,
+                              preview_every=0, log_every=1, progress=False))
+            made[model, preset] = run
+        return made[model, preset]
+
+    return runs
