@@ -6,8 +6,8 @@ into a subject of its own (masks from the detector, 3-D keypoints, a fitted body
 stage is then compared with the truth:
 
 * masks: IoU of the ingested mask against the true one, per camera (median over frames);
-* 3-D keypoints: distance to the true SMPL joints they stand for (mm; this includes the offset between a
-  detector's landmarks and SMPL's joint definitions, e.g. ears against the head joint);
+* 3-D keypoints: distance to the true body landmarks they stand for (mm; joints, or surface points such as the
+  ears and toe tips: :mod:`deliffas.geometry.body_landmarks`);
 * body: the fitted surface against the true one per frame (mm): vertex to vertex (same topology) and the
   symmetric nearest-vertex distance;
 * avatar: three avatars of the default model, trained on the same cameras and frames and scored on the
@@ -52,21 +52,32 @@ VIDEO_FOLDERS = ("img", "fg")
 
 
 # --------------------------------------------------------------------------------------------- capture + ingest
+TRUE_BETAS = (0.8, 1.2, -0.6, 0.6, 1.0, -0.5, 0.5, 0.8, 0.7, -0.4)
+"""The synthetic person's shape (the procedural body's shape directions: height, girth, arm length, shoulder width,
+belly, leg length, head size, hip width, chest depth, torso length; about one unit each): not the mean shape, so
+a fit that stays near the mean shape is not rewarded for it."""
 BACKGROUND = (0.42, 0.45, 0.5)
 """The synthetic capture's background colour: a mask that spills over it brings it into the training target, as a
 real background would (on black, spilled pixels are black like the target's background)."""
 
 
 def make_capture(out: Path, sizes: RunSizes, jobs: int = 2) -> Path:
-    """The synthetic capture (procedural body in SMPL layout, with videos, on ``BACKGROUND``) in ``out/subject``,
-    made once."""
+    """The synthetic capture (procedural body in SMPL layout shaped by ``TRUE_BETAS``, with videos, on
+    ``BACKGROUND``) in ``out/subject``, made once."""
     from deliffas.data.synth import ShadingConfig, SynthConfig, synthesize_capture
+    from deliffas.geometry.smpl_motion import procedural_smpl_motion
+    from deliffas.io.body_models.amass import write_smpl_motion
 
     path = out / "subject"
     if not (path / "synth.json").is_file():
+        motions = {}
+        for name, frames, seed in (("training", sizes.frames, 0), ("test", sizes.test_frames, 1)):
+            motions[name] = out / f"motion_{name}.npz"
+            write_smpl_motion(motions[name], procedural_smpl_motion(frames, seed, betas=np.asarray(TRUE_BETAS)))
         synthesize_capture(path, SynthConfig(
             num_frames=sizes.frames, num_test_frames=sizes.test_frames, num_cameras=sizes.cameras, width=sizes.size,
             height=sizes.size, test_cameras=(sizes.cameras - 1,), body_model="procedural", videos=True,
+            motion=str(motions["training"]), test_motion=str(motions["test"]),
             supersample=sizes.supersample, jobs=jobs, overwrite=True, shading=ShadingConfig(background=BACKGROUND)))
     return path
 
@@ -142,19 +153,24 @@ def swap_masks(subject: Path, mask_source: Path, out: Path) -> Path:
 
 # --------------------------------------------------------------------------------------------- geometry
 def _posed(subject: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The subject's training motion posed: (frames (N,), vertices (N, V, 3) mm, joints (N, 24, 3) mm)."""
+    """The subject's training motion posed: (frames (N,), vertices (N, V, 3) mm, the landmarks of the ingest's
+    keypoints (N, J, 3) mm)."""
     import torch
 
+    from deliffas.data.ingest.detect import BODY_LANDMARK_NAMES
     from deliffas.data.subjects.capture_common import SMPL_NUM_BETAS
+    from deliffas.geometry.body_landmarks import body_landmarks, posed_template_landmarks
     from deliffas.geometry.templates import build_template, spec_from_file, template_kind
 
     spec = spec_from_file(next((Path(subject) / "body").glob("*.npz")), num_betas=SMPL_NUM_BETAS)
     kind = template_kind(spec.kind)
     motion = kind.read_motion(Path(subject) / "training" / f"poses{kind.motion_suffix}", spec, None)
     template = build_template(spec, dtype=torch.float32)
+    landmarks = body_landmarks(template.v_template, template.J_regressor, template.lbs_weights, BODY_LANDMARK_NAMES)
     with torch.no_grad():
-        verts, joints = template.pose_with_joints(torch.as_tensor(np.asarray(motion.dofs), dtype=torch.float32))
-    return np.asarray(motion.frames), verts.numpy().astype(np.float64), joints.numpy().astype(np.float64)
+        params = torch.as_tensor(np.asarray(motion.dofs), dtype=torch.float32)
+        verts, points = template.pose(params), posed_template_landmarks(template, landmarks, params)
+    return np.asarray(motion.frames), verts.numpy().astype(np.float64), points.numpy().astype(np.float64)
 
 
 def surface_errors(truth: tuple, fitted: tuple) -> dict:
@@ -177,17 +193,17 @@ def surface_errors(truth: tuple, fitted: tuple) -> dict:
 
 
 def keypoint_errors(truth: tuple, ingested: Path) -> dict:
-    """The triangulated 3-D keypoints (``ingested``'s ``keypoints.npz``) against the true SMPL joints they stand
+    """The triangulated 3-D keypoints (``ingested``'s ``keypoints.npz``) against the true body landmarks they stand
     for (mm; ``truth`` as :func:`_posed`): the median over every triangulated keypoint and per keypoint."""
-    from deliffas.data.ingest.detect import KEYPOINT_NAMES, SMPL_JOINT_IDS
+    from deliffas.data.ingest.detect import KEYPOINT_NAMES
     from deliffas.data.ingest.report import KEYPOINTS_FILE
 
     with np.load(Path(ingested) / KEYPOINTS_FILE) as kp:
         frames, points, valid = kp["frames"], kp["points3d"], kp["valid3d"]
-    t_frames, _, joints = truth
+    t_frames, _, landmarks = truth
     where = {int(f): k for k, f in enumerate(t_frames)}
     rows = [k for k, f in enumerate(frames) if int(f) in where]
-    true = joints[[where[int(frames[k])] for k in rows]][:, list(SMPL_JOINT_IDS)]
+    true = landmarks[[where[int(frames[k])] for k in rows]]
     err = np.where(valid[rows], np.linalg.norm(points[rows] - true, axis=2), np.nan)
     per = {name: float(np.nanmedian(err[:, j])) for j, name in enumerate(KEYPOINT_NAMES)}
     return {"median_mm": float(np.nanmedian(err)), "per_keypoint_mm": per}
@@ -205,7 +221,7 @@ def _seed_runner(shards: Path, eval_shards: Path, sizes: RunSizes, device: str):
             true = own
         else:
             true = evaluate(EvalConfig(run=str(run), split="novel_view", shards=str(eval_shards),
-                                       max_frames=sizes.eval_frames, device=device))
+                                       max_frames=sizes.eval_frames, device=device)).to_json()
         true = {**true, "own_masks": own["foreground"]}
         return true, None, None
 

@@ -9,9 +9,10 @@ axis-angle pose (72), betas]``. The world is the calibration's: mm, any up axis 
    translation (at least 3 of the 4 needed); each limb joint (hips, knees, ankles, shoulders, elbows) starts at
    the smallest rotation turning its rest bone towards its bone's keypoints. Frames (or bones) without those
    keypoints take the nearest frame's values; the root is then smoothed over +-2 frames.
-2. **Keypoint stage** (``iters_keypoints`` Adam steps, all frames batched; only the 24 joints are posed, so a step
-   is cheap): a confidence-weighted Geman-McClure distance (``robust_mm``) of SMPL joints ``joint_ids`` to the
-   keypoints, an L2 prior on the body pose (``pose_prior``) with a hinge prior on knees and elbows
+2. **Keypoint stage** (``iters_keypoints`` Adam steps, all frames batched; only the 24 joints and the landmarks
+   are posed, so a step is cheap): a confidence-weighted Geman-McClure distance (``robust_mm``) of the body's
+   ``landmarks`` (:mod:`deliffas.geometry.body_landmarks`: joints, or surface points such as the ears and toe tips)
+   to the keypoints, an L2 prior on the body pose (``pose_prior``) with a hinge prior on knees and elbows
    (``hinge_prior``: rotation off their bending axis, bending backwards), an L2 prior on the betas
    (``shape_prior``) and squared second differences over consecutive frames of the posed joints and body pose
    (``smooth``). The first ``warmup`` of the steps move only root and translation.
@@ -44,6 +45,8 @@ from deliffas.checks import check_shape
 from deliffas.io.body_models.smpl import NUM_JOINTS
 from deliffas.io.cameras import Camera
 from deliffas.geometry.body_fit_config import BodyFitConfig
+from deliffas.geometry.body_landmarks import BodyLandmarks, body_landmarks
+from deliffas.geometry.smpl_body import SMPL_JOINT_NAMES
 from deliffas.geometry import body_fit_silhouette as sil
 from deliffas.geometry.smpl import batch_rigid_transform, batch_rodrigues
 from deliffas.geometry.templates.smpl import SMPLTemplate
@@ -74,8 +77,8 @@ class BodyFitResult:
     Attributes:
         params: (N, D) float64 ``SMPLTemplate`` rows [transl (model units), pose (72), betas]; the betas are the
             same on every row.
-        joint_error_mm: (N, J) float64 distance of each fitted joint ``joint_ids[j]`` to its keypoint, mm; NaN where
-            the keypoint is invalid.
+        joint_error_mm: (N, J) float64 distance of each fitted landmark to its keypoint, mm; NaN where the keypoint
+            is invalid.
         silhouette_iou: (N, C) float64 IoU of the fitted body's silhouette and the mask at ``mask_height``; NaN where
             the mask is empty; None without cameras and masks.
         losses: the final value of each term (unweighted; ``total`` is the last stage's weighted sum).
@@ -237,6 +240,14 @@ def _continuous_rotvecs(R: np.ndarray) -> np.ndarray:
     return rv
 
 
+def _as_landmarks(template: SMPLTemplate, landmarks: BodyLandmarks | Sequence[int] | np.ndarray) -> BodyLandmarks:
+    """``landmarks`` as :class:`BodyLandmarks` (SMPL joint indices become joint landmarks)."""
+    if isinstance(landmarks, BodyLandmarks):
+        return landmarks
+    names = [SMPL_JOINT_NAMES[int(j)] for j in np.asarray(list(landmarks), np.int64)]
+    return body_landmarks(template.v_template, template.J_regressor, template.lbs_weights, names)
+
+
 def _rest_joints(template: SMPLTemplate) -> np.ndarray:
     """(24, 3) float64 rest joints of the mean shape, world units (mm)."""
     with torch.no_grad():
@@ -244,7 +255,8 @@ def _rest_joints(template: SMPLTemplate) -> np.ndarray:
 
 
 def initial_body_params(template: SMPLTemplate, keypoints: Real[np.ndarray, "N J 3"],
-                        keypoint_conf: Real[np.ndarray, "N J"], joint_ids: Sequence[int] | Integer[np.ndarray, "J"],
+                        keypoint_conf: Real[np.ndarray, "N J"],
+                        landmarks: BodyLandmarks | Sequence[int] | Integer[np.ndarray, "J"],
                         frame_ids: Integer[np.ndarray, "N"] | None = None) -> Float64[np.ndarray, "N D"]:
     """The closed-form start of :func:`fit_body` (module docstring, step 1): rows with the root, the limb joints
     and the translation set, the rest of the pose and the betas zero.
@@ -253,14 +265,16 @@ def initial_body_params(template: SMPLTemplate, keypoints: Real[np.ndarray, "N J
         template: the body model.
         keypoints: (N, J, 3) world mm (NaN allowed where invalid).
         keypoint_conf: (N, J) in [0, 1], 0 = invalid.
-        joint_ids: (J,) the SMPL joint (0..23) each keypoint column targets.
+        landmarks: the J body points the keypoint columns stand for, or (J,) SMPL joints (0..23); only joint
+            landmarks enter the initialisation.
         frame_ids: (N,) increasing frame numbers (nearest frames and smoothing follow them); None = 0..N-1.
 
     Returns:
         (N, D) float64 rows.
     """
     kp, w = _clean(keypoints, keypoint_conf)
-    ids = np.asarray(joint_ids, np.int64)
+    ids = _as_landmarks(template, landmarks).joints
+    kp, w, ids = kp[:, ids >= 0], w[:, ids >= 0], ids[ids >= 0]
     times = np.arange(len(kp)) if frame_ids is None else np.asarray(frame_ids, np.int64)
     rest = _rest_joints(template)
     R, pelvis = _root_init(rest, kp, w, ids, times)
@@ -279,8 +293,8 @@ def _geman_mcclure(d2: Tensor, scale: float) -> Tensor:
 class _Problem:
     """The unknowns of all frames (root, body pose, translation, shared betas) and the terms both stages share."""
 
-    def __init__(self, template: SMPLTemplate, init: np.ndarray, kp: np.ndarray, w: np.ndarray, ids: np.ndarray,
-                 times: np.ndarray, config: BodyFitConfig):
+    def __init__(self, template: SMPLTemplate, init: np.ndarray, kp: np.ndarray, w: np.ndarray,
+                 landmarks: BodyLandmarks, times: np.ndarray, config: BodyFitConfig):
         ref = template.v_template
         start = torch.as_tensor(init, dtype=ref.dtype, device=ref.device)
         self.template, self.config = template, config
@@ -290,11 +304,14 @@ class _Problem:
         self.betas = start[:1, 3 * NUM_JOINTS + 3:].clone().requires_grad_(True)
         self.target = torch.as_tensor(kp, dtype=ref.dtype, device=ref.device)
         self.weight = torch.as_tensor(w, dtype=ref.dtype, device=ref.device)
-        self.ids = torch.as_tensor(ids, dtype=torch.long, device=ref.device)
+        self.bones = torch.as_tensor(landmarks.bones, dtype=torch.long, device=ref.device)
         self.num_weight = max(float(w.sum()), 1e-6)
         with torch.no_grad():
             self.j_rest = template.J_regressor @ template.v_template  # (24, 3) mm
             self.j_dirs = torch.einsum("jv,vkl->jkl", template.J_regressor, template.shapedirs)  # (24, 3, NB)
+            lw = torch.as_tensor(landmarks.weights, dtype=ref.dtype, device=ref.device)
+            self.l_rest = lw @ template.v_template  # (J, 3) mm
+            self.l_dirs = torch.einsum("jv,vkl->jkl", lw, template.shapedirs)  # (J, 3, NB)
         steps = np.diff(times)
         self.triples = torch.as_tensor(np.flatnonzero((steps[:-1] == 1) & (steps[1:] == 1)), device=ref.device)
         hinge = [(j - 1) * 3 + a for j, a, _ in _HINGES]
@@ -308,17 +325,25 @@ class _Problem:
         body, betas = (self.body, self.betas) if free else (self.body.detach(), self.betas.detach())
         return torch.cat([self.transl, self.root, body, betas.expand(len(self.body), -1)], dim=1)
 
-    def joints(self, params: Tensor) -> Tensor:
-        """(N, 24, 3) posed joints, mm: ``SMPLTemplate.pose_with_joints``'s joints without posing the vertices."""
+    def posed(self, params: Tensor) -> tuple[Tensor, Tensor]:
+        """(N, 24, 3) posed joints (``SMPLTemplate.pose_with_joints``'s, without posing the vertices) and (N, J, 3)
+        posed landmarks, mm."""
         N = len(params)
-        rest = self.j_rest + torch.einsum("jkl,l->jk", self.j_dirs, params[0, 3 * NUM_JOINTS + 3:])
+        betas = params[0, 3 * NUM_JOINTS + 3:]
+        rest = self.j_rest + torch.einsum("jkl,l->jk", self.j_dirs, betas)
+        l_rest = self.l_rest + torch.einsum("jkl,l->jk", self.l_dirs, betas)
         rot = batch_rodrigues(params[:, 3:3 * NUM_JOINTS + 3].reshape(-1, 3)).reshape(N, NUM_JOINTS, 3, 3)
-        posed, _ = batch_rigid_transform(rot, rest.expand(N, -1, -1), self.template.parents)
-        return posed + params[:, None, :3] * self.template.scale
+        posed, A = batch_rigid_transform(rot, rest.expand(N, -1, -1), self.template.parents)
+        A = A[:, self.bones]  # (N, J, 4, 4)
+        points = torch.einsum("njik,jk->nji", A[..., :3, :3], l_rest) + A[..., :3, 3]
+        shift = params[:, None, :3] * self.template.scale
+        return posed + shift, points + shift
 
-    def terms(self, joints: Tensor, params: Tensor) -> dict[str, Tensor]:
-        """The keypoint, prior and smoothness terms (unweighted; lengths in cm, angles in radians)."""
-        d2 = ((joints[:, self.ids] - self.target) ** 2).sum(-1) / 100.0
+    def terms(self, params: Tensor, posed: tuple[Tensor, Tensor] | None = None) -> dict[str, Tensor]:
+        """The keypoint, prior and smoothness terms (unweighted; lengths in cm, angles in radians); ``posed`` is
+        :meth:`posed` of ``params`` when already computed."""
+        joints, points = self.posed(params) if posed is None else posed
+        d2 = ((points - self.target) ** 2).sum(-1) / 100.0
         body = params[:, 6:3 * NUM_JOINTS + 3]
         hinge = ((body[:, self.hinge_off] ** 2).sum(1)
                  + (torch.relu(-self.hinge_sign * body[:, self.hinge_axis]) ** 2).sum(1))
@@ -342,8 +367,7 @@ class _Problem:
 
     def keypoint_step(self, it: int, free: bool) -> Tensor:
         """The keypoint stage's objective at step ``it``."""
-        params = self.params(free)
-        return self.weighted(self.terms(self.joints(params), params), 1.0)
+        return self.weighted(self.terms(self.params(free)), 1.0)
 
 
 class _SilhouetteStage:
@@ -363,13 +387,13 @@ class _SilhouetteStage:
         """All terms at the current unknowns (the nearest vertices searched again when ``it`` says so)."""
         p, c = self.problem, self.problem.config
         params = p.params()
-        verts, joints = p.template.pose_with_joints(params)
+        verts = p.template.pose(params)
         if self.candidates is None or it is None or it % c.reassign_every == 0:
             uv = sil.project(verts.detach(), self.targets.proj)[0]
             self.candidates = sil.nearest_candidates(uv, self.targets.samples)
             covered = sil.covered_samples(uv, self.targets.samples, self.candidates, self.table, self.faces)
             self.uncovered = (~covered).to(uv.dtype)
-        out = p.terms(joints, params)
+        out = p.terms(params)
         out["outside"], out["cover"] = sil.silhouette_terms(
             verts, self.targets, self.candidates, self.uncovered, self.mm_per_px, c.outside_margin_mm,
             c.silhouette_robust_mm)
@@ -400,16 +424,21 @@ def _adam(problem: _Problem, iters: int, lr: float, objective: Callable[[int, bo
 
 
 # --------------------------------------------------------------------------------------------- the fit
-def _check_inputs(keypoints: np.ndarray, keypoint_conf: np.ndarray, joint_ids: Sequence[int],
-                  cameras: Sequence[Camera] | None, masks: np.ndarray | None, frame_ids: np.ndarray | None
-                  ) -> tuple[np.ndarray, np.ndarray]:
-    """The joint ids (J,) and frame times (N,) as int64; ValueError on inconsistent inputs."""
+def _check_inputs(template: SMPLTemplate, keypoints: np.ndarray, keypoint_conf: np.ndarray,
+                  landmarks: BodyLandmarks | Sequence[int], cameras: Sequence[Camera] | None, masks: np.ndarray | None,
+                  frame_ids: np.ndarray | None) -> tuple[BodyLandmarks, np.ndarray]:
+    """The landmarks and frame times (N,) as int64; ValueError on inconsistent inputs."""
     sizes = check_shape("keypoints", keypoints, "N J 3")
     check_shape("keypoint_conf", keypoint_conf, "N J", sizes)
-    ids = np.asarray(list(joint_ids), np.int64)
-    if ids.shape != (sizes["J"],) or ids.size and not ((ids >= 0) & (ids < NUM_JOINTS)).all():
-        raise ValueError(f"joint_ids: expected {sizes['J']} SMPL joint indices in 0..{NUM_JOINTS - 1}, "
-                         f"got {ids.tolist()}")
+    if isinstance(landmarks, BodyLandmarks):
+        if len(landmarks) != sizes["J"] or landmarks.weights.shape[1] != template.num_verts:
+            raise ValueError(f"landmarks: expected {sizes['J']} landmarks of a body with {template.num_verts} "
+                             f"vertices, got {len(landmarks)} of {landmarks.weights.shape[1]}")
+    else:
+        ids = np.asarray(list(landmarks), np.int64)
+        if ids.shape != (sizes["J"],) or ids.size and not ((ids >= 0) & (ids < NUM_JOINTS)).all():
+            raise ValueError(f"landmarks: expected {sizes['J']} SMPL joint indices in 0..{NUM_JOINTS - 1}, "
+                             f"got {ids.tolist()}")
     if sizes["N"] == 0:
         raise ValueError("fit_body: no frames (keypoints has N = 0)")
     if not (_clean(keypoints, keypoint_conf)[1] > 0).any():
@@ -417,11 +446,12 @@ def _check_inputs(keypoints: np.ndarray, keypoint_conf: np.ndarray, joint_ids: S
     times = np.arange(sizes["N"]) if frame_ids is None else np.asarray(frame_ids, np.int64)
     if times.shape != (sizes["N"],) or (np.diff(times) <= 0).any():
         raise ValueError(f"frame_ids: expected {sizes['N']} increasing frame numbers")
+    landmarks = _as_landmarks(template, landmarks)
     if masks is not None:
         if cameras is None:
             raise ValueError("fit_body: masks need their cameras")
         check_shape("masks", masks, "N C H W", {"N": sizes["N"], "C": len(cameras)})
-    return ids, times
+    return landmarks, times
 
 
 def _result(problem: _Problem, stage: _SilhouetteStage | None, kp: np.ndarray, w: np.ndarray) -> BodyFitResult:
@@ -432,11 +462,11 @@ def _result(problem: _Problem, stage: _SilhouetteStage | None, kp: np.ndarray, w
             terms, verts = stage.terms()
             weight = problem.config.keypoints_in_silhouette
         else:
-            terms, verts, weight = problem.terms(problem.joints(params), params), None, 1.0
+            terms, verts, weight = problem.terms(params), None, 1.0
         losses = {k: float(v) for k, v in terms.items()}
         losses["total"] = float(problem.weighted(terms, weight))
-        joints = problem.joints(params).double().cpu().numpy()
-    error = np.linalg.norm(joints[:, problem.ids.cpu().numpy()] - kp, axis=2)
+        points = problem.posed(params)[1].double().cpu().numpy()
+    error = np.linalg.norm(points - kp, axis=2)
     error[w <= 0] = np.nan
     iou = None
     if stage is not None:
@@ -449,7 +479,7 @@ def _result(problem: _Problem, stage: _SilhouetteStage | None, kp: np.ndarray, w
 
 
 def fit_body(template: SMPLTemplate, keypoints: Real[np.ndarray, "N J 3"], keypoint_conf: Real[np.ndarray, "N J"],
-             joint_ids: Sequence[int], cameras: Sequence[Camera] | None = None,
+             landmarks: BodyLandmarks | Sequence[int], cameras: Sequence[Camera] | None = None,
              masks: Bool[np.ndarray, "N C H W"] | UInt8[np.ndarray, "N C H W"] | None = None,
              config: BodyFitConfig = BodyFitConfig(), progress: bool = False,
              frame_ids: Integer[np.ndarray, "N"] | None = None) -> BodyFitResult:
@@ -459,7 +489,8 @@ def fit_body(template: SMPLTemplate, keypoints: Real[np.ndarray, "N J 3"], keypo
         template: the SMPL-layout body (world units mm: ``scale`` 1000); the fit runs on its device, in its dtype.
         keypoints: (N, J, 3) triangulated keypoints, world mm, N frames in temporal order (NaN where invalid).
         keypoint_conf: (N, J) confidence in [0, 1]; 0 = invalid.
-        joint_ids: (J,) the SMPL joint (0..23) each keypoint targets.
+        landmarks: the J body points the keypoints stand for (:func:`~deliffas.geometry.body_landmarks.body_landmarks`
+            of ``template``), or (J,) SMPL joints (0..23).
         cameras: the C calibrated cameras of ``masks`` (needed with masks).
         masks: (N, C, H, W) bool or uint8 person masks (uint8 with values above 1: alphas, inside > 127), at the
             cameras' resolution or any with the same aspect; None = keypoints only.
@@ -472,14 +503,15 @@ def fit_body(template: SMPLTemplate, keypoints: Real[np.ndarray, "N J 3"], keypo
         :class:`BodyFitResult`; ``silhouette_iou`` is None without masks.
 
     Raises:
-        ValueError: shapes that disagree, joint ids outside 0..23, no valid keypoint, masks without cameras or of
+        ValueError: shapes that disagree, joint ids outside 0..23 or landmarks of another body, no valid keypoint, masks without cameras or of
             another aspect than a camera.
     """
-    ids, times = _check_inputs(keypoints, keypoint_conf, joint_ids, cameras, masks, frame_ids)
+    landmarks, times = _check_inputs(template, keypoints, keypoint_conf, landmarks, cameras, masks, frame_ids)
     from tqdm.auto import tqdm  # a dependency; imported here so importing geometry stays light
 
     kp, w = _clean(keypoints, keypoint_conf)
-    problem = _Problem(template, initial_body_params(template, kp, w, ids, times), kp, w, ids, times, config)
+    problem = _Problem(template, initial_body_params(template, kp, w, landmarks, times), kp, w, landmarks, times,
+                       config)
     stage = None
     if masks is not None:
         targets = sil.prepare_silhouettes(masks, list(cameras), config.mask_height, config.mask_samples, config.seed,

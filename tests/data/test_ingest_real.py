@@ -12,6 +12,7 @@ import pytest
 
 from deliffas.cli import main
 from deliffas.data.ingest import IngestConfig, ingest
+from deliffas.data.ingest.detect import KEYPOINT_NAMES
 from deliffas.data.subjects import parse_subject
 
 REAL = Path(__file__).resolve().parents[3] / "shared" / "real-captures" / "pose2sim-demo"
@@ -60,7 +61,8 @@ def test_the_real_recording_becomes_a_subject_the_pipeline_reads(ingested):
     seq = subject.sequences["training"]
     assert (seq.width, seq.height) == (180, 320) and seq.poses is not None
     with np.load(ingested / "keypoints.npz") as kp:  # the 2-D and 3-D keypoints stay with the subject
-        assert kp["keypoints2d"].shape == (4, 6, 15, 2) and kp["points3d"].shape == (6, 15, 3)
+        J = len(KEYPOINT_NAMES)
+        assert kp["keypoints2d"].shape == (4, 6, J, 2) and kp["points3d"].shape == (6, J, 3)
         assert list(kp["frames"]) == [40, 42, 44, 46, 48, 50] and list(kp["camera_names"])[0] == "cam01"
         assert kp["valid3d"].mean() > 0.9
 

@@ -188,7 +188,7 @@ def test_frames_without_torso_keypoints(template, scene):
 
 def test_bad_inputs(template, scene):
     kp, conf, cams, masks = scene["keypoints"], scene["conf"], scene["cameras"], scene["masks"]
-    with pytest.raises(ValueError, match="joint_ids"):
+    with pytest.raises(ValueError, match="landmarks: expected"):
         fit_body(template, kp, conf, IDS[:-1] + (24,))
     with pytest.raises(ValueError, match="no valid keypoint"):
         fit_body(template, kp, np.zeros_like(conf), IDS)

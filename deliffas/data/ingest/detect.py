@@ -8,7 +8,7 @@ is installed without them: ``pip install 'deliffas[ingest]'`` (its runtime depen
 ``pip install --no-deps mediapipe==0.10.21`` (``make ingest-setup`` does both).
 
 :data:`KEYPOINTS` names the body keypoints deliffas uses, each the MediaPipe landmarks it averages and the
-SMPL joint it constrains.
+body landmark it stands for.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from jaxtyping import Float, UInt8
 
 from deliffas.optional import import_optional
 
-__all__ = ["Keypoint", "KEYPOINTS", "KEYPOINT_NAMES", "SMPL_JOINT_IDS", "PersonDetection", "PersonDetector",
+__all__ = ["Keypoint", "KEYPOINTS", "KEYPOINT_NAMES", "BODY_LANDMARK_NAMES", "PersonDetection", "PersonDetector",
            "MissingExtraError", "require_detector", "DETECTOR_VERSION", "INSTALL_HINT"]
 
 DETECTOR_VERSION = "0.10.21"
@@ -36,25 +36,29 @@ class MissingExtraError(ValueError):
 
 @dataclass(frozen=True)
 class Keypoint:
-    """One body keypoint: its name, the MediaPipe landmarks averaged for it, the SMPL joint it targets."""
+    """One body keypoint: its name, the MediaPipe landmarks averaged for it, the body landmark it stands for (a
+    name of :data:`deliffas.geometry.body_landmarks.LANDMARK_NAMES`: an SMPL joint or a surface point)."""
     name: str
     landmarks: tuple[int, ...]
-    smpl_joint: int
+    body_landmark: str
 
 
 KEYPOINTS = (
-    Keypoint("l_hip", (23,), 1), Keypoint("r_hip", (24,), 2),
-    Keypoint("l_knee", (25,), 4), Keypoint("r_knee", (26,), 5),
-    Keypoint("l_ankle", (27,), 7), Keypoint("r_ankle", (28,), 8),
-    Keypoint("l_foot", (31,), 10), Keypoint("r_foot", (32,), 11),
-    Keypoint("head", (7, 8), 15),
-    Keypoint("l_shoulder", (11,), 16), Keypoint("r_shoulder", (12,), 17),
-    Keypoint("l_elbow", (13,), 18), Keypoint("r_elbow", (14,), 19),
-    Keypoint("l_wrist", (15,), 20), Keypoint("r_wrist", (16,), 21),
+    Keypoint("l_hip", (23,), "l_hip"), Keypoint("r_hip", (24,), "r_hip"),
+    Keypoint("l_knee", (25,), "l_knee"), Keypoint("r_knee", (26,), "r_knee"),
+    Keypoint("l_ankle", (27,), "l_ankle"), Keypoint("r_ankle", (28,), "r_ankle"),
+    Keypoint("l_heel", (29,), "l_heel"), Keypoint("r_heel", (30,), "r_heel"),
+    Keypoint("l_toe", (31,), "l_toe"), Keypoint("r_toe", (32,), "r_toe"),
+    Keypoint("nose", (0,), "nose"), Keypoint("l_ear", (7,), "l_ear"), Keypoint("r_ear", (8,), "r_ear"),
+    Keypoint("l_shoulder", (11,), "l_shoulder"), Keypoint("r_shoulder", (12,), "r_shoulder"),
+    Keypoint("l_elbow", (13,), "l_elbow"), Keypoint("r_elbow", (14,), "r_elbow"),
+    Keypoint("l_wrist", (15,), "l_wrist"), Keypoint("r_wrist", (16,), "r_wrist"),
 )
-"""The J = 15 keypoints, in order (left = the person's left, as in MediaPipe and SMPL)."""
+"""The J = 19 keypoints, in order (left = the person's left, as in MediaPipe and SMPL). MediaPipe's foot index
+(31, 32) is the tip of the foot and its ears and nose lie on the skin: they stand for surface landmarks, not for
+SMPL's foot and head joints (which lie inside the body, several cm away)."""
 KEYPOINT_NAMES = tuple(k.name for k in KEYPOINTS)
-SMPL_JOINT_IDS = tuple(k.smpl_joint for k in KEYPOINTS)
+BODY_LANDMARK_NAMES = tuple(k.body_landmark for k in KEYPOINTS)
 
 
 @dataclass(frozen=True)

@@ -12,11 +12,12 @@ import numpy as np
 from deliffas.io.cameras import Camera
 from deliffas.geometry.body_fit import fit_body
 from deliffas.geometry.body_fit_config import BodyFitConfig
+from deliffas.geometry.body_landmarks import body_landmarks
 from deliffas.geometry.smpl_body import make_procedural_smpl
 from deliffas.geometry.templates import SMPL_MODEL_SUFFIXES, TemplateSpec, build_template, spec_from_file
 from deliffas.geometry.triangulate import triangulate
 from deliffas.data.ingest.config import IngestConfig
-from deliffas.data.ingest.detect import KEYPOINTS, SMPL_JOINT_IDS
+from deliffas.data.ingest.detect import BODY_LANDMARK_NAMES, KEYPOINTS
 from deliffas.data.ingest.stages import Detections, load_npz, save_npz
 from deliffas.data.subjects.capture_common import SMPL_NUM_BETAS
 
@@ -101,7 +102,8 @@ def fit_stage(work: Path, spec: TemplateSpec, tri: dict, alphas: np.ndarray, cam
     idx = np.flatnonzero(ok)
     conf = tri["valid"][idx].astype(np.float64)
     masks = np.ascontiguousarray(np.transpose(alphas[:, idx] > 127, (1, 0, 2, 3)))  # (N, C, H, W)
-    res = fit_body(template, np.nan_to_num(tri["points"][idx]), conf, list(SMPL_JOINT_IDS), list(cameras), masks,
+    landmarks = body_landmarks(template.v_template, template.J_regressor, template.lbs_weights, BODY_LANDMARK_NAMES)
+    res = fit_body(template, np.nan_to_num(tri["points"][idx]), conf, landmarks, list(cameras), masks,
                    BodyFitConfig(iters_keypoints=config.fit_iters, iters_silhouette=max(1, config.fit_iters // 2),
                                  seed=config.seed), progress=config.progress,
                    frame_ids=np.asarray(frames, np.int64)[idx])
