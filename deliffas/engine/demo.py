@@ -1,5 +1,7 @@
 """The main job (``make demo``): synthetic capture → shards → train two models → evaluate → report.
 
+Beside the report, ``web/`` plays the first model's avatar in a browser (``deliffas export --web``, docs/web.md).
+
 Runs on the embedded procedural character (no external data). The capture's ground truth holds a
 loose garment the skinned template lacks, so the two-surface model (DELIFFAS, here with texture atlases:
 the training default) and the single-surface ablation can be told apart on held-out cameras at the same
@@ -20,10 +22,14 @@ from deliffas.data.convert import ConvertConfig, convert
 from deliffas.data.synth import SynthConfig, synthesize_capture
 from deliffas.engine.demo_config import DemoConfig
 from deliffas.engine.evaluate import EvalConfig, evaluate
+from deliffas.engine.export_config import ExportConfig
 from deliffas.engine.render import RenderConfig, render_video
 from deliffas.engine.report import results_table, speed_accuracy_chart
 from deliffas.engine.run_sizes import RunSizes
 from deliffas.engine.train import TrainConfig, train
+from deliffas.engine.web import export_web
+from deliffas.engine.web.model_pack import check_web_supported
+from deliffas.models.zoo import get_config
 
 __all__ = ["DemoConfig", "run_demo"]
 
@@ -80,7 +86,7 @@ def run_demo(cfg: DemoConfig = DemoConfig()) -> Path:
         row["train_iters_per_s"] = result.iters_per_second
         rows.append(row)
         (run / "eval_novel_view.json").write_text(json.dumps(row, indent=2) + "\n")
-    _stage("5/5 report (table, stage timings, images, speed-vs-accuracy chart, orbit video)")
+    _stage("5/5 report (table, stage timings, images, speed-vs-accuracy chart, orbit video, web page)")
     chart = speed_accuracy_chart(rows, out / "speed_accuracy.png", "Demo: quality vs speed",
                                  resolution=f"{sz.size}x{sz.size}")
     video = None
@@ -90,13 +96,28 @@ def run_demo(cfg: DemoConfig = DemoConfig()) -> Path:
     except RuntimeError as exc:  # no video codec in this OpenCV build: the report says so
         logger.warning("orbit video skipped: %s", exc)
     comparison = _comparison_image(out, rows, subject)
+    t = time.time()
+    web = _web_page(out / "runs" / cfg.models[0], out / "web", cfg.models[0], preset)
+    timings["web_s"] = time.time() - t
     timings["total_s"] = time.time() - t0
-    report = _write_report(out, cfg, rows, timings, chart, video, comparison)
+    report = _write_report(out, cfg, rows, timings, chart, video, comparison, web)
     (out / "results.json").write_text(json.dumps({"config": dataclasses.asdict(cfg), "results": rows, "timings": timings},
                                                  indent=2, default=str) + "\n")
     print(results_table(rows, "Held-out cameras (novel view)"))
+    if web:
+        print(f"web page: {web}  (serve it: cd {web} && python -m http.server 8000)")
     print(f"report: {report}  ({timings['total_s']:.0f} s in total)")
     return report
+
+
+def _web_page(run: Path, out: Path, model: str, preset: str) -> Path | None:
+    """``deliffas export RUN OUT --web --overwrite``; None, with a logged note, for a model the player does not render."""
+    try:
+        check_web_supported(get_config(model, preset))
+    except ValueError as exc:  # a variant or texture-atlas size the web player does not render
+        logger.warning("web page skipped: %s", exc)
+        return None
+    return export_web(ExportConfig(run=run, out=out, web=True, overwrite=True))
 
 
 def _comparison_image(out: Path, rows: list[dict], subject: Path) -> Path | None:
@@ -130,7 +151,7 @@ def _flip(row: dict) -> str:
 
 
 def _write_report(out: Path, cfg: DemoConfig, rows: list[dict], timings: dict, chart: Path, video: Path | None,
-                  comparison: Path | None) -> Path:
+                  comparison: Path | None, web: Path | None = None) -> Path:
     sz = cfg.sizes
     lines = ["# deliffas demo", "",
              f"Synthetic capture of the procedural character: {sz.frames} training frames, {sz.test_frames} "
@@ -160,6 +181,11 @@ def _write_report(out: Path, cfg: DemoConfig, rows: list[dict], timings: dict, c
     lines += ["## Speed against accuracy", "", f"![speed vs accuracy]({chart.name})", ""]
     if video:
         lines += [f"Free-viewpoint orbit of `{cfg.models[0]}`: [{video.name}]({video.name})", ""]
+    if web:
+        lines += ["## Web page", "",
+                  f"`{cfg.models[0]}` as a web page that plays in a browser (WebGL2, no server-side code): "
+                  f"`{web.name}/`; serve it with `cd {web.name} && python -m http.server 8000` and open "
+                  "http://localhost:8000/ (docs/web.md).", ""]
     lines += ["## Wall-clock", ""] + [f"- {k}: {v:.0f} s" for k, v in timings.items()] + [""]
     path = out / "report.md"
     path.write_text("\n".join(lines))

@@ -75,9 +75,15 @@ def test_an_existing_folder_is_kept_without_overwrite(web_runs, tmp_path, capsys
     out.mkdir()
     (out / "mine.txt").write_text("keep")
     assert main(["export", str(run), str(out), "--web"]) == 2
-    assert "--overwrite" in capsys.readouterr().err and (out / "mine.txt").read_text() == "keep"
-    assert main(["export", str(run), str(out), "--web", "--overwrite", "--frames", "2"]) == 0
-    assert not (out / "mine.txt").exists() and _arrays(out)[0]["scene"]["motion"]["frames"] == 2
+    assert "not a web export" in capsys.readouterr().err and (out / "mine.txt").read_text() == "keep"
+    assert main(["export", str(run), str(out), "--web", "--overwrite"]) == 2  # not a web export: never replaced
+    assert "not a web export" in capsys.readouterr().err and (out / "mine.txt").read_text() == "keep"
+    (out / "mine.txt").unlink()
+    assert main(["export", str(run), str(out), "--web", "--frames", "3"]) == 0  # an empty folder is taken
+    assert main(["export", str(run), str(out), "--web", "--frames", "2"]) == 2
+    assert "--overwrite" in capsys.readouterr().err
+    assert main(["export", str(run), str(out), "--web", "--overwrite", "--frames", "2"]) == 0  # ours is replaced
+    assert _arrays(out)[0]["scene"]["motion"]["frames"] == 2
     assert sorted(p.name for p in tmp_path.iterdir()) == ["page"]
 
 

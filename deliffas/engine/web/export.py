@@ -38,11 +38,23 @@ def player_files() -> dict[str, bytes]:
             else (root / name).read_bytes() for name in PLAYER_FILES}
 
 
+def _is_web_export(index: Path) -> bool:
+    try:
+        return json.loads(index.read_text()).get("format") == WEB_FORMAT["format"]
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
 def _claim(out: Path, overwrite: bool) -> None:
-    if out.exists() and not overwrite:
-        raise FileExistsError(f"{out}: exists; pass --overwrite to replace it")
+    """Refuse ``out`` unless it is new, an empty folder, or (with ``overwrite``) an earlier web export."""
     if out.exists() and not out.is_dir():
         raise FileExistsError(f"{out}: is a file; --web writes a folder")
+    if out.exists() and any(out.iterdir()):
+        if not _is_web_export(out / "avatar.json"):
+            raise FileExistsError(f"{out}: a folder that is not a web export of deliffas (no avatar.json of format "
+                                  f"{WEB_FORMAT['format']!r}); choose another OUT")
+        if not overwrite:
+            raise FileExistsError(f"{out}: exists; pass --overwrite to replace it")
     out.parent.mkdir(parents=True, exist_ok=True)
 
 
