@@ -83,17 +83,23 @@ class HiddenDunders(griffe.Extension):
     """
 
     def on_package(self, *, pkg: griffe.Module, **kwargs) -> None:
-        modules = [pkg]
-        while modules:
-            module = modules.pop()
-            modules.extend(member for member in module.modules.values() if not member.is_alias)
-            classes = [cls for cls in module.classes.values() if not cls.is_alias]
-            while classes:
-                cls = classes.pop()
-                classes.extend(inner for inner in cls.classes.values() if not inner.is_alias)
-                for name in HIDDEN_DUNDERS & set(cls.members):
-                    if cls.members[name].docstring is None:  # a documented one says something about the API
-                        cls.del_member(name)
+        for cls in package_classes(pkg):
+            for name in HIDDEN_DUNDERS & set(cls.members):
+                if cls.members[name].docstring is None:  # a documented one says something about the API
+                    cls.del_member(name)
+
+
+def package_classes(pkg: "griffe.Module"):
+    """Every class of ``pkg``, its submodules and nested classes (aliases, i.e. re-exports, left out)."""
+    modules = [pkg]
+    while modules:
+        module = modules.pop()
+        modules.extend(member for member in module.modules.values() if not member.is_alias)
+        classes = [cls for cls in module.classes.values() if not cls.is_alias]
+        while classes:
+            cls = classes.pop()
+            classes.extend(inner for inner in cls.classes.values() if not inner.is_alias)
+            yield cls
 
 
 def option_help(value: str) -> str | None:
@@ -119,19 +125,12 @@ class OptionHelp(griffe.Extension):
     """Gives each undocumented ``opt`` field of a class its ``help=`` text as the docstring."""
 
     def on_package(self, *, pkg: griffe.Module, **kwargs) -> None:
-        modules = [pkg]
-        while modules:
-            module = modules.pop()
-            modules.extend(member for member in module.modules.values() if not member.is_alias)
-            classes = [cls for cls in module.classes.values() if not cls.is_alias]
-            while classes:
-                cls = classes.pop()
-                classes.extend(inner for inner in cls.classes.values() if not inner.is_alias)
-                for attr in cls.attributes.values():
-                    text = None if attr.is_alias or attr.docstring is not None or attr.value is None \
-                        else option_help(str(attr.value))
-                    if text:
-                        attr.docstring = griffe.Docstring(text, parent=attr)
+        for cls in package_classes(pkg):
+            for attr in cls.attributes.values():
+                text = None if attr.is_alias or attr.docstring is not None or attr.value is None \
+                    else option_help(str(attr.value))
+                if text:
+                    attr.docstring = griffe.Docstring(text, parent=attr)
 
 
 class SeparatePages(griffe.Extension):
