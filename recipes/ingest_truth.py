@@ -261,7 +261,7 @@ def _notes(masks: dict, keypoints: dict, surface: dict, costs: dict, report: dic
         "|---|---|",
         f"| masks | IoU median {masks['median']:.3f} (per camera " + " / ".join(f"{v:.3f}" for v in masks["per_camera"])
         + f"); avatar masked PSNR {-costs['masks_db']:+.2f} dB |",
-        f"| 3-D keypoints | {keypoints['median_mm']:.1f} mm median from the true joints (reprojection median "
+        f"| 3-D keypoints | {keypoints['median_mm']:.1f} mm median from the true body landmarks (reprojection median "
         f"{report['keypoints']['median_px']:.1f} px) |",
         f"| body fit | surface {surface['surface_mm_median']:.1f} mm median (max {surface['surface_mm_max']:.1f}); vertex "
         f"to vertex {surface['vertex_mm_median']:.1f} mm; avatar masked PSNR {-costs['body_fit_db']:+.2f} dB |",
