@@ -48,4 +48,7 @@ def test_retained_memory_is_not_faulted_in_again():
     faulting = lambda calls: sum(f > 1024 for f in calls)  # noqa: E731
     # under a busy machine (a full test run) a second call has been seen to fault: still far from the default's
     assert faulting(retained) <= 2, f"retained: expected no call to fault its output in again, got {retained}"
-    assert faulting(default) >= 5, f"default allocator: expected most calls to fault 2048+ pages, got {default}"
+    # glibc's default faults the first calls of the window at least; its dynamic mmap threshold can then move the
+    # block to the heap (seen once in a full run: 3 of 8 calls faulted, then none)
+    assert faulting(default) >= max(2, faulting(retained) + 1), \
+        f"default allocator: expected more calls to fault 2048+ pages than retained {retained}, got {default}"
