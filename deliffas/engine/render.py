@@ -12,6 +12,7 @@ import torch
 from deliffas.checks import check_finite
 from deliffas.io.cameras import Camera, look_at
 from deliffas.data.pose_motions import motion_suffix, read_pose_motion
+from deliffas.data.shard_meta import ShardMeta
 from deliffas.geometry.atlas import TexelTable, UVAtlas
 from deliffas.geometry.frame_geometry import FrameGeometryBuilder
 from deliffas.geometry.templates import build_template
@@ -26,7 +27,8 @@ from deliffas.geometry.raycast import UVRaycaster
 from deliffas.io.infra.files import check_writable, claim_output_file
 from deliffas.io.video import VIDEO_SUFFIXES, write_video
 
-__all__ = ["RenderConfig", "render_video", "orbit_cameras", "render_images", "motion_geometry_builder"]
+__all__ = ["RenderConfig", "render_video", "orbit_cameras", "render_images", "motion_geometry_builder", "find_motion",
+           "DEFAULT_FRAMES"]
 
 logger = logging.getLogger(__name__)
 
@@ -82,7 +84,22 @@ def motion_geometry_builder(meta) -> tuple:
     return template, FrameGeometryBuilder(meta.faces, meta.outer_offsets, table)
 
 
-def _default_motion(subject: Path, suffix: str) -> Path:
+DEFAULT_FRAMES = 300
+"""Frames of the motion rendered (or put into a web export) when the command does not say."""
+
+
+def find_motion(meta: ShardMeta, motion: str | Path | None) -> Path:
+    """``motion``, or the capture's first test (else training) motion file: the motion ``render`` plays.
+
+    Raises:
+        FileNotFoundError: no motion given and none found, saying to pass ``--motion``.
+    """
+    if motion:
+        return Path(motion)
+    suffix = motion_suffix(meta.template_spec().kind)
+    if not meta.attrs.get("subject"):
+        raise FileNotFoundError(f"the capture records no subject folder to take a *{suffix} motion from; pass --motion")
+    subject = Path(meta.attrs["subject"])
     for seq in ("testing", "training"):
         for p in sorted((subject / seq).glob(f"*{suffix}")):
             return p
@@ -109,10 +126,9 @@ def render_video(cfg: RenderConfig) -> Path:
     model, record, meta = load_avatar(cfg.run, device)
     spec = meta.template_spec()
     template, builder = motion_geometry_builder(meta)
-    motion_path = Path(cfg.motion) if cfg.motion else _default_motion(Path(meta.attrs["subject"]),
-                                                                      motion_suffix(spec.kind))
+    motion_path = find_motion(meta, cfg.motion)
     motion = read_pose_motion(motion_path, spec, template.num_dofs)
-    n = cfg.frames or min(motion.num_frames, 300)
+    n = cfg.frames or min(motion.num_frames, DEFAULT_FRAMES)
     if n > motion.num_frames and not cfg.loop:
         raise ValueError(f"frames: {n} asked, the motion {motion_path} has {motion.num_frames}; pass --loop to "
                          "play it again from its start, or fewer --frames")

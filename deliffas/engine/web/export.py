@@ -16,10 +16,11 @@ from pathlib import Path
 
 from deliffas import __version__
 from deliffas.engine.avatar import load_avatar
+from deliffas.engine.render import find_motion
 from deliffas.engine.export_config import ExportConfig
 from deliffas.engine.web.bundle import Bundle
 from deliffas.engine.web.model_pack import check_web_supported, pack_model
-from deliffas.engine.web.scene_pack import find_motion, pack_scene
+from deliffas.engine.web.scene_pack import pack_scene
 
 __all__ = ["WEB_FORMAT", "PLAYER_FILES", "export_web", "player_files"]
 

@@ -13,31 +13,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from deliffas.data.pose_motions import motion_suffix, read_pose_motion
+from deliffas.data.pose_motions import read_pose_motion
 from deliffas.data.shard_meta import ShardMeta
-from deliffas.engine.render import motion_geometry_builder
+from deliffas.engine.render import DEFAULT_FRAMES, motion_geometry_builder
 from deliffas.engine.web.bundle import Bundle
 from deliffas.geometry.templates.ddc import DDCTemplate
 from deliffas.io.motion import Motion
 
-__all__ = ["DEFAULT_FRAMES", "find_motion", "pack_scene"]
-
-DEFAULT_FRAMES = 300
-"""Frames of the motion a page holds when the export does not say (as ``deliffas render``)."""
-
-
-def find_motion(meta: ShardMeta, motion: Path | None) -> Path:
-    """``motion``, or the capture's first test (else training) motion file, as ``deliffas render`` picks it."""
-    if motion is not None:
-        return Path(motion)
-    suffix = motion_suffix(meta.template_spec().kind)
-    if not meta.attrs.get("subject"):
-        raise FileNotFoundError(f"the capture records no subject folder to take a *{suffix} motion from; pass --motion")
-    subject = Path(meta.attrs["subject"])
-    for seq in ("testing", "training"):
-        for p in sorted((subject / seq).glob(f"*{suffix}")):
-            return p
-    raise FileNotFoundError(f"no *{suffix} motion under {subject}/testing or {subject}/training; pass --motion")
+__all__ = ["pack_scene"]
 
 
 def _pack_motion(template, dofs: np.ndarray, bundle: Bundle) -> dict:
