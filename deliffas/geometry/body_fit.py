@@ -45,7 +45,7 @@ from deliffas.checks import check_shape
 from deliffas.io.body_models.smpl import NUM_JOINTS
 from deliffas.io.cameras import Camera
 from deliffas.geometry.body_fit_config import BodyFitConfig
-from deliffas.geometry.body_landmarks import BodyLandmarks, body_landmarks
+from deliffas.geometry.body_landmarks import BodyLandmarks, body_landmarks, pose_landmarks
 from deliffas.geometry.smpl_body import SMPL_JOINT_NAMES
 from deliffas.geometry import body_fit_silhouette as sil
 from deliffas.geometry.smpl import batch_rigid_transform, batch_rodrigues
@@ -304,7 +304,7 @@ class _Problem:
         self.betas = start[:1, 3 * NUM_JOINTS + 3:].clone().requires_grad_(True)
         self.target = torch.as_tensor(kp, dtype=ref.dtype, device=ref.device)
         self.weight = torch.as_tensor(w, dtype=ref.dtype, device=ref.device)
-        self.bones = torch.as_tensor(landmarks.bones, dtype=torch.long, device=ref.device)
+        self.landmarks = landmarks
         self.num_weight = max(float(w.sum()), 1e-6)
         with torch.no_grad():
             self.j_rest = template.J_regressor @ template.v_template  # (24, 3) mm
@@ -334,8 +334,7 @@ class _Problem:
         l_rest = self.l_rest + torch.einsum("jkl,l->jk", self.l_dirs, betas)
         rot = batch_rodrigues(params[:, 3:3 * NUM_JOINTS + 3].reshape(-1, 3)).reshape(N, NUM_JOINTS, 3, 3)
         posed, A = batch_rigid_transform(rot, rest.expand(N, -1, -1), self.template.parents)
-        A = A[:, self.bones]  # (N, J, 4, 4)
-        points = torch.einsum("njik,jk->nji", A[..., :3, :3], l_rest) + A[..., :3, 3]
+        points = pose_landmarks(self.landmarks, l_rest, A)
         shift = params[:, None, :3] * self.template.scale
         return posed + shift, points + shift
 

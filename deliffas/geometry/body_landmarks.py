@@ -134,14 +134,12 @@ def body_landmarks(v_template: np.ndarray | Tensor, J_regressor: np.ndarray | Te
     return BodyLandmarks(tuple(names), np.stack(rows), np.asarray(bones, np.int64), np.asarray(joints, np.int64))
 
 
-def pose_landmarks(landmarks: BodyLandmarks, v_shaped: Float[Tensor, "V 3"] | Float[Tensor, "B V 3"],
+def pose_landmarks(landmarks: BodyLandmarks, rest: Float[Tensor, "J 3"] | Float[Tensor, "B J 3"],
                    transforms: Float[Tensor, "B 24 4 4"]) -> Float[Tensor, "B J 3"]:
-    """(B, J, 3) posed landmarks: each rest point ``weights @ v_shaped`` moved by its bone's skinning transform
-    (``batch_rigid_transform``'s second output), in ``v_shaped``'s units, before any translation."""
-    w = torch.as_tensor(landmarks.weights, dtype=transforms.dtype, device=transforms.device)
-    rest = torch.einsum("jv,...vk->...jk", w, v_shaped).expand(len(transforms), -1, -1)  # (B, J, 3)
+    """(B, J, 3) posed landmarks: the rest points ``rest`` (``landmarks.weights @ v_shaped``) each moved by its
+    bone's skinning transform (``batch_rigid_transform``'s second output), in their units, before any translation."""
     A = transforms[:, torch.as_tensor(landmarks.bones, device=transforms.device)]  # (B, J, 4, 4)
-    return torch.einsum("bjik,bjk->bji", A[..., :3, :3], rest) + A[..., :3, 3]
+    return torch.einsum("bjik,bjk->bji", A[..., :3, :3], rest.expand(len(transforms), -1, -1)) + A[..., :3, 3]
 
 
 def posed_template_landmarks(template, landmarks: BodyLandmarks, params: Float[Tensor, "B D"]
@@ -155,4 +153,6 @@ def posed_template_landmarks(template, landmarks: BodyLandmarks, params: Float[T
     joints = torch.einsum("jv,bvk->bjk", template.J_regressor, v_shaped)
     rot = batch_rodrigues(params[:, 3:3 + 3 * nj].reshape(-1, 3)).reshape(B, nj, 3, 3)
     _, A = batch_rigid_transform(rot, joints, template.parents)
-    return pose_landmarks(landmarks, v_shaped, A) + params[:, None, :3] * template.scale
+    w = torch.as_tensor(landmarks.weights, dtype=v_shaped.dtype, device=v_shaped.device)
+    rest = torch.einsum("jv,bvk->bjk", w, v_shaped)
+    return pose_landmarks(landmarks, rest, A) + params[:, None, :3] * template.scale
