@@ -22,8 +22,8 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 import torch
 
-from deliffas import environment
 from deliffas.data.shard_meta import ShardMeta
+from deliffas.environment import cache_root  # where unpacked template files live (public here too)
 from deliffas.data.shards import ShardSet, open_shard_set
 from deliffas.engine.export_config import ExportConfig
 from deliffas.engine.runs import load_run
@@ -47,11 +47,6 @@ _KEPT_ATTRS = ("subject", "capture_format", "character_sha256", "skinning", "off
                "surface")
 _FILE_PREFIX = "template_file/"
 _MODEL_PREFIX = "model/"
-
-
-def cache_root() -> Path:
-    """Where unpacked template files live: ``$DELIFFAS_CACHE``, ``$XDG_CACHE_HOME/deliffas`` or ``~/.cache/deliffas``."""
-    return environment.cache_root()
 
 
 def capture_record(meta: ShardMeta) -> tuple[dict[str, np.ndarray], dict]:
