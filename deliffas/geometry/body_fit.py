@@ -22,7 +22,9 @@ axis-angle pose (72), betas]``. The world is the calibration's: mm, any up axis 
    pixels outside the body's projected triangles pull their nearest projected vertex, weight 1), both times
    ``silhouette``, with the keypoint term kept at ``keypoints_in_silhouette`` so the pose stays anatomical. The
    cover term weighs more: the body should cover the mask (DELIFFAS's outer shell lies a few cm outside the
-   template), never be thinner.
+   template), never be thinner. With ``offsets`` the stage also moves each rest vertex along its normal, one
+   offset per vertex shared by all frames (:mod:`deliffas.geometry.body_fit_offsets`, priors ``offset_smooth``
+   and ``offset_prior``): clothing and hair the shape space cannot follow.
 4. **Result**: per keypoint the distance of its fitted joint, per view the IoU of the fitted body's filled
    silhouette and the mask at ``mask_height``.
 
@@ -45,6 +47,7 @@ from deliffas.checks import check_shape
 from deliffas.io.body_models.smpl import NUM_JOINTS
 from deliffas.io.cameras import Camera
 from deliffas.geometry.body_fit_config import BodyFitConfig
+from deliffas.geometry.body_fit_offsets import OFFSETS_LR, RestOffsets
 from deliffas.geometry.body_landmarks import BodyLandmarks, body_landmarks, pose_landmarks
 from deliffas.geometry.smpl_body import SMPL_JOINT_NAMES
 from deliffas.geometry import body_fit_silhouette as sil
@@ -82,12 +85,16 @@ class BodyFitResult:
         silhouette_iou: (N, C) float64 IoU of the fitted body's silhouette and the mask at ``mask_height``; NaN where
             the mask is empty; None without cameras and masks.
         losses: the final value of each term (unweighted; ``total`` is the last stage's weighted sum).
+        rest_offsets_mm: (V, 3) float64 per-vertex offsets of the rest shape, mm (zeros without
+            ``config.offsets`` or masks); the fitted body is the template with them added to ``v_template``
+            (:func:`~deliffas.geometry.body_fit_offsets.with_rest_offsets`).
     """
 
     params: Float64[np.ndarray, "N D"]
     joint_error_mm: Float64[np.ndarray, "N J"]
     silhouette_iou: Float64[np.ndarray, "N C"] | None
     losses: dict[str, float]
+    rest_offsets_mm: Float64[np.ndarray, "V 3"]
 
 
 # --------------------------------------------------------------------------------------------- initialisation
@@ -306,10 +313,12 @@ class _Problem:
         self.weight = torch.as_tensor(w, dtype=ref.dtype, device=ref.device)
         self.landmarks = landmarks
         self.num_weight = max(float(w.sum()), 1e-6)
+        self.offsets: RestOffsets | None = None  # set by the silhouette stage with config.offsets
         with torch.no_grad():
             self.j_rest = template.J_regressor @ template.v_template  # (24, 3) mm
             self.j_dirs = torch.einsum("jv,vkl->jkl", template.J_regressor, template.shapedirs)  # (24, 3, NB)
-            lw = torch.as_tensor(landmarks.weights, dtype=ref.dtype, device=ref.device)
+            self.l_weights = torch.as_tensor(landmarks.weights, dtype=ref.dtype, device=ref.device)
+            lw = self.l_weights
             self.l_rest = lw @ template.v_template  # (J, 3) mm
             self.l_dirs = torch.einsum("jv,vkl->jkl", lw, template.shapedirs)  # (J, 3, NB)
         steps = np.diff(times)
@@ -332,6 +341,9 @@ class _Problem:
         betas = params[0, 3 * NUM_JOINTS + 3:]
         rest = self.j_rest + torch.einsum("jkl,l->jk", self.j_dirs, betas)
         l_rest = self.l_rest + torch.einsum("jkl,l->jk", self.l_dirs, betas)
+        if self.offsets is not None:
+            rest = rest + self.offsets.joint_shift()
+            l_rest = l_rest + self.l_weights @ self.offsets.vectors()
         rot = batch_rodrigues(params[:, 3:3 * NUM_JOINTS + 3].reshape(-1, 3)).reshape(N, NUM_JOINTS, 3, 3)
         posed, A = batch_rigid_transform(rot, rest.expand(N, -1, -1), self.template.parents)
         points = pose_landmarks(self.landmarks, l_rest, A)
@@ -356,13 +368,18 @@ class _Problem:
             out["smooth"] = (acc_j ** 2).sum(-1).mean(-1).mean() + (acc_p ** 2).sum(-1).mean()
         return out
 
+    def vertices(self, params: Tensor) -> Tensor:
+        """(N, V, 3) posed vertices of ``params``, mm (with the offsets once the silhouette stage fits them)."""
+        return self.template.pose(params) if self.offsets is None else self.offsets.pose(params)
+
     def weighted(self, terms: dict[str, Tensor], keypoints: float) -> Tensor:
         """The objective: the terms times their weights (``keypoints`` for the keypoint term)."""
         c = self.config
         return (keypoints * terms["keypoints"] + c.pose_prior * terms["pose_prior"]
                 + c.hinge_prior * terms["hinge_prior"] + c.shape_prior * terms["shape_prior"]
                 + c.smooth * terms["smooth"] + c.silhouette * (terms.get("cover", 0.0)
-                                                            + c.outside * terms.get("outside", 0.0)))
+                                                            + c.outside * terms.get("outside", 0.0))
+                + c.offset_smooth * terms.get("offset_smooth", 0.0) + c.offset_prior * terms.get("offset_prior", 0.0))
 
     def keypoint_step(self, it: int, free: bool) -> Tensor:
         """The keypoint stage's objective at step ``it``."""
@@ -375,8 +392,10 @@ class _SilhouetteStage:
     def __init__(self, problem: _Problem, targets: sil.SilhouetteTargets):
         self.problem, self.targets = problem, targets
         template = problem.template
+        if problem.config.offsets:
+            problem.offsets = RestOffsets(template)
         with torch.no_grad():
-            verts = template.pose(problem.params())
+            verts = problem.vertices(problem.params())
             self.mm_per_px = sil.mm_per_pixel(verts.mean(1), targets)
         self.table, self.faces = sil.vertex_face_table(template.faces, template.num_verts)
         self.candidates: Tensor | None = None
@@ -386,13 +405,15 @@ class _SilhouetteStage:
         """All terms at the current unknowns (the nearest vertices searched again when ``it`` says so)."""
         p, c = self.problem, self.problem.config
         params = p.params()
-        verts = p.template.pose(params)
+        verts = p.vertices(params)
         if self.candidates is None or it is None or it % c.reassign_every == 0:
             uv = sil.project(verts.detach(), self.targets.proj)[0]
             self.candidates = sil.nearest_candidates(uv, self.targets.samples)
             covered = sil.covered_samples(uv, self.targets.samples, self.candidates, self.table, self.faces)
             self.uncovered = (~covered).to(uv.dtype)
         out = p.terms(params)
+        if p.offsets is not None:
+            out.update(p.offsets.priors())
         out["outside"], out["cover"] = sil.silhouette_terms(
             verts, self.targets, self.candidates, self.uncovered, self.mm_per_px, c.outside_margin_mm,
             c.silhouette_robust_mm)
@@ -409,6 +430,8 @@ def _adam(problem: _Problem, iters: int, lr: float, objective: Callable[[int, bo
         return
     groups = [{"params": [problem.root, problem.body], "lr": lr}, {"params": [problem.transl], "lr": TRANSL_LR * lr},
               {"params": [problem.betas], "lr": BETAS_LR * lr}]
+    if problem.offsets is not None:
+        groups.append({"params": [problem.offsets.mm], "lr": OFFSETS_LR * lr})
     adam = torch.optim.Adam(groups)
     sched = torch.optim.lr_scheduler.LambdaLR(adam, lambda it: 0.1 + 0.45 * (1.0 + math.cos(math.pi * it / iters)))
     for it in range(iters):
@@ -474,7 +497,9 @@ def _result(problem: _Problem, stage: _SilhouetteStage | None, kp: np.ndarray, w
         rendered = sil.rasterize_silhouettes(uv.double().cpu().numpy(), depth.double().cpu().numpy(),
                                              problem.template.faces.cpu().numpy(), stage.targets.masks.shape[2:])
         iou = sil.silhouette_iou(rendered, stage.targets.masks)
-    return BodyFitResult(params.double().cpu().numpy(), error, iou, losses)
+    offsets = (problem.offsets.as_numpy() if problem.offsets is not None
+               else np.zeros((problem.template.num_verts, 3)))
+    return BodyFitResult(params.double().cpu().numpy(), error, iou, losses, offsets)
 
 
 def fit_body(template: SMPLTemplate, keypoints: Real[np.ndarray, "N J 3"], keypoint_conf: Real[np.ndarray, "N J"],

@@ -45,6 +45,11 @@ class BodyFitConfig:
                                       parse=positive_float)
     keypoints_in_silhouette: float = opt(0.3, help="weight of the keypoint term in the silhouette stage",
                                          parse=non_negative_float)
+    offsets: bool = opt(True, help="fit per-vertex offsets along the rest normals, shared by all frames (SMPL+D), "
+                        "in the silhouette stage")
+    offset_smooth: float = opt(3.0, help="weight of the squared differences of neighbouring offsets (cm^2)",
+                               parse=non_negative_float)
+    offset_prior: float = opt(1.0, help="weight of the squared offsets (cm^2)", parse=non_negative_float)
     mask_height: int = opt(256, help="height the masks are downsampled to (never up) for the silhouette "
                            "terms and the IoU",
                            parse=positive_int)

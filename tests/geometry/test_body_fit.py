@@ -3,6 +3,7 @@ and the true body's silhouettes as masks."""
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 
 import cv2
@@ -13,6 +14,8 @@ from scipy.spatial.transform import Rotation
 
 from deliffas.geometry import body_fit_silhouette as sil
 from deliffas.geometry.body_fit import BodyFitConfig, fit_body, initial_body_params
+from deliffas.geometry.body_fit_offsets import with_rest_offsets
+from deliffas.geometry.mesh_ops import vertex_normals
 from deliffas.geometry.smpl_body import procedural_smpl
 from deliffas.geometry.templates import SMPLTemplate
 from deliffas.io.cameras import Camera, look_at
@@ -163,9 +166,12 @@ def test_silhouette_fit_covers_the_masks(template, scene, keypoint_fit, silhouet
     err = _joint_error(template, fit.params, scene["joints"])
     assert np.median(err) < 30, f"joints {np.median(err):.1f} mm from the truth (median)"
     # the body covers the mask (DELIFFAS's shell lies outside the template): few mask pixels left out
+    # the fitted body is the template with the rest offsets in its v_template
+    fitted = copy.deepcopy(template)
+    fitted.v_template += torch.as_tensor(fit.rest_offsets_mm, dtype=fitted.v_template.dtype)
     targets = sil.prepare_silhouettes(scene["masks"], scene["cameras"], FAST.mask_height, 1, 0, torch.zeros(1))
     with torch.no_grad():
-        uv, depth = sil.project(template.pose(torch.as_tensor(fit.params, dtype=torch.float32)), targets.proj)
+        uv, depth = sil.project(fitted.pose(torch.as_tensor(fit.params, dtype=torch.float32)), targets.proj)
     drawn = sil.rasterize_silhouettes(uv.double().numpy(), depth.double().numpy(), template.faces.numpy(),
                                       targets.masks.shape[2:])
     np.testing.assert_allclose(sil.silhouette_iou(drawn, targets.masks), fit.silhouette_iou)
@@ -198,3 +204,45 @@ def test_bad_inputs(template, scene):
         fit_body(template, kp, conf, IDS, cams[:3], masks)
     with pytest.raises(ValueError, match="aspect"):
         fit_body(template, kp, conf, IDS, cams, np.ascontiguousarray(masks[:, :, :, :200]))
+
+
+@pytest.fixture(scope="module")
+def clothed(template, scene):
+    """The scene's body with a 'belly bag': the front of its torso pushed out by up to 50 mm along the rest normals
+    (smooth), and its masks; the shape space cannot make it."""
+    rest = template.v_template.double().numpy()
+    normals = vertex_normals(rest, template.faces.numpy())
+    height = (rest[:, 1] - rest[:, 1].min()) / np.ptp(rest[:, 1])
+    torso = (np.clip(1.0 - np.abs(height - 0.58) / 0.12, 0.0, 1.0) * (np.abs(rest[:, 0]) < 150.0)
+             * np.clip(normals[:, 2], 0.0, 1.0))  # the body faces +z at rest
+    offsets = 50.0 * torso[:, None] * normals
+    body = copy.deepcopy(template)
+    body.v_template += torch.as_tensor(offsets, dtype=body.v_template.dtype)
+    with torch.no_grad():
+        verts = body.pose(torch.as_tensor(scene["params"], dtype=torch.float32)).double().numpy()
+    masks = _masks(verts, template.faces.numpy(), scene["cameras"], FULL[0] // 4, FULL[1] // 4)
+    return dict(torso=torso > 0.3, masks=masks)
+
+
+def test_rest_offsets_follow_what_the_shape_space_cannot(template, scene, clothed):
+    """With offsets the fit pushes the bag's vertices out (more than the others), without losing IoU; the offsets in
+    a model file's v_template reproduce the fitted body."""
+    fits = {on: fit_body(template, scene["keypoints"], scene["conf"], IDS, scene["cameras"], clothed["masks"],
+                         dataclasses.replace(FAST, offsets=on)) for on in (False, True)}
+    assert not fits[False].rest_offsets_mm.any()
+    iou = {on: np.median(f.silhouette_iou) for on, f in fits.items()}
+    assert iou[True] >= iou[False] - 0.01, f"IoU with offsets {iou[True]:.3f}, without {iou[False]:.3f}"
+    normals = vertex_normals(template.v_template.double().numpy(), template.faces.numpy())
+    along = (fits[True].rest_offsets_mm * normals).sum(1)
+    bag, others = np.median(along[clothed["torso"]]), np.median(np.abs(along[~clothed["torso"]]))
+    assert bag > 3.0 and bag > 2.0 * others, f"offsets: {bag:.1f} mm on the bag, {others:.1f} mm elsewhere (median)"
+    assert np.abs(along).max() < 40.0
+    data = procedural_smpl(0, target_verts=800)
+    fitted = SMPLTemplate(with_rest_offsets(data, fits[True].rest_offsets_mm), atlas_res=64)
+    params = torch.as_tensor(fits[True].params[:2], dtype=torch.float32)
+    with torch.no_grad():
+        direct = copy.deepcopy(template)
+        direct.v_template += torch.as_tensor(fits[True].rest_offsets_mm, dtype=direct.v_template.dtype)
+        np.testing.assert_allclose(fitted.pose(params).numpy(), direct.pose(params).numpy(), atol=1e-3)
+    with pytest.raises(ValueError, match="rest offsets"):
+        with_rest_offsets(data, np.zeros((3, 3)))

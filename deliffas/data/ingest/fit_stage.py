@@ -9,9 +9,11 @@ from typing import Sequence
 
 import numpy as np
 
+from deliffas.io.body_models.smpl import load_smpl_model, write_smpl_model
 from deliffas.io.cameras import Camera
 from deliffas.geometry.body_fit import fit_body
 from deliffas.geometry.body_fit_config import BodyFitConfig
+from deliffas.geometry.body_fit_offsets import with_rest_offsets
 from deliffas.geometry.body_landmarks import body_landmarks
 from deliffas.geometry.smpl_body import make_procedural_smpl
 from deliffas.geometry.templates import SMPL_MODEL_SUFFIXES, TemplateSpec, build_template, spec_from_file
@@ -21,7 +23,7 @@ from deliffas.data.ingest.detect import BODY_LANDMARK_NAMES, KEYPOINTS
 from deliffas.data.ingest.stages import Detections, load_npz, save_npz
 from deliffas.data.subjects.capture_common import SMPL_NUM_BETAS
 
-__all__ = ["prepare_body", "triangulate_stage", "usable_frames", "fit_stage", "MIN_KEYPOINTS"]
+__all__ = ["prepare_body", "write_fitted_body", "triangulate_stage", "usable_frames", "fit_stage", "MIN_KEYPOINTS"]
 
 log = logging.getLogger(__name__)
 
@@ -29,9 +31,10 @@ MIN_KEYPOINTS = 8
 """Triangulated keypoints (of the J) a frame needs to be fitted."""
 
 
-def prepare_body(out: Path, body_model: str) -> TemplateSpec:
-    """The SMPL template spec of ``out/body/``: the procedural body written there, or the user's file copied."""
-    body = out / "body"
+def prepare_body(work: Path, body_model: str) -> TemplateSpec:
+    """The SMPL template spec of the body model to fit, in ``work/body/``: the procedural body written there, or the
+    user's file copied (with its ``<stem>_uv.obj`` when there is one)."""
+    body = work / "body"
     body.mkdir(parents=True, exist_ok=True)
     if body_model == "procedural":
         model = body / "smpl_procedural.npz"
@@ -43,8 +46,26 @@ def prepare_body(out: Path, body_model: str) -> TemplateSpec:
             raise FileNotFoundError(f"--body-model {src}: expected an SMPL model file ({', '.join(SMPL_MODEL_SUFFIXES)}) "
                                     "or 'procedural'")
         model = body / src.name
+        uv = src.with_name(f"{src.stem}_uv.obj")
+        if uv.is_file() and not (body / uv.name).is_file():
+            shutil.copyfile(uv, body / uv.name)
         if not model.is_file():
             shutil.copyfile(src, model)
+    return spec_from_file(model, num_betas=SMPL_NUM_BETAS)
+
+
+def write_fitted_body(out: Path, spec: TemplateSpec, rest_offsets_mm: np.ndarray) -> TemplateSpec:
+    """``out/body/<stem>.npz``: the fitted body model, ``spec``'s model with the fit's per-vertex offsets in its
+    rest shape (``BodyFitResult.rest_offsets_mm``), and its uv layout beside it; returns its spec."""
+    src = spec.path("model")
+    body = out / "body"
+    body.mkdir(parents=True, exist_ok=True)
+    model = body / f"{src.stem}.npz"
+    write_smpl_model(model, with_rest_offsets(load_smpl_model(src), rest_offsets_mm,
+                                                    float(spec.option("scale", 1000.0))))
+    uv = src.with_name(f"{src.stem}_uv.obj")
+    if uv.is_file():
+        shutil.copyfile(uv, body / uv.name)
     return spec_from_file(model, num_betas=SMPL_NUM_BETAS)
 
 
@@ -80,7 +101,7 @@ def usable_frames(tri: dict, alphas: np.ndarray, min_views: int) -> tuple[np.nda
 
 def fit_stage(work: Path, spec: TemplateSpec, tri: dict, alphas: np.ndarray, cameras: Sequence[Camera],
               frames: list[int], config: IngestConfig) -> dict:
-    """``fit.npz``: the fitted template rows of the usable frames and the fit's residuals.
+    """``fit.npz``: the fitted template rows of the usable frames, the rest offsets and the fit's residuals.
 
     Raises:
         ValueError: fewer than ``config.min_frames`` usable frames, listing the skipped ones by reason.
@@ -111,6 +132,6 @@ def fit_stage(work: Path, spec: TemplateSpec, tri: dict, alphas: np.ndarray, cam
            "joint_error_mm": np.asarray(res.joint_error_mm, np.float64),
            "silhouette_iou": (np.asarray(res.silhouette_iou, np.float64) if res.silhouette_iou is not None
                               else np.full((len(idx), len(cameras)), np.nan)),
-           "joint_names": np.array([k.name for k in KEYPOINTS])}
+           "rest_offsets_mm": res.rest_offsets_mm, "joint_names": np.array([k.name for k in KEYPOINTS])}
     save_npz(path, **out)
     return out

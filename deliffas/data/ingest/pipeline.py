@@ -27,7 +27,7 @@ from deliffas.data.ingest.config import INGEST_MARKER, IngestConfig
 from deliffas.data.ingest.detect import require_detector
 from deliffas.data.ingest.frames import plan_frames
 from deliffas.data.ingest import stages
-from deliffas.data.ingest.fit_stage import fit_stage, prepare_body, triangulate_stage
+from deliffas.data.ingest.fit_stage import fit_stage, prepare_body, triangulate_stage, write_fitted_body
 from deliffas.data.ingest.report import write_outputs
 
 __all__ = ["ingest", "IngestResult", "find_calibration"]
@@ -134,7 +134,7 @@ def ingest(config: IngestConfig) -> IngestResult:
     out, work = _claim(config, calib)
     seconds: dict[str, float] = {}
     t = time.perf_counter()
-    spec = prepare_body(out, config.body_model)
+    spec = prepare_body(work, config.body_model)
     seconds["body model"] = time.perf_counter() - t
     t = time.perf_counter()
     for s, plan in zip(streams, plans):
@@ -151,6 +151,7 @@ def ingest(config: IngestConfig) -> IngestResult:
     t = time.perf_counter()
     fit = fit_stage(work, spec, tri, alphas, cams, list(frames), config)
     seconds["body fit"] = time.perf_counter() - t
+    spec = write_fitted_body(out, spec, fit["rest_offsets_mm"])
     report = write_outputs(out, work, config, spec, plans, streams, list(frames), dets, tri, alphas, fit, seconds,
                            calib)
     shutil.rmtree(work)
