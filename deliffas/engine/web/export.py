@@ -28,7 +28,7 @@ WEB_FORMAT = {"format": "deliffas-web", "version": 1}
 """What ``avatar.json`` says it is."""
 
 PLAYER_FILES = ("index.html", "player/main.js", "player/gl.js", "player/unet.js", "player/geometry.js",
-                "player/raster.js", "player/shade.js", "player/orbit.js", "player/ui.js")
+                "player/raster.js", "player/shade.js", "player/orbit.js", "player/ui.js", "player/smpl.js")
 """The player's files, copied into every export (paths inside the export)."""
 
 

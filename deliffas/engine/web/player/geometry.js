@@ -1,5 +1,8 @@
 // Per-frame geometry on the CPU, in double precision as deliffas computes it: posing (LBS or DQS from the
-// motion's bone transforms, or the motion's posed vertices), vertex normals, the outer shell and the normal maps.
+// motion's bone transforms, SMPL's posing (smpl.js), or the motion's posed vertices), vertex normals, the outer
+// shell and the normal maps.
+
+import {SMPLPoser} from './smpl.js';
 
 const ZERO_NORMAL_EPS = 1e-12;  // deliffas.geometry.mesh_ops.ZERO_NORMAL_EPS
 const NORMAL_EPS2 = 1e-16;      // deliffas.geometry.normal_maps.NORMAL_EPS ** 2
@@ -126,6 +129,7 @@ export class FrameGeometry {
       out.set(this.m('verts').subarray(frame * 3 * V, (frame + 1) * 3 * V));
       return out;
     }
+    if (mo.kind === 'smpl') return (this.smpl ??= new SMPLPoser(mo, this.m)).pose(frame, out);
     const idx = this.m('skin_indices'), K = mo.skin_indices.shape[1], nb = mo.bones.shape[1];
     const args = [this.m('rest_verts'), idx, this.m('skin_weights'), K, this.m('bones'), frame * nb * 12];
     if (mo.skinning === 'lbs') lbs(...args, out); else dqs(...args, nb, out);
