@@ -58,8 +58,11 @@ def serve(folder: Path):
 
 
 @contextmanager
-def served_page(folder: Path, tmp_path: Path, url: str | None = None, timeout_ms: int = 120_000):
-    """The page of ``folder`` (or ``url``) open in headless Chromium, its player ready (else its message fails)."""
+def served_page(folder: Path, tmp_path: Path, url: str | None = None, timeout_ms: int = 120_000, query: str = "",
+                init_script: str | None = None, expect_ready: bool = True):
+    """The page of ``folder`` (or ``url``) open in headless Chromium, its player ready (else its message fails;
+    not checked with ``expect_ready`` False); ``query`` is appended to the page's URL (``?backend=cpu``),
+    ``init_script`` runs before the page's scripts."""
     pw = pytest.importorskip("playwright.sync_api")
     with serve(folder) as base, pw.sync_playwright() as p:
         ctx = p.chromium.launch_persistent_context(str(tmp_path / "chromium-profile"), executable_path=CHROMIUM,
@@ -70,8 +73,10 @@ def served_page(folder: Path, tmp_path: Path, url: str | None = None, timeout_ms
             page.set_default_timeout(timeout_ms)
             errors: list[str] = []
             page.on("pageerror", lambda e: errors.append(str(e)))
-            page.goto(url or base)
-            if url is None:
+            if init_script is not None:
+                page.add_init_script(init_script)
+            page.goto((url or base) + query)
+            if url is None and expect_ready:
                 ok = page.evaluate("() => window.deliffasPlayer.ready.then(() => true, e => String(e))")
                 message = page.locator("#message").text_content()
                 assert ok is True and not errors, f"the player did not start: {ok} {errors} {message}"

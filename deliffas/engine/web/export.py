@@ -28,7 +28,9 @@ WEB_FORMAT = {"format": "deliffas-web", "version": 1}
 """What ``avatar.json`` says it is."""
 
 PLAYER_FILES = ("index.html", "player/main.js", "player/gl.js", "player/unet.js", "player/geometry.js",
-                "player/raster.js", "player/shade.js", "player/orbit.js", "player/ui.js", "player/smpl.js")
+                "player/raster.js", "player/shade.js", "player/orbit.js", "player/ui.js", "player/smpl.js",
+                "player/backend.js", "player/webgl_backend.js", "player/cpu_backend.js", "player/cpu_unet.js",
+                "player/cpu_raster.js", "player/cpu_shade.js")
 """The player's files, copied into every export (paths inside the export)."""
 
 

@@ -1,12 +1,10 @@
 // The player: loads avatar.json and avatar.bin, renders a frame from a camera (posing and normal maps on the
-// CPU, U-Nets, rasterisation with depth peeling and the light field on the GPU), plays the motion, and exposes
-// the test hook window.deliffasPlayer = {ready, render({frame, camera}), stats()}.
+// CPU; U-Nets, rasterisation with depth peeling and the light field on the GPU with WebGL2, or on the CPU: see
+// backend.js), plays the motion, and exposes the test hook window.deliffasPlayer = {ready, render({frame, camera}),
+// stats()}.
 
-import {createContext, describeRenderer, floatTexture, renderTarget, stackChannels, uploadTexture} from './gl.js';
 import {FrameGeometry} from './geometry.js';
-import {UNetPasses} from './unet.js';
-import {SurfaceRaster} from './raster.js';
-import {LightFieldPass} from './shade.js';
+import {createBackend} from './backend.js';
 import {OrbitCamera} from './orbit.js';
 import {bindControls} from './ui.js';
 
@@ -21,27 +19,12 @@ async function loadAvatar() {
 
 class Player {
   constructor(canvas, index, arrays) {
-    const gl = this.gl = createContext(canvas);
     this.canvas = canvas;
-    this.backend = `webgl2 (${describeRenderer(gl)})`;
     const model = this.model = index.model, scene = index.scene, S = model.atlas_res;
-    this.vao = gl.createVertexArray();
+    this.engine = createBackend(canvas, model, scene, arrays, location.search);
+    this.backend = this.engine.name;
     this.geometry = new FrameGeometry(scene, arrays, S);
     this.cameras = scene.cameras;
-    this.unets = {inner: new UNetPasses(gl, model.unet_inner, S, arrays, this.vao),
-                  outer: model.unet_outer ? new UNetPasses(gl, model.unet_outer, S, arrays, this.vao) : null};
-    const channels = 3 * (model.temporal_window + 1), groups = (channels + 3) >> 2;
-    this.input = {channels, buffer: new Float32Array(groups * S * S * 4),
-                  inner: floatTexture(gl, S, S * groups), outer: floatTexture(gl, S, S * groups)};
-    const atlas = t => (t ? floatTexture(gl, S, S * ((t.channels + 3) >> 2), arrays(t.data)) : floatTexture(gl, 1, 1));
-    this.maps = {innerT: atlas(model.texture_inner), outerT: atlas(model.texture_outer),
-                 normal: floatTexture(gl, S, S)};
-    const table = model.mlp.table;
-    this.shade = new LightFieldPass(gl, model, floatTexture(gl, table.shape[1] / 4, table.shape[0], arrays(table)),
-                                    this.vao);
-    this.syncTarget = renderTarget(gl, 1, 1);
-    this.syncPixel = new Float32Array(4);
-    this.raster = new SurfaceRaster(gl, arrays(scene.faces), arrays(scene.uvs), arrays(scene.face_uvs));
     const test = scene.test_cameras.length ? scene.test_cameras[0] : 0;
     const first = this.geometry.get(0).inner, center = [0, 1, 2].map(i => {
       let s = 0;
@@ -62,7 +45,7 @@ class Player {
 
   encode(frame, timed) {
     if (this.encoded === frame) return;
-    const S = this.model.atlas_res, T = this.model.temporal_window, inp = this.input;
+    const S = this.model.atlas_res, T = this.model.temporal_window;
     const normals = timed('normal_maps', () => {
       const g = this.geometry.get(frame);
       const windows = ['inner', 'outer'].map(s => this.geometry.window(frame, T, s === 'inner' ? 'nmInner' : 'nmOuter'));
@@ -70,24 +53,13 @@ class Player {
       for (let t = 0; t < S * S; t++) for (let c = 0; c < 3; c++) n[4 * t + c] = g.nmInner[c * S * S + t];
       return {windows, n};
     });
-    timed('unet', () => {
-      const gl = this.gl;
-      uploadTexture(gl, this.maps.normal, normals.n);
-      uploadTexture(gl, inp.inner, stackChannels(normals.windows[0], inp.channels, S, inp.buffer));
-      this.maps.innerF = this.unets.inner.run(inp.inner);
-      if (this.unets.outer) {
-        uploadTexture(gl, inp.outer, stackChannels(normals.windows[1], inp.channels, S, inp.buffer));
-        this.maps.outerF = this.unets.outer.run(inp.outer);
-      } else {
-        this.maps.outerF = this.maps.innerF;
-      }
-    });
+    timed('unet', () => this.engine.encode(normals.windows, normals.n));
     this.encoded = frame;
   }
 
-  // Draw `frame` seen by `cam` ({K, world_to_cam, width, height}); profile: wait for the GPU after each stage.
+  // Draw `frame` seen by `cam` ({K, world_to_cam, width, height}); profile: wait for the backend after each stage.
   draw(frame, cam, profile = false) {
-    const gl = this.gl, stages = {};
+    const stages = {};
     const timed = (name, fn) => {
       const t0 = performance.now(), out = fn();
       if (profile) this.sync();
@@ -100,18 +72,13 @@ class Player {
     }
     this.encode(frame, timed);
     const g = timed('pose', () => this.geometry.get(frame));
-    const hits = timed('raster', () => this.raster.run(g.inner, g.outer, cam));
-    timed('shade', () => this.shade.run(hits, this.maps, cam));
+    const hits = timed('raster', () => this.engine.raster(g.inner, g.outer, cam));
+    timed('shade', () => this.engine.shade(hits, cam));
     this.stages = stages;
   }
 
-  // Wait until the GPU has done every command so far: a one-pixel read (gl.finish need not wait in a browser).
-  sync() {
-    const gl = this.gl;
-    gl.bindFramebuffer(gl.FRAMEBUFFER, this.syncTarget.fb);
-    gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.FLOAT, this.syncPixel);
-    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
-  }
+  // Wait until the backend has done every command so far (the GPU's: a one-pixel read; the CPU's: done).
+  sync() { this.engine.sync(); }
 
   currentCamera() { return this.camera === 'orbit' ? this.orbit.camera() : this.cameras[this.camera]; }
 
@@ -154,17 +121,7 @@ class Player {
   }
 
   // The raster targets of the last draw, {inner, outer, exit}: (H * W * 4) floats (u, v, z, hit), rows bottom up.
-  hits() {
-    const gl = this.gl, out = {};
-    for (const [name, t] of Object.entries(this.raster.targets)) {
-      gl.bindFramebuffer(gl.FRAMEBUFFER, t.fb);
-      const data = new Float32Array(t.w * t.h * 4);
-      gl.readPixels(0, 0, t.w, t.h, gl.RGBA, gl.FLOAT, data);
-      out[name] = Array.from(data);
-    }
-    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
-    return out;
-  }
+  hits() { return this.engine.hits(); }
 
   // Play `count` frames from capture camera `camera` (or the orbit), each posed anew (its predecessors in the
   // temporal window stay cached, as in playback) and waited for: {fps, stages_ms} (stages: mean per frame,
