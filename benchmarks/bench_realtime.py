@@ -7,7 +7,7 @@ Scene: the benchmark capture (``_capture.py``), frame 0, camera 0 rescaled to 94
 torch thread (``BENCH_THREADS``) on both sides of every ratio.
 
 * frame, pose held: ``fast.frame.fast_render_camera`` with the frame's U-Net features cached
-  (the viewer while the pose holds), in the dtype ``FastConfig()`` resolves to (bf16 where the CPU
+  (the viewer while the pose holds), in the dtype ``RenderPathConfig()`` resolves to (bf16 where the CPU
   has native bf16); for ``two_surface`` and for ``REFLECTED``, each against its own irreducible work.
 * irreducible work, measured in the same run: one plain z-buffer pass of the outer surface
   (``UVRasterizer.depth_pass``, incl. projecting its vertices), one ``torch.mm`` per MLP layer shape
@@ -15,10 +15,10 @@ torch thread (``BENCH_THREADS``) on both sides of every ratio.
   ``index_select`` of every sampled feature value (nearest texel) from the two maps (and the normal map
   where the model reflects the view direction).
   The frame's fp32 pass takes the first layer's encoded part from per-coordinate tables
-  (``FastConfig.pe_table``, on by default), so it does fewer multiply-adds than the GEMM chain counts
+  (``RenderPathConfig.pe_table``, on by default), so it does fewer multiply-adds than the GEMM chain counts
   and the ratio can read below 1.
 * encoding table: the frame with the tables against the frame with the exact encoding
-  (``FastConfig(pe_table=False)``), same run; no target.
+  (``RenderPathConfig(pe_table=False)``), same run; no target.
 * frames in flight: a stream of 8 frames one after the other (1 and 2 intra-op threads) against
   ``render_stream`` with two frames in flight on one thread each; no target.
 * reflected direction: ``REFLECTED``'s frame against ``two_surface_texture``'s (the same model without the
@@ -110,33 +110,35 @@ def _frame_fns(model, sample, info, camera, fast):
 
     def held(timer=None):  # pose held: features cached, the frame's surfaces already set up
         with torch.no_grad():
-            return render_camera(model, features, rc, camera, device, timer or StageTimer(device), fast=fast)
+            return render_camera(model, features, rc, camera, device, timer or StageTimer(device),
+                                 render_path=fast)
 
-    once = dataclasses.replace(fast, project_features=False) if fast is not None else None
+    once = dataclasses.replace(fast, project_features=False)
 
     def full():  # a new pose: surfaces and U-Nets per frame, features shaded once (as engine.render does)
         with torch.no_grad():
             rc2 = UVRaycaster(sample.inner_verts, info["faces"], sample.outer_verts, info["atlas"])
             feats = model.encode(*sample.normal_maps(device))
-            return render_camera(model, feats, rc2, camera, device, StageTimer(device), fast=once)
+            return render_camera(model, feats, rc2, camera, device, StageTimer(device), render_path=once)
     return held, full, features, rc
 
 
 def _ratio_rows(sample, info, name: str = "two_surface") -> list[Result]:
     """The frame of model ``name`` (realtime preset) against its irreducible work (PASS/FAIL), its fps and the
     encoding table's gain; rows named as ever for ``two_surface``, after the model otherwise."""
-    from deliffas.fast.frame import fast_camera_rays
+    from deliffas.fast.uv_sources import device_camera_rays
     from deliffas.fast.rasterize import frame_rasterizer
-    from deliffas.fast.config import FastConfig
+    from deliffas.fast.config import RenderPathConfig
+    from deliffas.fast.shade import mlp_dtype
     from deliffas.engine.timing import StageTimer
 
-    fast = FastConfig()
-    dtype = fast.torch_dtype()
+    fast = RenderPathConfig()
+    dtype = mlp_dtype(fast.dtype)
     model = _model(info, "realtime", name)
     size, cam = _frame_camera(sample)
     label = f"{size} realtime preset" + ("" if name == "two_surface" else f" ({name})")
     held, _full, features, rc = _frame_fns(model, sample, info, cam, fast)
-    n = fast_camera_rays(rc, cam).num_rays
+    n = device_camera_rays(rc, cam, "cpu", "raster").num_rays
     rz = frame_rasterizer(rc)
     gemm, gather = _gemm_chain(model, n, dtype), _gather(features, n)
     exact, _, _, _ = _frame_fns(model, sample, info, cam, dataclasses.replace(fast, pe_table=False))
@@ -166,13 +168,13 @@ def _ratio_rows(sample, info, name: str = "two_surface") -> list[Result]:
 def _reflect_rows(sample, info) -> list[Result]:
     """``REFLECTED``'s realtime frame against ``two_surface_texture``'s (no view direction), interleaved: pose held
     and U-Nets per frame."""
-    from deliffas.fast.config import FastConfig
+    from deliffas.fast.config import RenderPathConfig
     from deliffas.models.zoo import REFLECTED, TEXTURED
 
     size, cam = _frame_camera(sample)
     fns = {}
     for name in (TEXTURED, REFLECTED):
-        held, full, _, _ = _frame_fns(_model(info, "realtime", name), sample, info, cam, FastConfig())
+        held, full, _, _ = _frame_fns(_model(info, "realtime", name), sample, info, cam, RenderPathConfig())
         fns[f"{name} held"], fns[f"{name} full"] = held, full
     t = best_times(fns, repeat=5, min_time=3.0)
     rows = []
@@ -189,12 +191,12 @@ def _stream_rows(sample, info, name: str = "two_surface", preset: str = "realtim
     2 intra-op threads, and two frames in flight (``render_stream``, one thread each), interleaved; pose held and
     per frame."""
     from deliffas.fast.frame import render_stream
-    from deliffas.fast.config import FastConfig
+    from deliffas.fast.config import RenderPathConfig
 
     model = _model(info, preset, name)
     what = f"{preset} preset" if name == "two_surface" else f"{name} ({preset}, the default of deliffas train)"
     size, cam = _frame_camera(sample)
-    held, full, _, _ = _frame_fns(model, sample, info, cam, FastConfig())
+    held, full, _, _ = _frame_fns(model, sample, info, cam, RenderPathConfig())
     frames = sized(8, 2)
 
     def sequential(fn, threads):
@@ -224,7 +226,7 @@ def _stream_rows(sample, info, name: str = "two_surface", preset: str = "realtim
 
 
 def _fps_rows(sample, info) -> list[Result]:
-    from deliffas.fast.config import FastConfig
+    from deliffas.fast.config import RenderPathConfig
 
     rows = []
     sizes = _sizes()
@@ -232,8 +234,8 @@ def _fps_rows(sample, info) -> list[Result]:
         model = _model(info, preset)
         for size, (w, h) in sizes.items():
             cam = sample.cameras[0].rescaled(w, h)
-            fast_held, fast_full, _, _ = _frame_fns(model, sample, info, cam, FastConfig())
-            plain_held, _, _, _ = _frame_fns(model, sample, info, cam, None)
+            fast_held, fast_full, _, _ = _frame_fns(model, sample, info, cam, RenderPathConfig())
+            plain_held, _, _, _ = _frame_fns(model, sample, info, cam, RenderPathConfig(path="plain"))
             fns = {"fast_held": fast_held, "fast_full": fast_full}
             if preset == "small" and size == list(sizes)[-1]:
                 fns["plain_held"] = plain_held

@@ -1,7 +1,7 @@
 """The viewer's frame rate at 512^2 (small preset) against the engine's renderer alone.
 
-The viewer renders as ``deliffas view`` serves it: through the CPU fast path (``ViewConfig.fast`` with the CLI's
-environment variables), and
+The viewer renders as ``deliffas view`` serves it: through the CPU fast path (``ViewConfig.render_path``'s
+default), and
 ``render_frame`` / ``render_camera`` are given the same path; the plain viewer's rate is a row without target.
 Smoke mode: 64^2, 2 views, one timed pass."""
 
@@ -47,8 +47,7 @@ def run() -> list[Result]:
 
     from deliffas.engine.runs import load_run
     from deliffas.engine.shading import render_camera, render_frame
-    from deliffas.cli.fast_env import fast_from_env
-    from deliffas.fast.frame import fast_for_device
+    from deliffas.fast.frame import path_for_device
     from deliffas.engine.view_config import ViewConfig
     from deliffas.engine.timing import StageTimer
     from deliffas.engine.view.renderer import RenderWorker, ViewRenderer, ViewRequest
@@ -64,16 +63,17 @@ def run() -> list[Result]:
     cams = _orbit(sample, side, views)
     device = torch.device("cpu")
     rc = UVRaycaster(sample.inner_verts, info["faces"], sample.outer_verts, info["atlas"])
-    fast = fast_for_device(fast_from_env(ViewConfig.fast), device)
+    fast = path_for_device(ViewConfig.render_path, device)
 
     def direct(with_cnn: bool) -> float:
         features = model.encode(*sample.normal_maps(device))
         t0 = time.perf_counter()
         for cam in cams:
             if with_cnn:
-                render_frame(model, dataclasses.replace(sample, cameras=[cam]), rc, device, StageTimer(), fast=fast)
+                render_frame(model, dataclasses.replace(sample, cameras=[cam]), rc, device, StageTimer(),
+                             render_path=fast)
             else:
-                render_camera(model, features, rc, cam, device, StageTimer(), fast=fast)
+                render_camera(model, features, rc, cam, device, StageTimer(), render_path=fast)
         return (time.perf_counter() - t0) / len(cams)
 
     scene = ViewScene([str(run_dir)])
@@ -92,7 +92,7 @@ def run() -> list[Result]:
             done.acquire()
         return (time.perf_counter() - t0) / len(cams)
 
-    worker = RenderWorker(ViewRenderer(scene, fast=fast), encode)
+    worker = RenderWorker(ViewRenderer(scene, render_path=fast), encode)
     plain_worker = RenderWorker(ViewRenderer(scene), encode)
     try:
         with torch.no_grad():
@@ -105,11 +105,12 @@ def run() -> list[Result]:
         worker.stop()
         plain_worker.stop()
     fps = 1.0 / served
-    path = "fast path" if fast is not None else "plain path (DELIFFAS_FAST_RENDER=0)"
+    path = "fast path" if fast.fast else "plain path"
     return [
         Result("view", f"viewer {side}^2 small two_surface, camera orbit (frame fixed): fps", fps, "fps",
                target=">= 10", passed=fps >= 10, note=f"{served * 1000:.1f} ms per image incl. PNG encoding; {path}"),
-        Result("view", f"viewer {side}^2, plain path (--plain): fps", 1.0 / plain, "fps", ratio=plain / served,
+        Result("view", f"viewer {side}^2, plain path (--render-path plain): fps", 1.0 / plain, "fps",
+               ratio=plain / served,
                baseline="the viewer as served", note=f"{plain * 1000:.1f} ms per image; no target"),
         Result("view", f"viewer {side}^2: time per image / render_frame alone", served / alone, "ratio",
                baseline=f"render_frame {alone * 1000:.1f} ms (U-Net every call)", ratio=served / alone,

@@ -180,12 +180,14 @@ def _render_frame(model, sample, cam, info, device: torch.device, timer, uv: str
     """One (H, W, 3) image of ``sample``'s pose from ``cam``: the U-Nets, then ``render_camera`` with the uvs of
     ``uv``."""
     from deliffas.engine.shading import render_camera
+    from deliffas.fast.config import RenderPathConfig
     from deliffas.geometry.raycast import UVRaycaster
 
     with timer.stage("cnn"):
         features = model.encode(*sample.normal_maps(device))
     raycaster = UVRaycaster(sample.inner_verts, info["faces"], sample.outer_verts, info["atlas"])
-    return render_camera(model, features, raycaster, cam, device, timer, uv=uv)
+    return render_camera(model, features, raycaster, cam, device, timer,
+                         render_path=RenderPathConfig(path="plain", uv=uv))
 
 
 def _render(model, samples, info, device: torch.device, frames: int, uv: str = "torch") -> dict:
@@ -216,7 +218,7 @@ def _agreement(model, sample, info, device: torch.device) -> dict:
     """PSNR of one frame rendered on ``device`` (torch rasteriser) against the CPU with the same weights and the
     C/numpy rasteriser's rays; on a CPU device this compares the two rasterisers."""
     from deliffas.engine.rays import paint_images, ray_query, stack_rays
-    from deliffas.fast.frame import fast_camera_rays
+    from deliffas.fast.rasterize import rasterized_camera_rays
     from deliffas.engine.timing import StageTimer
     from deliffas.geometry.raycast import UVRaycaster
 
@@ -226,7 +228,7 @@ def _agreement(model, sample, info, device: torch.device) -> dict:
     cpu_model = copy.deepcopy(model).cpu()
     features = cpu_model.encode(*sample.normal_maps("cpu"))
     raycaster = UVRaycaster(sample.inner_verts, info["faces"], sample.outer_verts, info["atlas"])
-    batch = stack_rays([fast_camera_rays(raycaster, cam)], [0])
+    batch = stack_rays([rasterized_camera_rays(raycaster, cam)], [0])
     rgb = cpu_model.shade_chunked(features, ray_query(batch, cpu_model.spec))
     ref = paint_images(rgb, batch, 1, cam.height, cam.width)[0]
     psnr = _psnr(got, ref)
@@ -240,6 +242,7 @@ def _trainer_and_eval(shards: str, out: Path, device: torch.device, iters: int, 
     from deliffas.engine.evaluate import EvalConfig, evaluate
     from deliffas.engine.rays import uv_source
     from deliffas.engine.train import TrainConfig, train
+    from deliffas.fast.config import RenderPathConfig
 
     got = {}
     for key, uv in (("trainer", "torch"), ("trainer_default_uv", "auto")):
@@ -251,7 +254,8 @@ def _trainer_and_eval(shards: str, out: Path, device: torch.device, iters: int, 
                     "stage_ms": res.stage_ms, "uv": uv_source(device, uv)}
     keys = ("stage_ms", "fps", "fps_shared_cnn", "psnr", "images", "resolution", "uv")
     for key, uv in (("eval", "torch"), ("eval_default_uv", "auto")):
-        ev = evaluate(EvalConfig(run=f"{out}_{uv}", split="novel_view", device=str(device), uv=uv))
+        ev = evaluate(EvalConfig(run=f"{out}_{uv}", split="novel_view", device=str(device),
+                                 render_path=RenderPathConfig(path="plain", uv=uv)))
         got[key] = {k: ev.to_json()[k] for k in keys}
     return got
 

@@ -5,7 +5,7 @@ Usage (runs trained beforehand, e.g. by ``python -m recipes.presets``)::
     python -m benchmarks.preset_table realtime=RUN small=RUN paper=RUN [--out table.md] [--max-frames N]
 
 For each run: the foreground PSNR on its novel-view split by the plain path and by the fast path (``deliffas eval``
-with and without ``--fast``), then the fast path's fps on the first test frame's first camera, rescaled to each size:
+with ``--render-path plain`` and ``fast``), then the fast path's fps on the first test frame's first camera, rescaled to each size:
 the pose held (U-Nets cached, the viewer) and with the U-Nets per frame (``deliffas render``), best of 3 on one torch
 thread, and a stream of 8 frames with two in flight (``render_stream``). Prints the markdown table and writes it to
 ``--out``. No targets: machines vary; record the load (``uptime``) beside the numbers.
@@ -30,7 +30,7 @@ def _fps(run: str, max_frames: int | None) -> dict[str, str]:
     from deliffas.engine.runs import load_run
     from deliffas.engine.shading import render_camera
     from deliffas.fast.frame import render_stream
-    from deliffas.fast.config import FastConfig
+    from deliffas.fast.config import RenderPathConfig
     from deliffas.engine.timing import StageTimer
     from deliffas.geometry.raycast import UVRaycaster
 
@@ -39,7 +39,7 @@ def _fps(run: str, max_frames: int | None) -> dict[str, str]:
     samples, info = evaluation_samples(shards, "novel_view", max_frames=1, with_rays=False, protocol="all",
                                        temporal_window=model.config.temporal_window)
     sample = next(samples)
-    device, fast = torch.device("cpu"), FastConfig()
+    device, fast = torch.device("cpu"), RenderPathConfig()
     with torch.no_grad():
         features = model.encode(*sample.normal_maps(device))
     rc = UVRaycaster(sample.inner_verts, info["faces"], sample.outer_verts, info["atlas"])
@@ -49,13 +49,13 @@ def _fps(run: str, max_frames: int | None) -> dict[str, str]:
 
         def held(cam=cam):
             with torch.no_grad():
-                return render_camera(model, features, rc, cam, device, StageTimer(device), fast=fast)
+                return render_camera(model, features, rc, cam, device, StageTimer(device), render_path=fast)
 
         def per_frame(cam=cam):
             with torch.no_grad():
                 feats = model.encode(*sample.normal_maps(device))
                 rc2 = UVRaycaster(sample.inner_verts, info["faces"], sample.outer_verts, info["atlas"])
-                return render_camera(model, feats, rc2, cam, device, StageTimer(device), fast=fast)
+                return render_camera(model, feats, rc2, cam, device, StageTimer(device), render_path=fast)
 
         def stream():
             for _ in render_stream(lambda _i: per_frame(), range(8), 2):
@@ -69,10 +69,10 @@ def _fps(run: str, max_frames: int | None) -> dict[str, str]:
 
 def _psnr(run: str, fast: bool, max_frames: int | None) -> float:
     from deliffas.engine.evaluate import EvalConfig, evaluate
-    from deliffas.fast.config import FastConfig
+    from deliffas.fast.config import RenderPathConfig
 
     return float(evaluate(EvalConfig(run=run, split="novel_view", max_frames=max_frames,
-                                     fast=FastConfig() if fast else None)).foreground.psnr)
+                                     render_path=RenderPathConfig(path="fast" if fast else "plain"))).foreground.psnr)
 
 
 def main(argv: list[str] | None = None) -> str:

@@ -18,9 +18,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping
 
-__all__ = ["ENV_INCEPTION_WEIGHTS", "ENV_LPIPS_WEIGHTS", "ENV_VGG16_WEIGHTS", "FAST_PATH_VARIABLES", "NATIVE_ENV",
-           "VARIABLES", "WEIGHTS_VARIABLES", "Variable", "c_compiler", "cache_root", "distributed", "fast_path_values",
-           "local_rank", "native_disabled", "onednn_isa_cap", "variables_markdown", "weights_file", "world_size"]
+__all__ = ["ENV_INCEPTION_WEIGHTS", "ENV_LPIPS_WEIGHTS", "ENV_VGG16_WEIGHTS", "NATIVE_ENV", "VARIABLES",
+           "WEIGHTS_VARIABLES", "Variable", "c_compiler", "cache_root", "distributed", "local_rank", "native_disabled",
+           "onednn_isa_cap", "variables_markdown", "weights_file", "world_size"]
 
 NATIVE_ENV = "DELIFFAS_NATIVE"
 """Environment variable: "0" disables every compiled kernel."""
@@ -32,9 +32,6 @@ ENV_INCEPTION_WEIGHTS = "DELIFFAS_INCEPTION_WEIGHTS"
 """Environment variable naming pytorch-fid's Inception-v3 weight file."""
 WEIGHTS_VARIABLES = (ENV_VGG16_WEIGHTS, ENV_LPIPS_WEIGHTS, ENV_INCEPTION_WEIGHTS)
 """The variables :func:`weights_file` reads."""
-FAST_PATH_VARIABLES = ("DELIFFAS_FAST_RENDER", "DELIFFAS_RENDER_DTYPE", "DELIFFAS_FUSED_SHADE", "DELIFFAS_PE_TABLE",
-                       "DELIFFAS_PROJECT_FEATURES", "DELIFFAS_FRAMES_IN_FLIGHT")
-"""The variables of the CPU fast path (:func:`fast_path_values`; ``deliffas.cli.fast_env`` maps them)."""
 
 
 @dataclass(frozen=True)
@@ -71,16 +68,6 @@ VARIABLES: tuple[Variable, ...] = (
              "`1`", "deliffas.engine.train"),
     Variable("LOCAL_RANK", "the process's GPU on its machine (set by `torchrun`), with more than one process",
              "`0`", "deliffas.engine.train"),
-    Variable("DELIFFAS_FAST_RENDER", "`0` renders `eval --fast`, `render` and `view` on the plain path",
-             "the fast path", "deliffas.cli.fast_env"),
-    Variable("DELIFFAS_RENDER_DTYPE", "`float32` or `bfloat16`: the fast path's dtype (`FastConfig.dtype`)",
-             "the command's", "deliffas.cli.fast_env"),
-    Variable("DELIFFAS_FUSED_SHADE", "`0` off, `1` on: `FastConfig.fused`", "the command's", "deliffas.cli.fast_env"),
-    Variable("DELIFFAS_PE_TABLE", "`0` off, `1` on: `FastConfig.pe_table`", "the command's", "deliffas.cli.fast_env"),
-    Variable("DELIFFAS_PROJECT_FEATURES", "`0` off, `1` on: `FastConfig.project_features`", "the command's",
-             "deliffas.cli.fast_env"),
-    Variable("DELIFFAS_FRAMES_IN_FLIGHT", "an integer >= 1: `FastConfig.in_flight`", "the command's",
-             "deliffas.cli.fast_env"),
 )
 """Every environment variable the package reads, one row each."""
 
@@ -176,17 +163,6 @@ def distributed(environ: Mapping[str, str] | None = None) -> tuple[int, int]:
         environ: the variables (None = ``os.environ``).
     """
     return world_size(environ), local_rank(environ)
-
-
-def fast_path_values(environ: Mapping[str, str] | None = None) -> dict[str, str]:
-    """The variables of :data:`FAST_PATH_VARIABLES` that are set, name -> raw value (not stripped, not checked:
-    ``deliffas.cli.fast_env`` validates them and maps them onto a FastConfig).
-
-    Args:
-        environ: the variables (None = ``os.environ``).
-    """
-    env = _environ(environ)
-    return {name: env[name] for name in FAST_PATH_VARIABLES if name in env}
 
 
 def variables_markdown() -> str:

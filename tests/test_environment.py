@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import ast
-import os
 from pathlib import Path
 
 import pytest
@@ -80,7 +79,7 @@ def test_the_docs_table_is_the_variables():
         assert v.name and v.effect and v.default and v.reader.startswith("deliffas.")
         assert "|" not in v.effect + v.default and "\n" not in v.effect + v.default
         assert (PACKAGE.parent / (v.reader.replace(".", "/") + ".py")).is_file(), v.reader
-    assert set(environment.FAST_PATH_VARIABLES) | set(environment.WEIGHTS_VARIABLES) <= set(names)
+    assert set(environment.WEIGHTS_VARIABLES) <= set(names)
 
 
 def test_native_disabled_and_compiler():
@@ -145,13 +144,13 @@ def test_distributed():
         environment.local_rank({"LOCAL_RANK": ""})
 
 
-def test_fast_path_values(monkeypatch):
-    assert environment.fast_path_values({}) == {}
-    env = {"DELIFFAS_FAST_RENDER": " 0 ", "DELIFFAS_PE_TABLE": "", "DELIFFAS_NATIVE": "0", "OTHER": "x"}
-    assert environment.fast_path_values(env) == {"DELIFFAS_FAST_RENDER": " 0 ", "DELIFFAS_PE_TABLE": ""}
-    full = {name: "1" for name in environment.FAST_PATH_VARIABLES}
-    assert environment.fast_path_values(full) == full
-    monkeypatch.setenv("DELIFFAS_FRAMES_IN_FLIGHT", "3")
-    assert environment.fast_path_values()["DELIFFAS_FRAMES_IN_FLIGHT"] == "3"
-    assert "DELIFFAS_FRAMES_IN_FLIGHT" not in environment.fast_path_values({k: v for k, v in os.environ.items()
-                                                                             if k != "DELIFFAS_FRAMES_IN_FLIGHT"})
+RENDER_PATH_VARIABLES = ("DELIFFAS_FAST_RENDER", "DELIFFAS_RENDER_DTYPE", "DELIFFAS_FUSED_SHADE", "DELIFFAS_PE_TABLE",
+                         "DELIFFAS_PROJECT_FEATURES", "DELIFFAS_FRAMES_IN_FLIGHT")
+"""Variables of earlier releases: the render path is ``RenderPathConfig``, set by options (``--render-path``...)."""
+
+
+def test_no_variable_chooses_the_render_path():
+    assert not set(RENDER_PATH_VARIABLES) & {v.name for v in VARIABLES}
+    named = {path.relative_to(REPO).as_posix(): [n for n in RENDER_PATH_VARIABLES if n in path.read_text()]
+             for path in PACKAGE.rglob("*.py")}
+    assert not {k: v for k, v in named.items() if v}, "the render path is set by options, not the environment"

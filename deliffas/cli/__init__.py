@@ -70,6 +70,8 @@ def main(argv: list[str] | None = None) -> int:
         args = build_parser().parse_args(argv)
         logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                             format="%(levelname)s %(name)s: %(message)s")
+        for note in getattr(args, "deprecated", None) or ():  # DeprecatedAlias: an old flag's replacement
+            log.warning("%s", note)
         from deliffas.cli import handlers  # local: keeps `deliffas --help` and parsing free of torch
 
         return int(getattr(handlers, f"cmd_{args.handler}")(args) or 0)

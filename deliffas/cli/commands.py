@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
+from deliffas.cli.from_config import DeprecatedAlias
 from deliffas.options import image_size
 
 __all__ = ["COMMANDS", "Command", "Config", "Extra"]
@@ -80,17 +81,16 @@ def _train_options(p: argparse.ArgumentParser, configs: tuple[type, ...]) -> Non
 
 
 def _eval_options(p: argparse.ArgumentParser, configs: tuple[type, ...]) -> None:
-    """eval: how the result is printed (``--json``), ``EvalConfig.fast`` from the environment (``--fast``)."""
+    """eval: how the result is printed (``--json``); ``--fast``, the deprecated spelling of ``--render-path fast``."""
     p.add_argument("--json", action="store_true", help="print one JSON object")
-    p.add_argument("--fast", action="store_true",
-                   help="render by the CPU fast path of 'deliffas render'/'view' (to measure what it changes)")
+    p.add_argument("--fast", action=DeprecatedAlias, dest="render_path.path", const="fast",
+                   replacement="--render-path fast", help="deprecated: --render-path fast")
 
 
 def _plain_option(p: argparse.ArgumentParser, configs: tuple[type, ...]) -> None:
-    """``--plain`` of render and view: ``fast=None`` instead of the fast path (``cli.fast_env``), not a field."""
-    p.add_argument("--plain", action="store_true",
-                   help="render as 'deliffas eval' does (ray-cast uvs, fp32 MLP) instead of the CPU fast path "
-                        "(rasterised uvs, fused inputs, bf16 MLP where the CPU has native bf16)")
+    """render and view: ``--plain``, the deprecated spelling of ``--render-path plain``."""
+    p.add_argument("--plain", action=DeprecatedAlias, dest="render_path.path", const="plain",
+                   replacement="--render-path plain", help="deprecated: --render-path plain")
 
 
 _DATA, _ENGINE = "deliffas.data", "deliffas.engine"

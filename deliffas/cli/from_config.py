@@ -4,6 +4,10 @@ Each field declared with :func:`deliffas.options.opt` becomes one option: its sp
 ``--field-name``), its type (``parse``, else the annotation: int, float, str, Path, ``Literal`` choices, ``X | None``,
 bool as ``--flag`` / ``--no-flag``; ``choices=`` names values a registry holds), its help with the default appended,
 and its ``dest`` = the field name.
+A field whose type is itself a config dataclass (``EvalConfig.render_path``) is nested: its ``opt`` fields become
+options of an argument group titled by the field, each stating the *outer* field's default value (so every
+command states its own), bool ones as ``--flag`` / ``--no-flag``, with ``dest`` = ``field.subfield``; the
+nested config is rebuilt from that default and the options given.
 So an option is declared once, on its field, and a handler builds its config with :func:`config_from_args`.
 """
 
@@ -19,7 +23,7 @@ from typing import Any, Iterable, Literal, Union
 
 from deliffas.options import CliOption, cli_option
 
-__all__ = ["add_config_arguments", "config_from_args", "given_values", "option_names"]
+__all__ = ["DeprecatedAlias", "add_config_arguments", "config_from_args", "given_values", "option_names"]
 
 
 def _cli_fields(cls: type) -> list[tuple[dataclasses.Field, CliOption]]:
@@ -31,6 +35,12 @@ def _annotation(cls: type, f: dataclasses.Field) -> Any:
     if not isinstance(f.type, str):
         return f.type
     return eval(f.type, vars(sys.modules[cls.__module__]))  # noqa: S307 - the config module's own annotation
+
+
+def _nested(cls: type, f: dataclasses.Field) -> type | None:
+    """The config dataclass a nested field holds (``render_path: RenderPathConfig``), else None."""
+    tp = _strip_none(_annotation(cls, f))
+    return tp if isinstance(tp, type) and dataclasses.is_dataclass(tp) else None
 
 
 def _strip_none(tp: Any) -> Any:
@@ -84,13 +94,22 @@ def _value_kwargs(cls: type, f: dataclasses.Field, o: CliOption) -> dict:
     raise TypeError(f"{cls.__name__}.{f.name}: no parser for {tp!r}; give opt(..., parse=...)")
 
 
-def _add_field(parser: argparse.ArgumentParser, cls: type, f: dataclasses.Field, o: CliOption, sparse: bool) -> None:
-    default = _default(f)
+def _add_field(parser: argparse.ArgumentParser | argparse._ArgumentGroup, cls: type, f: dataclasses.Field,
+               o: CliOption, sparse: bool, nested_in: tuple[str, Any] | None = None) -> None:
+    """``nested_in``: (the outer field's name, its default config) for a field of a nested config."""
+    default = _default(f) if nested_in is None else getattr(nested_in[1], f.name)
+    dest = f.name if nested_in is None else f"{nested_in[0]}.{f.name}"
     is_flag = _strip_none(_annotation(cls, f)) is bool and o.parse is None
     flag = o.flag if o.flag is not None else "--" + f.name.replace("_", "-")
     kwargs: dict[str, Any] = {"help": _help(f, o, default, is_flag)}
     if o.metavar is not None:
         kwargs["metavar"] = o.metavar
+    if nested_in is not None:
+        sparse = True  # the nested config's own default holds the values not given
+        if is_flag:  # both spellings: the default differs between the commands nesting the config
+            parser.add_argument(flag, dest=dest, action=argparse.BooleanOptionalAction, default=None,
+                                help=f"{o.help} (default {'on' if default else 'off'})")
+            return
     if is_flag:
         if default is True:
             flag = o.flag if o.flag is not None else "--no-" + f.name.replace("_", "-")
@@ -98,7 +117,7 @@ def _add_field(parser: argparse.ArgumentParser, cls: type, f: dataclasses.Field,
         else:
             kwargs.update(action="store_true")
         kwargs["default"] = None if sparse else default
-        parser.add_argument(flag, dest=f.name, **kwargs)
+        parser.add_argument(flag, dest=dest, **kwargs)
         return
     kwargs.update(_value_kwargs(cls, f, o))
     if o.repeat:
@@ -114,7 +133,17 @@ def _add_field(parser: argparse.ArgumentParser, cls: type, f: dataclasses.Field,
         kwargs["required"] = True
     else:
         kwargs["default"] = None if sparse or o.repeat else default
-    parser.add_argument(flag, dest=f.name, **kwargs)
+    parser.add_argument(flag, dest=dest, **kwargs)
+
+
+def _add_nested(parser: argparse.ArgumentParser, f: dataclasses.Field, o: CliOption, inner: type) -> None:
+    """The options of a nested config field, in a group titled by the field (its ``help`` the description)."""
+    base = _default(f)
+    if not isinstance(base, inner):
+        raise TypeError(f"{f.name}: a nested config field needs a {inner.__name__} default")
+    group = parser.add_argument_group(f.name.replace("_", " "), o.help)
+    for sf, so in _cli_fields(inner):
+        _add_field(group, inner, sf, so, True, nested_in=(f.name, base))
 
 
 def add_config_arguments(parser: argparse.ArgumentParser, cls: type, *, sparse: bool = False,
@@ -130,14 +159,27 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type, *, sparse: 
         skip: field names another config of the same command already added.
     """
     for f, o in _cli_fields(cls):
-        if f.name not in skip:
+        if f.name in skip:
+            continue
+        inner = _nested(cls, f)
+        if inner is not None:
+            _add_nested(parser, f, o, inner)
+        else:
             _add_field(parser, cls, f, o, sparse)
 
 
 def given_values(cls: type, args: argparse.Namespace) -> dict[str, Any]:
-    """The values of ``cls``'s options in ``args`` that are not None (repeated options as tuples)."""
+    """The values of ``cls``'s options in ``args`` that are not None (repeated options as tuples); a nested config
+    as its default with the nested options given (absent when none is)."""
     values = {}
     for f, o in _cli_fields(cls):
+        inner = _nested(cls, f)
+        if inner is not None:
+            changes = {sf.name: v for sf, _ in _cli_fields(inner) if (v := getattr(args, f"{f.name}.{sf.name}", None))
+                       is not None}
+            if changes:
+                values[f.name] = dataclasses.replace(_default(f), **changes)
+            continue
         value = getattr(args, f.name, None)
         if value is not None:
             values[f.name] = tuple(value) if o.repeat else value
@@ -150,11 +192,32 @@ def config_from_args(cls: type, args: argparse.Namespace, **extra: Any) -> Any:
 
 
 def option_names(cls: type) -> dict[str, str]:
-    """Field name -> how the command line spells it (``--iters``, or ``NAME`` for a positional argument)."""
+    """Field name -> how the command line spells it (``--iters``, or ``NAME`` for a positional argument); a nested
+    config's fields as ``field.subfield`` (a bool one by its positive spelling)."""
     names = {}
     for f, o in _cli_fields(cls):
+        inner = _nested(cls, f)
+        if inner is not None:
+            names.update({f"{f.name}.{sf.name}": so.flag or "--" + sf.name.replace("_", "-")
+                          for sf, so in _cli_fields(inner)})
+            continue
         flag = o.flag if o.flag is not None else "--" + f.name.replace("_", "-")
         if o.flag is None and _strip_none(_annotation(cls, f)) is bool and _default(f) is True:
             flag = "--no-" + f.name.replace("_", "-")
         names[f.name] = flag or f.name.upper()
     return names
+
+
+class DeprecatedAlias(argparse.Action):
+    """An old flag kept for one release: sets ``dest`` to ``const`` and adds a note naming ``replacement`` to
+    ``args.deprecated``, which ``deliffas.cli.main`` logs as a warning once logging is set up."""
+
+    def __init__(self, option_strings: list[str], dest: str, const: Any, replacement: str, **kwargs: Any):
+        super().__init__(option_strings, dest, nargs=0, const=const, **kwargs)
+        self.replacement = replacement
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: Any,
+                 option_string: str | None = None) -> None:
+        setattr(namespace, self.dest, self.const)
+        note = f"{option_string} is deprecated and will be removed in the next release; use {self.replacement}"
+        namespace.deprecated = [*(getattr(namespace, "deprecated", None) or []), note]

@@ -39,8 +39,6 @@ from deliffas.engine.train import RUN_MARKER, TrainConfig, Trainer
 from deliffas.engine.zoo_listing import ZooConfig, zoo_listing
 from deliffas.engine.view import SubjectViewConfig, ViewConfig, is_capture, view, view_subject
 from deliffas.engine.web import export_web
-from deliffas.fast.config import FastConfig
-from deliffas.cli.fast_env import fast_from_env
 from deliffas.cli.from_config import config_from_args, given_values, option_names
 
 
@@ -217,7 +215,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 def cmd_eval(args: argparse.Namespace) -> int:
     retain_freed_memory()
-    result = evaluate(config_from_args(EvalConfig, args, fast=fast_from_env(FastConfig()) if args.fast else None))
+    result = evaluate(config_from_args(EvalConfig, args))
     if args.json:
         print(json.dumps(result.to_json()))
         return 0
@@ -240,8 +238,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 def cmd_render(args: argparse.Namespace) -> int:
     retain_freed_memory()
-    out = render_video(config_from_args(RenderConfig, args,
-                                        fast=None if args.plain else fast_from_env(RenderConfig.fast)))
+    out = render_video(config_from_args(RenderConfig, args))
     print(f"wrote {out}")
     return 0
 
@@ -276,7 +273,7 @@ def cmd_view(args: argparse.Namespace) -> int:
         return 0
     if args.format != "auto" or args.template is not None:
         raise ValueError(f"{args.run} is a run: --format and --template apply to a capture folder")
-    cfg = config_from_args(ViewConfig, args, fast=None if args.plain else fast_from_env(ViewConfig.fast))
+    cfg = config_from_args(ViewConfig, args)
     view(cfg, ready=lambda: _print_view_address(cfg.host, cfg.port))
     return 0
 

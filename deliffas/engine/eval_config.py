@@ -5,8 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from deliffas.engine.config_fields import UVSource, check_uv_source, device_field, uv_field
-from deliffas.fast.config import FastConfig
+from deliffas.engine.config_fields import device_field
+from deliffas.fast.config import RenderPathConfig
 from deliffas.options import opt, positive_int
 
 __all__ = ["EvalConfig", "Split"]
@@ -41,11 +41,6 @@ class EvalConfig:
                                       "panels) of the first images", metavar="PNG", default_text="none")
     grid_images: int = 3
     """Rows of that grid (one image per frame, the first camera)."""
-    fast: FastConfig | None = None
-    """Render by the CPU fast path (``deliffas.fast``: rasterised uvs, bf16 MLP where native) instead of the
-    reference path (None), to measure what it changes."""
-    uv: UVSource = uv_field()
-    """uv maps of the reference path (the fast path rasterises)."""
-
-    def __post_init__(self) -> None:
-        check_uv_source(self.uv)  # a bad choice is named when the config is made (ValueError)
+    render_path: RenderPathConfig = opt(RenderPathConfig(path="plain"),
+                                        help="the plain path's numbers are the reference; --render-path fast "
+                                             "measures what the CPU fast path of 'render' and 'view' changes")

@@ -1,9 +1,8 @@
 """Evaluation of a trained run: the official image metrics next to the per-stage timing.
 
-Per test frame, the U-Net(s) run once (``cnn``); per test camera the uv maps are ray-cast, or
-rasterised by the torch rasteriser on the model's device (``EvalConfig.uv``; the default on CUDA)
-(``uv``), the features bilinearly sampled at the hit uvs (``sample``) and the light-field MLP
-evaluated (``mlp``) — the paper's runtime breakdown.
+Per test frame, the U-Net(s) run once (``cnn``); per test camera the uv maps come from the source
+``EvalConfig.render_path.uv`` names (``deliffas.fast.uv_sources``) (``uv``), the features bilinearly sampled at
+the hit uvs (``sample``) and the light-field MLP evaluated (``mlp``) — the paper's runtime breakdown.
 
 Metrics (``deliffas.models.metrics``), each labelled with its protocol in the result: the official
 protocol's PSNR/SSIM/FLIP (white composite, 600x496 crop; at small images mostly shared background)
@@ -34,8 +33,10 @@ from deliffas.engine.rays import uv_source
 from deliffas.engine.runs import load_run
 from deliffas.engine.samples import composite_target
 from deliffas.engine.shading import render_frame
-from deliffas.fast.frame import fast_for_device
+from deliffas.fast.frame import path_for_device
 from deliffas.engine.timing import StageTimer
+from deliffas.fast.config import RenderPathConfig
+from deliffas.fast.shade import mlp_dtype
 from deliffas.geometry.raycast import UVRaycaster
 from deliffas.models.metrics import METRICS, Evaluator
 
@@ -65,18 +66,18 @@ def evaluate(cfg: EvalConfig) -> EvalResult:
                           device=device)
     grid_rows: list[GridImage] = []
     timer = StageTimer(device)
-    fast = fast_for_device(cfg.fast, device)
+    render_path = path_for_device(cfg.render_path, device)
     n_images = n_frames = 0
     cameras_seen: set[int] = set()
     t_wall = 0.0
     for i, sample in enumerate(samples):
         if i == 0:  # first use of open3d and of the model's kernels is slow; keep it out of the timing
             render_frame(model, sample, UVRaycaster(sample.inner_verts, info["faces"], sample.outer_verts, info["atlas"]),
-                         device, StageTimer(device), cfg.chunk_size, fast, cfg.uv)
+                         device, StageTimer(device), cfg.chunk_size, render_path)
         t0 = time.perf_counter()
         with timer.stage("scene"):
             raycaster = UVRaycaster(sample.inner_verts, info["faces"], sample.outer_verts, info["atlas"])
-        preds = render_frame(model, sample, raycaster, device, timer, cfg.chunk_size, fast, cfg.uv)
+        preds = render_frame(model, sample, raycaster, device, timer, cfg.chunk_size, render_path)
         t_wall += time.perf_counter() - t0
         gt = composite_target(sample.images, sample.masks)  # black background
         for k in range(sample.num_cameras):
@@ -109,9 +110,14 @@ def evaluate(cfg: EvalConfig) -> EvalResult:
         warnings=tuple(warnings), grid=cfg.grid if cfg.grid and grid_rows else None, stage_ms=stage_ms,
         fps=1000.0 / total_single if total_single > 0 else None,
         fps_shared_cnn=n_images / t_wall if t_wall > 0 else None, device=str(device),
-        uv="rasterize (C)" if fast else uv_source(device, cfg.uv, sample.images.shape[1] * sample.images.shape[2]),
-        render_path=f"fast ({'fused fp32' if fast.fused else fast.torch_dtype()})" if fast else "plain",
+        uv=uv_source(device, render_path.uv, sample.images.shape[1] * sample.images.shape[2]),
+        render_path=_path_name(render_path),
         perceptual_backbone=record.get("perceptual_backbone"))
+
+
+def _path_name(cfg: RenderPathConfig) -> str:
+    """``EvalResult.render_path``: ``plain``, or ``fast`` with how it shades."""
+    return f"fast ({'fused fp32' if cfg.fused else mlp_dtype(cfg.dtype)})" if cfg.fast else "plain"
 
 
 def _few_images_warnings(n_images: int, protocol: str, split: str) -> list[str]:

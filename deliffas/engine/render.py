@@ -19,10 +19,11 @@ from deliffas.geometry.templates import build_template
 from deliffas.engine.avatar import load_avatar
 from deliffas.engine.devices import resolve_device
 from deliffas.engine.render_config import RenderConfig
-from deliffas.engine.rays import UVSource, device_camera_rays, paint_images, ray_query, stack_rays
-from deliffas.fast.frame import describe_render_path, fast_for_device, fast_render_camera, render_stream
+from deliffas.engine.rays import device_camera_rays, paint_images, ray_query, stack_rays
+from deliffas.engine.shading import PLAIN
+from deliffas.fast.frame import describe_render_path, fast_render_camera, path_for_device, render_stream
 from deliffas.engine.timing import StageTimer
-from deliffas.fast.config import FastConfig
+from deliffas.fast.config import RenderPathConfig
 from deliffas.geometry.raycast import UVRaycaster
 from deliffas.io.infra.files import check_writable, claim_output_file
 from deliffas.io.video import VIDEO_SUFFIXES, write_video
@@ -50,12 +51,11 @@ def orbit_cameras(reference: Camera, centers: np.ndarray, radius: float, height:
 
 
 def render_images(model, normal_windows, geometry, faces, atlas, cameras: list[Camera], device: torch.device,
-                  chunk_size: int = 262144, background: float = 0.0, fast: FastConfig | None = None,
-                  uv: UVSource = "auto"):
-    """Yield one (H, W, 3) uint8 image per frame: frame i seen by ``cameras[i]`` (``fast``: fast.frame on CPU,
-    ``fast.frames_in_flight()`` frames at once; else the uvs from ``uv``, ``engine.rays.uv_source``)."""
-    fast = fast_for_device(fast, device)
-    path = describe_render_path(model, fast, device)
+                  chunk_size: int = 262144, background: float = 0.0, render_path: RenderPathConfig = PLAIN):
+    """Yield one (H, W, 3) uint8 image per frame: frame i seen by ``cameras[i]`` by ``render_path`` (the fast
+    path: fast.frame on CPU, ``frames_in_flight()`` frames at once; the uvs from its ``uv`` on either path)."""
+    path = describe_render_path(model, render_path, device)
+    render_path = path_for_device(render_path, device)
     logger.log(logging.WARNING if path.fallback else logging.INFO, "render path: %s", path.line)
 
     @torch.no_grad()
@@ -64,16 +64,16 @@ def render_images(model, normal_windows, geometry, faces, atlas, cameras: list[C
         ni, no = (w.float()[None].to(device) for w in normal_windows(i))
         features = model.encode(ni, no)
         raycaster = UVRaycaster(geometry.inner[i], faces, geometry.outer[i], atlas)
-        if fast is not None:
-            image = fast_render_camera(model, features, raycaster, cam, StageTimer(device), fast, background)
+        if render_path.fast:
+            image = fast_render_camera(model, features, raycaster, cam, StageTimer(device), render_path, background)
         else:
-            batch = stack_rays([device_camera_rays(raycaster, cam, device, uv)], [0]).to(device)
+            batch = stack_rays([device_camera_rays(raycaster, cam, device, render_path.uv)], [0]).to(device)
             rgb = model.shade_chunked(features, ray_query(batch, model.spec), chunk_size=chunk_size)
             image = paint_images(rgb, batch, 1, cam.height, cam.width, background)[0]
         check_finite(f"render: frame {i} ({cam.name}) colours", image)  # NaN would be written as black pixels
         return (image.clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
 
-    yield from render_stream(frame, range(len(cameras)), fast.frames_in_flight() if fast is not None else 1)
+    yield from render_stream(frame, range(len(cameras)), render_path.frames_in_flight())
 
 
 def motion_geometry_builder(meta) -> tuple:
@@ -158,7 +158,7 @@ def render_video(cfg: RenderConfig) -> Path:
     atlas = UVAtlas(meta.uvs, meta.face_uvs)
     out.parent.mkdir(parents=True, exist_ok=True)
     images = render_images(model, lambda i: geometry.window(i, T), geometry, meta.faces, atlas, cameras, device,
-                           cfg.chunk_size, fast=cfg.fast, uv=cfg.uv)
+                           cfg.chunk_size, render_path=cfg.render_path)
     bar = tqdm(images, total=n, desc="render", unit="frame", dynamic_ncols=True)
     if not out.suffix:
         out.mkdir(parents=True, exist_ok=True)

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from deliffas.engine.config_fields import UVSource, check_uv_source, device_field, uv_field
-from deliffas.fast.config import FastConfig
+from deliffas.engine.config_fields import device_field
+from deliffas.fast.config import RenderPathConfig
 from deliffas.options import image_size, non_negative_int, opt, positive_float, positive_int, video_or_folder
 
 __all__ = ["RenderConfig"]
@@ -32,12 +32,6 @@ class RenderConfig:
     device: str = device_field()
     fps: float = opt(25.0, help="frames per second of the video", parse=positive_float)
     chunk_size: int = 262144
-    fast: FastConfig | None = FastConfig(project_features=False)
-    """On CPU, render by the fast path (``deliffas.fast``: rasterised uvs, fused inputs, bf16 MLP where native);
-    None = the plain path of ``deliffas eval``. A video shades each frame's features once, where projecting them
-    (``FastConfig.project_features``) costs more than it saves: off by default here."""
-    uv: UVSource = uv_field()
-    """uv maps of the plain path (every device but the CPU fast path)."""
-
-    def __post_init__(self) -> None:
-        check_uv_source(self.uv)  # a bad choice is named when the config is made (ValueError)
+    render_path: RenderPathConfig = opt(RenderPathConfig(project_features=False),
+                                        help="a video shades each frame's features once: projecting them costs "
+                                             "more than it saves, so --project-features is off here")

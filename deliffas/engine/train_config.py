@@ -15,7 +15,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
-from deliffas.engine.config_fields import UVSource, check_uv_source, device_field, uv_field
+from deliffas.engine.config_fields import device_field
+from deliffas.fast.config import UVSource, check_uv_source, uv_field
 from deliffas.models.model_table import DEFAULT_MODEL, DEFAULT_PRESET, PRESET_ROWS
 from deliffas.options import (count_or_indices, non_negative_float, non_negative_int, opt, positive_float,
                               positive_int, positive_int_or_all)

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from deliffas.engine.config_fields import device_field
-from deliffas.fast.config import FastConfig
+from deliffas.fast.config import RenderPathConfig
 from deliffas.options import opt, port, positive_int
 
 __all__ = ["ViewConfig", "SubjectViewConfig", "is_exposed"]
@@ -61,9 +61,7 @@ class ViewConfig:
     """Rays shaded at once (bounds peak memory)."""
     max_frames: int = 300
     """At most this many frames of ``motion`` on the timeline."""
-    fast: FastConfig | None = FastConfig()
-    """On CPU, render by the fast path (``deliffas.fast``: rasterised uvs, fused inputs, bf16 MLP where native);
-    None = the plain path of ``deliffas eval``."""
+    render_path: RenderPathConfig = opt(RenderPathConfig(), help="the fast path on a CPU device, every switch on")
 
     def __post_init__(self) -> None:
         _check_port(self.port)

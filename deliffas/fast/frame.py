@@ -3,20 +3,22 @@
 A camera's image is rendered here as the engine's plain path (``engine.shading.render_camera``) renders it,
 stage by stage (``uv``, ``sample``, ``mlp``), with three replacements:
 
-* ``uv``: :class:`~deliffas.fast.rasterize.UVRasterizer` instead of the open3d ray caster (same
+* ``uv``: the source ``RenderPathConfig.uv`` names, as on the plain path (``deliffas.fast.uv_sources``; ``auto`` =
+  the C rasteriser, :class:`~deliffas.fast.rasterize.UVRasterizer`, where its kernel builds: the ray caster's
   shaded pixels and uvs; the ray caster is used where a vertex is behind the camera);
 * ``sample``: :class:`~deliffas.fast.shade.FastShader` writes the encodings and sampled
   features straight into the MLP's operands (one C pass);
 * ``mlp``: the MLP as a chain of ``addmm`` in fp32, or in bf16 where the CPU has native bf16;
 * by default ``sample`` and ``mlp`` are one C pass instead (``FastShader.shade_fused``: a tile of rays in
   the vector lanes, the hidden layers in bf16 with native bf16 dot products where the dtype is bf16, else fp32,
-  the first layer's encoded part from per-coordinate tables in fp32 (``FastConfig.pe_table``), the feature
-  layer's feature part sampled from maps projected once per frame's features (``FastConfig.project_features``);
-  every colour written to its pixel), timed as the ``mlp`` stage.
+  the first layer's encoded part from per-coordinate tables in fp32 (``RenderPathConfig.pe_table``), the feature
+  layer's feature part sampled from maps projected once per frame's features
+  (``RenderPathConfig.project_features``); every colour written to its pixel), timed as the ``mlp`` stage.
 
-:class:`~deliffas.fast.config.FastConfig` is the switch; a config's ``fast=None`` is the plain path.
-``deliffas render`` and ``deliffas view`` render by it on CPU devices (:func:`fast_for_device`);
-``deliffas eval`` keeps the plain path, whose numbers are the reference.
+:class:`~deliffas.fast.config.RenderPathConfig` is the switch (``path="fast"`` or ``"plain"``, the uv source, the
+fast path's knobs). ``deliffas render`` and ``deliffas view`` take the fast path on CPU devices by default
+(:func:`path_for_device`: other devices render plain); ``deliffas eval`` keeps the plain path, whose numbers are
+the reference.
 
 :func:`render_stream` keeps several frames in flight: each frame renders in a worker thread on one torch
 intra-op thread (every stage releases the GIL: oneDNN, the C kernels through ctypes, open3d), so consecutive
@@ -26,6 +28,7 @@ frames overlap on the cores and come out in order, identical to the sequential p
 from __future__ import annotations
 
 import collections
+import dataclasses
 import logging
 import weakref
 from concurrent.futures import ThreadPoolExecutor
@@ -34,16 +37,16 @@ from typing import Callable, ContextManager, Iterable, Iterator, Protocol, TypeV
 
 import torch
 
-from deliffas.fast.config import FastConfig
-from deliffas.fast.rasterize import rasterized_camera_rays
-from deliffas.fast.shade import FastShader, supports
-from deliffas.geometry.camera_rays import CameraRays, camera_rays
+from deliffas.fast.config import RenderPathConfig
+from deliffas.fast.shade import FastShader, mlp_dtype, supports
+from deliffas.fast.uv_sources import RASTER_MAX_PIXELS_ON_GPU, device_camera_rays, uv_source
+from deliffas.geometry.camera_rays import CameraRays
 from deliffas.geometry.raycast import UVRaycaster
 from deliffas.io.cameras import Camera
 from deliffas.models.deliffas import DeliffasModel, FrameFeatures
 from deliffas.models.ray_query import RayBatch, paint_images, ray_query
 
-__all__ = ["StageTiming", "RenderPath", "fast_for_device", "describe_render_path", "fast_camera_rays", "fast_render_camera",
+__all__ = ["StageTiming", "RenderPath", "path_for_device", "describe_render_path", "fast_render_camera",
            "render_stream"]
 
 logger = logging.getLogger(__name__)
@@ -61,9 +64,9 @@ class StageTiming(Protocol):
         ...
 
 
-def fast_for_device(fast: FastConfig | None, device: torch.device | str) -> FastConfig | None:
-    """``fast`` where ``device`` is a CPU (the fast path's only device), else None (the plain path)."""
-    return fast if torch.device(device).type == "cpu" else None
+def path_for_device(cfg: RenderPathConfig, device: torch.device | str) -> RenderPathConfig:
+    """``cfg`` where ``device`` is a CPU (the fast path's only device), else ``cfg`` on the plain path."""
+    return cfg if not cfg.fast or torch.device(device).type == "cpu" else dataclasses.replace(cfg, path="plain")
 
 
 @dataclass(frozen=True)
@@ -77,24 +80,34 @@ class RenderPath:
     kernel did not build): ``render`` and ``view`` warn instead of only logging at ``-v``."""
 
 
-def describe_render_path(model: DeliffasModel, fast: FastConfig | None, device: torch.device | str) -> RenderPath:
-    """The path ``render_images`` takes for ``model`` on ``device`` with ``fast`` (``deliffas render -v`` and
+_UVS = {"raster": "rasterised uvs", "raycast": "ray-cast uvs", "torch": "uvs by the torch rasteriser"}
+
+
+def _uvs(requested: str, device: torch.device) -> str:
+    """The uv source's words, ``auto`` resolved as for an image of any size."""
+    small, large = uv_source(device, requested), uv_source(device, requested, RASTER_MAX_PIXELS_ON_GPU + 1)
+    return _UVS[small] if small == large else f"{_UVS[small]} (above 2^19 pixels an image: {_UVS[large]})"
+
+
+def describe_render_path(model: DeliffasModel, cfg: RenderPathConfig, device: torch.device | str) -> RenderPath:
+    """The path ``render_images`` takes for ``model`` on ``device`` with ``cfg`` (``deliffas render -v`` and
     ``deliffas view -v`` print its line)."""
     dev = torch.device(device)
-    if fast is None or dev.type != "cpu":
-        why = "--plain" if fast is None else f"device {dev} (the fast path is the CPU's)"
-        return RenderPath(f"plain path ({why}): uvs by ray casting, model.shade in chunks", False)
-    uvs = "rasterised uvs" if fast.rasterize else "ray-cast uvs"
+    uvs = _uvs(cfg.uv, dev)
+    if not cfg.fast or dev.type != "cpu":
+        why = "--render-path plain" if not cfg.fast else f"device {dev} (the fast path is the CPU's)"
+        return RenderPath(f"plain path ({why}): {uvs}, model.shade in chunks", False)
+    fast = cfg
     frames = f"{fast.frames_in_flight()} frame(s) in flight"
     if not supports(model):
         return RenderPath(f"fast path, {uvs}, {frames}; variant {model.spec.name} is not one FastShader shades, so "
                           "its own gather_inputs and MLP shade the rays", True)
-    shader = _shader(model, fast.torch_dtype(), fast.pe_table, fast.project_features)
+    shader = _shader(model, mlp_dtype(fast.dtype), fast.pe_table, fast.project_features)
     if fast.fused and shader.fused_available():
         dtype = "bf16 hidden layers" if shader.fused_bf16() else "fp32"
         return RenderPath(f"fast path, {uvs}, {frames}; fused C pass ({dtype})", False)
-    why = "fused=False" if not fast.fused else "the fused C kernel did not build (deliffas.native)"
-    return RenderPath(f"fast path, {uvs}, {frames}; per-stage shading ({why}), MLP in {str(fast.torch_dtype())[6:]}",
+    why = "--no-fused-shade" if not fast.fused else "the fused C kernel did not build (deliffas.native)"
+    return RenderPath(f"fast path, {uvs}, {frames}; per-stage shading ({why}), MLP in {str(mlp_dtype(fast.dtype))[6:]}",
                       fast.fused)
 
 
@@ -111,35 +124,30 @@ def _shader(model: DeliffasModel, dtype: torch.dtype, pe_table: bool, project_fe
     return per_model[key]
 
 
-def fast_camera_rays(raycaster: UVRaycaster, camera: Camera, rasterize: bool = True, viewdir: bool = True) -> CameraRays:
-    """``camera_rays(raycaster, camera)`` by rasterisation (:func:`~deliffas.fast.rasterize.rasterized_camera_rays`)
-    or, with ``rasterize`` False, by the ray caster; ``viewdir=False``: the rasteriser leaves the view directions
-    out (``viewdir`` None)."""
-    return rasterized_camera_rays(raycaster, camera, viewdir) if rasterize else camera_rays(raycaster, camera)
-
-
 def _camera_batch(rays: CameraRays) -> RayBatch:
-    """``stack_rays([rays], [0])`` without copies: the batch's tensors share ``rays``' arrays (fresh ones from
-    :func:`fast_camera_rays`); ``viewdir`` None where the rays have none."""
+    """``stack_rays([rays], [0])`` without copies: the batch's tensors share ``rays``' arrays or tensors (fresh
+    ones from ``device_camera_rays``); ``viewdir`` None where the rays have none."""
     zeros = torch.zeros(rays.num_rays, dtype=torch.long)
-    return RayBatch(batch_index=zeros, image_index=zeros, pixels=torch.from_numpy(rays.pixels),
-                    uv_inner=torch.from_numpy(rays.uv_inner), uv_outer=torch.from_numpy(rays.uv_outer),
-                    inner_from_outer=torch.from_numpy(rays.inner_from_outer),
-                    viewdir=torch.from_numpy(rays.viewdir) if rays.viewdir is not None else None)  # type: ignore[arg-type]
+    as_t = torch.as_tensor
+    return RayBatch(batch_index=zeros, image_index=zeros, pixels=as_t(rays.pixels), uv_inner=as_t(rays.uv_inner),
+                    uv_outer=as_t(rays.uv_outer), inner_from_outer=as_t(rays.inner_from_outer),
+                    viewdir=as_t(rays.viewdir) if rays.viewdir is not None else None)  # type: ignore[arg-type]
 
 
 @torch.no_grad()
 def fast_render_camera(model: DeliffasModel, features: FrameFeatures, raycaster: UVRaycaster, camera: Camera,
-                       timer: StageTiming, fast: FastConfig = FastConfig(), background: float = 0.0) -> torch.Tensor:
-    """One camera's (H, W, 3) float32 image on ``background``, as ``render_camera`` on CPU (stages uv, sample, mlp).
+                       timer: StageTiming, fast: RenderPathConfig = RenderPathConfig(),
+                       background: float = 0.0) -> torch.Tensor:
+    """One camera's (H, W, 3) float32 image on ``background``, as ``render_camera`` on CPU (stages uv, sample, mlp),
+    by the fast path's knobs of ``fast`` (its ``path`` is the caller's choice), the uvs from ``fast.uv``.
 
     Variants :class:`FastShader` does not support keep the model's own ``gather_inputs`` and MLP."""
     with timer.stage("uv"):
         # view directions only for the variants that read them (ray_query passes them on only then)
-        batch = _camera_batch(fast_camera_rays(raycaster, camera, fast.rasterize, viewdir=model.spec.viewdir))
+        batch = _camera_batch(device_camera_rays(raycaster, camera, "cpu", fast.uv, viewdir=model.spec.viewdir))
         query = ray_query(batch, model.spec)
     if supports(model) and model.mlp.output.weight.dtype == torch.float32 and features.inner.device.type == "cpu":
-        shader = _shader(model, fast.torch_dtype(), fast.pe_table, fast.project_features)
+        shader = _shader(model, mlp_dtype(fast.dtype), fast.pe_table, fast.project_features)
         if fast.fused and shader.fused_available():
             with timer.stage("mlp"):  # sampling, encodings and the MLP in one pass: timed as one stage
                 canvas = torch.full((camera.height * camera.width, 3), float(background))

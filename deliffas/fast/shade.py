@@ -24,11 +24,11 @@ sums) when the shader's dtype is bf16 and the kernel was built with them for thi
 fp32 either way. With ``pe_table=True`` its fp32 pass takes the first hidden layer's encoded part from
 per-coordinate tables (:meth:`FastShader.encoding_table`: four table rows per coordinate instead of the
 sin/cos and 2 L + 1 products; about 1e-4 from the exact pass, whose tiles it keeps where a uv lies outside
-[0, 1]); the engine's fast path turns it on (``FastConfig.pe_table``). With ``project_features=True`` the fp32 pass
-samples the feature layer's feature part from maps projected once per frame's features (:meth:`FastShader.projected_maps`:
-bilinear sampling commutes with the layer's product, so each ray reads N projected columns instead of sampling F
-features and multiplying them by an (F, N) block; within 1e-6 of the sampled features); the engine's fast path turns
-it on (``FastConfig.project_features``).
+[0, 1]); the engine's fast path turns it on (``RenderPathConfig.pe_table``). With ``project_features=True``
+the fp32 pass samples the feature layer's feature part from maps projected once per frame's features
+(:meth:`FastShader.projected_maps`: bilinear sampling commutes with the layer's product, so each ray reads N
+projected columns instead of sampling F features and multiplying them by an (F, N) block; within 1e-6 of the
+sampled features); the engine's fast path turns it on (``RenderPathConfig.project_features``).
 
 Supported variants: one inner U-Net, with or without a view direction (``two_surface``, ``two_surface_reflect``,
 ``single_surface``, ``single_surface_viewdir`` and their texture-atlas models); :func:`supports` says so, and callers
@@ -52,7 +52,7 @@ from deliffas.models.deliffas import DeliffasModel, FrameFeatures
 from deliffas.models.ray_query import RayQuery
 from deliffas.native import LazyLibrary, header_structs
 
-__all__ = ["FastShader", "supports", "native_bf16", "ROW_CHUNK", "TABLE_NODES", "PROJECTED_MAX_BYTES"]
+__all__ = ["FastShader", "supports", "native_bf16", "mlp_dtype", "ROW_CHUNK", "TABLE_NODES", "PROJECTED_MAX_BYTES"]
 
 logger = logging.getLogger(__name__)
 
@@ -86,6 +86,13 @@ def native_bf16() -> bool:
     except OSError:
         return False
     return any(flag in flags.split() for flag in ("avx512_bf16", "amx_bf16", "bf16"))
+
+
+def mlp_dtype(name: str = "auto") -> torch.dtype:
+    """The MLP's dtype for ``RenderPathConfig.dtype``: ``float32``, ``bfloat16``, or ``auto`` = bf16 where the CPU
+    has native bf16 (:func:`native_bf16`), else fp32."""
+    resolved = name if name != "auto" else ("bfloat16" if native_bf16() else "float32")
+    return torch.bfloat16 if resolved == "bfloat16" else torch.float32
 
 
 def _lanes(width: int) -> int:

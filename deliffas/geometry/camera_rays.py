@@ -33,7 +33,7 @@ class CameraRays:
         uv_inner: (N, 2) float32, inner hit uv or outer exit uv.
         inner_from_outer: (N,) bool, True where ``uv_inner`` is the outer exit hit.
         uv_outer: (N, 2) float32, first outer hit uv.
-        viewdir: (N, 3) float32 unit ray directions, world frame (None from ``fast.frame.fast_camera_rays``
+        viewdir: (N, 3) float32 unit ray directions, world frame (None from ``fast.uv_sources.device_camera_rays``
             with ``viewdir=False``).
         height, width: image size.
     """

@@ -179,8 +179,8 @@ HAND_WRITTEN = {
     "_train_options --overwrite": "train: Trainer(overwrite=)",
     "_train_options --auto-capacity": "train: calls auto_capacity() instead of Trainer",
     "_eval_options --json": "eval: how the result is printed",
-    "_eval_options --fast": "eval: EvalConfig.fast from the environment (cli.fast_env)",
-    "_plain_option --plain": "render and view: fast=None instead of the fast path from the environment",
+    "_eval_options --fast": "eval: deprecated alias of --render-path fast (one release)",
+    "_plain_option --plain": "render and view: deprecated alias of --render-path plain (one release)",
 }
 """The options still declared by hand in ``deliffas/cli/__init__.py`` and the command table ``deliffas/cli/commands.py``
 (function, spelling) and why: none sets a config field one to one."""
@@ -200,3 +200,108 @@ def test_help_imports_no_torch():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"}).stdout
     assert out.strip() == "[]"
+
+
+@dataclass(frozen=True)
+class Inner:
+    """A config nested in another (as ``RenderPathConfig`` in ``EvalConfig``)."""
+
+    way: Literal["a", "b"] = opt("a", help="which way", flag="--way")
+    on: bool = opt(True, help="switch", flag="--switch")
+    count: int = opt(0, help="how many", parse=positive_int)
+
+
+@dataclass(frozen=True)
+class Outer:
+    src: str = opt(help="input", flag="")
+    inner: Inner = opt(Inner(way="b", on=False), help="the inner settings")
+
+
+def test_a_nested_config_is_flattened_into_a_group_with_the_outer_default():
+    p = argparse.ArgumentParser()
+    add_config_arguments(p, Outer)
+    acts = _actions(p)
+    assert set(acts) == {"src", "inner.way", "inner.on", "inner.count"}
+    assert acts["inner.way"].help == "which way (default b)"  # the outer field's default, not Inner's
+    assert acts["inner.on"].option_strings == ["--switch", "--no-switch"]
+    assert acts["inner.on"].help == "switch (default off)"
+    assert acts["inner.count"].option_strings == ["--count"] and all(a.default is None for a in acts.values())
+    assert any(g.title == "inner" and g.description == "the inner settings" for g in p._action_groups)
+    assert config_from_args(Outer, p.parse_args(["x"])) == Outer(src="x")
+    assert config_from_args(Outer, p.parse_args(["x", "--switch", "--count", "3"])) == \
+        Outer(src="x", inner=Inner(way="b", on=True, count=3))  # the options not given keep the outer default
+    assert config_from_args(Outer, p.parse_args(["x", "--way", "a", "--no-switch"])).inner == Inner(way="a", on=False)
+    assert option_names(Outer) == {"src": "SRC", "inner.way": "--way", "inner.on": "--switch",
+                                   "inner.count": "--count"}
+
+
+def _parse(argv: list[str]) -> argparse.Namespace:
+    from deliffas.cli import build_parser
+
+    return build_parser().parse_args(argv)
+
+
+def test_render_path_options_per_command(tmp_path):
+    from deliffas.engine.eval_config import EvalConfig
+    from deliffas.engine.render_config import RenderConfig
+    from deliffas.engine.view_config import ViewConfig
+    from deliffas.fast.config import RenderPathConfig
+
+    video = ["render", "RUN", "--out", str(tmp_path / "v.mp4")]
+    assert config_from_args(EvalConfig, _parse(["eval", "RUN"])).render_path == RenderPathConfig(path="plain")
+    assert config_from_args(RenderConfig, _parse(video)).render_path == RenderPathConfig(project_features=False)
+    assert config_from_args(ViewConfig, _parse(["view", "RUN"])).render_path == RenderPathConfig()
+    got = config_from_args(RenderConfig, _parse([*video, "--render-path", "plain", "--uv", "raycast"])).render_path
+    assert got == RenderPathConfig(path="plain", uv="raycast", project_features=False)
+    got = config_from_args(EvalConfig, _parse(["eval", "RUN", "--render-path", "fast", "--render-dtype", "float32",
+                                               "--no-fused-shade", "--no-pe-table", "--frames-in-flight", "1"]))
+    assert got.render_path == RenderPathConfig(dtype="float32", fused=False, pe_table=False, in_flight=1)
+    got = config_from_args(ViewConfig, _parse(["view", "RUN", "--no-project-features"])).render_path
+    assert got == RenderPathConfig(project_features=False)
+    assert config_from_args(RenderConfig, _parse([*video, "--project-features"])).render_path == RenderPathConfig()
+
+
+def test_render_path_help_states_each_commands_default():
+    from deliffas.cli import build_parser
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    helps = {name: {a.option_strings[0]: a.help for a in sub.choices[name]._actions if a.option_strings}
+             for name in ("eval", "render", "view")}
+    assert helps["eval"]["--render-path"].endswith("(default plain)")
+    assert helps["render"]["--render-path"].endswith("(default fast)")
+    assert helps["render"]["--project-features"].endswith("(default off)")
+    assert helps["view"]["--project-features"].endswith("(default on)")
+    assert helps["view"]["--uv"].endswith("(default auto)")
+    assert helps["eval"]["--fast"] == "deprecated: --render-path fast"
+
+
+@pytest.mark.parametrize("argv", [["eval", "RUN"], ["render", "RUN", "--out", "v.mp4"], ["view", "RUN"]])
+def test_a_bad_render_path_value_exits_2_naming_the_choices(argv, capsys):
+    for bad, named in ((["--uv", "gpu"], "'auto', 'raster', 'raycast', 'torch'"),
+                       (["--render-path", "slow"], "'fast', 'plain'"),
+                       (["--frames-in-flight", "-1"], "expected a number >= 0")):
+        with pytest.raises(SystemExit) as exc:
+            _parse([*argv, *bad])
+        assert exc.value.code == 2 and named in capsys.readouterr().err
+
+
+def test_the_deprecated_path_flags_still_work_and_warn(tmp_path, caplog, monkeypatch):
+    import logging
+
+    from deliffas.cli import handlers, main
+    from deliffas.engine.eval_config import EvalConfig
+    from deliffas.engine.render_config import RenderConfig
+    from deliffas.engine.view_config import ViewConfig
+
+    video = ["render", "RUN", "--out", str(tmp_path / "v.mp4")]
+    assert config_from_args(RenderConfig, _parse([*video, "--plain"])).render_path.path == "plain"
+    assert config_from_args(ViewConfig, _parse(["view", "RUN", "--plain"])).render_path.path == "plain"
+    args = _parse(["eval", "RUN", "--fast"])
+    assert config_from_args(EvalConfig, args).render_path.path == "fast" and "--render-path fast" in args.deprecated[0]
+    seen = []
+    monkeypatch.setattr(handlers, "cmd_render", lambda a: seen.append(config_from_args(RenderConfig, a)) or 0)
+    with caplog.at_level(logging.WARNING, logger="deliffas.cli"):
+        assert main([*video, "--plain"]) == 0
+    assert seen[0].render_path.path == "plain"
+    assert any("--plain is deprecated" in r.getMessage() and "--render-path plain" in r.getMessage()
+               for r in caplog.records)

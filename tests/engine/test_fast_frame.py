@@ -10,11 +10,12 @@ import torch
 
 from deliffas.fast import frame as fast_frame
 from deliffas.engine.shading import render_camera
-from deliffas.cli.fast_env import fast_from_env
-from deliffas.fast.frame import fast_camera_rays, fast_for_device
-from deliffas.engine.rays import camera_rays
+from deliffas.fast.frame import path_for_device
+from deliffas.engine.rays import camera_rays, device_camera_rays
+from deliffas.engine.shading import PLAIN
 from deliffas.engine.timing import StageTimer
-from deliffas.fast.config import FastConfig
+from deliffas.fast.config import RenderPathConfig
+from deliffas.fast.shade import mlp_dtype
 from deliffas.geometry.raycast import UVRaycaster
 from deliffas.models import DeliffasModel, get_config
 
@@ -41,15 +42,16 @@ def frame(first_sample):
     return model, features, raycaster, sample.cameras
 
 
-def _render(model, features, raycaster, cam, fast):
+def _render(model, features, raycaster, cam, render_path):
+    """``render_camera`` on the CPU by ``render_path`` (None: the plain path)."""
     return render_camera(model, features, raycaster, cam, torch.device("cpu"), StageTimer(torch.device("cpu")),
-                         fast=fast)
+                         render_path=render_path if render_path is not None else PLAIN)
 
 
 def test_fast_rays_equal_camera_rays(frame):
     _, _, raycaster, cameras = frame
     for cam in [*cameras, cameras[0].rescaled(97, 61)]:
-        a, b = fast_camera_rays(raycaster, cam), camera_rays(raycaster, cam)
+        a, b = device_camera_rays(raycaster, cam, "cpu", "raster"), camera_rays(raycaster, cam)
         for name, tol in (("pixels", 0), ("inner_from_outer", 0), ("uv_inner", 1e-4), ("uv_outer", 1e-4),
                           ("viewdir", 1e-6)):
             np.testing.assert_allclose(getattr(a, name), getattr(b, name), atol=tol, rtol=0, err_msg=name)
@@ -59,7 +61,7 @@ def _assert_fast_fp32_equals_plain(model, features, raycaster, cameras) -> None:
     """Every camera: the fast path in float32 renders the plain path's image (and the person covers > 50 px)."""
     for cam in cameras:
         plain = _render(model, features, raycaster, cam, None)
-        fast = _render(model, features, raycaster, cam, FastConfig(dtype="float32"))
+        fast = _render(model, features, raycaster, cam, RenderPathConfig(dtype="float32"))
         assert (plain.sum(-1) > 0).sum() > 50
         torch.testing.assert_close(fast, plain, atol=1e-4, rtol=0)
 
@@ -74,19 +76,19 @@ def test_exact_encoding_equals_plain_and_the_table_is_within_its_error(frame):
     table is within 1e-3 of it."""
     model, features, raycaster, cameras = frame
     plain = _render(model, features, raycaster, cameras[0], None)
-    exact = _render(model, features, raycaster, cameras[0], FastConfig(dtype="float32", pe_table=False))
+    exact = _render(model, features, raycaster, cameras[0], RenderPathConfig(dtype="float32", pe_table=False))
     torch.testing.assert_close(exact, plain, atol=1e-4, rtol=0)
     sampled = _render(model, features, raycaster, cameras[0],
-                      FastConfig(dtype="float32", pe_table=False, project_features=False))
+                      RenderPathConfig(dtype="float32", pe_table=False, project_features=False))
     torch.testing.assert_close(sampled, plain, atol=1e-4, rtol=0)
-    tabled = _render(model, features, raycaster, cameras[0], FastConfig(dtype="float32"))
+    tabled = _render(model, features, raycaster, cameras[0], RenderPathConfig(dtype="float32"))
     torch.testing.assert_close(tabled, exact, atol=1e-3, rtol=0)
 
 
 def test_per_stage_path_equals_plain(frame):
     model, features, raycaster, cameras = frame
     plain = _render(model, features, raycaster, cameras[0], None)
-    fast = _render(model, features, raycaster, cameras[0], FastConfig(dtype="float32", fused=False))
+    fast = _render(model, features, raycaster, cameras[0], RenderPathConfig(dtype="float32", fused=False))
     torch.testing.assert_close(fast, plain, atol=1e-4, rtol=0)
 
 
@@ -94,7 +96,7 @@ def test_per_stage_path_equals_plain(frame):
 def test_fast_bf16_within_its_precision(frame, fused):
     model, features, raycaster, cameras = frame
     plain = _render(model, features, raycaster, cameras[0], None)
-    fast = _render(model, features, raycaster, cameras[0], FastConfig(dtype="bfloat16", fused=fused))
+    fast = _render(model, features, raycaster, cameras[0], RenderPathConfig(dtype="bfloat16", fused=fused))
     mse = float(((fast - plain) ** 2).mean())
     assert float((fast - plain).abs().max()) < 0.02 and -10 * np.log10(max(mse, 1e-20)) > 50
 
@@ -102,38 +104,29 @@ def test_fast_bf16_within_its_precision(frame, fused):
 def test_ray_cast_fallback_and_unsupported_variant(frame, tiny_shards):
     model, features, raycaster, cameras = frame
     plain = _render(model, features, raycaster, cameras[0], None)
-    fast = _render(model, features, raycaster, cameras[0], FastConfig(rasterize=False, dtype="float32"))
-    torch.testing.assert_close(fast, plain, atol=1e-5, rtol=0)
+    for uv in ("raycast", "torch"):  # the fast path takes every uv source
+        fast = _render(model, features, raycaster, cameras[0], RenderPathConfig(uv=uv, dtype="float32"))
+        torch.testing.assert_close(fast, plain, atol=1e-5, rtol=0)
     two_unet = DeliffasModel(dataclasses.replace(model.config, variant="single_surface_two_unet")).eval()
     assert not fast_frame.supports(two_unet)  # the model's own gather_inputs and MLP
     with torch.no_grad():
         feats = two_unet.encode(features.inner.new_zeros(1, 9, *features.inner.shape[2:]))
-    torch.testing.assert_close(_render(two_unet, feats, raycaster, cameras[0], FastConfig(dtype="float32")),
+    torch.testing.assert_close(_render(two_unet, feats, raycaster, cameras[0], RenderPathConfig(dtype="float32")),
                                _render(two_unet, feats, raycaster, cameras[0], None), atol=1e-4, rtol=0)
 
 
 def test_switches(monkeypatch, unchecked):
-    """FastConfig reads no environment; the CLI maps the variables onto it at its edge (fast_from_env)."""
-    assert fast_for_device(FastConfig(), "cpu") == FastConfig()
-    assert fast_for_device(FastConfig(), "meta") is None
-    env = {"DELIFFAS_FUSED_SHADE": "0", "DELIFFAS_RENDER_DTYPE": "float32"}
-    monkeypatch.setenv("DELIFFAS_RENDER_DTYPE", "half")
-    assert FastConfig().torch_dtype() == FastConfig(dtype="auto").torch_dtype()  # the environment is not read
-    assert fast_from_env(FastConfig(), {}) == FastConfig()
-    assert fast_from_env(FastConfig(), env) == FastConfig(fused=False, dtype="float32")
-    assert fast_from_env(FastConfig(), {"DELIFFAS_PE_TABLE": "0"}) == FastConfig(pe_table=False)
-    assert fast_from_env(FastConfig(project_features=False), {"DELIFFAS_PROJECT_FEATURES": "1"}) == FastConfig()
-    assert fast_from_env(FastConfig(), {"DELIFFAS_FRAMES_IN_FLIGHT": "1"}) == FastConfig(in_flight=1)
-    assert fast_from_env(FastConfig(), {"DELIFFAS_FAST_RENDER": "0"}) is None
-    assert fast_from_env(None, {}) is None
-    assert FastConfig(dtype="float32").torch_dtype() == torch.float32
-    assert FastConfig(dtype="bfloat16").torch_dtype() == torch.bfloat16
-    for name, value in (("DELIFFAS_RENDER_DTYPE", "half"), ("DELIFFAS_FRAMES_IN_FLIGHT", "x"),
-                        ("DELIFFAS_PE_TABLE", "off")):
-        with unchecked(), pytest.raises(ValueError, match=name):
-            fast_from_env(FastConfig(), {name: value})
-    with unchecked(), pytest.raises(ValueError, match="dtype"):
-        FastConfig(dtype="fp8")
+    """The config reads no environment; the fast path is the CPU's (other devices render plain)."""
+    assert path_for_device(RenderPathConfig(), "cpu") == RenderPathConfig()
+    assert path_for_device(RenderPathConfig(uv="torch"), "meta") == RenderPathConfig(path="plain", uv="torch")
+    assert path_for_device(PLAIN, "cpu") == PLAIN
+    monkeypatch.setenv("DELIFFAS_RENDER_DTYPE", "half")  # the variable of earlier releases: not read
+    assert mlp_dtype(RenderPathConfig().dtype) == mlp_dtype("auto")
+    assert mlp_dtype("float32") == torch.float32 and mlp_dtype("bfloat16") == torch.bfloat16
+    for bad, match in ((dict(dtype="fp8"), "dtype"), (dict(path="gpu"), "path"), (dict(uv="gpu"), "uv"),
+                       (dict(in_flight=-1), "in_flight")):
+        with unchecked(), pytest.raises(ValueError, match=match):
+            RenderPathConfig(**bad)
 
 
 def test_render_stream_equals_sequential(frame):
@@ -141,7 +134,7 @@ def test_render_stream_equals_sequential(frame):
     cams = [*cameras, cameras[0].rescaled(97, 61)] * 2
 
     def one(cam):
-        return _render(model, features, raycaster, cam, FastConfig())
+        return _render(model, features, raycaster, cam, RenderPathConfig())
 
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # the stream's workers run on one intra-op thread each: compare like with like
@@ -159,14 +152,15 @@ def test_render_stream_equals_sequential(frame):
 
 
 def test_frames_in_flight_switch(unchecked):
-    assert FastConfig(in_flight=3).frames_in_flight() == 3
-    assert 1 <= FastConfig().frames_in_flight() <= 2
+    assert RenderPathConfig(in_flight=3).frames_in_flight() == 3
+    assert 1 <= RenderPathConfig().frames_in_flight() <= 2
+    assert RenderPathConfig(path="plain", in_flight=3).frames_in_flight() == 1  # the plain path renders in sequence
     with unchecked(), pytest.raises(ValueError, match="in_flight"):
-        FastConfig(in_flight=-1)
+        RenderPathConfig(in_flight=-1)
 
 
 def test_render_images_keeps_the_callers_fast_config(frame, monkeypatch):
-    """Videos default to FastConfig(project_features=False); a caller's FastConfig reaches the shader unchanged
+    """Videos default to the fast path with project_features=False; a caller's config reaches the shader unchanged
     (the render once overrode it)."""
     import types
 
@@ -183,10 +177,11 @@ def test_render_images_keeps_the_callers_fast_config(frame, monkeypatch):
     channels = 3 * (model.config.temporal_window + 1)
     maps = torch.zeros(channels, model.config.atlas_res, model.config.atlas_res)
     geometry = types.SimpleNamespace(inner=[raycaster.inner_verts], outer=[raycaster.outer_verts])
-    assert render.RenderConfig(run="r", out="v.mp4").fast == FastConfig(project_features=False)
-    for fast in (FastConfig(project_features=True, in_flight=1), FastConfig(project_features=False, in_flight=1)):
+    assert render.RenderConfig(run="r", out="v.mp4").render_path == RenderPathConfig(project_features=False)
+    for fast in (RenderPathConfig(project_features=True, in_flight=1),
+                 RenderPathConfig(project_features=False, in_flight=1)):
         list(render.render_images(model, lambda i: (maps, maps), geometry, raycaster.faces, raycaster.atlas,
-                                  cameras[:1], torch.device("cpu"), fast=fast))
+                                  cameras[:1], torch.device("cpu"), render_path=fast))
         assert seen[-1] == fast
 
 
@@ -218,7 +213,7 @@ def test_fast_path_renders_a_finer_texture_as_the_plain_path(frame):
         features = model.encode(x, x)
     for cam in cameras[:2]:
         plain = _render(model, features, raycaster, cam, None)
-        fast = _render(model, features, raycaster, cam, FastConfig(dtype="float32"))
+        fast = _render(model, features, raycaster, cam, RenderPathConfig(dtype="float32"))
         torch.testing.assert_close(fast, plain, atol=1e-4, rtol=0)
 
 
@@ -237,9 +232,9 @@ def test_fast_path_renders_a_view_direction_model_as_the_plain_path(frame, first
     assert fast_frame.supports(model)  # FastShader renders it, not the model's own gather_inputs
     _assert_fast_fp32_equals_plain(model, features, raycaster, cameras)
     plain = _render(model, features, raycaster, cameras[0], None)
-    for fast in (FastConfig(dtype="float32", pe_table=False, project_features=False),
-                 FastConfig(dtype="float32", fused=False)):
+    for fast in (RenderPathConfig(dtype="float32", pe_table=False, project_features=False),
+                 RenderPathConfig(dtype="float32", fused=False)):
         torch.testing.assert_close(_render(model, features, raycaster, cameras[0], fast), plain, atol=1e-4, rtol=0)
-    bf16 = _render(model, features, raycaster, cameras[0], FastConfig(dtype="bfloat16"))
+    bf16 = _render(model, features, raycaster, cameras[0], RenderPathConfig(dtype="bfloat16"))
     mse = float(((bf16 - plain) ** 2).mean())
     assert float((bf16 - plain).abs().max()) < 0.02 and -10 * np.log10(max(mse, 1e-20)) > 50

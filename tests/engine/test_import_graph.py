@@ -7,9 +7,9 @@ import pytest
 TRAINING = "deliffas.engine.train"
 EVALUATION = ("deliffas.engine.evaluate", "deliffas.engine.shading", "deliffas.fast",
               "deliffas.models.metrics")
-UV_SOURCES = ("deliffas.fast", "deliffas.fast.rasterize")
-"""The fast path's C rasteriser is also a uv source of training (``TrainConfig.uv``): training imports it, and
-nothing else of the fast path."""
+UV_SOURCES = ("deliffas.fast", "deliffas.fast.config", "deliffas.fast.rasterize", "deliffas.fast.uv_sources")
+"""The uv sources (``fast.uv_sources``, with the C rasteriser) serve training too (``TrainConfig.uv``, declared in
+``fast.config``): training imports them, and nothing else of the fast path."""
 
 
 def test_training_import_graph_excludes_evaluation():

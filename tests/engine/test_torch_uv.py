@@ -32,7 +32,7 @@ def _cfg(shards, out, **kw):
 
 
 def test_uv_source_is_chosen_by_device(monkeypatch):
-    import deliffas.engine.rays as rays
+    import deliffas.fast.uv_sources as rays
 
     assert raster_kernel_available()  # a C compiler is part of the set-up: auto is the C rasteriser everywhere
     assert uv_source("cpu") == "raster" and uv_source("cuda") == "raster"
@@ -98,13 +98,16 @@ def test_train_eval_render_without_the_cpu_geometry_packages(tiny_shards, tmp_pa
         from deliffas.engine.evaluate import EvalConfig, evaluate
         from deliffas.engine.render import RenderConfig, render_video
         from deliffas.engine.train import TrainConfig, train
+        from deliffas.fast.config import RenderPathConfig
         run = {str(tmp_path / "run")!r}
         cfg = TrainConfig(shards={str(tiny_shards)!r}, out=run, model="two_surface", preset="tiny", iters=2,
                           cameras_per_frame=2, protocol="all", num_workers=1, preview_every=1, progress=False,
                           uv={uv!r})
         res = train(cfg)
-        ev = evaluate(EvalConfig(run=run, split="novel_view", uv={uv!r}, max_frames=2))
-        video = render_video(RenderConfig(run=run, out={str(tmp_path / "frames")!r}, frames=2, fast=None, uv={uv!r}))
+        ev = evaluate(EvalConfig(run=run, split="novel_view", render_path=RenderPathConfig(path="plain", uv={uv!r}),
+                                 max_frames=2))
+        video = render_video(RenderConfig(run=run, out={str(tmp_path / "frames")!r}, frames=2,
+                                          render_path=RenderPathConfig(path="plain", uv={uv!r})))
         print(json.dumps({{"iterations": res.iterations, "psnr": ev.official.psnr, "uv": ev.uv,
                           "frames": len(list(video.glob("*.png"))), "blocked": sys.modules["open3d"] is None}}))
     """)
@@ -126,7 +129,7 @@ def test_cli_passes_the_uv_source(tiny_shards, tmp_path):
     assert _train_config(args).uv == "torch"
     assert _train_config(build_parser().parse_args(["train", str(tiny_shards), "--out", str(tmp_path)])).uv == "auto"
     for cmd in (["eval", "RUN"], ["render", "RUN", "--out", str(tmp_path / "v.mp4")]):
-        assert build_parser().parse_args([*cmd, "--uv", "raycast"]).uv == "raycast"
+        assert getattr(build_parser().parse_args([*cmd, "--uv", "raycast"]), "render_path.uv") == "raycast"
         with pytest.raises(SystemExit):
             build_parser().parse_args([*cmd, "--uv", "gpu"])
 
@@ -135,7 +138,8 @@ def test_configs_refuse_an_unknown_uv_source(tiny_shards, tmp_path, unchecked):
     from deliffas.engine.evaluate import EvalConfig
     from deliffas.engine.render import RenderConfig
 
-    for make in (lambda: EvalConfig(run="r", uv="gpu"), lambda: RenderConfig(run="r", out="v.mp4", uv="gpu"),
-                 lambda: _cfg(tiny_shards, tmp_path, uv="gpu")):
+    from deliffas.fast.config import RenderPathConfig
+
+    for make in (lambda: RenderPathConfig(uv="gpu"), lambda: _cfg(tiny_shards, tmp_path, uv="gpu")):
         with unchecked(), pytest.raises(ValueError, match="uv: expected one of auto, raster, raycast, torch, got 'gpu'"):
             make()

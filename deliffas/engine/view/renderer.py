@@ -20,8 +20,8 @@ import numpy as np
 import torch
 
 from deliffas.engine.shading import render_camera
-from deliffas.fast.config import FastConfig
-from deliffas.fast.frame import describe_render_path
+from deliffas.fast.config import RenderPathConfig
+from deliffas.fast.frame import describe_render_path, path_for_device
 from deliffas.engine.rays import camera_rays, paint_images, stack_rays
 from deliffas.engine.timing import STAGES, StageTimer
 from deliffas.engine.view.scene import FrameData, ViewScene
@@ -138,12 +138,13 @@ def compose_panels(panels: list[np.ndarray], canvas: tuple[int, int] | None) -> 
 class ViewRenderer:
     """Renders :class:`ViewRequest` s of a :class:`ViewScene` (the U-Nets' features cached per frame and run)."""
 
-    def __init__(self, scene: ViewScene, chunk_size: int = 262144, fast: FastConfig | None = None):
+    def __init__(self, scene: ViewScene, chunk_size: int = 262144,
+                 render_path: RenderPathConfig = RenderPathConfig(path="plain")):
         self.scene = scene
         self.chunk_size = chunk_size
-        self.fast = fast  # the CPU fast path (deliffas.fast), None = plain
+        self.render_path = path_for_device(render_path, scene.device)  # the fast path on a CPU device only
         for run in scene.runs:
-            path = describe_render_path(run.model, fast, scene.device)
+            path = describe_render_path(run.model, render_path, scene.device)
             logger.log(logging.WARNING if path.fallback else logging.INFO, "render path of %s: %s", run.name, path.line)
         self._features: OrderedDict[tuple[int, int], tuple[FrameFeatures, dict]] = OrderedDict()
 
@@ -197,7 +198,7 @@ class ViewRenderer:
         features, pca = self.features(run, frame, timer)
         if mode == "rgb":
             return render_camera(model, features, frame.raycaster, cam, self.scene.device, timer,
-                                 self.chunk_size, fast=self.fast).cpu().numpy()
+                                 self.chunk_size, self.render_path).cpu().numpy()
         if mode not in VIEW_MODES:
             raise ValueError(f"view mode must be one of {VIEW_MODES}, got {mode!r}")
         with timer.stage("uv"):

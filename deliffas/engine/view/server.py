@@ -21,7 +21,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from deliffas.fast.frame import fast_for_device
 from deliffas.engine.view_config import ViewConfig
 from deliffas.engine.view.renderer import (
     VIEW_MODES,
@@ -152,7 +151,7 @@ class _Viewer:
 
     def __init__(self, cfg: ViewConfig, scene: ViewScene, server, vtf):
         self.cfg, self.scene, self.server, self.vtf = cfg, scene, server, vtf
-        self.renderer = ViewRenderer(scene, cfg.chunk_size, fast_for_device(cfg.fast, cfg.device))
+        self.renderer = ViewRenderer(scene, cfg.chunk_size, cfg.render_path)
         self.clients: dict[int, _ClientView] = {}
         self.render_lock = threading.Lock()  # workers share the models and caches: one frame at a time
         self._build_gui()
