@@ -10,12 +10,14 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import types
+import typing
 from dataclasses import MISSING
 from pathlib import Path
 from typing import Any, Callable
 
-__all__ = ["CLI_KEY", "CliOption", "opt", "cli_option", "positive_int", "non_negative_int", "power_of_two",
-           "positive_float", "non_negative_float", "image_size", "int_list", "count_or_indices", "port",
+__all__ = ["CLI_KEY", "CliOption", "opt", "cli_option", "check_fields", "positive_int", "non_negative_int", "power_of_two",
+           "positive_float", "non_negative_float", "open_unit_interval", "image_size", "int_list", "count_or_indices", "port",
            "device_name", "dask_target", "video_or_folder", "path_with_suffix"]
 
 CLI_KEY = "deliffas.cli"
@@ -65,6 +67,48 @@ def opt(default: Any = MISSING, *, help: str, flag: str | None = None, parse: Ca
 def cli_option(f: dataclasses.Field) -> CliOption | None:
     """The field's :class:`CliOption`, or None when the command line does not set it."""
     return f.metadata.get(CLI_KEY)
+
+
+def check_fields(config: Any) -> None:
+    """Check every command-line field of ``config`` (a dataclass instance) as the command line checks its text,
+    so a config built in Python is refused for what ``--option`` is: the field's ``parse`` run on the value, and a
+    ``Literal`` annotation's choices. A config's ``__post_init__`` calls it; the check is declared once, on the
+    field.
+
+    None passes (an optional field left unset), and so does a tuple (its parser reads another spelling).
+
+    Raises:
+        ValueError: ``<field>: <what was expected>, got <value>``.
+    """
+    try:
+        hints = typing.get_type_hints(type(config))
+    except (NameError, TypeError):  # an annotation only a type checker resolves: the parsers still run
+        hints = {}
+    for f in dataclasses.fields(config):
+        o = cli_option(f)
+        value = getattr(config, f.name)
+        if o is None or value is None or isinstance(value, tuple):
+            continue
+        choices = _literal_choices(hints.get(f.name))
+        if choices and value not in choices:
+            raise ValueError(f"{f.name}: expected one of {', '.join(map(str, choices))}, got {value!r}")
+        if o.parse is not None and not isinstance(value, bool) and isinstance(value, (int, float, str, Path)):
+            try:
+                o.parse(str(value))
+            except argparse.ArgumentTypeError as err:
+                raise ValueError(f"{f.name}: {err}") from None
+        elif o.parse is not None and isinstance(value, bool):
+            kind = hints.get(f.name)
+            raise ValueError(f"{f.name}: expected {getattr(kind, '__name__', kind) or 'a value'}, got {value!r}")
+
+
+def _literal_choices(annotation: Any) -> tuple[Any, ...]:
+    """The values of a ``Literal[...]`` annotation (also inside ``X | None``); () for any other."""
+    if typing.get_origin(annotation) is typing.Literal:
+        return typing.get_args(annotation)
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        return tuple(v for a in typing.get_args(annotation) for v in _literal_choices(a))
+    return ()
 
 
 def _int_at_least(minimum: int) -> Callable[[str], int]:
@@ -123,6 +167,14 @@ def positive_float(text: str) -> float:
 def non_negative_float(text: str) -> float:
     """A finite number >= 0."""
     return _finite_float(text, positive=False)
+
+
+def open_unit_interval(text: str) -> float:
+    """A number strictly between 0 and 1."""
+    value = _finite_float(text, positive=True)
+    if not value < 1:
+        raise argparse.ArgumentTypeError(f"expected a number in (0, 1), got {text!r}")
+    return value
 
 
 def image_size(text: str) -> tuple[int, int]:

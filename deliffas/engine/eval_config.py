@@ -7,7 +7,7 @@ from typing import Literal
 
 from deliffas.engine.config_fields import device_field
 from deliffas.fast.config import RenderPathConfig
-from deliffas.options import opt, positive_int
+from deliffas.options import check_fields, opt, positive_int
 
 __all__ = ["EvalConfig", "Split"]
 
@@ -44,3 +44,6 @@ class EvalConfig:
     render_path: RenderPathConfig = opt(RenderPathConfig(path="plain"),
                                         help="the plain path's numbers are the reference; --render-path fast "
                                              "measures what the CPU fast path of 'render' and 'view' changes")
+
+    def __post_init__(self) -> None:
+        check_fields(self)  # each option's own check, as on the command line

@@ -6,7 +6,8 @@ from dataclasses import dataclass
 
 from deliffas.engine.config_fields import device_field
 from deliffas.fast.config import RenderPathConfig
-from deliffas.options import image_size, non_negative_int, opt, positive_float, positive_int, video_or_folder
+from deliffas.options import (check_fields, image_size, non_negative_int, opt, positive_float, positive_int,
+                              video_or_folder)
 
 __all__ = ["RenderConfig"]
 
@@ -35,3 +36,6 @@ class RenderConfig:
     render_path: RenderPathConfig = opt(RenderPathConfig(project_features=False),
                                         help="a video shades each frame's features once: projecting them costs "
                                              "more than it saves, so --project-features is off here")
+
+    def __post_init__(self) -> None:
+        check_fields(self)  # each option's own check, as on the command line

@@ -18,8 +18,8 @@ from typing import TYPE_CHECKING, Literal
 from deliffas.engine.config_fields import device_field
 from deliffas.fast.config import UVSource, check_uv_source, uv_field
 from deliffas.models.model_table import DEFAULT_MODEL, DEFAULT_PRESET, PRESET_ROWS
-from deliffas.options import (count_or_indices, non_negative_float, non_negative_int, opt, positive_float,
-                              positive_int, positive_int_or_all)
+from deliffas.options import (check_fields, count_or_indices, non_negative_float, non_negative_int,
+                              open_unit_interval, opt, positive_float, positive_int, positive_int_or_all)
 
 if TYPE_CHECKING:
     from deliffas.models.deliffas import DeliffasModel, ModelConfig
@@ -87,7 +87,7 @@ class TrainConfig:
     lr: float | None = opt(None, help="peak learning rate", parse=positive_float,
                            default_text="the schedule's, hold-decay 1.5e-3, converge 1e-3, paper 2e-4")
     adam_beta2: float | None = opt(None, help="Adam's beta2, the decay of its squared-gradient average",
-                                   parse=positive_float, default_text="the schedule's, hold-decay 0.95, else 0.999")
+                                   parse=open_unit_interval, default_text="the schedule's, hold-decay 0.95, else 0.999")
     lr_decay_steps: int = 800_000
     """``paper`` schedule: lr = lr · 0.1^(step / lr_decay_steps), as the official code."""
     warmup_iters: int = 50
@@ -162,50 +162,28 @@ class TrainConfig:
         if self.preset not in list_presets(self.model):
             raise ValueError(f"preset: {self.model!r} has no preset {self.preset!r}; "
                              f"presets: {', '.join(list_presets(self.model))}")
-        for name, minimum in (("iters", 1), ("cameras_per_frame", 1), ("checkpoint_every", 1), ("log_every", 1),
-                              ("preview_every", 0), ("warmup_iters", 0), ("lr_decay_steps", 1)):
+        check_fields(self)  # every option's own check (its parse=, its Literal), as on the command line
+        for name, minimum in (("log_every", 1), ("warmup_iters", 0), ("lr_decay_steps", 1)):  # not options
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
                 raise ValueError(f"{name}: expected a whole number >= {minimum}, got {value!r}")
-        workers = self.num_workers
-        if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 0):
-            raise ValueError(f"num_workers: expected None or a whole number >= 0, got {workers!r}")
-        if not (math.isfinite(self.saturation_weight) and self.saturation_weight >= 0):
-            raise ValueError(f"saturation_weight: expected a finite number >= 0, got {self.saturation_weight!r}")
         if not (math.isfinite(self.saturation_margin) and self.saturation_margin > 0):
             raise ValueError(f"saturation_margin: expected a finite number > 0, got {self.saturation_margin!r}")
-        if self.ray_chunk is not None and (not isinstance(self.ray_chunk, int) or self.ray_chunk < 1):
-            raise ValueError(f"ray_chunk: expected None or a whole number >= 1, got {self.ray_chunk!r}")
-        if self.time_budget is not None:
-            if isinstance(self.time_budget, bool) or not isinstance(self.time_budget, (int, float)) or not (
-                    math.isfinite(self.time_budget) and self.time_budget > 0):
-                raise ValueError(f"time_budget: expected None or a finite number of seconds > 0, "
-                                 f"got {self.time_budget!r}")
-            if self.perceptual != "none":
-                raise ValueError(f"time_budget: a run with a perceptual stage (perceptual {self.perceptual!r}) is "
-                                 "not sized by time, its stage-2 steps cost several times the first ones; give "
-                                 "--iters instead")
-        rays = self.rays_per_step
-        if rays is not None and (isinstance(rays, bool) or not isinstance(rays, int) or rays < 1):
-            raise ValueError(f"rays_per_step: expected None or a whole number >= 1, got {rays!r}")
-        if rays is not None and self.perceptual != "none":
-            if rays != RAYS_PER_STEP:
+        if self.time_budget is not None and self.perceptual != "none":
+            raise ValueError(f"time_budget: a run with a perceptual stage (perceptual {self.perceptual!r}) is "
+                             "not sized by time, its stage-2 steps cost several times the first ones; give "
+                             "--iters instead")
+        if self.rays_per_step is not None and self.perceptual != "none":
+            if self.rays_per_step != RAYS_PER_STEP:
                 raise ValueError(f"rays_per_step: the perceptual loss (perceptual {self.perceptual!r}) compares whole "
                                  "images, every ray of them; leave --rays-per-step out or use --perceptual none")
             object.__setattr__(self, "rays_per_step", None)  # the default resolves to every ray
-        if self.lr is not None and not (math.isfinite(self.lr) and self.lr > 0):
-            raise ValueError(f"lr: expected None or a finite number > 0, got {self.lr!r}")
         if not (math.isfinite(self.texture_lr_scale) and self.texture_lr_scale > 0):
             raise ValueError(f"texture_lr_scale: expected a finite number > 0, got {self.texture_lr_scale!r}")
         if not (math.isfinite(self.lr_final) and 0 < self.lr_final <= 1):
             raise ValueError(f"lr_final: expected a number in (0, 1], got {self.lr_final!r}")
         if not (math.isfinite(self.decay_share) and 0 < self.decay_share <= 1):
             raise ValueError(f"decay_share: expected a number in (0, 1], got {self.decay_share!r}")
-        beta2 = self.adam_beta2
-        if beta2 is not None and not (isinstance(beta2, (int, float)) and 0 < beta2 < 1):
-            raise ValueError(f"adam_beta2: expected None or a number in (0, 1), got {beta2!r}")
-        if self.schedule not in SCHEDULE_LR:
-            raise ValueError(f"schedule: expected one of {', '.join(SCHEDULE_LR)}, got {self.schedule!r}")
         check_uv_source(self.uv)  # resolved when the run starts: building a config compiles nothing
         resolve_device(self.device)  # --device cuda without CUDA: refused here, before any work
 

@@ -12,7 +12,7 @@ import os
 from dataclasses import dataclass
 from typing import Any, Literal
 
-from deliffas.options import non_negative_int, opt
+from deliffas.options import check_fields, non_negative_int, opt
 
 __all__ = ["RenderPathConfig", "PathName", "Dtype", "UVSource", "UV_SOURCES", "check_uv_source", "uv_field"]
 
@@ -68,13 +68,7 @@ class RenderPathConfig:
                          flag="--frames-in-flight", parse=non_negative_int, metavar="N")
 
     def __post_init__(self) -> None:
-        if self.path not in ("fast", "plain"):
-            raise ValueError(f"render_path: path must be fast or plain, got {self.path!r}")
-        check_uv_source(self.uv)
-        if self.dtype not in ("auto", "float32", "bfloat16"):
-            raise ValueError(f"render_path: dtype must be auto, float32 or bfloat16, got {self.dtype!r}")
-        if not isinstance(self.in_flight, int) or self.in_flight < 0:
-            raise ValueError(f"render_path: in_flight must be an int >= 0 (0 = auto), got {self.in_flight!r}")
+        check_fields(self)  # the options' own checks: the Literal choices, --frames-in-flight's parse
 
     @property
     def fast(self) -> bool:

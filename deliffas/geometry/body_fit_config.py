@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from deliffas.options import non_negative_float, non_negative_int, opt, positive_float, positive_int
+from deliffas.options import check_fields, non_negative_float, non_negative_int, opt, positive_float, positive_int
 
 __all__ = ["BodyFitConfig"]
 
@@ -30,7 +30,8 @@ class BodyFitConfig:
                        "beyond it stop pulling)", parse=positive_float)
     pose_prior: float = opt(0.05, help="weight of |body pose|^2 (69 values, rad^2; not the root) per frame",
                             parse=non_negative_float)
-    hinge_prior: float = opt(1.0, help="weight of knee/elbow rotation off their hinge axis and bending backwards", parse=non_negative_float)
+    hinge_prior: float = opt(1.0, help="weight of knee/elbow rotation off their hinge axis and bending backwards",
+                             parse=non_negative_float)
     shape_prior: float = opt(0.1, help="weight of |betas|^2", parse=non_negative_float)
     smooth: float = opt(0.1, help="weight of squared second differences over consecutive frames of the "
                         "posed joints (cm) and body pose (rad)",
@@ -59,3 +60,6 @@ class BodyFitConfig:
     reassign_every: int = opt(5, help="silhouette steps between searches of each sample's nearest "
                             "projected vertices", parse=positive_int)
     seed: int = opt(0, help="seed of the mask samples")
+
+    def __post_init__(self) -> None:
+        check_fields(self)  # each option's own check, as on the command line

@@ -305,3 +305,29 @@ def test_the_deprecated_path_flags_still_work_and_warn(tmp_path, caplog, monkeyp
     assert seen[0].render_path.path == "plain"
     assert any("--plain is deprecated" in r.getMessage() and "--render-path plain" in r.getMessage()
                for r in caplog.records)
+
+
+def test_check_fields_refuses_in_python_what_the_option_refuses():
+    """One check per option, declared on the field: ``check_fields`` runs its ``parse`` and ``Literal`` on the value
+    a config was built with, so Python and the command line refuse the same values with the field's name."""
+    from dataclasses import dataclass
+    from typing import Literal
+
+    from deliffas.options import check_fields, opt, positive_float, positive_int
+
+    @dataclass(frozen=True)
+    class Config:
+        steps: int = opt(3, help="steps", parse=positive_int)
+        scale: float | None = opt(None, help="scale", parse=positive_float)
+        mode: Literal["a", "b"] | None = opt("a", help="mode")
+        sizes: tuple[int, ...] = opt((1, 2), help="sizes")
+
+        def __post_init__(self) -> None:
+            check_fields(self)
+
+    Config(), Config(steps=1, scale=None, mode=None, sizes=())
+    for kwargs, message in ((dict(steps=0), "steps: expected a number >= 1"), (dict(steps=True), "steps: expected int"),
+                            (dict(scale=float("nan")), "scale: expected a positive finite number"),
+                            (dict(mode="c"), "mode: expected one of a, b")):
+        with pytest.raises(ValueError, match=message):
+            Config(**kwargs)

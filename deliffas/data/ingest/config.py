@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from deliffas.options import non_negative_float, opt, positive_int
+from deliffas.options import check_fields, non_negative_float, opt, positive_int
 
 __all__ = ["IngestConfig", "INGEST_MARKER", "INGEST_EXTRA"]
 
@@ -55,3 +55,6 @@ class IngestConfig:
     resume: bool = opt(False, help="continue an interrupted ingest in --out (finished stages are kept)")
     overwrite: bool = opt(False, help="replace an earlier ingest in --out")
     progress: bool = opt(True, help="no progress bars")
+
+    def __post_init__(self) -> None:
+        check_fields(self)  # each option's own check, as on the command line
