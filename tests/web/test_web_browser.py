@@ -10,7 +10,7 @@ from deliffas.engine.export_config import ExportConfig
 from deliffas.engine.web import export_web
 from deliffas.models.model_table import DEFAULT_MODEL, DEFAULT_PRESET
 
-from web_page import needs_chromium, page_frame, person_psnr, reference_frames, served_page
+from web_page import needs_chromium, person_psnr, person_scores, reference_frames, served_page
 
 FRAMES, CAMERAS = 3, (0, 3)  # three frames of the test motion from a training and the held-out camera
 AGREEMENT_DB = 35.0  # issue 51's bar; the page reaches about 60 dB here (8-bit rounding)
@@ -28,13 +28,8 @@ def test_page_frames_agree_with_deliffas_render(web_capture, web_runs, tmp_path,
     motion = next((web_capture[0] / "testing").glob("*.motion"))
     out = export_web(ExportConfig(run=run, out=tmp_path / "page", web=True, motion=motion))
     refs = {c: reference_frames(run, motion, c, FRAMES, tmp_path / f"ref{c}") for c in CAMERAS}
-    scores = {}
     with served_page(out, tmp_path) as page:
-        for c in CAMERAS:
-            for f in range(FRAMES):
-                img = page_frame(page, f, c)
-                assert img.shape == refs[c][f].shape
-                scores[c, f] = person_psnr(img, refs[c][f])
+        scores = person_scores(page, refs)
         stats = page.evaluate("() => window.deliffasPlayer.stats()")
     print(f"{model} {preset}: PSNR on the person (dB) {scores}")  # shown with pytest -s
     assert min(scores.values()) >= AGREEMENT_DB, scores

@@ -10,7 +10,7 @@ from deliffas.engine.web import export_web
 from deliffas.models.model_table import DEFAULT_MODEL, DEFAULT_PRESET
 
 from test_web_browser import AGREEMENT_DB, CAMERAS, FRAMES
-from web_page import needs_chromium, page_frame, person_psnr, reference_frames, served_page
+from web_page import needs_chromium, page_frame, person_scores, reference_frames, served_page
 
 NO_WEBGL2 = """(() => {
   const get = HTMLCanvasElement.prototype.getContext;
@@ -30,13 +30,8 @@ def test_the_cpu_backend_agrees_with_deliffas_render(web_capture, web_runs, tmp_
     motion = next((web_capture[0] / "testing").glob("*.motion"))
     out = export_web(ExportConfig(run=run, out=tmp_path / "page", web=True, motion=motion))
     refs = {c: reference_frames(run, motion, c, FRAMES, tmp_path / f"ref{c}") for c in CAMERAS}
-    scores = {}
     with served_page(out, tmp_path, query="?backend=cpu") as page:
-        for c in CAMERAS:
-            for f in range(FRAMES):
-                img = page_frame(page, f, c)
-                assert img.shape == refs[c][f].shape
-                scores[c, f] = person_psnr(img, refs[c][f])
+        scores = person_scores(page, refs)
         stats = page.evaluate("() => window.deliffasPlayer.stats()")
         hits = page.evaluate("() => window.deliffasPlayer.hits()")
         shown = page.evaluate("() => document.getElementById('fps').textContent")

@@ -111,3 +111,14 @@ def person_psnr(page: np.ndarray, ref: np.ndarray) -> float:
     err = (page.astype(np.float64) - ref)[person] / 255
     mse = float((err ** 2).mean()) if person.any() else 0.0
     return float("inf") if mse == 0 else 10 * np.log10(1 / mse)
+
+
+def person_scores(page, refs: dict[int, list[np.ndarray]]) -> dict[tuple[int, int], float]:
+    """(camera, frame) -> :func:`person_psnr` of the page's canvas against ``refs[camera][frame]``."""
+    scores = {}
+    for c, frames in refs.items():
+        for f, ref in enumerate(frames):
+            img = page_frame(page, f, c)
+            assert img.shape == ref.shape
+            scores[c, f] = person_psnr(img, ref)
+    return scores
