@@ -7,11 +7,12 @@ the CPU in one command and a crash in the next.
 
 from __future__ import annotations
 
+import os
 import re
 
 import torch
 
-__all__ = ["DeviceError", "resolve_device", "DEVICE_PATTERN"]
+__all__ = ["DeviceError", "resolve_device", "DEVICE_PATTERN", "cpu_threads"]
 
 DEVICE_PATTERN = re.compile(r"^(cpu|cuda|cuda:\d+)$")
 """Device names deliffas accepts: ``cpu``, ``cuda`` (the current GPU) or ``cuda:N``."""
@@ -40,3 +41,13 @@ def resolve_device(name: str | torch.device) -> torch.device:
         if device.index is not None and device.index >= count:
             raise DeviceError(f"device {text!r}: this machine has {count} CUDA device(s) (cuda:0..cuda:{count - 1})")
     return device
+
+
+def cpu_threads(ranks: int = 1, workers: int = 0) -> int:
+    """Intra-op threads for one of ``ranks`` CPU training processes that each feed ``workers`` DataLoader
+    workers: the cores left to it (at least 1), and no more than ``OMP_NUM_THREADS`` where that is set, so that
+    runs started side by side with ``OMP_NUM_THREADS=1`` keep one thread each (oversubscribed OpenMP threads
+    spin and can make a step many times slower)."""
+    share = max(1, (os.cpu_count() or 1) // ranks - workers)
+    asked = os.environ.get("OMP_NUM_THREADS", "").strip()
+    return min(share, int(asked)) if asked.isdigit() and int(asked) > 0 else share

@@ -31,7 +31,7 @@ from deliffas.data.shards import ShardSet
 from deliffas.engine.avatar import write_run_capture
 from deliffas.engine.checkpointing import STATE_FILE, load_training_state, read_training_state, save_training_state
 from deliffas.engine.data_bridge import shard_info, training_stream, with_torch_rays
-from deliffas.engine.devices import resolve_device
+from deliffas.engine.devices import cpu_threads, resolve_device
 from deliffas.engine.identity import CAPTURE_KEYS, capture_identity, check_identity, shards_record
 from deliffas.engine.runs import read_run_record
 from deliffas.engine.samples import FrameSample, composite_target, subsample_rays
@@ -166,9 +166,7 @@ class Trainer:
             dist.barrier()
         torch.manual_seed(cfg.seed)
         if device.type == "cpu":
-            # Leave the cores the DataLoader workers (and the other ranks) use: oversubscribed OpenMP
-            # threads spin and can make a step many times slower.
-            torch.set_num_threads(max(1, (os.cpu_count() or 1) // self.world - cfg.data_workers))
+            torch.set_num_threads(cpu_threads(self.world, cfg.data_workers))
         resuming = resume and (run / STATE_FILE).is_file()
         self.start = read_training_state(run)["iteration"] if resuming else 0
         stored = shard_info(self.shards)
