@@ -1,4 +1,5 @@
-"""Shared test fixtures: the real DynaCap sample (skipped with a reason when absent) and devices."""
+"""Shared test fixtures: the real DynaCap sample (skipped with a reason when absent), devices, the procedural
+character and a tiny converted capture."""
 
 from __future__ import annotations
 
@@ -97,3 +98,16 @@ def procedural_character_path(tmp_path_factory) -> Path:
     if not path.is_file():
         make_procedural_character(ProceduralConfig(d, **PROCEDURAL_BUILD))
     return path
+
+
+@pytest.fixture(scope="session")
+def tiny_shards(tmp_path_factory):
+    """A tiny synthetic capture converted to shards (engine and benchmark tests; built once per session)."""
+    from deliffas.data.convert import ConvertConfig, convert
+    from deliffas.data.synth import SynthConfig, synthesize_capture
+
+    root = tmp_path_factory.mktemp("engine_capture")
+    synthesize_capture(root / "subject", SynthConfig(num_frames=6, num_test_frames=2, num_cameras=4, width=48,
+                                                     height=48, test_cameras=(3,), seed=0))
+    convert(root / "subject", root / "shards", ConvertConfig(atlas_res=32, progress=False))
+    return root / "shards"

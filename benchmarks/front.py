@@ -1,0 +1,167 @@
+"""The speed/accuracy front of docs/results.md: frames per second at 940 x 1285 against masked PSNR, per configuration.
+
+Usage (runs trained beforehand, one configuration per ``NAME``, its runs the training seeds)::
+
+    python -m benchmarks.front NAME=RUN[,RUN ...] ... --out DIR [--max-frames 10] [--rounds 3]
+
+For each configuration: the masked and foreground PSNR of each run on the validation camera and on the test
+cameras (``deliffas eval --split validation|novel_view --max-frames N``; mean and standard deviation over its runs),
+and the fast path's frames per second at 940 x 1285 with a new pose every frame (normal maps to U-Nets, uvs and
+shading per frame, two frames in flight on one torch thread each, as ``deliffas render`` streams), timed on its
+first run: the first test frame's first camera rescaled, the best of ``--rounds`` rounds of 8 frames, the
+configurations interleaved round by round. fps does not depend on the trained weights; it depends on the machine
+(record it beside the numbers). The front: the configurations no other beats in both fps and validation masked PSNR
+(choices are made on the validation camera). Writes ``front.md``, ``front.json`` and ``front.png``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from benchmarks._timing import best_times, torch_threads
+
+SIZE = (1285, 940)
+"""(width, height) of the timed frame."""
+FRAMES = 8
+"""Frames per timed round."""
+SPLITS = ("validation", "novel_view")
+
+
+def _scores(run: str, split: str, max_frames: int) -> dict[str, float]:
+    from deliffas.engine.evaluate import EvalConfig, evaluate
+
+    fg = evaluate(EvalConfig(run=run, split=split, max_frames=max_frames)).foreground
+    return {"masked": float(fg.masked_psnr), "fg": float(fg.psnr)}
+
+
+def _stream(run: str):
+    """A function that renders :data:`FRAMES` frames of ``run`` at :data:`SIZE`, two in flight, everything per frame."""
+    from deliffas.engine.data_bridge import evaluation_samples
+    from deliffas.engine.runs import load_run
+    from deliffas.engine.shading import render_camera
+    from deliffas.engine.timing import StageTimer
+    from deliffas.fast.config import RenderPathConfig
+    from deliffas.fast.frame import render_stream
+    from deliffas.geometry.raycast import UVRaycaster
+
+    model, record = load_run(run)
+    samples, info = evaluation_samples(record["train"]["shards"], "novel_view", max_frames=1, with_rays=False,
+                                       protocol="all", temporal_window=model.config.temporal_window)
+    sample = next(samples)
+    device, path = torch.device("cpu"), RenderPathConfig(project_features=False)
+    camera = sample.cameras[0].rescaled(*SIZE)
+
+    def frame(_i):
+        with torch.no_grad():
+            features = model.encode(*sample.normal_maps(device))
+            rc = UVRaycaster(sample.inner_verts, info["faces"], sample.outer_verts, info["atlas"])
+            return render_camera(model, features, rc, camera, device, StageTimer(device), render_path=path)
+
+    def run_frames():
+        for _ in render_stream(frame, range(FRAMES), 2):
+            pass
+    return run_frames
+
+
+def _mean_std(values: list[float]) -> tuple[float, float]:
+    return statistics.fmean(values), statistics.stdev(values) if len(values) > 1 else 0.0
+
+
+def measure(configs: dict[str, list[str]], max_frames: int, rounds: int) -> list[dict]:
+    """One row per configuration: its runs' scores per split (mean, std, per run) and its fps."""
+    with torch_threads(1):
+        t = best_times({name: _stream(runs[0]) for name, runs in configs.items()}, repeat=rounds, max_rounds=rounds)
+    rows = []
+    for name, runs in configs.items():
+        row = {"name": name, "runs": runs, "fps": FRAMES / t[name]}
+        for split in SPLITS:
+            per_run = [_scores(run, split, max_frames) for run in runs]
+            for key in ("masked", "fg"):
+                mean, std = _mean_std([s[key] for s in per_run])
+                row[f"{split}_{key}"], row[f"{split}_{key}_std"] = mean, std
+                row[f"{split}_{key}_runs"] = [s[key] for s in per_run]
+        rows.append(row)
+    return rows
+
+
+def mark_front(rows: list[dict]) -> None:
+    """Set ``front`` on each row: True where no other row has both more fps and a higher validation masked PSNR."""
+    from deliffas.engine.report import pareto_front
+
+    front = set(pareto_front([-r["fps"] for r in rows], [r["validation_masked"] for r in rows]).tolist())
+    for i, r in enumerate(rows):
+        r["front"] = i in front
+
+
+def markdown(rows: list[dict]) -> str:
+    lines = ["| configuration | runs | fps at 940 x 1285 | validation masked | validation fg | test masked | test fg "
+             "| on the front |", "|---|---:|---:|---:|---:|---:|---:|---|"]
+    for r in sorted(rows, key=lambda r: -r["fps"]):
+        cells = [f"{r[f'{s}_{k}']:.2f} ± {r[f'{s}_{k}_std']:.2f}" for s in SPLITS for k in ("masked", "fg")]
+        lines.append(f"| {r['name']} | {len(r['runs'])} | {r['fps']:.1f} | " + " | ".join(cells)
+                     + f" | {'yes' if r['front'] else ''} |")
+    return "\n".join(lines)
+
+
+def chart(rows: list[dict], path: Path) -> Path:
+    from deliffas.engine.report import pyplot, save_figure
+
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(7.2, 4.8), dpi=120)
+    for r in rows:
+        ax.errorbar(r["fps"], r["validation_masked"], yerr=r["validation_masked_std"], fmt="o",
+                    color="tab:red" if r["front"] else "tab:blue", capsize=3, zorder=3)
+        ax.annotate(r["name"], (r["fps"], r["validation_masked"]), textcoords="offset points", xytext=(5, 4),
+                    fontsize=7)
+    front = sorted((r for r in rows if r["front"]), key=lambda r: r["fps"])
+    if len(front) > 1:
+        ax.plot([r["fps"] for r in front], [r["validation_masked"] for r in front], "--", color="tab:red",
+                label="front", zorder=2)
+        ax.legend(loc="lower left")
+    ax.set_xlabel("fps at 940 x 1285, a new pose every frame (2 frames in flight, 2 CPU threads)")
+    ax.set_ylabel("masked PSNR (dB), validation camera")
+    ax.grid(alpha=0.3)
+    return save_figure(fig, path)
+
+
+def _parse(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("configs", nargs="+", help="NAME=RUN[,RUN ...]: a configuration and its runs (seeds)")
+    parser.add_argument("--out", type=Path, required=True, help="folder for front.md, front.json and front.png")
+    parser.add_argument("--max-frames", type=int, default=10, help="frames of each evaluation (default 10)")
+    parser.add_argument("--rounds", type=int, default=3, help="timed rounds of 8 frames per configuration (default 3)")
+    args = parser.parse_args(argv)
+    args.parsed = {}
+    for item in args.configs:
+        name, sep, runs = item.partition("=")
+        paths = [p for p in runs.split(",") if p]
+        if not sep or not name or not paths or not all(Path(p).is_dir() for p in paths):
+            parser.error(f"{item!r}: expected NAME=RUN[,RUN ...] with existing run directories")
+        args.parsed[name] = paths
+    return args
+
+
+def main(argv: list[str] | None = None) -> list[dict]:
+    args = _parse(argv)
+    rows = measure(args.parsed, args.max_frames, args.rounds)
+    mark_front(rows)
+    args.out.mkdir(parents=True, exist_ok=True)
+    machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, load {os.getloadavg()[0]:.1f}"
+    (args.out / "front.json").write_text(json.dumps({"machine": machine, "rows": rows}, indent=1))
+    table = markdown(rows)
+    (args.out / "front.md").write_text(table + f"\n\nMachine: {machine}.\n")
+    chart(rows, args.out / "front.png")
+    print(table)
+    return rows
+
+
+if __name__ == "__main__":
+    main()
