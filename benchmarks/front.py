@@ -10,8 +10,9 @@ and the fast path's frames per second at 940 x 1285 with a new pose every frame 
 shading per frame, two frames in flight on one torch thread each, as ``deliffas render`` streams), timed on its
 first run: the first test frame's first camera rescaled, the best of ``--rounds`` rounds of 8 frames, the
 configurations interleaved round by round. fps does not depend on the trained weights; it depends on the machine
-(record it beside the numbers). The front: the configurations no other beats in both fps and validation masked PSNR
-(choices are made on the validation camera). Writes ``front.md``, ``front.json`` and ``front.png``.
+(recorded in the outputs) and on the hidden layers' dtype (``--render-dtype``, default auto). The front: the
+configurations no other beats in both fps and validation masked PSNR (choices are made on the validation camera).
+Writes ``front.md``, ``front.json`` and ``front.png``.
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ def _scores(run: str, split: str, max_frames: int) -> dict[str, float]:
     return {"masked": float(fg.masked_psnr), "fg": float(fg.psnr)}
 
 
-def _stream(run: str):
+def _stream(run: str, dtype: str):
     """A function that renders :data:`FRAMES` frames of ``run`` at :data:`SIZE`, two in flight, everything per frame."""
     from deliffas.engine.data_bridge import evaluation_samples
     from deliffas.engine.runs import load_run
@@ -56,7 +57,7 @@ def _stream(run: str):
     samples, info = evaluation_samples(record["train"]["shards"], "novel_view", max_frames=1, with_rays=False,
                                        protocol="all", temporal_window=model.config.temporal_window)
     sample = next(samples)
-    device, path = torch.device("cpu"), RenderPathConfig(project_features=False)
+    device, path = torch.device("cpu"), RenderPathConfig(dtype=dtype, project_features=False)
     camera = sample.cameras[0].rescaled(*SIZE)
 
     def frame(_i):
@@ -75,10 +76,12 @@ def _mean_std(values: list[float]) -> tuple[float, float]:
     return statistics.fmean(values), statistics.stdev(values) if len(values) > 1 else 0.0
 
 
-def measure(configs: dict[str, list[str]], max_frames: int, rounds: int) -> list[dict]:
-    """One row per configuration: its runs' scores per split (mean, std, per run) and its fps."""
+def measure(configs: dict[str, list[str]], max_frames: int, rounds: int, dtype: str = "auto") -> list[dict]:
+    """One row per configuration: its runs' scores per split (mean, std, per run) and its fps (hidden layers in
+    ``dtype``, ``RenderPathConfig.dtype``)."""
     with torch_threads(1):
-        t = best_times({name: _stream(runs[0]) for name, runs in configs.items()}, repeat=rounds, max_rounds=rounds)
+        t = best_times({name: _stream(runs[0], dtype) for name, runs in configs.items()}, repeat=rounds,
+                       max_rounds=rounds)
     rows = []
     for name, runs in configs.items():
         row = {"name": name, "runs": runs, "fps": FRAMES / t[name]}
@@ -116,20 +119,34 @@ def chart(rows: list[dict], path: Path) -> Path:
 
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(7.2, 4.8), dpi=120)
-    for r in rows:
+    keys = []
+    for i, r in enumerate(sorted(rows, key=lambda r: -r["validation_masked"]), 1):  # numbered, named in a key
         ax.errorbar(r["fps"], r["validation_masked"], yerr=r["validation_masked_std"], fmt="o",
                     color="tab:red" if r["front"] else "tab:blue", capsize=3, zorder=3)
-        ax.annotate(r["name"], (r["fps"], r["validation_masked"]), textcoords="offset points", xytext=(5, 4),
-                    fontsize=7)
+        ax.annotate(str(i), (r["fps"], r["validation_masked"]), textcoords="offset points", xytext=(5, 3), fontsize=8)
+        keys.append(f"{i}  {r['name']}")
+    ax.text(0.3, 0.25, "\n".join(keys), transform=ax.transAxes, fontsize=7, va="bottom",
+            bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "0.8"})
     front = sorted((r for r in rows if r["front"]), key=lambda r: r["fps"])
     if len(front) > 1:
         ax.plot([r["fps"] for r in front], [r["validation_masked"] for r in front], "--", color="tab:red",
                 label="front", zorder=2)
-        ax.legend(loc="lower left")
+        ax.legend(loc="center right")
     ax.set_xlabel("fps at 940 x 1285, a new pose every frame (2 frames in flight, 2 CPU threads)")
     ax.set_ylabel("masked PSNR (dB), validation camera")
     ax.grid(alpha=0.3)
     return save_figure(fig, path)
+
+
+def _cpu_name() -> str:
+    """The CPU's model name from /proc/cpuinfo where there is one, else what ``platform`` knows."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
 
 
 def _parse(argv: list[str] | None) -> argparse.Namespace:
@@ -138,6 +155,8 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--out", type=Path, required=True, help="folder for front.md, front.json and front.png")
     parser.add_argument("--max-frames", type=int, default=10, help="frames of each evaluation (default 10)")
     parser.add_argument("--rounds", type=int, default=3, help="timed rounds of 8 frames per configuration (default 3)")
+    parser.add_argument("--render-dtype", choices=("auto", "float32", "bfloat16"), default="auto",
+                        help="the fused pass's hidden layers (default auto: bf16 where the CPU has native bf16)")
     args = parser.parse_args(argv)
     args.parsed = {}
     for item in args.configs:
@@ -151,10 +170,15 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> list[dict]:
     args = _parse(argv)
-    rows = measure(args.parsed, args.max_frames, args.rounds)
+    rows = measure(args.parsed, args.max_frames, args.rounds, args.render_dtype)
     mark_front(rows)
     args.out.mkdir(parents=True, exist_ok=True)
-    machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, load {os.getloadavg()[0]:.1f}"
+    from deliffas.fast.config import RenderPathConfig
+    from deliffas.fast.shade import mlp_dtype
+
+    dtype = str(mlp_dtype(RenderPathConfig(dtype=args.render_dtype).dtype)).replace("torch.", "")
+    machine = (f"{_cpu_name()}, {os.cpu_count()} CPUs, load "
+               f"{os.getloadavg()[0]:.1f}, hidden layers in {dtype}")
     (args.out / "front.json").write_text(json.dumps({"machine": machine, "rows": rows}, indent=1))
     table = markdown(rows)
     (args.out / "front.md").write_text(table + f"\n\nMachine: {machine}.\n")
