@@ -9,15 +9,10 @@ import pytest
 
 @pytest.fixture(scope="session")
 def web_capture(tmp_path_factory):
-    """(subject folder, shards folder): 48 x 48 images, 4 cameras (3 held out), a 32 x 32 atlas."""
-    from deliffas.data.convert import ConvertConfig, convert
-    from deliffas.data.synth import SynthConfig, synthesize_capture
+    """(subject folder, shards folder): 48 x 48 images, 4 cameras (3 held out), a 32 x 32 atlas, 3 test frames."""
+    from example_data import tiny_capture
 
-    root = tmp_path_factory.mktemp("web_capture")
-    synthesize_capture(root / "subject", SynthConfig(num_frames=6, num_test_frames=3, num_cameras=4, width=48,
-                                                     height=48, test_cameras=(3,), seed=0))
-    convert(root / "subject", root / "shards", ConvertConfig(atlas_res=32, progress=False))
-    return root / "subject", root / "shards"
+    return tiny_capture(tmp_path_factory.mktemp("web_capture"), num_test_frames=3)
 
 
 @pytest.fixture(scope="session")
