@@ -20,7 +20,7 @@ from typing import Mapping
 
 __all__ = ["ENV_INCEPTION_WEIGHTS", "ENV_LPIPS_WEIGHTS", "ENV_VGG16_WEIGHTS", "NATIVE_ENV", "VARIABLES",
            "WEIGHTS_VARIABLES", "Variable", "c_compiler", "cache_root", "distributed", "local_rank", "native_disabled",
-           "onednn_isa_cap", "variables_markdown", "weights_file", "world_size"]
+           "omp_threads", "onednn_isa_cap", "variables_markdown", "weights_file", "world_size"]
 
 NATIVE_ENV = "DELIFFAS_NATIVE"
 """Environment variable: "0" disables every compiled kernel."""
@@ -64,6 +64,8 @@ VARIABLES: tuple[Variable, ...] = (
              "U-Net's lane-filling convolutions assume 8 float32 lanes", "`ALL`", "deliffas.models.unet_prepack"),
     Variable("DNNL_MAX_CPU_ISA", "the older name of `ONEDNN_MAX_CPU_ISA`, used when that is unset", "`ALL`",
              "deliffas.models.unet_prepack"),
+    Variable("OMP_NUM_THREADS", "OpenMP's own variable; caps `deliffas train`'s intra-op threads on a CPU (start runs "
+             "side by side with `1` each)", "the cores its data workers leave", "deliffas.engine.devices"),
     Variable("WORLD_SIZE", "the number of training processes (set by `torchrun`); above 1 starts the process group",
              "`1`", "deliffas.engine.train"),
     Variable("LOCAL_RANK", "the process's GPU on its machine (set by `torchrun`), with more than one process",
@@ -130,6 +132,16 @@ def onednn_isa_cap(environ: Mapping[str, str] | None = None) -> str:
     """
     env = _environ(environ)
     return (env.get("ONEDNN_MAX_CPU_ISA") or env.get("DNNL_MAX_CPU_ISA") or "ALL").upper()
+
+
+def omp_threads(environ: Mapping[str, str] | None = None) -> int | None:
+    """``$OMP_NUM_THREADS`` as a thread count, None when unset or not a positive integer (OpenMP then ignores it).
+
+    Args:
+        environ: the variables (None = ``os.environ``).
+    """
+    value = _environ(environ).get("OMP_NUM_THREADS", "").strip()
+    return int(value) if value.isdigit() and int(value) > 0 else None
 
 
 def world_size(environ: Mapping[str, str] | None = None) -> int:

@@ -12,6 +12,8 @@ import re
 
 import torch
 
+from deliffas import environment
+
 __all__ = ["DeviceError", "resolve_device", "DEVICE_PATTERN", "cpu_threads"]
 
 DEVICE_PATTERN = re.compile(r"^(cpu|cuda|cuda:\d+)$")
@@ -49,5 +51,5 @@ def cpu_threads(ranks: int = 1, workers: int = 0) -> int:
     runs started side by side with ``OMP_NUM_THREADS=1`` keep one thread each (oversubscribed OpenMP threads
     spin and can make a step many times slower)."""
     share = max(1, (os.cpu_count() or 1) // ranks - workers)
-    asked = os.environ.get("OMP_NUM_THREADS", "").strip()
-    return min(share, int(asked)) if asked.isdigit() and int(asked) > 0 else share
+    asked = environment.omp_threads()
+    return share if asked is None else min(share, asked)
