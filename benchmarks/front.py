@@ -24,8 +24,6 @@ import platform
 import statistics
 from pathlib import Path
 
-import numpy as np
-import torch
 
 from benchmarks._timing import best_times, torch_threads
 
@@ -34,6 +32,8 @@ SIZE = (1285, 940)
 FRAMES = 8
 """Frames per timed round."""
 SPLITS = ("validation", "novel_view")
+OUTPUTS = ("front.md", "front.json", "front.png")
+"""What a run writes into ``--out``."""
 
 
 def _scores(run: str, split: str, max_frames: int) -> dict[str, float]:
@@ -45,26 +45,13 @@ def _scores(run: str, split: str, max_frames: int) -> dict[str, float]:
 
 def _stream(run: str, dtype: str):
     """A function that renders :data:`FRAMES` frames of ``run`` at :data:`SIZE`, two in flight, everything per frame."""
-    from deliffas.engine.data_bridge import evaluation_samples
-    from deliffas.engine.runs import load_run
-    from deliffas.engine.shading import render_camera
-    from deliffas.engine.timing import StageTimer
+    from benchmarks.preset_table import first_test_frame, new_pose_frame
     from deliffas.fast.config import RenderPathConfig
     from deliffas.fast.frame import render_stream
-    from deliffas.geometry.raycast import UVRaycaster
 
-    model, record = load_run(run)
-    samples, info = evaluation_samples(record["train"]["shards"], "novel_view", max_frames=1, with_rays=False,
-                                       protocol="all", temporal_window=model.config.temporal_window)
-    sample = next(samples)
-    device, path = torch.device("cpu"), RenderPathConfig(dtype=dtype, project_features=False)
-    camera = sample.cameras[0].rescaled(*SIZE)
-
-    def frame(_i):
-        with torch.no_grad():
-            features = model.encode(*sample.normal_maps(device))
-            rc = UVRaycaster(sample.inner_verts, info["faces"], sample.outer_verts, info["atlas"])
-            return render_camera(model, features, rc, camera, device, StageTimer(device), render_path=path)
+    model, sample, info = first_test_frame(run)
+    frame = new_pose_frame(model, sample, info, sample.cameras[0].rescaled(*SIZE),
+                           RenderPathConfig(dtype=dtype, project_features=False))
 
     def run_frames():
         for _ in render_stream(frame, range(FRAMES), 2):
@@ -157,14 +144,21 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--rounds", type=int, default=3, help="timed rounds of 8 frames per configuration (default 3)")
     parser.add_argument("--render-dtype", choices=("auto", "float32", "bfloat16"), default="auto",
                         help="the fused pass's hidden layers (default auto: bf16 where the CPU has native bf16)")
+    parser.add_argument("--overwrite", action="store_true", help="replace front.md, front.json and front.png in --out")
     args = parser.parse_args(argv)
+    from deliffas.engine.train import RUN_MARKER
+
     args.parsed = {}
     for item in args.configs:
         name, sep, runs = item.partition("=")
         paths = [p for p in runs.split(",") if p]
-        if not sep or not name or not paths or not all(Path(p).is_dir() for p in paths):
-            parser.error(f"{item!r}: expected NAME=RUN[,RUN ...] with existing run directories")
+        if not sep or not name or not paths or not all((Path(p) / RUN_MARKER).is_file() for p in paths):
+            parser.error(f"{item!r}: expected NAME=RUN[,RUN ...], each RUN a run directory of `deliffas train` "
+                         f"(with its {RUN_MARKER})")
         args.parsed[name] = paths
+    written = [f for f in OUTPUTS if (args.out / f).exists()]
+    if written and not args.overwrite:
+        parser.error(f"{args.out}: holds {', '.join(written)}; pass --overwrite to replace them")
     return args
 
 

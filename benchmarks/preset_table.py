@@ -25,20 +25,42 @@ from benchmarks._timing import best_times, torch_threads
 SIZES = {"256^2": (256, 256), "512^2": (512, 512), "940x1285": (1285, 940)}
 
 
-def _fps(run: str, max_frames: int | None) -> dict[str, str]:
+def first_test_frame(run: str) -> tuple:
+    """(model, sample, info): the trained run's model (``load_run``) and the first frame of its novel-view split."""
     from deliffas.engine.data_bridge import evaluation_samples
     from deliffas.engine.runs import load_run
+
+    model, record = load_run(run)
+    samples, info = evaluation_samples(record["train"]["shards"], "novel_view", max_frames=1, with_rays=False,
+                                       protocol="all", temporal_window=model.config.temporal_window)
+    return model, next(samples), info
+
+
+def new_pose_frame(model, sample, info, camera, path):
+    """A function that renders ``camera``'s image as a new pose is rendered (``deliffas render``): the U-Nets on the
+    frame's normal maps, its surfaces set up, then ``render_camera`` by ``path`` (a ``RenderPathConfig``)."""
+    from deliffas.engine.shading import render_camera
+    from deliffas.engine.timing import StageTimer
+    from deliffas.geometry.raycast import UVRaycaster
+
+    device = torch.device("cpu")
+
+    def frame(*_):
+        with torch.no_grad():
+            features = model.encode(*sample.normal_maps(device))
+            rc = UVRaycaster(sample.inner_verts, info["faces"], sample.outer_verts, info["atlas"])
+            return render_camera(model, features, rc, camera, device, StageTimer(device), render_path=path)
+    return frame
+
+
+def _fps(run: str, max_frames: int | None) -> dict[str, str]:
     from deliffas.engine.shading import render_camera
     from deliffas.fast.frame import render_stream
     from deliffas.fast.config import RenderPathConfig
     from deliffas.engine.timing import StageTimer
     from deliffas.geometry.raycast import UVRaycaster
 
-    model, record = load_run(run)
-    shards = record["train"]["shards"]
-    samples, info = evaluation_samples(shards, "novel_view", max_frames=1, with_rays=False, protocol="all",
-                                       temporal_window=model.config.temporal_window)
-    sample = next(samples)
+    model, sample, info = first_test_frame(run)
     device, fast = torch.device("cpu"), RenderPathConfig()
     with torch.no_grad():
         features = model.encode(*sample.normal_maps(device))
@@ -51,11 +73,7 @@ def _fps(run: str, max_frames: int | None) -> dict[str, str]:
             with torch.no_grad():
                 return render_camera(model, features, rc, cam, device, StageTimer(device), render_path=fast)
 
-        def per_frame(cam=cam):
-            with torch.no_grad():
-                feats = model.encode(*sample.normal_maps(device))
-                rc2 = UVRaycaster(sample.inner_verts, info["faces"], sample.outer_verts, info["atlas"])
-                return render_camera(model, feats, rc2, cam, device, StageTimer(device), render_path=fast)
+        per_frame = new_pose_frame(model, sample, info, cam, fast)
 
         def stream():
             for _ in render_stream(lambda _i: per_frame(), range(8), 2):

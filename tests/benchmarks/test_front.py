@@ -36,7 +36,13 @@ def test_front_scores_every_run_and_marks_the_front(runs, tmp_path, monkeypatch)
     assert (tmp_path / "front.png").stat().st_size > 0 and "| a | 2 |" in (tmp_path / "front.md").read_text()
 
 
-def test_front_refuses_a_missing_run(tmp_path):
+def test_front_refuses_a_missing_run_and_earlier_outputs(runs, tmp_path, capsys):
+    for args in ([f"a={tmp_path / 'nope'}"], [f"a={tmp_path}"]):  # missing; a folder that is not a run
+        with pytest.raises(SystemExit) as exc:
+            front.main([*args, "--out", str(tmp_path)])
+        assert exc.value.code == 2 and "run directory of `deliffas train`" in capsys.readouterr().err
+    (tmp_path / "front.md").write_text("kept")
     with pytest.raises(SystemExit) as exc:
-        front.main([f"a={tmp_path / 'nope'}", "--out", str(tmp_path)])
-    assert exc.value.code == 2
+        front.main([f"a={runs[0]}", "--out", str(tmp_path)])
+    assert exc.value.code == 2 and "--overwrite" in capsys.readouterr().err
+    assert (tmp_path / "front.md").read_text() == "kept"
