@@ -175,6 +175,8 @@ typedef struct {
     int nuv;
     const float *wo, *bo;  /* the output layer and its bias */
     int64_t per_uv, De;    /* encoded rows per uv; the uvs' rows (the direction's follow) */
+    const float *tex_in, *tex_out;  /* texture atlases apart from the maps (NULL: none, or joined to the maps) */
+    int64_t St, Ct;                 /* their side and channels */
 } fused_args;
 
 /* A tile's scratch, TILE rays a row: E encoded and Fd feature rows, two hidden layers of wmax rows, rows (TILE, N)
@@ -213,10 +215,14 @@ static inline void tile_inputs(const fused_args *a, const tile_scratch *s, tile_
     }
     if (a->dir) encode_dir_tile(a->dir, r0, a->uv_in + 2 * r0, m, (float *)(s->xe + a->De));  /* also where tabled */
     g->peel[t] = (a->map_out && a->from_outer) ? a->from_outer + r0 : 0;
-    if (!a->proj_in) {
+    if (!a->proj_in) {  /* per surface: its map's C channels, then its atlas's Ct where apart (each at its side) */
         float *ft = (float *)s->xf;
-        if (a->map_out) { sample_tile(a->map_out, a->map_out, 0, a->uv_out + 2 * r0, m, a->S, a->C, ft); ft += a->C * TILE; }
-        sample_tile(a->map_in, a->map_out, g->peel[t], a->uv_in + 2 * r0, m, a->S, a->C, ft);
+        if (a->map_out) {
+            sample_tile(a->map_out, a->map_out, 0, a->uv_out + 2 * r0, m, a->S, a->C, ft); ft += a->C * TILE;
+            if (a->tex_out) { sample_tile(a->tex_out, a->tex_out, 0, a->uv_out + 2 * r0, m, a->St, a->Ct, ft); ft += a->Ct * TILE; }
+        }
+        sample_tile(a->map_in, a->map_out, g->peel[t], a->uv_in + 2 * r0, m, a->S, a->C, ft); ft += a->C * TILE;
+        if (a->tex_in) sample_tile(a->tex_in, a->tex_out, g->peel[t], a->uv_in + 2 * r0, m, a->St, a->Ct, ft);
     }
 }
 
@@ -299,7 +305,9 @@ static inline void shade_group_fp32(const fused_args *a, const tile_scratch *s, 
    weights as bf16 pairs, W (K/2, N) and Wf (F/2, N) with dims giving K/2 and F/2, biases and the output layer
    fp32. proj_in (with fp32 only): the feature layer's (the one with F > 0) feature part from projected maps
    (add_projected; S x S texels of that layer's N): proj_out at uv_out (NULL without an outer map), proj_in at uv_in,
-   proj_peel at uv_in where from_outer (NULL without from_outer); no features sampled then. Returns 0, -1 when the
+   proj_peel at uv_in where from_outer (NULL without from_outer); no features sampled then. tex_in, tex_out: texture
+   atlases (St x St texels of Ct channels) sampled apart, after each surface's map (tex_out where from_outer for the
+   inner one); NULL where the maps carry them or there are none. Returns 0, -1 when the
    scratch tiles cannot be allocated, -2 for more than 512 channels per map, -3 for bf16 without the kernel. */
 int deliffas_fused_shade(const deliffas_fused_shade_args *args) {
     /* the arguments as locals of their names (args, not a: the pass's fused_args is a) */
@@ -313,7 +321,7 @@ int deliffas_fused_shade(const deliffas_fused_shade_args *args) {
     const dir_args *dir = args->dir;
     const int64_t *dims = args->dims, *pixels = args->pixels;
     float *out = args->out;
-    if (C > 512) return -2;
+    if (C > 512 || args->Ct > 512) return -2;
     if (bf16 && !FUSED_BF16) return -3;
     /* per tile, fp32: E + Fd input rows, two hidden layers and the rows; bf16: the inputs' and two hidden layers'
        pairs besides */
@@ -330,7 +338,8 @@ int deliffas_fused_shade(const deliffas_fused_shade_args *args) {
     fused_args a = {n, uv_in, from_outer, uv_out, outer_encoded, L, include_input, map_in, map_out, S, C, dir, nh, dims,
                     params, E, Fd, wmax, pixels, out, bf16, pe_table, table_nodes, proj_out, proj_in, proj_peel,
                     {outer_encoded ? uv_out : uv_in, uv_in}, outer_encoded ? 2 : 1, wo, wo + 3 * dims[5 * nh + 1],
-                    (include_input ? 2 : 0) + 4 * (int64_t)L, E - dir_width(dir)};
+                    (include_input ? 2 : 0) + 4 * (int64_t)L, E - dir_width(dir), args->tex_in, args->tex_out,
+                    args->St, args->Ct};
     for (int64_t g0 = 0; g0 < n; g0 += GROUP * TILE) {
         tile_group g;
         for (g.nt = 0; g.nt < GROUP && g0 + g.nt * TILE < n; g.nt++) {
@@ -354,9 +363,9 @@ int64_t deliffas_fused_shade_args_layout(int64_t *out) {
     const int64_t layout[] = {
         (int64_t)sizeof(deliffas_fused_shade_args), FUSED_AT(uv_in), FUSED_AT(from_outer), FUSED_AT(uv_out),
         FUSED_AT(map_in), FUSED_AT(map_out), FUSED_AT(dir), FUSED_AT(dims), FUSED_AT(params), FUSED_AT(pixels),
-        FUSED_AT(out), FUSED_AT(pe_table), FUSED_AT(proj_out), FUSED_AT(proj_in), FUSED_AT(proj_peel), FUSED_AT(n),
-        FUSED_AT(S), FUSED_AT(C), FUSED_AT(nh), FUSED_AT(E), FUSED_AT(Fd), FUSED_AT(wmax), FUSED_AT(table_nodes),
-        FUSED_AT(outer_encoded), FUSED_AT(L), FUSED_AT(include_input), FUSED_AT(bf16)};
+        FUSED_AT(out), FUSED_AT(pe_table), FUSED_AT(proj_out), FUSED_AT(proj_in), FUSED_AT(proj_peel), FUSED_AT(tex_in),
+        FUSED_AT(tex_out), FUSED_AT(n), FUSED_AT(S), FUSED_AT(C), FUSED_AT(nh), FUSED_AT(E), FUSED_AT(Fd), FUSED_AT(wmax),
+        FUSED_AT(table_nodes), FUSED_AT(St), FUSED_AT(Ct), FUSED_AT(outer_encoded), FUSED_AT(L), FUSED_AT(include_input), FUSED_AT(bf16)};
     int64_t count = (int64_t)(sizeof layout / sizeof layout[0]);
     for (int64_t i = 0; out && i < count; i++) out[i] = layout[i];
     return count;

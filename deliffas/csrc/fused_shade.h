@@ -24,6 +24,8 @@ typedef struct {
     const float *proj_out;
     const float *proj_in;
     const float *proj_peel;
+    const float *tex_in;
+    const float *tex_out;
     int64_t n;
     int64_t S;
     int64_t C;
@@ -32,6 +34,8 @@ typedef struct {
     int64_t Fd;
     int64_t wmax;
     int64_t table_nodes;
+    int64_t St;
+    int64_t Ct;
     int32_t outer_encoded;
     int32_t L;
     int32_t include_input;

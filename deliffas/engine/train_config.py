@@ -272,5 +272,5 @@ def resolve_model_config(cfg: TrainConfig, atlas_res: int | None = None, data_wi
         unet = base["unet"]
         unet["in_channels"] = 3 * (base["temporal_window"] + 1)
         if unet.get("levels") is not None:
-            unet["levels"] = min(unet["levels"], int(math.log2(base["atlas_res"])))
+            unet["levels"] = min(unet["levels"], int(math.log2(base["atlas_res"] // base.get("unet_downsample", 1))))
     return config_from_dict(ModelConfig, base)

@@ -181,13 +181,15 @@ class FastShader:
         return self._layers
 
     # ------------------------------------------------------------------ inputs
-    def _ray_args(self, features: FrameFeatures, query: RayQuery) -> tuple[dict, list] | None:
+    def _ray_args(self, features: FrameFeatures, query: RayQuery, textures: bool = False) -> tuple[dict, list] | None:
         """The per-ray arguments of the C passes by their C names, in deliffas_ray_inputs' order (uv_in .. dir; fields
         of deliffas_fused_shade_args too), and the tensors they point into (keep them alive); None when the C passes
-        cannot read these inputs (several frames, non-fp32 maps)."""
+        cannot read these inputs (several frames, non-fp32 maps, texture atlases apart from the maps unless
+        ``textures``: then the fused pass's ``tex_in``, ``tex_out``, ``St``, ``Ct`` follow)."""
         model = self.model
         single = features.batch_size == 1 and (query.batch_index.numel() == 0 or not bool(query.batch_index.any()))
-        if not single or features.inner.dtype != torch.float32:
+        apart = features.inner_texture is not None
+        if not single or features.inner.dtype != torch.float32 or (apart and not textures):
             return None
         spec = model.spec
         maps = [m.permute(0, 2, 3, 1).contiguous() if m is not None else None for m in (features.inner, features.outer)]
@@ -209,7 +211,16 @@ class FastShader:
                     L=model.pe_uv.num_freqs, include_input=int(model.pe_uv.include_input), map_in=map_in.data_ptr(),
                     map_out=map_out.data_ptr() if map_out is not None else None, S=S, C=C,
                     dir=ctypes.addressof(direction[0]) if direction is not None else None)
-        return args, [uv_in, uv_out, peel_u8, map_in, map_out, direction]
+        held = [uv_in, uv_out, peel_u8, map_in, map_out, direction]
+        if textures:
+            tex = [t.permute(0, 2, 3, 1).contiguous().float() if t is not None else None
+                   for t in (features.inner_texture, features.outer_texture if spec.outer_unet else None)]
+            args.update(tex_in=tex[0].data_ptr() if tex[0] is not None else None,
+                        tex_out=tex[1].data_ptr() if tex[1] is not None else None,
+                        St=int(tex[0].shape[1]) if tex[0] is not None else 0,
+                        Ct=int(tex[0].shape[3]) if tex[0] is not None else 0)
+            held += tex
+        return args, held
 
     def _direction(self, features: FrameFeatures, query: RayQuery) -> tuple | None | bool:
         """The C passes' ``dir_args`` and the tensors it points into, None for variants without a view direction, False
@@ -347,7 +358,8 @@ class FastShader:
         or the maps would exceed :data:`PROJECTED_MAX_BYTES`."""
         mlp, spec = self.model.mlp, self.model.spec
         inner, outer = features.inner, features.outer if spec.outer_unet else None
-        if not mlp.feature_dim or features.batch_size != 1 or inner.dtype != torch.float32:
+        if not mlp.feature_dim or features.batch_size != 1 or inner.dtype != torch.float32 \
+                or features.inner_texture is not None:  # (atlases apart: not projected)
             return None
         S, C = int(inner.shape[2]), int(inner.shape[1])
         n_out = _lanes(mlp.hidden[mlp.config.feature_layer + 1].out_features)
@@ -386,7 +398,7 @@ class FastShader:
         """``mlp(*inputs(...), out, rows)`` in one C pass, the hidden layers in bf16 where :meth:`fused_bf16`, else
         fp32 (module docstring); the per-stage path where the pass is unavailable or cannot read the inputs."""
         lib = _FUSED.get() if self.fused and self.use_kernel else None
-        got = self._ray_args(features, query) if lib is not None else None
+        got = self._ray_args(features, query, textures=True) if lib is not None else None
         if got is None:
             return self.mlp(*self.inputs(features, query), out=out, rows=rows)
         n = query.num_rays

@@ -95,7 +95,12 @@ class ModelConfig:
     texture_scale: int = 1
     """Side of the texture atlases as a multiple of ``atlas_res``. Above 1 they hold finer detail than the
     normal maps: the U-Nets' maps are then upsampled (bilinear) to that side, so every map a ray samples
-    has it."""
+    has it (with ``unet_downsample`` 1)."""
+    unet_downsample: int = 1
+    """The U-Nets read the normal maps average-pooled by this factor (a power of two) and write feature maps of
+    side S / factor; the texture atlases keep their side, and each map is sampled at its own side (the atlases
+    apart, never joined). 2 = a quarter of the U-Nets' per-frame work, the texture atlases keeping the fine
+    appearance."""
 
     def __post_init__(self) -> None:
         try:
@@ -116,6 +121,10 @@ class ModelConfig:
             raise ValueError(f"ModelConfig: texture_channels must be >= 0, got {self.texture_channels}")
         if self.texture_scale < 1:
             raise ValueError(f"ModelConfig: texture_scale must be >= 1, got {self.texture_scale}")
+        d = self.unet_downsample
+        if d < 1 or d & (d - 1) or self.atlas_res % d or self.atlas_res // d < 2:
+            raise ValueError(f"ModelConfig: unet_downsample must be a power of two dividing atlas_res "
+                             f"{self.atlas_res} into a side >= 2, got {d}")
         if self.unet is None:
             object.__setattr__(
                 self, "unet", UNetConfig(in_channels=self.input_channels, out_channels=self.feature_channels)
@@ -133,6 +142,16 @@ class ModelConfig:
         return 3 * (self.temporal_window + 1)
 
     @property
+    def unet_side(self) -> int:
+        """Side of the U-Nets' inputs and feature maps: S / ``unet_downsample``."""
+        return self.atlas_res // self.unet_downsample
+
+    @property
+    def textures_apart(self) -> bool:
+        """Whether the texture atlases are always sampled apart from the feature maps (their sides differ)."""
+        return self.unet_downsample > 1
+
+    @property
     def spec(self) -> VariantSpec:
         """The registered spec of ``variant``: which U-Nets and per-ray inputs the model uses."""
         return get_variant(self.variant)
@@ -143,8 +162,8 @@ class FrameFeatures:
     """Feature maps of one batch of frames; camera-independent (reuse for every camera).
 
     Attributes:
-        inner: (B, C_inner, S, S) float in [0, 1]: the inner U-Net's map (C_inner = C), or the
-            maps of n inner U-Nets concatenated along channels (C_inner = n C, e.g.
+        inner: (B, C_inner, S', S') float in [0, 1] (S' = S / ``unet_downsample``): the inner U-Net's map
+            (C_inner = C), or the maps of n inner U-Nets concatenated along channels (C_inner = n C, e.g.
             ``single_surface_two_unet``).
         outer: (B, C, S, S) float in [0, 1], outer U-Net's map; None unless the variant has an
             outer U-Net (``two_surface``).
@@ -209,14 +228,14 @@ class DeliffasModel(nn.Module):
         self.spec = spec = config.spec
         unet_cfg = config.unet
         assert unet_cfg is not None  # filled by ModelConfig.__post_init__
-        size = config.atlas_res
+        size = config.unet_side
         self.unet_inner = UNet(unet_cfg, size)
         # attribute names unet_inner_2, ... keep the state_dict keys of earlier checkpoints
         self.unet_inner_2 = None
         for i in range(2, spec.inner_unets + 1):
             setattr(self, f"unet_inner_{i}", UNet(unet_cfg, size))
         self.unet_outer = UNet(unet_cfg, size) if spec.outer_unet else None
-        ct, side = config.texture_channels, config.texture_scale * size
+        ct, side = config.texture_channels, config.texture_scale * config.atlas_res
         # channels-last, the layout the sampler reads and its backward writes: no copy of an atlas or of its
         # gradient per step (the state_dict's values are the same; checkpoints store them contiguous)
         atlas = lambda: nn.Parameter(torch.zeros(1, ct, side, side).contiguous(memory_format=torch.channels_last))  # noqa: E731
@@ -273,15 +292,18 @@ class DeliffasModel(nn.Module):
         cfg = self.config
         shape = f"B {cfg.input_channels} {cfg.atlas_res} {cfg.atlas_res}"
         sizes = check_shape("normal_inner", normal_inner, shape)
-        split = not joined and cfg.texture_scale == 1  # finer atlases: the maps upsampled and joined to them
-        maps = [net(normal_inner) for net in self.inner_unets()]
+        # finer atlases: the maps upsampled and joined to them; downsampled U-Nets: the atlases always apart
+        split = (not joined and cfg.texture_scale == 1) or cfg.textures_apart
+        unet_in = self._unet_input(normal_inner)
+        maps = [net(unet_in) for net in self.inner_unets()]
         inner = self._with_texture(maps, None if split else self.texture_inner)  # (B, n C [+ C_t], S, S)
         outer = None
         if self.unet_outer is not None:
             if normal_outer is None:
                 raise ValueError(f"encode: normal_outer is required for variant {cfg.variant!r}")
             check_shape("normal_outer", normal_outer, shape, sizes)
-            outer = self._with_texture([self.unet_outer(normal_outer)], None if split else self.texture_outer)
+            outer = self._with_texture([self.unet_outer(self._unet_input(normal_outer))],
+                                       None if split else self.texture_outer)
         normals = None
         if self.spec.reflect_viewdir:
             normals = normal_inner[:, :3].contiguous(memory_format=torch.channels_last)
@@ -289,6 +311,11 @@ class DeliffasModel(nn.Module):
         apart = [None if t is None else t.contiguous(memory_format=torch.channels_last) for t in textures]
         return FrameFeatures(inner=inner, outer=outer, normals=normals, inner_texture=apart[0],
                              outer_texture=apart[1])
+
+    def _unet_input(self, normal_maps: torch.Tensor) -> torch.Tensor:
+        """The U-Nets' input: the normal maps average-pooled by ``unet_downsample`` (themselves at 1)."""
+        d = self.config.unet_downsample
+        return normal_maps if d == 1 else F.avg_pool2d(normal_maps, d)
 
     @staticmethod
     def _with_texture(maps: list[torch.Tensor], texture: torch.Tensor | None) -> torch.Tensor:

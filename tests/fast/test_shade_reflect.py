@@ -21,11 +21,13 @@ CASES = [("two_surface_reflect", "tiny"), ("two_surface_reflect", "realtime"), (
          ("two_surface_reflect_texture", "realtime"), ("single_surface_viewdir", "tiny")]
 
 
-def _case(name: str, preset: str, n: int = 1000 + 7, seed: int = 0, texture_scale: int = 1, peel: float = 0.2):
+def _case(name: str, preset: str, n: int = 1000 + 7, seed: int = 0, texture_scale: int = 1, peel: float = 0.2,
+          unet_downsample: int = 1):
     """A model (random MLP biases and texture atlases), one frame's features encoded from random normal maps (unit
     normals per texel), and n rays: unit view directions, inner uvs a few outside [0, 1], ``peel`` of them peeled."""
     torch.manual_seed(seed)
-    model = DeliffasModel(dataclasses.replace(get_config(name, preset), texture_scale=texture_scale)).eval()
+    config = dataclasses.replace(get_config(name, preset), texture_scale=texture_scale, unet_downsample=unet_downsample)
+    model = DeliffasModel(config).eval()
     with torch.no_grad():
         for p in [*model.mlp.parameters(), *model.texture_parameters()]:  # non-zero biases, textures
             p.add_(0.05 * torch.randn_like(p))
@@ -143,15 +145,41 @@ def test_texture_atlases_finer_than_the_normal_maps():
         torch.testing.assert_close(FastShader(model).shade_fused(feats, query), ref, atol=2e-6, rtol=0)
 
 
+@pytest.mark.parametrize("preset,peel", [("tiny", 0.2), ("realtime", 0.2), ("realtime", 1.0)])
+def test_u_nets_at_half_the_atlas_side(preset, peel):
+    """``unet_downsample`` 2: feature maps at half the side, the texture atlases apart at theirs, sampled apart by the
+    fused pass (exact, with the table; projection declined) as by the model; the per-stage path and bf16 too."""
+    model, feats, query = _case("two_surface_reflect_texture", preset, peel=peel, unet_downsample=2)
+    assert feats.inner.shape[-1] * 2 == feats.inner_texture.shape[-1] == feats.normals.shape[-1]
+    assert feats.outer_texture is not None and feats.inner.shape[1] == model.config.feature_channels
+    with torch.no_grad():
+        ref = model.shade(feats, query)
+        torch.testing.assert_close(FastShader(model, fused=False).shade_fused(feats, query), ref, atol=2e-6, rtol=0)
+        exact = FastShader(model, project_features=True)
+        _fused(exact)
+        assert exact.projected_maps(feats) is None
+        torch.testing.assert_close(exact.shade_fused(feats, query), ref, atol=2e-6, rtol=0)
+        tabled = FastShader(model, pe_table=True).shade_fused(feats, query)
+        assert float((tabled - ref).abs().max()) < 2e-3
+        _within_bf16(FastShader(model, torch.bfloat16).shade_fused(feats, query), ref)
+        flip = lambda t: t.flip(2).contiguous(memory_format=torch.channels_last)  # noqa: E731
+        without = dataclasses.replace(feats, inner_texture=flip(feats.inner_texture))  # the atlases matter
+        if peel == 1.0:  # (every inner sample reads the outer atlas)
+            without = dataclasses.replace(without, outer_texture=flip(feats.outer_texture))
+        assert float((model.shade(without, query) - ref).abs().max()) > 1e-3
+        torch.testing.assert_close(exact.shade_fused(without, query), model.shade(without, query), atol=2e-6, rtol=0)
+
+
 def test_fused_pass_in_eight_ray_tiles(monkeypatch):
     """The engine's fused pass (table, projected features) in the 8-ray tiles of CPUs without AVX-512."""
     _fused_built_with("-mno-avx512f", monkeypatch)
-    model, feats, query = _case("two_surface_reflect_texture", "realtime", n=500)
-    with torch.no_grad():
-        ref = model.shade(feats, query)
-        torch.testing.assert_close(FastShader(model).shade_fused(feats, query), ref, atol=2e-6, rtol=0)
-        got = FastShader(model, pe_table=True, project_features=True).shade_fused(feats, query)
-    assert float((got - ref).abs().max()) < 2e-3
+    for downsample in (1, 2):  # the atlases in the maps, and apart
+        model, feats, query = _case("two_surface_reflect_texture", "realtime", n=500, unet_downsample=downsample)
+        with torch.no_grad():
+            ref = model.shade(feats, query)
+            torch.testing.assert_close(FastShader(model).shade_fused(feats, query), ref, atol=2e-6, rtol=0)
+            got = FastShader(model, pe_table=True, project_features=True).shade_fused(feats, query)
+        assert float((got - ref).abs().max()) < 2e-3
 
 
 def test_fallback_without_the_kernels(monkeypatch):

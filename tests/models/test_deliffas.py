@@ -287,3 +287,26 @@ def test_atlases_finer_than_the_maps_stay_joined():
     normals = torch.randn(1, 9, S, S)
     features = model.encode(normals, normals, joined=False)
     assert features.inner_texture is None and features.inner.shape == (1, 4 + 3, 2 * S, 2 * S)
+
+
+def test_u_nets_below_the_atlas_side_keep_the_atlases_apart():
+    """``unet_downsample`` 2: the U-Nets read the normal maps average-pooled to S / 2 and write S / 2 maps; the
+    texture atlases keep side S and stay apart, joined or not; the normals for the reflection keep side S; gradients
+    reach the U-Nets and the atlases; the factor must be a power of two dividing S."""
+    model = DeliffasModel(tiny_config("two_surface_reflect", texture_channels=3, unet_downsample=2))
+    normals = torch.randn(1, 9, S, S)
+    for joined in (True, False):
+        features = model.encode(normals, normals.flip(-1), joined=joined)
+        assert features.inner.shape == (1, 4, S // 2, S // 2) and features.outer.shape == (1, 4, S // 2, S // 2)
+        assert features.inner_texture.shape == (1, 3, S, S) and features.normals.shape[-1] == S
+    reference = model.unet_inner(torch.nn.functional.avg_pool2d(normals, 2))
+    torch.testing.assert_close(features.inner, reference.contiguous(memory_format=torch.channels_last))
+    query = RayQuery(torch.zeros(5, dtype=torch.long), torch.rand(5, 2), torch.rand(5, 2),
+                     torch.nn.functional.normalize(torch.randn(5, 3), dim=-1), torch.tensor([1, 0, 0, 1, 0]).bool())
+    encoded, feats = model.gather_inputs(features, query)
+    assert feats.shape == (5, 2 * (4 + 3))
+    model.shade(features, query).sum().backward()
+    assert model.texture_inner.grad is not None and model.unet_inner.down[0][0].weight.grad is not None
+    for bad in (3, 32, 0):
+        with pytest.raises(ValueError, match="unet_downsample"):
+            tiny_config("two_surface", unet_downsample=bad)

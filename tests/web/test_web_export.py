@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -99,3 +100,12 @@ def test_options_that_do_not_fit_the_output_are_refused(argv, match, capsys):
     assert main(["export", *argv]) == 2
     err = capsys.readouterr().err
     assert match in err and "Traceback" not in err
+
+
+def test_u_nets_below_the_atlas_side_are_refused():
+    from deliffas.engine.web.model_pack import check_web_supported
+    from deliffas.models import get_config
+
+    config = dataclasses.replace(get_config("two_surface_reflect_texture", "tiny"), unet_downsample=2)
+    with pytest.raises(ValueError, match="unet_downsample 2"):
+        check_web_supported(config)

@@ -46,6 +46,9 @@ def check_web_supported(config: ModelConfig) -> None:
     if config.texture_scale != 1:
         raise ValueError(f"--web: the web player renders texture atlases at the atlas side only (texture_scale 1), "
                          f"this model has texture_scale {config.texture_scale}")
+    if config.unet_downsample != 1:
+        raise ValueError(f"--web: the web player runs the U-Nets at the atlas side only (unet_downsample 1), this "
+                         f"model has unet_downsample {config.unet_downsample}")
 
 
 def _padded_input(weight: np.ndarray, segments: list[int]) -> np.ndarray:
