@@ -20,7 +20,9 @@ torch thread (``BENCH_THREADS``) on both sides of every ratio.
 * encoding table: the frame with the tables against the frame with the exact encoding
   (``RenderPathConfig(pe_table=False)``), same run; no target.
 * frames in flight: a stream of 8 frames one after the other (1 and 2 intra-op threads) against
-  ``render_stream`` with two frames in flight on one thread each; no target.
+  ``render_stream`` with two frames in flight on one thread each, for ``two_surface`` at ``realtime``, the default
+  of ``deliffas train``, and ``REFLECTED`` at ``realtime`` with its U-Nets at half the atlas side and 32 feature
+  channels (:data:`HALF_SIDE_32`); no target.
 * reflected direction: ``REFLECTED``'s frame against ``two_surface_texture``'s (the same model without the
   direction), pose held and U-Nets per frame, interleaved; no target.
 * fps: 1000 / frame ms, with the U-Nets run per frame (``deliffas render``: the pose changes every
@@ -57,13 +59,20 @@ def _frame_camera(sample) -> tuple[str, object]:
     return name, sample.cameras[0].rescaled(*size)
 
 
-def _model(info, preset: str, name: str = "two_surface"):
-    """The zoo's model ``name`` at ``preset``, untrained (seed 0; texture atlases, if any, random)."""
+HALF_SIDE_32 = {"unet_downsample": 2, "feature_channels": 32, "unet": {"out_channels": 32}}
+"""Model overrides of the stream row at ``realtime`` with U-Nets at half the atlas side and 32 feature channels
+(docs/results.md, "Speed against accuracy at 940 x 1285": within 0.3 dB of the default)."""
+
+
+def _model(info, preset: str, name: str = "two_surface", overrides: dict | None = None):
+    """The zoo's model ``name`` at ``preset`` with ``overrides`` (``TrainConfig.model_overrides``), untrained (seed 0;
+    texture atlases, if any, random)."""
     from deliffas.engine.train import TrainConfig, resolve_model_config
     from deliffas.models.deliffas import DeliffasModel
     from deliffas.models.unet import optimize_for_inference
 
-    cfg = resolve_model_config(TrainConfig(shards="", out="", model=name, preset=preset), info["atlas_res"], 2)
+    train = TrainConfig(shards="", out="", model=name, preset=preset, model_overrides=dict(overrides or {}))
+    cfg = resolve_model_config(train, info["atlas_res"], 2)
     torch.manual_seed(0)
     model = DeliffasModel(cfg).eval()
     with torch.no_grad():
@@ -186,15 +195,18 @@ def _reflect_rows(sample, info) -> list[Result]:
     return rows
 
 
-def _stream_rows(sample, info, name: str = "two_surface", preset: str = "realtime") -> list[Result]:
-    """Frames per second of a stream of 940x1285 frames of ``name`` at ``preset``: one after the other on 1 and on
-    2 intra-op threads, and two frames in flight (``render_stream``, one thread each), interleaved; pose held and
-    per frame."""
+def _stream_rows(sample, info, name: str = "two_surface", preset: str = "realtime",
+                 overrides: tuple[str, dict] | None = None) -> list[Result]:
+    """Frames per second of a stream of 940x1285 frames of ``name`` at ``preset`` (with ``overrides``: its label and
+    model overrides): one after the other on 1 and on 2 intra-op threads, and two frames in flight (``render_stream``,
+    one thread each), interleaved; pose held and per frame."""
     from deliffas.fast.frame import render_stream
     from deliffas.fast.config import RenderPathConfig
 
-    model = _model(info, preset, name)
+    model = _model(info, preset, name, overrides[1] if overrides else None)
     what = f"{preset} preset" if name == "two_surface" else f"{name} ({preset}, the default of deliffas train)"
+    if overrides:
+        what = f"{name} ({preset}, {overrides[0]})"
     size, cam = _frame_camera(sample)
     held, full, _, _ = _frame_fns(model, sample, info, cam, RenderPathConfig())
     frames = sized(8, 2)
@@ -262,6 +274,7 @@ def run() -> list[Result]:
     with torch_threads():
         rows = (_ratio_rows(sample, info) + _ratio_rows(sample, info, REFLECTED) + _reflect_rows(sample, info)
                 + _stream_rows(sample, info) + _stream_rows(sample, info, TrainConfig.model, TrainConfig.preset)
+                + _stream_rows(sample, info, REFLECTED, "realtime", ("U-Nets at S / 2, 32 features", HALF_SIDE_32))
                 + _fps_rows(sample, info))
     rows[-1].note += f" (group took {time.perf_counter() - t0:.0f} s)"
     return rows
