@@ -17,19 +17,21 @@ def web_capture(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def web_runs(web_capture, tmp_path_factory):
-    """``runs(model, preset)``: a run of that model trained for a few iterations on the capture (made once)."""
+    """``runs(model, preset, **overrides)``: a run of that model (its config's fields ``overrides`` replaced, e.g.
+    ``unet_downsample=2``) trained for a few iterations on the capture (made once)."""
     from deliffas.engine.train import TrainConfig, train
 
-    made: dict[tuple[str, str], Path] = {}
+    made: dict[tuple, Path] = {}
     root = tmp_path_factory.mktemp("web_runs")
 
-    def runs(model: str, preset: str) -> Path:
-        if (model, preset) not in made:
-            run = root / f"{model}-{preset}"
+    def runs(model: str, preset: str, **overrides) -> Path:
+        key = (model, preset, *sorted(overrides.items()))
+        if key not in made:
+            run = root / "-".join([model, preset, *(f"{k}{v}" for k, v in sorted(overrides.items()))])
             train(TrainConfig(shards=str(web_capture[1]), out=str(run), model=model, preset=preset, iters=6,
                               cameras_per_frame=2, protocol="all", num_workers=0, checkpoint_every=6,
-                              preview_every=0, log_every=1, progress=False))
-            made[model, preset] = run
-        return made[model, preset]
+                              preview_every=0, log_every=1, progress=False, model_overrides=overrides))
+            made[key] = run
+        return made[key]
 
     return runs

@@ -15,23 +15,25 @@ from web_page import needs_chromium, person_psnr, person_scores, reference_frame
 FRAMES, CAMERAS = 3, (0, 3)  # three frames of the test motion from a training and the held-out camera
 AGREEMENT_DB = 35.0  # issue 51's bar; the page reaches about 60 dB here (8-bit rounding)
 
-MODELS = [pytest.param(DEFAULT_MODEL, DEFAULT_PRESET, id="default"),
-          pytest.param(DEFAULT_MODEL, "realtime", id="realtime"),
-          pytest.param("two_surface", "tiny", id="two_surface"),
-          pytest.param("single_surface_viewdir", "tiny", id="single_surface_viewdir")]
+DOWNSAMPLED = pytest.param(DEFAULT_MODEL, "tiny", {"unet_downsample": 2}, id="unet_downsample_2")
+"""The default model with its U-Nets at half the atlas side (feature maps S / 2, texture atlases and normals S)."""
+MODELS = [pytest.param(DEFAULT_MODEL, DEFAULT_PRESET, {}, id="default"),
+          pytest.param(DEFAULT_MODEL, "realtime", {}, id="realtime"),
+          pytest.param("two_surface", "tiny", {}, id="two_surface"),
+          pytest.param("single_surface_viewdir", "tiny", {}, id="single_surface_viewdir"), DOWNSAMPLED]
 
 
 @needs_chromium
-@pytest.mark.parametrize("model, preset", MODELS)
-def test_page_frames_agree_with_deliffas_render(web_capture, web_runs, tmp_path, model, preset):
-    run = web_runs(model, preset)
+@pytest.mark.parametrize("model, preset, overrides", MODELS)
+def test_page_frames_agree_with_deliffas_render(web_capture, web_runs, tmp_path, model, preset, overrides):
+    run = web_runs(model, preset, **overrides)
     motion = next((web_capture[0] / "testing").glob("*.motion"))
     out = export_web(ExportConfig(run=run, out=tmp_path / "page", web=True, motion=motion))
     refs = {c: reference_frames(run, motion, c, FRAMES, tmp_path / f"ref{c}") for c in CAMERAS}
     with served_page(out, tmp_path) as page:
         scores = person_scores(page, refs)
         stats = page.evaluate("() => window.deliffasPlayer.stats()")
-    print(f"{model} {preset}: PSNR on the person (dB) {scores}")  # shown with pytest -s
+    print(f"{model} {preset} {overrides}: PSNR on the person (dB) {scores}")  # shown with pytest -s
     assert min(scores.values()) >= AGREEMENT_DB, scores
     assert stats["backend"].startswith("webgl2") and set(stats["stages_ms"]) >= {"unet", "raster", "shade"}
 

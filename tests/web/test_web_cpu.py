@@ -9,7 +9,7 @@ from deliffas.engine.export_config import ExportConfig
 from deliffas.engine.web import export_web
 from deliffas.models.model_table import DEFAULT_MODEL, DEFAULT_PRESET
 
-from test_web_browser import AGREEMENT_DB, CAMERAS, FRAMES
+from test_web_browser import AGREEMENT_DB, CAMERAS, DOWNSAMPLED, FRAMES
 from web_page import needs_chromium, page_frame, person_scores, reference_frames, served_page
 
 NO_WEBGL2 = """(() => {
@@ -22,11 +22,12 @@ NO_WEBGL2 = """(() => {
 
 
 @needs_chromium
-@pytest.mark.parametrize("model, preset", [pytest.param(DEFAULT_MODEL, DEFAULT_PRESET, id="default"),
-                                           pytest.param(DEFAULT_MODEL, "realtime", id="realtime"),
-                                           pytest.param("single_surface_viewdir", "tiny", id="single_surface_viewdir")])
-def test_the_cpu_backend_agrees_with_deliffas_render(web_capture, web_runs, tmp_path, model, preset):
-    run = web_runs(model, preset)
+@pytest.mark.parametrize("model, preset, overrides",
+                         [pytest.param(DEFAULT_MODEL, DEFAULT_PRESET, {}, id="default"),
+                          pytest.param(DEFAULT_MODEL, "realtime", {}, id="realtime"),
+                          pytest.param("single_surface_viewdir", "tiny", {}, id="single_surface_viewdir"), DOWNSAMPLED])
+def test_the_cpu_backend_agrees_with_deliffas_render(web_capture, web_runs, tmp_path, model, preset, overrides):
+    run = web_runs(model, preset, **overrides)
     motion = next((web_capture[0] / "testing").glob("*.motion"))
     out = export_web(ExportConfig(run=run, out=tmp_path / "page", web=True, motion=motion))
     refs = {c: reference_frames(run, motion, c, FRAMES, tmp_path / f"ref{c}") for c in CAMERAS}
@@ -35,7 +36,7 @@ def test_the_cpu_backend_agrees_with_deliffas_render(web_capture, web_runs, tmp_
         stats = page.evaluate("() => window.deliffasPlayer.stats()")
         hits = page.evaluate("() => window.deliffasPlayer.hits()")
         shown = page.evaluate("() => document.getElementById('fps').textContent")
-    print(f"cpu backend, {model} {preset}: PSNR on the person (dB) {scores}")  # shown with pytest -s
+    print(f"cpu backend, {model} {preset} {overrides}: PSNR on the person (dB) {scores}")  # shown with pytest -s
     assert min(scores.values()) >= AGREEMENT_DB, scores
     assert stats["backend"] == "cpu" and set(stats["stages_ms"]) >= {"unet", "raster", "shade"}
     assert "cpu" in shown

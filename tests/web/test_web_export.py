@@ -102,10 +102,16 @@ def test_options_that_do_not_fit_the_output_are_refused(argv, match, capsys):
     assert match in err and "Traceback" not in err
 
 
-def test_u_nets_below_the_atlas_side_are_refused():
-    from deliffas.engine.web.model_pack import check_web_supported
+def test_u_nets_below_the_atlas_side_are_accepted_and_exported():
+    from deliffas.engine.web.bundle import Bundle
+    from deliffas.engine.web.model_pack import check_web_supported, pack_model
     from deliffas.models import get_config
+    from deliffas.models.deliffas import DeliffasModel
 
     config = dataclasses.replace(get_config("two_surface_reflect_texture", "tiny"), unet_downsample=2)
-    with pytest.raises(ValueError, match="unet_downsample 2"):
-        check_web_supported(config)
+    check_web_supported(config)  # no ValueError
+    model = pack_model(DeliffasModel(config).eval(), Bundle())
+    assert model["unet_downsample"] == 2 and model["atlas_res"] == config.atlas_res
+    assert model["unet_inner"]["levels"] == int(np.log2(config.atlas_res // 2))  # down to 1 x 1 from S / 2
+    with pytest.raises(ValueError, match="texture_scale 2"):  # finer atlases stay refused
+        check_web_supported(dataclasses.replace(config, texture_scale=2))

@@ -46,9 +46,6 @@ def check_web_supported(config: ModelConfig) -> None:
     if config.texture_scale != 1:
         raise ValueError(f"--web: the web player renders texture atlases at the atlas side only (texture_scale 1), "
                          f"this model has texture_scale {config.texture_scale}")
-    if config.unet_downsample != 1:
-        raise ValueError(f"--web: the web player runs the U-Nets at the atlas side only (unet_downsample 1), this "
-                         f"model has unet_downsample {config.unet_downsample}")
 
 
 def _padded_input(weight: np.ndarray, segments: list[int]) -> np.ndarray:
@@ -162,8 +159,10 @@ def pack_model(model: DeliffasModel, bundle: Bundle) -> dict:
     cfg = model.config
     check_web_supported(cfg)
     spec = cfg.spec
-    return {"variant": cfg.variant, "atlas_res": cfg.atlas_res, "temporal_window": cfg.temporal_window,
-            "feature_channels": cfg.feature_channels, "texture_channels": cfg.texture_channels,
+    # unet_downsample d: the U-Nets run on the normal maps pooled to S / d and their maps are sampled at that side
+    return {"variant": cfg.variant, "atlas_res": cfg.atlas_res, "unet_downsample": cfg.unet_downsample,
+            "temporal_window": cfg.temporal_window, "feature_channels": cfg.feature_channels,
+            "texture_channels": cfg.texture_channels,
             "pe_freqs": cfg.pe_freqs, "viewdir_pe_freqs": cfg.viewdir_pe_freqs,
             "spec": {"outer_unet": spec.outer_unet, "viewdir": spec.viewdir, "reflect_viewdir": spec.reflect_viewdir,
                      "encoded_uvs": list(spec.encoded_uvs), "inner_from_outer": spec.inner_from_outer},

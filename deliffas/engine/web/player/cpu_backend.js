@@ -2,7 +2,7 @@
 // rasterisation and light field as the WebGL2 backend in plain JavaScript over typed arrays (cpu_unet.js,
 // cpu_raster.js, cpu_shade.js), drawn to the canvas's 2D context with putImageData.
 
-import {stackChannels} from './gl.js';
+import {poolChannels, stackChannels, unetSide} from './gl.js';
 import {CpuUNet} from './cpu_unet.js';
 import {CpuRaster} from './cpu_raster.js';
 import {CpuLightField} from './cpu_shade.js';
@@ -14,11 +14,12 @@ export class CpuBackend {
     this.name = 'cpu';
     this.canvas = canvas;
     this.model = model;
-    const S = model.atlas_res;
-    this.unets = {inner: new CpuUNet(model.unet_inner, S, arrays),
-                  outer: model.unet_outer ? new CpuUNet(model.unet_outer, S, arrays) : null};
+    const S = model.atlas_res, SU = unetSide(model);  // the atlas side, the U-Nets' side
+    this.unets = {inner: new CpuUNet(model.unet_inner, SU, arrays),
+                  outer: model.unet_outer ? new CpuUNet(model.unet_outer, SU, arrays) : null};
     const channels = 3 * (model.temporal_window + 1);
-    this.input = {channels, buffer: new Float32Array(((channels + 3) >> 2) * S * S * 4)};
+    this.input = {channels, pooled: SU < S ? new Float32Array(channels * SU * SU) : null,
+                  buffer: new Float32Array(((channels + 3) >> 2) * SU * SU * 4)};
     const atlas = t => (t ? arrays(t.data) : null);
     this.maps = {innerT: atlas(model.texture_inner), outerT: atlas(model.texture_outer), normal: null};
     this.shadePass = new CpuLightField(model, arrays(model.mlp.table));
@@ -28,11 +29,15 @@ export class CpuBackend {
 
   // As WebGL2Backend.encode: the feature maps as stacked Float32Arrays.
   encode(windows, normal) {
-    const S = this.model.atlas_res, inp = this.input;
     this.maps.normal = normal;
-    this.maps.innerF = this.unets.inner.run(stackChannels(windows[0], inp.channels, S, inp.buffer));
-    this.maps.outerF = this.unets.outer
-      ? this.unets.outer.run(stackChannels(windows[1], inp.channels, S, inp.buffer)) : this.maps.innerF;
+    this.maps.innerF = this.unets.inner.run(this.unetInput(windows[0]));
+    this.maps.outerF = this.unets.outer ? this.unets.outer.run(this.unetInput(windows[1])) : this.maps.innerF;
+  }
+
+  // As WebGL2Backend.unetInput: one surface's temporal window pooled by unet_downsample, channels stacked.
+  unetInput(window) {
+    const S = this.model.atlas_res, SU = unetSide(this.model), inp = this.input;
+    return stackChannels(poolChannels(window, inp.channels, S, S / SU, inp.pooled), inp.channels, SU, inp.buffer);
   }
 
   raster(inner, outer, cam) { return this.rasterPass.run(inner, outer, cam); }

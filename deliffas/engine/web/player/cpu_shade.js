@@ -3,6 +3,7 @@
 // (grid_sample, align_corners=False, border), the positional encodings of the uvs and of the (reflected) view
 // direction, and the MLP from the same table of weight rows. Writes RGBA bytes, rows top down.
 
+import {unetSide} from './gl.js';
 import {rayMatrix} from './shade.js';
 
 const ceil4 = n => (n + 3) >> 2 << 2;
@@ -20,9 +21,10 @@ function bilinear(t, S, group, u, v, out, k, count) {
   }
 }
 
-// One surface's features at uv into f from k: the feature maps' C channels, then the texture atlas's CT.
-function addMap(f, k, S, maps, C, tex, CT, u, v) {
-  for (let g = 0; g < (C + 3) >> 2; g++) bilinear(maps, S, g, u, v, f, k + 4 * g, Math.min(4, C - 4 * g));
+// One surface's features at uv into f from k: the feature maps' C channels (side SF, the U-Nets'), then the texture
+// atlas's CT (side S, the atlas's).
+function addMap(f, k, SF, maps, C, S, tex, CT, u, v) {
+  for (let g = 0; g < (C + 3) >> 2; g++) bilinear(maps, SF, g, u, v, f, k + 4 * g, Math.min(4, C - 4 * g));
   for (let g = 0; g < (CT + 3) >> 2; g++) bilinear(tex, S, g, u, v, f, k + C + 4 * g, Math.min(4, CT - 4 * g));
 }
 
@@ -111,7 +113,7 @@ export class CpuLightField {
   // Shade `cam` into `rgba` (Uint8ClampedArray, W*H*4): hits from CpuRaster.run, maps {innerF, outerF, innerT,
   // outerT, normal} (stacked Float32Arrays; the texture atlases null without them).
   run(hits, maps, cam, rgba) {
-    const model = this.model, s = model.spec, S = model.atlas_res, C = model.feature_channels;
+    const model = this.model, s = model.spec, S = model.atlas_res, SF = unetSide(model), C = model.feature_channels;
     const CT = model.texture_channels, width = C + CT, W = cam.width, H = cam.height;
     const hIn = hits.inner.data, hOut = hits.outer.data, hExit = hits.exit.data, M = rayMatrix(cam);
     const X = this.x, F = this.f, ms = this.maxIn, nf = this.nf, n = new Float64Array(4);
@@ -142,9 +144,9 @@ export class CpuLightField {
         const fb = count * nf;
         F.fill(0, fb, fb + nf);
         let k = fb;
-        if (s.outer_unet) { addMap(F, k, S, maps.outerF, C, texOut, CT, uvOut[0], uvOut[1]); k += width; }
-        if (s.inner_from_outer && peeled) addMap(F, k, S, maps.outerF, C, texOut, CT, uvIn[0], uvIn[1]);
-        else addMap(F, k, S, maps.innerF, C, texIn, CT, uvIn[0], uvIn[1]);
+        if (s.outer_unet) { addMap(F, k, SF, maps.outerF, C, S, texOut, CT, uvOut[0], uvOut[1]); k += width; }
+        if (s.inner_from_outer && peeled) addMap(F, k, SF, maps.outerF, C, S, texOut, CT, uvIn[0], uvIn[1]);
+        else addMap(F, k, SF, maps.innerF, C, S, texIn, CT, uvIn[0], uvIn[1]);
         const xb = count * ms;
         X.fill(0, xb, xb + ms);
         k = xb;

@@ -104,6 +104,29 @@ export function drawFullscreen(gl, target, vao) {
   gl.drawArrays(gl.TRIANGLES, 0, 3);
 }
 
+// The U-Nets' input side of a model: the atlas side S over unet_downsample (S itself without one).
+export function unetSide(model) {
+  return model.atlas_res / (model.unet_downsample || 1);
+}
+
+// A channel-first array (c, side, side) of `channels` channels average-pooled by d (F.avg_pool2d(x, d): the mean of
+// each d x d block of texels): (c, side / d, side / d); `src` itself for d = 1.
+export function poolChannels(src, channels, side, d, out = null) {
+  if (d === 1) return src;
+  const m = side / d, dst = out || new Float32Array(channels * m * m), inv = 1 / (d * d);
+  for (let c = 0; c < channels; c++) {
+    const s = c * side * side, o = c * m * m;
+    for (let y = 0; y < m; y++) {
+      for (let x = 0; x < m; x++) {
+        let sum = 0;
+        for (let j = 0; j < d; j++) for (let i = 0; i < d; i++) sum += src[s + (y * d + j) * side + x * d + i];
+        dst[o + y * m + x] = sum * inv;
+      }
+    }
+  }
+  return dst;
+}
+
 // Float32Array of w x h RGBA texels holding `groups` stacked maps (rows g*side .. g*side+side-1) from a
 // channel-first array (c, side, side) of `channels` channels: channel c goes to group c >> 2, component c & 3.
 export function stackChannels(src, channels, side, out = null) {

@@ -2,29 +2,30 @@
 // the inner surface is missed), the feature maps sampled bilinearly at those uvs, the positional encodings of the
 // uvs and of the (reflected) view direction, and the MLP, whose weights are rows of a float texture.
 
-import {FULLSCREEN_VS, bindTextures, drawFullscreen, program} from './gl.js';
+import {FULLSCREEN_VS, bindTextures, drawFullscreen, program, unetSide} from './gl.js';
 
 const ceil4 = n => (n + 3) >> 2 << 2;
 
-// Bilinear lookups into stacked maps (grid_sample, align_corners=False, border) and one surface's features.
+// Bilinear lookups into stacked maps of side `side` (grid_sample, align_corners=False, border) and one surface's
+// features: the feature maps at the U-Nets' side SF, the texture atlas at the atlas side S.
 const SAMPLING_GLSL = `
-vec4 bilinear(sampler2D t, int group, vec2 uv) {
-  float fs = float(S);
+vec4 bilinear(sampler2D t, int side, int group, vec2 uv) {
+  float fs = float(side);
   float x = clamp(uv.x * fs - 0.5, 0.0, fs - 1.0), y = clamp((1.0 - uv.y) * fs - 0.5, 0.0, fs - 1.0);
-  int x0 = int(floor(x)), y0 = int(floor(y)), x1 = min(x0 + 1, S - 1), y1 = min(y0 + 1, S - 1);
+  int x0 = int(floor(x)), y0 = int(floor(y)), x1 = min(x0 + 1, side - 1), y1 = min(y0 + 1, side - 1);
   float ax = x - float(x0), ay = y - float(y0);
-  int o = group * S;
+  int o = group * side;
   vec4 a = mix(texelFetch(t, ivec2(x0, y0 + o), 0), texelFetch(t, ivec2(x1, y0 + o), 0), ax);
   vec4 b = mix(texelFetch(t, ivec2(x0, y1 + o), 0), texelFetch(t, ivec2(x1, y1 + o), 0), ax);
   return mix(a, b, ay);
 }
 void addMap(inout float f[MAXIN], int k, sampler2D maps, sampler2D tex, vec2 uv) {
   for (int g = 0; g < (C + 3) / 4; g++) {
-    vec4 v = bilinear(maps, g, uv);
+    vec4 v = bilinear(maps, SF, g, uv);
     for (int j = 0; j < 4; j++) if (4 * g + j < C) f[k + 4 * g + j] = v[j];
   }
   for (int g = 0; g < (CT + 3) / 4; g++) {
-    vec4 v = bilinear(tex, g, uv);
+    vec4 v = bilinear(tex, S, g, uv);
     for (int j = 0; j < 4; j++) if (4 * g + j < CT) f[k + C + 4 * g + j] = v[j];
   }
 }
@@ -74,7 +75,8 @@ precision highp float; precision highp int; precision highp sampler2D;
 uniform sampler2D uInnerHit, uOuterHit, uExitHit, uInnerF, uOuterF, uInnerT, uOuterT, uNormal, uMlp;
 uniform mat3 uRay; uniform float uHeight; uniform float uFreq[16]; uniform float uFreqDir[16];
 out vec4 outColor;
-const int S = ${model.atlas_res}, C = ${model.feature_channels}, CT = ${model.texture_channels};
+const int S = ${model.atlas_res}, SF = ${unetSide(model)}, C = ${model.feature_channels};
+const int CT = ${model.texture_channels};
 const int NL = ${mlp.layers.length}, MAXIN = ${maxIn}, MAXG = ${maxIn / 4};
 const int L_IN[NL] = ${ints('in')}; const int L_OUT[NL] = ${ints('out')};
 const int L_ROW[NL] = ${ints('row')}; const int L_FRONT[NL] = ${ints('front')};`;
@@ -84,7 +86,7 @@ function shaderSource(model) {
   const s = model.spec, width = model.feature_channels + model.texture_channels;
   const encoded = s.encoded_uvs.map(w => encoding(w === 'outer' ? 'uvOut' : 'uvIn', 2, model.pe_freqs, 'uFreq'));
   if (s.viewdir) encoded.push(encoding('dir', 3, model.viewdir_pe_freqs, 'uFreqDir'));
-  const reflect = `vec3 n = bilinear(uNormal, 0, uvIn).xyz; n = n / max(length(n), 1e-6);
+  const reflect = `vec3 n = bilinear(uNormal, S, 0, uvIn).xyz; n = n / max(length(n), 1e-6);
   dir = dir - 2.0 * dot(dir, n) * n;`;
   return `${header(model)}
 ${SAMPLING_GLSL}

@@ -1,7 +1,8 @@
 // The WebGL2 backend: U-Nets (unet.js), rasterisation (raster.js) and the light field (shade.js) as shader passes
 // over RGBA32F textures (EXT_color_buffer_float), drawn to the canvas's WebGL2 context.
 
-import {createContext, describeRenderer, floatTexture, renderTarget, stackChannels, uploadTexture} from './gl.js';
+import {createContext, describeRenderer, floatTexture, poolChannels, renderTarget, stackChannels, unetSide,
+  uploadTexture} from './gl.js';
 import {UNetPasses} from './unet.js';
 import {SurfaceRaster} from './raster.js';
 import {LightFieldPass} from './shade.js';
@@ -11,13 +12,14 @@ export class WebGL2Backend {
     const gl = this.gl = createContext(canvas);
     this.name = `webgl2 (${describeRenderer(gl)})`;
     this.model = model;
-    const S = model.atlas_res;
+    const S = model.atlas_res, SU = unetSide(model);  // the atlas side, the U-Nets' side
     this.vao = gl.createVertexArray();
-    this.unets = {inner: new UNetPasses(gl, model.unet_inner, S, arrays, this.vao),
-                  outer: model.unet_outer ? new UNetPasses(gl, model.unet_outer, S, arrays, this.vao) : null};
+    this.unets = {inner: new UNetPasses(gl, model.unet_inner, SU, arrays, this.vao),
+                  outer: model.unet_outer ? new UNetPasses(gl, model.unet_outer, SU, arrays, this.vao) : null};
     const channels = 3 * (model.temporal_window + 1), groups = (channels + 3) >> 2;
-    this.input = {channels, buffer: new Float32Array(groups * S * S * 4),
-                  inner: floatTexture(gl, S, S * groups), outer: floatTexture(gl, S, S * groups)};
+    this.input = {channels, pooled: SU < S ? new Float32Array(channels * SU * SU) : null,
+                  buffer: new Float32Array(groups * SU * SU * 4),
+                  inner: floatTexture(gl, SU, SU * groups), outer: floatTexture(gl, SU, SU * groups)};
     const atlas = t => (t ? floatTexture(gl, S, S * ((t.channels + 3) >> 2), arrays(t.data)) : floatTexture(gl, 1, 1));
     this.maps = {innerT: atlas(model.texture_inner), outerT: atlas(model.texture_outer),
                  normal: floatTexture(gl, S, S)};
@@ -29,19 +31,25 @@ export class WebGL2Backend {
     this.rasterPass = new SurfaceRaster(gl, arrays(scene.faces), arrays(scene.uvs), arrays(scene.face_uvs));
   }
 
-  // The U-Nets on the temporal windows of both surfaces' normal maps ((3 (T + 1), S, S) each); normal: the inner
-  // normal map as S x S RGBA texels (the reflection's normals).
+  // The U-Nets on the temporal windows of both surfaces' normal maps ((3 (T + 1), S, S) each, pooled to the U-Nets'
+  // side); normal: the inner normal map as S x S RGBA texels (the reflection's normals).
   encode(windows, normal) {
-    const gl = this.gl, S = this.model.atlas_res, inp = this.input;
+    const gl = this.gl, inp = this.input;
     uploadTexture(gl, this.maps.normal, normal);
-    uploadTexture(gl, inp.inner, stackChannels(windows[0], inp.channels, S, inp.buffer));
+    uploadTexture(gl, inp.inner, this.unetInput(windows[0]));
     this.maps.innerF = this.unets.inner.run(inp.inner);
     if (this.unets.outer) {
-      uploadTexture(gl, inp.outer, stackChannels(windows[1], inp.channels, S, inp.buffer));
+      uploadTexture(gl, inp.outer, this.unetInput(windows[1]));
       this.maps.outerF = this.unets.outer.run(inp.outer);
     } else {
       this.maps.outerF = this.maps.innerF;
     }
+  }
+
+  // One surface's temporal window as the U-Nets' input texels: pooled by unet_downsample, channels stacked.
+  unetInput(window) {
+    const S = this.model.atlas_res, SU = unetSide(this.model), inp = this.input;
+    return stackChannels(poolChannels(window, inp.channels, S, S / SU, inp.pooled), inp.channels, SU, inp.buffer);
   }
 
   raster(inner, outer, cam) { return this.rasterPass.run(inner, outer, cam); }
