@@ -2,7 +2,7 @@
 // rasterisation and light field as the WebGL2 backend in plain JavaScript over typed arrays (cpu_unet.js,
 // cpu_raster.js, cpu_shade.js), drawn to the canvas's 2D context with putImageData.
 
-import {poolChannels, stackChannels, unetSide} from './gl.js';
+import {unetInputTexels, unetSide} from './gl.js';
 import {CpuUNet} from './cpu_unet.js';
 import {CpuRaster} from './cpu_raster.js';
 import {CpuLightField} from './cpu_shade.js';
@@ -30,14 +30,9 @@ export class CpuBackend {
   // As WebGL2Backend.encode: the feature maps as stacked Float32Arrays.
   encode(windows, normal) {
     this.maps.normal = normal;
-    this.maps.innerF = this.unets.inner.run(this.unetInput(windows[0]));
-    this.maps.outerF = this.unets.outer ? this.unets.outer.run(this.unetInput(windows[1])) : this.maps.innerF;
-  }
-
-  // As WebGL2Backend.unetInput: one surface's temporal window pooled by unet_downsample, channels stacked.
-  unetInput(window) {
-    const S = this.model.atlas_res, SU = unetSide(this.model), inp = this.input;
-    return stackChannels(poolChannels(window, inp.channels, S, S / SU, inp.pooled), inp.channels, SU, inp.buffer);
+    const input = w => unetInputTexels(this.model, w, this.input);
+    this.maps.innerF = this.unets.inner.run(input(windows[0]));
+    this.maps.outerF = this.unets.outer ? this.unets.outer.run(input(windows[1])) : this.maps.innerF;
   }
 
   raster(inner, outer, cam) { return this.rasterPass.run(inner, outer, cam); }

@@ -127,6 +127,14 @@ export function poolChannels(src, channels, side, d, out = null) {
   return dst;
 }
 
+// One surface's temporal window (3 (T + 1), S, S) as the U-Nets' input texels: pooled by unet_downsample into
+// input.pooled, channels stacked into input.buffer ({channels, pooled, buffer}, as both backends hold them).
+export function unetInputTexels(model, window, input) {
+  const S = model.atlas_res, SU = unetSide(model);
+  return stackChannels(poolChannels(window, input.channels, S, S / SU, input.pooled), input.channels, SU,
+                       input.buffer);
+}
+
 // Float32Array of w x h RGBA texels holding `groups` stacked maps (rows g*side .. g*side+side-1) from a
 // channel-first array (c, side, side) of `channels` channels: channel c goes to group c >> 2, component c & 3.
 export function stackChannels(src, channels, side, out = null) {

@@ -1,8 +1,8 @@
 // The WebGL2 backend: U-Nets (unet.js), rasterisation (raster.js) and the light field (shade.js) as shader passes
 // over RGBA32F textures (EXT_color_buffer_float), drawn to the canvas's WebGL2 context.
 
-import {createContext, describeRenderer, floatTexture, poolChannels, renderTarget, stackChannels, unetSide,
-  uploadTexture} from './gl.js';
+import {createContext, describeRenderer, floatTexture, renderTarget, unetInputTexels, unetSide, uploadTexture}
+  from './gl.js';
 import {UNetPasses} from './unet.js';
 import {SurfaceRaster} from './raster.js';
 import {LightFieldPass} from './shade.js';
@@ -36,20 +36,14 @@ export class WebGL2Backend {
   encode(windows, normal) {
     const gl = this.gl, inp = this.input;
     uploadTexture(gl, this.maps.normal, normal);
-    uploadTexture(gl, inp.inner, this.unetInput(windows[0]));
+    uploadTexture(gl, inp.inner, unetInputTexels(this.model, windows[0], inp));
     this.maps.innerF = this.unets.inner.run(inp.inner);
     if (this.unets.outer) {
-      uploadTexture(gl, inp.outer, this.unetInput(windows[1]));
+      uploadTexture(gl, inp.outer, unetInputTexels(this.model, windows[1], inp));
       this.maps.outerF = this.unets.outer.run(inp.outer);
     } else {
       this.maps.outerF = this.maps.innerF;
     }
-  }
-
-  // One surface's temporal window as the U-Nets' input texels: pooled by unet_downsample, channels stacked.
-  unetInput(window) {
-    const S = this.model.atlas_res, SU = unetSide(this.model), inp = this.input;
-    return stackChannels(poolChannels(window, inp.channels, S, S / SU, inp.pooled), inp.channels, SU, inp.buffer);
   }
 
   raster(inner, outer, cam) { return this.rasterPass.run(inner, outer, cam); }
