@@ -204,9 +204,10 @@ def _stream_rows(sample, info, name: str = "two_surface", preset: str = "realtim
     from deliffas.fast.config import RenderPathConfig
 
     model = _model(info, preset, name, overrides[1] if overrides else None)
-    what = f"{preset} preset" if name == "two_surface" else f"{name} ({preset}, the default of deliffas train)"
     if overrides:
         what = f"{name} ({preset}, {overrides[0]})"
+    else:
+        what = f"{preset} preset" if name == "two_surface" else f"{name} ({preset}, the default of deliffas train)"
     size, cam = _frame_camera(sample)
     held, full, _, _ = _frame_fns(model, sample, info, cam, RenderPathConfig())
     frames = sized(8, 2)
